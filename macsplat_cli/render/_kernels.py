@@ -1,0 +1,279 @@
+"""Numba CPU kernels: tile binning and alpha compositing, forward and backward.
+
+Layout (Gaussian-outer, pixel-inner, as measured fastest on CPUs):
+
+* The image is cut into ``tile × tile`` pixel tiles. Each tile owns the list of the
+  Gaussians whose support rectangle touches it, in front-to-back order. The Gaussians
+  arrive already sorted by depth, so a tile list holds increasing indices and the
+  kernels read the per-Gaussian arrays in increasing memory order.
+* One thread handles one tile at a time (``prange`` over tiles). For each Gaussian of the
+  tile list, only the pixels of its support rectangle inside the tile are visited.
+* Forward: front-to-back compositing with alpha ≤ 0.99, samples with alpha < 1/255 or a
+  negative exponent skipped, and a pixel stopped before the sample that would bring its
+  transmittance to ≤ 1e-4 (that sample is not added). The index of the last added sample
+  of each pixel is kept for the backward pass.
+* Backward: back-to-front over the same samples, transmittance recovered by division by
+  (1 − alpha) ≥ 0.01, with a per-pixel running sum of the later contributions. Gradients
+  are written to one row per (tile, Gaussian) intersection, so no two threads ever write
+  the same memory; the caller reduces the rows per Gaussian.
+
+Every constant and skip rule here is shared with the plain-PyTorch twin in
+``reference.py``; the tests compare the two on forward values and gradients.
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+from ._constants import ALPHA_MAX, ALPHA_MIN, T_MIN
+
+GRAD_COLS = 6  # per intersection: d mean2d (2), d conic (3), d opacity (1), then d features (C)
+
+# Float32-typed literals: a float64 literal would promote every float32 expression to
+# float64; float64 inputs still promote these to float64.
+_HALF = np.float32(0.5)
+_ZERO = np.float32(0.0)
+_ONE = np.float32(1.0)
+_A_MIN = np.float32(ALPHA_MIN)
+_A_MAX = np.float32(ALPHA_MAX)
+_T_MIN = np.float32(T_MIN)
+_LOG_255 = np.float32(np.log(255.0))
+_LEVEL_SLACK = np.float32(1e-3)  # the exp-free rejection must never reject alpha ≥ 1/255
+
+_JIT = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
+
+
+@nb.njit(inline="always", **_JIT)
+def _level(op):  # noqa: ANN001, ANN202
+    """σ above which ``op·exp(−σ) < 1/255`` for sure: lets the kernels skip ``exp``."""
+    return np.log(op) + _LOG_255 + _LEVEL_SLACK
+
+
+@nb.njit(parallel=True, **_JIT)
+def bin_tiles(pixel_rect, width, height, tile):  # noqa: ANN001, ANN201 - numba
+    """Per-tile lists of the Gaussians touching each tile, in input (depth) order.
+
+    Args:
+        pixel_rect: inclusive support rectangles (x0, x1, y0, y1), clipped. [M, 4] int32
+        width, height, tile: image size and tile size in pixels.
+
+    Returns:
+        ``(offsets, lists)``: tile ``t`` holds ``lists[offsets[t]:offsets[t + 1]]``.
+        [n_tiles + 1] int64, [n_isect] int32
+    """
+    tiles_x = (width + tile - 1) // tile
+    tiles_y = (height + tile - 1) // tile
+    m = pixel_rect.shape[0]
+    counts = np.zeros(tiles_x * tiles_y, np.int64)
+    # One tile row per thread: each thread writes only its own row's counters.
+    for ty in nb.prange(tiles_y):
+        for g in range(m):
+            if pixel_rect[g, 2] // tile <= ty <= pixel_rect[g, 3] // tile:
+                for tx in range(pixel_rect[g, 0] // tile, pixel_rect[g, 1] // tile + 1):
+                    counts[ty * tiles_x + tx] += 1
+    offsets = np.zeros(tiles_x * tiles_y + 1, np.int64)
+    offsets[1:] = np.cumsum(counts)
+    lists = np.empty(offsets[-1], np.int32)
+    for ty in nb.prange(tiles_y):
+        cursor = offsets[ty * tiles_x : (ty + 1) * tiles_x].copy()
+        for g in range(m):
+            if pixel_rect[g, 2] // tile <= ty <= pixel_rect[g, 3] // tile:
+                for tx in range(pixel_rect[g, 0] // tile, pixel_rect[g, 1] // tile + 1):
+                    lists[cursor[tx]] = g
+                    cursor[tx] += 1
+    return offsets, lists
+
+
+@nb.njit(parallel=True, **_JIT)
+def composite_forward(means2d, conics, opacities, features, pixel_rect, offsets, lists, width, height, tile):  # noqa: ANN001, ANN201
+    """Front-to-back compositing of depth-sorted Gaussians.
+
+    Args:
+        means2d: [M, 2]; conics: [M, 3]; opacities: [M]; features: [M, C]
+        pixel_rect: [M, 4] int32; offsets, lists: from :func:`bin_tiles`.
+
+    Returns:
+        ``(feat, trans, last)``: accumulated features [H, W, C] (no background),
+        final transmittance [H, W], and per pixel the position in its tile list of the
+        last sample added (-1 if none) [H, W] int32.
+    """
+    tiles_x = (width + tile - 1) // tile
+    n_tiles = offsets.shape[0] - 1
+    n_ch = features.shape[1]
+    dtype = means2d.dtype
+    feat = np.zeros((height, width, n_ch), dtype)
+    trans = np.ones((height, width), dtype)
+    last = np.full((height, width), -1, np.int32)
+    for t in nb.prange(n_tiles):
+        ty = t // tiles_x
+        tx = t - ty * tiles_x
+        x0 = tx * tile
+        y0 = ty * tile
+        x1 = min(x0 + tile, width)
+        y1 = min(y0 + tile, height)
+        tw = x1 - x0
+        npix = tw * (y1 - y0)
+        T = np.ones(npix, dtype)
+        acc = np.zeros((npix, n_ch), dtype)
+        lst = np.full(npix, -1, np.int32)
+        done = np.zeros(npix, np.bool_)
+        n_done = 0
+        start = offsets[t]
+        for k in range(offsets[t + 1] - start):
+            g = lists[start + k]
+            gx0 = max(pixel_rect[g, 0], x0)
+            gx1 = min(pixel_rect[g, 1] + 1, x1)
+            gy0 = max(pixel_rect[g, 2], y0)
+            gy1 = min(pixel_rect[g, 3] + 1, y1)
+            mx = means2d[g, 0]
+            my = means2d[g, 1]
+            ca = conics[g, 0]
+            cb = conics[g, 1]
+            cc = conics[g, 2]
+            op = opacities[g]
+            level = _level(op)
+            for py in range(gy0, gy1):
+                dy = np.float32(py) + _HALF - my
+                row = (py - y0) * tw - x0
+                for px in range(gx0, gx1):
+                    p = row + px
+                    if done[p]:
+                        continue
+                    dx = np.float32(px) + _HALF - mx
+                    sigma = _HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                    if sigma < _ZERO or sigma > level:
+                        continue
+                    alpha = min(_A_MAX, op * np.exp(-sigma))
+                    if alpha < _A_MIN:
+                        continue
+                    next_t = T[p] * (_ONE - alpha)
+                    if next_t <= _T_MIN:
+                        done[p] = True
+                        n_done += 1
+                        continue
+                    w = alpha * T[p]
+                    for ch in range(n_ch):
+                        acc[p, ch] += w * features[g, ch]
+                    T[p] = next_t
+                    lst[p] = k
+            if n_done == npix:
+                break
+        for py in range(y0, y1):
+            for px in range(x0, x1):
+                p = (py - y0) * tw + px - x0
+                trans[py, px] = T[p]
+                last[py, px] = lst[p]
+                for ch in range(n_ch):
+                    feat[py, px, ch] = acc[p, ch]
+    return feat, trans, last
+
+
+@nb.njit(parallel=True, **_JIT)
+def composite_backward(
+    means2d, conics, opacities, features, pixel_rect, offsets, lists, width, height, tile, trans, last, v_feat, v_trans
+):  # noqa: ANN001, ANN201
+    """Vector-Jacobian product of :func:`composite_forward`.
+
+    Args:
+        (as the forward), plus ``trans`` and ``last`` from the forward, and the
+        cotangents ``v_feat`` [H, W, C] and ``v_trans`` [H, W].
+
+    Returns:
+        One gradient row per intersection, aligned with ``lists``:
+        (d mean x, d mean y, d conic a, b, c, d opacity, d feature 0..C-1). [n_isect, 6 + C]
+    """
+    tiles_x = (width + tile - 1) // tile
+    n_tiles = offsets.shape[0] - 1
+    n_ch = features.shape[1]
+    dtype = means2d.dtype
+    out = np.zeros((lists.shape[0], GRAD_COLS + n_ch), dtype)
+    for t in nb.prange(n_tiles):
+        ty = t // tiles_x
+        tx = t - ty * tiles_x
+        x0 = tx * tile
+        y0 = ty * tile
+        x1 = min(x0 + tile, width)
+        y1 = min(y0 + tile, height)
+        tw = x1 - x0
+        npix = tw * (y1 - y0)
+        T = np.empty(npix, dtype)  # transmittance after the current sample
+        Q = np.empty(npix, dtype)  # Σ_{later j} α_j T_j (f_j·v) + T_final·v_T
+        V = np.empty((npix, n_ch), dtype)
+        lst = np.empty(npix, np.int32)
+        kmax = -1
+        for py in range(y0, y1):
+            for px in range(x0, x1):
+                p = (py - y0) * tw + px - x0
+                T[p] = trans[py, px]
+                Q[p] = trans[py, px] * v_trans[py, px]
+                lst[p] = last[py, px]
+                kmax = max(kmax, lst[p])
+                for ch in range(n_ch):
+                    V[p, ch] = v_feat[py, px, ch]
+        v_f = np.empty(n_ch, dtype)
+        start = offsets[t]
+        for k in range(kmax, -1, -1):
+            g = lists[start + k]
+            gx0 = max(pixel_rect[g, 0], x0)
+            gx1 = min(pixel_rect[g, 1] + 1, x1)
+            gy0 = max(pixel_rect[g, 2], y0)
+            gy1 = min(pixel_rect[g, 3] + 1, y1)
+            mx = means2d[g, 0]
+            my = means2d[g, 1]
+            ca = conics[g, 0]
+            cb = conics[g, 1]
+            cc = conics[g, 2]
+            op = opacities[g]
+            level = _level(op)
+            v_mx = 0.0
+            v_my = 0.0
+            v_a = 0.0
+            v_b = 0.0
+            v_c = 0.0
+            v_op = 0.0
+            v_f[:] = 0.0
+            for py in range(gy0, gy1):
+                dy = np.float32(py) + _HALF - my
+                row = (py - y0) * tw - x0
+                for px in range(gx0, gx1):
+                    p = row + px
+                    if k > lst[p]:
+                        continue
+                    dx = np.float32(px) + _HALF - mx
+                    sigma = _HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                    if sigma < _ZERO or sigma > level:
+                        continue
+                    gauss = np.exp(-sigma)
+                    raw = op * gauss
+                    alpha = min(_A_MAX, raw)
+                    if alpha < _A_MIN:
+                        continue
+                    one_minus = _ONE - alpha
+                    t_k = T[p] / one_minus
+                    w = alpha * t_k
+                    fv = 0.0
+                    for ch in range(n_ch):
+                        fv += features[g, ch] * V[p, ch]
+                        v_f[ch] += w * V[p, ch]
+                    v_alpha = t_k * fv - Q[p] / one_minus
+                    Q[p] += w * fv
+                    T[p] = t_k
+                    if raw < _A_MAX:  # alpha not clamped: it depends on op and sigma
+                        v_op += v_alpha * gauss
+                        v_sigma = -v_alpha * alpha
+                        v_mx -= v_sigma * (ca * dx + cb * dy)
+                        v_my -= v_sigma * (cb * dx + cc * dy)
+                        v_a += _HALF * v_sigma * dx * dx
+                        v_b += v_sigma * dx * dy
+                        v_c += _HALF * v_sigma * dy * dy
+            r = start + k
+            out[r, 0] = v_mx
+            out[r, 1] = v_my
+            out[r, 2] = v_a
+            out[r, 3] = v_b
+            out[r, 4] = v_c
+            out[r, 5] = v_op
+            for ch in range(n_ch):
+                out[r, GRAD_COLS + ch] = v_f[ch]
+    return out

@@ -1,0 +1,126 @@
+"""The public render function: Gaussians + one pinhole camera → RGB, depth, alpha."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+
+from ..gaussians import Gaussians
+from .composite import bin_tiles, composite
+from .projection import project_gaussians
+from .reference import composite_reference
+
+__all__ = ["Backend", "RenderOutput", "render"]
+
+logger = logging.getLogger(__name__)
+
+Backend = Literal["auto", "numba", "torch", "gsplat"]
+"""``numba``: compiled CPU kernels (default on CPU). ``torch``: the dense plain-PyTorch
+twin, for tests and tiny images. ``gsplat``: CUDA through gsplat, if installed. ``auto``:
+gsplat for CUDA tensors when available, else numba."""
+
+
+@dataclass
+class RenderOutput:
+    """One rendered view.
+
+    Attributes:
+        rgb: colour, background included (not clamped to [0, 1]). [H, W, 3]
+        depth: expected camera-space depth ``Σ w z / Σ w``; 0 where alpha < 1e-6. [H, W]
+        alpha: accumulated opacity ``1 − T_final``. [H, W]
+        visible: indices of the Gaussians that were projected (front to back). [M] int64
+        means2d: their pixel centres (differentiable; for densification statistics). [M, 2]
+        n_intersections: number of (tile, Gaussian) pairs composited.
+    """
+
+    rgb: torch.Tensor
+    depth: torch.Tensor
+    alpha: torch.Tensor
+    visible: torch.Tensor
+    means2d: torch.Tensor
+    n_intersections: int = 0
+
+
+def render(
+    gaussians: Gaussians,
+    viewmat: torch.Tensor,  # [4, 4]
+    K: torch.Tensor,  # [3, 3]
+    width: int,
+    height: int,
+    *,
+    background: torch.Tensor | tuple[float, float, float] = (0.0, 0.0, 0.0),
+    near: float = 0.01,
+    far: float = 1e10,
+    eps2d: float = 0.3,
+    backend: Backend = "auto",
+) -> RenderOutput:
+    """Render Gaussians into one camera (differentiable w.r.t. every Gaussian parameter).
+
+    Args:
+        gaussians: the scene (N Gaussians).
+        viewmat: world-to-camera transform, OpenCV axes (x right, y down, z forward). [4, 4]
+        K: intrinsics in pixels; pixel (i, j) has its centre at (j + 0.5, i + 0.5). [3, 3]
+        width: image width in pixels.
+        height: image height in pixels.
+        background: colour behind the Gaussians, in [0, 1]. [3]
+        near: Gaussians closer than this (camera z) are culled.
+        far: Gaussians farther than this are culled.
+        eps2d: low-pass dilation of the 2D covariances, px².
+        backend: see :data:`Backend`.
+
+    Returns:
+        :class:`RenderOutput`. Non-finite Gaussians are culled, so the outputs are finite.
+    """
+    if width <= 0 or height <= 0:
+        raise ValueError(f"image size must be positive, got {width}x{height}")
+    dtype, device = gaussians.dtype, gaussians.device
+    bg = torch.as_tensor(background, dtype=dtype, device=device).reshape(3)
+    viewmat = torch.as_tensor(viewmat).to(device=device, dtype=dtype)
+    K = torch.as_tensor(K).to(device=device, dtype=dtype)
+
+    if backend == "gsplat" or (backend == "auto" and device.type == "cuda"):
+        from . import _gsplat
+
+        if backend == "gsplat" or _gsplat.available():
+            return _gsplat.render_gsplat(gaussians, viewmat, K, width, height, bg, near=near, far=far, eps2d=eps2d)
+
+    proj = project_gaussians(
+        gaussians.means,
+        gaussians.log_scales,
+        gaussians.quats,
+        gaussians.opacity_logits,
+        gaussians.sh,
+        viewmat,
+        K,
+        width,
+        height,
+        near=near,
+        far=far,
+        eps2d=eps2d,
+    )
+    features = torch.cat([proj.colors, proj.depths[:, None]], dim=-1)  # [M, 4]
+    n_isect = 0
+    if backend == "torch":
+        feat, trans = composite_reference(proj.means2d, proj.conics, proj.opacities, features, width, height)
+    elif backend in ("numba", "auto"):
+        tiles = bin_tiles(proj.pixel_rect, width, height)
+        n_isect = tiles.n_intersections
+        feat, trans = composite(
+            proj.means2d, proj.conics, proj.opacities, features, proj.pixel_rect, width, height, tiles=tiles
+        )
+    else:
+        raise ValueError(f"unknown render backend {backend!r}")
+    alpha = 1.0 - trans
+    rgb = feat[..., :3] + trans[..., None] * bg
+    depth = _normalise_depth(feat[..., 3], alpha)
+    return RenderOutput(rgb=rgb, depth=depth, alpha=alpha, visible=proj.ids, means2d=proj.means2d, n_intersections=n_isect)
+
+
+def _normalise_depth(depth_acc: torch.Tensor, alpha: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
+    """``Σ w z / Σ w`` where the weights sum to more than ``eps``, else 0 (double-where safe)."""
+    ok = alpha > eps
+    safe = torch.where(ok, alpha, torch.ones_like(alpha))
+    return torch.where(ok, depth_acc / safe, torch.zeros_like(depth_acc))

@@ -1,0 +1,80 @@
+"""Scene and tensor helpers shared by the tests (synthetic data only)."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from macsplat_cli.gaussians import Gaussians
+
+# Tolerances by dtype: (rtol, atol), relative to the largest magnitude of the reference.
+TOL = {torch.float32: 2e-4, torch.float64: 1e-10}
+GC_EPS = 1e-6
+GC_ATOL = 1e-5
+GC_RTOL = 1e-3
+
+
+def random_gaussians(
+    n: int,
+    *,
+    seed: int = 0,
+    dtype: torch.dtype = torch.float32,
+    sh_degree: int = 0,
+    extent: float = 1.0,
+    z_range: tuple[float, float] = (2.0, 4.0),
+    scale_range: tuple[float, float] = (0.02, 0.12),
+    opacity_logit_range: tuple[float, float] = (-2.0, 2.0),
+) -> Gaussians:
+    """Random Gaussians in ``[-extent, extent]² × z_range`` in front of an identity camera."""
+    g = torch.Generator().manual_seed(seed)
+
+    def u(*shape: int, lo: float = 0.0, hi: float = 1.0) -> torch.Tensor:
+        return torch.rand(*shape, generator=g, dtype=torch.float64) * (hi - lo) + lo
+
+    means = torch.stack(
+        [u(n, lo=-extent, hi=extent), u(n, lo=-extent, hi=extent), u(n, lo=z_range[0], hi=z_range[1])], -1
+    )
+    log_scales = torch.log(u(n, 3, lo=scale_range[0], hi=scale_range[1]))
+    quats = torch.randn(n, 4, generator=g, dtype=torch.float64)
+    opacity = u(n, lo=opacity_logit_range[0], hi=opacity_logit_range[1])
+    k = (sh_degree + 1) ** 2
+    sh = torch.randn(n, k, 3, generator=g, dtype=torch.float64) * 0.5
+    return Gaussians(means, log_scales, quats, opacity, sh).to(dtype)
+
+
+def pinhole(width: int, height: int, focal: float | None = None, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """A centred pinhole K (principal point at the image centre). [3, 3]"""
+    f = focal if focal is not None else float(width)
+    return torch.tensor([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]], dtype=dtype)
+
+
+def look_at_viewmat(eye: tuple[float, float, float], target: tuple[float, float, float], dtype=torch.float32) -> torch.Tensor:  # noqa: ANN001
+    """World-to-camera matrix (OpenCV axes) of a camera at ``eye`` looking at ``target``, y down."""
+    e = torch.tensor(eye, dtype=torch.float64)
+    z = torch.tensor(target, dtype=torch.float64) - e
+    z = z / z.norm()
+    down = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    x = torch.linalg.cross(down, z)
+    if x.norm() < 1e-9:
+        x = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    x = x / x.norm()
+    y = torch.linalg.cross(z, x)
+    R = torch.stack([x, y, z])  # rows: camera axes in world coordinates
+    V = torch.eye(4, dtype=torch.float64)
+    V[:3, :3] = R
+    V[:3, 3] = -R @ e
+    return V.to(dtype)
+
+
+def max_rel_err(a: torch.Tensor, b: torch.Tensor) -> float:
+    """max |a − b| / max |b| (0 when both are empty or zero)."""
+    a, b = a.detach(), b.detach()
+    if b.numel() == 0:
+        return 0.0
+    scale = float(b.abs().max())
+    return float((a - b).abs().max()) / scale if scale > 0 else float((a - b).abs().max())
+
+
+def deg(x: float) -> float:
+    return math.degrees(x)
