@@ -71,7 +71,9 @@ class Gaussians:
         """A set of zero Gaussians."""
         k = (sh_degree + 1) ** 2
         z = torch.zeros
-        return cls(z(0, 3, dtype=dtype), z(0, 3, dtype=dtype), z(0, 4, dtype=dtype), z(0, dtype=dtype), z(0, k, 3, dtype=dtype))
+        return cls(
+            z(0, 3, dtype=dtype), z(0, 3, dtype=dtype), z(0, 4, dtype=dtype), z(0, dtype=dtype), z(0, k, 3, dtype=dtype)
+        )
 
     @classmethod
     def from_activated(

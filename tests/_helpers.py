@@ -49,7 +49,9 @@ def pinhole(width: int, height: int, focal: float | None = None, dtype: torch.dt
     return torch.tensor([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]], dtype=dtype)
 
 
-def look_at_viewmat(eye: tuple[float, float, float], target: tuple[float, float, float], dtype=torch.float32) -> torch.Tensor:  # noqa: ANN001
+def look_at_viewmat(
+    eye: tuple[float, float, float], target: tuple[float, float, float], dtype=torch.float32
+) -> torch.Tensor:  # noqa: ANN001
     """World-to-camera matrix (OpenCV axes) of a camera at ``eye`` looking at ``target``, y down."""
     e = torch.tensor(eye, dtype=torch.float64)
     z = torch.tensor(target, dtype=torch.float64) - e

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import pytest
 
 
@@ -24,3 +26,9 @@ def _plain_terminal(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("NO_COLOR", "1")
     monkeypatch.setenv("COLUMNS", "200")
     monkeypatch.delenv("FORCE_COLOR", raising=False)
+
+
+@pytest.fixture(autouse=True)
+def _library_logs_reach_caplog(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The CLI's logging setup turns propagation off on ``macsplat_cli``; caplog needs it on."""
+    monkeypatch.setattr(logging.getLogger("macsplat_cli"), "propagate", True)

@@ -6,8 +6,8 @@ import math
 
 import pytest
 import torch
-
 from _helpers import GC_ATOL, GC_EPS, GC_RTOL, TOL, max_rel_err, pinhole, random_gaussians
+
 from macsplat_cli.gaussians import Gaussians
 from macsplat_cli.render import render
 from macsplat_cli.render.composite import bin_tiles, composite
@@ -62,8 +62,12 @@ def test_numba_matches_twin_when_pixels_saturate(dtype: torch.dtype) -> None:
 def _tiny_projection(dtype: torch.dtype = torch.float64):
     """Four Gaussians in a 12×10 image, chosen so that no pixel sits near a skip threshold."""
     means = torch.tensor([[0.0, 0.0, 2.0], [0.3, -0.2, 2.5], [-0.25, 0.2, 3.0], [0.1, 0.25, 2.2]], dtype=dtype)
-    log_scales = torch.log(torch.tensor([[0.15, 0.1, 0.1], [0.2, 0.12, 0.1], [0.25, 0.2, 0.1], [0.1, 0.15, 0.2]], dtype=dtype))
-    quats = torch.tensor([[1.0, 0.1, 0.0, 0.2], [0.9, 0.0, 0.3, 0.0], [1.0, 0.0, 0.0, 0.0], [0.7, 0.2, 0.1, 0.4]], dtype=dtype)
+    log_scales = torch.log(
+        torch.tensor([[0.15, 0.1, 0.1], [0.2, 0.12, 0.1], [0.25, 0.2, 0.1], [0.1, 0.15, 0.2]], dtype=dtype)
+    )
+    quats = torch.tensor(
+        [[1.0, 0.1, 0.0, 0.2], [0.9, 0.0, 0.3, 0.0], [1.0, 0.0, 0.0, 0.0], [0.7, 0.2, 0.1, 0.4]], dtype=dtype
+    )
     logits = torch.tensor([0.5, 1.0, -0.5, 0.0], dtype=dtype)
     sh = torch.tensor([[[1.0, 0.2, -0.5]], [[-0.3, 0.8, 0.1]], [[0.4, -0.6, 0.9]], [[0.0, 0.5, -0.2]]], dtype=dtype)
     return Gaussians(means, log_scales, quats, logits, sh)
@@ -136,8 +140,11 @@ def test_depth_of_an_opaque_wall() -> None:
     n = xs.numel()
     means = torch.stack([xs.reshape(-1), ys.reshape(-1), torch.full((n,), 3.0)], -1)
     g = Gaussians(
-        means, torch.log(torch.tensor([0.06, 0.06, 0.001])).expand(n, 3).clone(),
-        torch.tensor([1.0, 0, 0, 0]).expand(n, 4).clone(), torch.full((n,), 5.0), torch.zeros(n, 1, 3),
+        means,
+        torch.log(torch.tensor([0.06, 0.06, 0.001])).expand(n, 3).clone(),
+        torch.tensor([1.0, 0, 0, 0]).expand(n, 4).clone(),
+        torch.full((n,), 5.0),
+        torch.zeros(n, 1, 3),
     )
     out = render(g, torch.eye(4), pinhole(32, 32, 32.0), 32, 32)
     assert float(out.alpha.min()) > 0.99
@@ -148,8 +155,13 @@ def test_sh_degree_one_depends_on_view_direction() -> None:
     """Band-1 coefficient 'x' (index 3) brightens Gaussians seen from −x and darkens them from +x."""
     sh = torch.zeros(1, 4, 3)
     sh[0, 3] = 1.0
-    g = Gaussians(torch.tensor([[0.0, 0.0, 0.0]]), torch.full((1, 3), math.log(0.3)),
-                  torch.tensor([[1.0, 0, 0, 0]]), torch.tensor([4.0]), sh)
+    g = Gaussians(
+        torch.tensor([[0.0, 0.0, 0.0]]),
+        torch.full((1, 3), math.log(0.3)),
+        torch.tensor([[1.0, 0, 0, 0]]),
+        torch.tensor([4.0]),
+        sh,
+    )
     colours = []
     for cam_x in (-1.0, 1.0):  # camera at (cam_x, 0, -3) looking at the origin, no rotation needed for x ≈ 0
         V = torch.eye(4)
@@ -225,8 +237,13 @@ def test_nan_and_inf_parameters_are_culled() -> None:
 
 def test_far_off_screen_gaussian_has_bounded_footprint() -> None:
     """The clamped Jacobian keeps a Gaussian far outside the view from smearing across it."""
-    g = Gaussians(torch.tensor([[50.0, 0.0, 1.0]]), torch.full((1, 3), math.log(0.5)),
-                  torch.tensor([[1.0, 0, 0, 0]]), torch.tensor([5.0]), torch.zeros(1, 1, 3))
+    g = Gaussians(
+        torch.tensor([[50.0, 0.0, 1.0]]),
+        torch.full((1, 3), math.log(0.5)),
+        torch.tensor([[1.0, 0, 0, 0]]),
+        torch.tensor([5.0]),
+        torch.zeros(1, 1, 3),
+    )
     out = render(g, EYE, pinhole(32, 32), 32, 32)
     assert float(out.alpha.max()) < 1 / 255
 

@@ -7,6 +7,6 @@ gsplat is installed and the Gaussians live on a CUDA device.
 
 from __future__ import annotations
 
-from .rasterize import Backend, RenderOutput, render
+from .rasterize import Backend, RenderOutput, render, render_camera
 
-__all__ = ["Backend", "RenderOutput", "render"]
+__all__ = ["Backend", "RenderOutput", "render", "render_camera"]

@@ -103,7 +103,6 @@ def project_gaussians(
     viewmat = viewmat.to(dtype)
     K = K.to(dtype)
     R, t = viewmat[:3, :3], viewmat[:3, 3]
-    n = means.shape[0]
 
     # ---- cheap culls, no gradient, before any division
     with torch.no_grad():

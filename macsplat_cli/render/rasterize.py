@@ -8,12 +8,13 @@ from typing import Literal
 
 import torch
 
+from ..cameras import Camera
 from ..gaussians import Gaussians
 from .composite import bin_tiles, composite
 from .projection import project_gaussians
 from .reference import composite_reference
 
-__all__ = ["Backend", "RenderOutput", "render"]
+__all__ = ["Backend", "RenderOutput", "render", "render_camera"]
 
 logger = logging.getLogger(__name__)
 
@@ -116,7 +117,9 @@ def render(
     alpha = 1.0 - trans
     rgb = feat[..., :3] + trans[..., None] * bg
     depth = _normalise_depth(feat[..., 3], alpha)
-    return RenderOutput(rgb=rgb, depth=depth, alpha=alpha, visible=proj.ids, means2d=proj.means2d, n_intersections=n_isect)
+    return RenderOutput(
+        rgb=rgb, depth=depth, alpha=alpha, visible=proj.ids, means2d=proj.means2d, n_intersections=n_isect
+    )
 
 
 def _normalise_depth(depth_acc: torch.Tensor, alpha: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
@@ -124,3 +127,14 @@ def _normalise_depth(depth_acc: torch.Tensor, alpha: torch.Tensor, eps: float = 
     ok = alpha > eps
     safe = torch.where(ok, alpha, torch.ones_like(alpha))
     return torch.where(ok, depth_acc / safe, torch.zeros_like(depth_acc))
+
+
+def render_camera(gaussians: Gaussians, camera: Camera, **kwargs: object) -> RenderOutput:
+    """Render into a :class:`~macsplat_cli.cameras.Camera` (its size, K and pose).
+
+    Keyword arguments are those of :func:`render`.
+    """
+    dev, dt = gaussians.device, gaussians.dtype
+    viewmat = torch.tensor(camera.world_to_cam, dtype=dt, device=dev)
+    K = torch.tensor(camera.K, dtype=dt, device=dev)
+    return render(gaussians, viewmat, K, camera.width, camera.height, **kwargs)  # type: ignore[arg-type]

@@ -1,0 +1,119 @@
+"""Rasterizer speed and memory: forward ms, forward+backward ms, peak RSS.
+
+Scene (as in the reference design notes): N Gaussians uniform in [-1, 1]² × [2, 4] in
+front of an identity OpenCV camera with focal length = image width, scales 0.005–0.03,
+random rotations, opacity logits U(-2, 2), SH degree 0; loss = L1 to a random image.
+Each configuration runs in its own process so that peak memory is its own.
+
+    python benchmarks/bench_render.py                 # the table for benchmarks/README.md
+    python benchmarks/bench_render.py --sizes 100000:256x256 --reps 5
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+
+DEFAULT = ["50000:256x256", "100000:256x256", "250000:256x256", "50000:512x384", "100000:512x384", "250000:512x384"]
+
+
+def _one(n: int, w: int, h: int, reps: int, backend: str) -> dict:
+    import resource
+
+    import torch
+
+    from macsplat_cli.gaussians import Gaussians
+    from macsplat_cli.render import render
+
+    base_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    g = torch.Generator().manual_seed(0)
+    means = torch.rand(n, 3, generator=g) * torch.tensor([2.0, 2.0, 2.0]) - torch.tensor([1.0, 1.0, -2.0])
+    params = [
+        means,
+        torch.log(torch.rand(n, 3, generator=g) * 0.025 + 0.005),
+        torch.randn(n, 4, generator=g),
+        torch.rand(n, generator=g) * 4 - 2,
+        torch.randn(n, 1, 3, generator=g) * 0.5,
+    ]
+    for p in params:
+        p.requires_grad_(True)
+    gs = Gaussians(*params)
+    K = torch.tensor([[float(w), 0.0, w / 2], [0.0, float(w), h / 2], [0.0, 0.0, 1.0]])
+    V = torch.eye(4)
+    target = torch.rand(h, w, 3, generator=g)
+
+    def fwd() -> torch.Tensor:
+        return render(gs, V, K, w, h, backend=backend).rgb
+
+    # warm-up (JIT cache load), then timed repetitions
+    t0 = time.perf_counter()
+    (fwd() - target).abs().mean().backward()
+    first = time.perf_counter() - t0
+    t_fwd, t_tot = [], []
+    for _ in range(reps):
+        for p in params:
+            p.grad = None
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            fwd()
+        t_fwd.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        loss = (fwd() - target).abs().mean()
+        loss.backward()
+        t_tot.append(time.perf_counter() - t0)
+    out = render(gs, V, K, w, h, backend=backend)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    t_fwd.sort()
+    t_tot.sort()
+    return {
+        "n": n,
+        "size": f"{w}x{h}",
+        "visible": int(out.visible.numel()),
+        "intersections": out.n_intersections,
+        "fwd_ms": 1e3 * t_fwd[len(t_fwd) // 2],
+        "fwd_bwd_ms": 1e3 * t_tot[len(t_tot) // 2],
+        "first_call_s": first,
+        "peak_rss_mb": peak,
+        "baseline_rss_mb": base_rss,
+        "threads": torch.get_num_threads(),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sizes", nargs="+", default=DEFAULT, help="N:WxH entries")
+    ap.add_argument("--reps", type=int, default=5)
+    ap.add_argument("--backend", default="numba")
+    ap.add_argument("--json", action="store_true", help="print JSON rows instead of a table")
+    ap.add_argument("--_child", nargs=3, metavar=("N", "W", "H"), help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args._child:
+        n, w, h = (int(x) for x in args._child)
+        print(json.dumps(_one(n, w, h, args.reps, args.backend)))
+        return
+    rows = []
+    for spec in args.sizes:
+        n, size = spec.split(":")
+        w, h = size.split("x")
+        cmd = [sys.executable, __file__, "--_child", n, w, h, "--reps", str(args.reps), "--backend", args.backend]
+        res = subprocess.run(cmd, capture_output=True, text=True, env=os.environ.copy(), check=True)
+        rows.append(json.loads(res.stdout.strip().splitlines()[-1]))
+    if args.json:
+        print(json.dumps(rows, indent=2))
+        return
+    print(f"backend={args.backend}, threads={rows[0]['threads']}, median of {args.reps} repetitions\n")
+    print("| Gaussians | image | visible | intersections | forward ms | forward+backward ms | peak RSS MB (baseline) |")
+    print("|---:|---:|---:|---:|---:|---:|---:|")
+    for r in rows:
+        print(
+            f"| {r['n']:,} | {r['size']} | {r['visible']:,} | {r['intersections']:,} | {r['fwd_ms']:.0f} | "
+            f"{r['fwd_bwd_ms']:.0f} | {r['peak_rss_mb']:.0f} ({r['baseline_rss_mb']:.0f}) |"
+        )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,475 @@
+"""Pinhole cameras: one schema for every camera macsplat reads, writes or renders.
+
+**Axes.** OpenCV camera axes: x right, y down, z forward (the camera looks along
++z). ``cam_to_world`` maps camera coordinates to world coordinates; its inverse
+``world_to_cam = [Rᵀ | −Rᵀt]`` is the "viewmat" of gsplat and the pose of COLMAP.
+
+**Pixels.** ``K`` maps camera coordinates to continuous image coordinates whose
+origin is the top-left *corner* of the image: the top-left pixel covers [0, 1]²,
+so pixel (row i, column j) has its centre at ``(j + 0.5, i + 0.5)``. This is the
+convention of COLMAP, gsplat and nerfstudio. A ``K`` from OpenCV calibration
+puts pixel centres on integers and needs ``+0.5`` on ``cx`` and ``cy``. With this
+convention, resizing an image from ``W×H`` to ``W'×H'`` multiplies row 0 of ``K``
+by ``W'/W`` and row 1 by ``H'/H``, exactly (:meth:`Camera.rescaled`).
+
+**File format** (``cameras.json``, written by :func:`save_cameras`)::
+
+    {
+      "convention": "opencv",          # required; the only accepted value
+      "world": "camera_0",             # name of the world frame (default "camera_0")
+      "scale": "relative",             # "relative" (up to scale) or "metric" (default "relative")
+      "cameras": [                     # at least one
+        {"name": "left", "width": 640, "height": 480,
+         "K": [[fx, s, cx], [0, fy, cy], [0, 0, 1]],      # pixels of width × height
+         "cam_to_world": [[...], [...], [...], [0, 0, 0, 1]]}
+      ]
+    }
+
+Conversions to and from COLMAP text models and nerfstudio ``transforms.json``
+live in :mod:`macsplat_cli.camera_formats`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import os
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ClassVar, Literal, get_args
+
+import numpy as np
+
+from ._atomic import atomic_write_text
+from .errors import CameraFileError, OutputPathError
+
+__all__ = [
+    "Camera",
+    "CameraSet",
+    "Scale",
+    "load_cameras",
+    "quat_to_rotmat_np",
+    "rotmat_to_quat_np",
+    "save_cameras",
+]
+
+logger = logging.getLogger(__name__)
+
+Scale = Literal["relative", "metric"]
+_SCALES: tuple[str, ...] = get_args(Scale)
+RIGID_TOL = 1e-4
+"""Largest accepted deviation of ``RᵀR`` from ``I`` (max abs entry) and of ``det R`` from 1."""
+_STRUCTURAL_TOL = 1e-9
+"""Tolerance on the entries of ``K`` and ``cam_to_world`` that must be exactly 0 or 1."""
+_GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
+"""Flips camera y and z: OpenCV (x right, y down, z forward) ↔ OpenGL (x right, y up, z back)."""
+
+
+# ------------------------------------------------------------------------------------ rotations
+def rotmat_to_quat_np(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion (w, x, y, z), Hamilton convention, ``w ≥ 0``, of a rotation matrix.
+
+    Uses the branch of Shepperd's method with the largest pivot (the trace or a
+    diagonal entry), so it is accurate for every rotation, including 180° turns.
+
+    Args:
+        R: a rotation matrix. [3, 3]
+
+    Returns:
+        ``q`` with ``quat_to_rotmat_np(q) ≈ R``. [4]
+    """
+    R = np.asarray(R, dtype=np.float64)
+    m00, m01, m02 = R[0]
+    m10, m11, m12 = R[1]
+    m20, m21, m22 = R[2]
+    trace = m00 + m11 + m22
+    pivot = int(np.argmax([trace, m00, m11, m22]))
+    if pivot == 0:
+        s = 2.0 * math.sqrt(max(1.0 + trace, 0.0))  # s = 4w
+        q = [0.25 * s, (m21 - m12) / s, (m02 - m20) / s, (m10 - m01) / s]
+    elif pivot == 1:
+        s = 2.0 * math.sqrt(max(1.0 + m00 - m11 - m22, 0.0))  # s = 4x
+        q = [(m21 - m12) / s, 0.25 * s, (m01 + m10) / s, (m02 + m20) / s]
+    elif pivot == 2:
+        s = 2.0 * math.sqrt(max(1.0 - m00 + m11 - m22, 0.0))  # s = 4y
+        q = [(m02 - m20) / s, (m01 + m10) / s, 0.25 * s, (m12 + m21) / s]
+    else:
+        s = 2.0 * math.sqrt(max(1.0 - m00 - m11 + m22, 0.0))  # s = 4z
+        q = [(m10 - m01) / s, (m02 + m20) / s, (m12 + m21) / s, 0.25 * s]
+    quat = np.array(q, dtype=np.float64)
+    quat /= np.linalg.norm(quat)
+    return -quat if quat[0] < 0 else quat
+
+
+def quat_to_rotmat_np(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a (w, x, y, z) Hamilton quaternion (normalised first).
+
+    Args:
+        q: a non-zero quaternion. [4]
+
+    Returns:
+        The rotation matrix. [3, 3]
+    """
+    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+# ------------------------------------------------------------------------------------ Camera
+def _intrinsics_problem(K: np.ndarray) -> str | None:
+    if K.shape != (3, 3):
+        return f"K must be 3x3, got shape {list(K.shape)}"
+    if not np.isfinite(K).all():
+        return "K holds NaN or Inf"
+    if abs(K[1, 0]) > _STRUCTURAL_TOL or np.abs(K[2] - [0.0, 0.0, 1.0]).max() > _STRUCTURAL_TOL:
+        return f"K must be a pinhole matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}"
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        return f"K must have positive focal lengths, got fx={K[0, 0]:g}, fy={K[1, 1]:g}"
+    return None
+
+
+def _pose_problem(T: np.ndarray) -> str | None:
+    if T.shape != (4, 4):
+        return f"cam_to_world must be 4x4, got shape {list(T.shape)}"
+    if not np.isfinite(T).all():
+        return "cam_to_world holds NaN or Inf"
+    if np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() > _STRUCTURAL_TOL:
+        return f"cam_to_world bottom row must be [0, 0, 0, 1], got {T[3].tolist()}"
+    R = T[:3, :3]
+    det = float(np.linalg.det(R))
+    if det < 0:
+        return f"cam_to_world rotation is a reflection (det = {det:.3g}), not a proper rotation"
+    deviation = float(np.abs(R.T @ R - np.eye(3)).max())
+    if deviation > RIGID_TOL or abs(det - 1.0) > RIGID_TOL:
+        return f"cam_to_world rotation is not rigid (RᵀR deviates from I by {deviation:.3g}, det = {det:.3g})"
+    return None
+
+
+def _is_int(v: object) -> bool:
+    return isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
+
+
+@dataclass(frozen=True, eq=False)
+class Camera:
+    """A pinhole camera with OpenCV axes (see the module docstring for conventions).
+
+    Attributes:
+        name: identifier, usually the image file name (unique within a :class:`CameraSet`).
+        width: image width in pixels.
+        height: image height in pixels.
+        K: intrinsics in pixels of ``width × height``, pixel centres at ``+0.5``;
+            skew ``K[0, 1]`` is allowed. [3, 3] float64
+        cam_to_world: rigid camera-to-world transform (OpenCV camera axes). [4, 4] float64
+
+    Construction copies ``K`` and ``cam_to_world`` to read-only float64 arrays and
+    raises :class:`~macsplat_cli.errors.CameraFileError` if the camera is invalid:
+    non-positive size, a ``K`` that is not an upper-triangular pinhole matrix with
+    positive focal lengths, or a ``cam_to_world`` that is not rigid (rotation
+    orthonormal with det +1 within :data:`RIGID_TOL`). Entries that must be exactly
+    0 or 1 are snapped when within 1e-9. Equality compares all fields exactly.
+    """
+
+    name: str
+    width: int
+    height: int
+    K: np.ndarray
+    cam_to_world: np.ndarray
+
+    def __post_init__(self) -> None:
+        def fail(problem: str) -> CameraFileError:
+            return CameraFileError(f"camera {self.name!r}: {problem}")
+
+        if not isinstance(self.name, str):
+            raise CameraFileError(f"camera name must be a string, got {type(self.name).__name__}")
+        for field in ("width", "height"):
+            value = getattr(self, field)
+            if not _is_int(value) or value <= 0:
+                raise fail(f"{field} must be a positive integer, got {value!r}")
+            object.__setattr__(self, field, int(value))
+        try:
+            K = np.array(self.K, dtype=np.float64)
+            T = np.array(self.cam_to_world, dtype=np.float64)
+        except (TypeError, ValueError) as e:
+            raise fail(f"K and cam_to_world must be numeric matrices ({e})") from None
+        problem = _intrinsics_problem(K) or _pose_problem(T)
+        if problem:
+            raise fail(problem)
+        K[1, 0], K[2] = 0.0, (0.0, 0.0, 1.0)
+        T[3] = (0.0, 0.0, 0.0, 1.0)
+        K.setflags(write=False)
+        T.setflags(write=False)
+        object.__setattr__(self, "K", K)
+        object.__setattr__(self, "cam_to_world", T)
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Camera):
+            return NotImplemented
+        return (
+            self.name == other.name
+            and self.width == other.width
+            and self.height == other.height
+            and np.array_equal(self.K, other.K)
+            and np.array_equal(self.cam_to_world, other.cam_to_world)
+        )
+
+    __hash__ = None  # type: ignore[assignment]  # mutable-looking array fields: not hashable
+
+    # ---------------------------------------------------------------- pose
+    @property
+    def R(self) -> np.ndarray:
+        """World-to-camera rotation ``R_c2wᵀ`` (COLMAP's and gsplat's R). [3, 3]"""
+        return self.cam_to_world[:3, :3].T.copy()
+
+    @property
+    def t(self) -> np.ndarray:
+        """World-to-camera translation ``−R t_c2w`` (COLMAP's and gsplat's t). [3]"""
+        return -(self.R @ self.cam_to_world[:3, 3])
+
+    @property
+    def world_to_cam(self) -> np.ndarray:
+        """World-to-camera transform ``[Rᵀ | −Rᵀt]`` of the rigid ``cam_to_world``. [4, 4]"""
+        out = np.eye(4)
+        out[:3, :3] = self.R
+        out[:3, 3] = self.t
+        return out
+
+    @property
+    def center(self) -> np.ndarray:
+        """Camera centre in world coordinates. [3]"""
+        return self.cam_to_world[:3, 3].copy()
+
+    # ---------------------------------------------------------------- derived cameras
+    def rescaled(self, width: int, height: int) -> Camera:
+        """The same camera for the image resized to ``width × height``.
+
+        Row 0 of ``K`` is multiplied by ``width / self.width`` and row 1 by
+        ``height / self.height``, which is exact with the pixel-corner convention.
+        """
+        if not (_is_int(width) and _is_int(height) and width > 0 and height > 0):
+            raise CameraFileError(f"camera {self.name!r}: cannot rescale to {width!r}x{height!r}")
+        K = self.K.copy()
+        K[0] *= width / self.width
+        K[1] *= height / self.height
+        return dataclasses.replace(self, width=int(width), height=int(height), K=K)
+
+    def with_pose(self, cam_to_world: np.ndarray) -> Camera:
+        """The same camera at another pose.
+
+        Args:
+            cam_to_world: rigid camera-to-world transform. [4, 4]
+        """
+        return dataclasses.replace(self, cam_to_world=cam_to_world)
+
+    # ---------------------------------------------------------------- serialisation
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict (the ``cameras[i]`` entry of the file format)."""
+        return {
+            "name": self.name,
+            "width": self.width,
+            "height": self.height,
+            "K": self.K.tolist(),
+            "cam_to_world": self.cam_to_world.tolist(),
+        }
+
+    @classmethod
+    def from_dict(cls, d: object, where: str = "camera") -> Camera:
+        """Parse a ``cameras[i]`` entry; ``where`` prefixes error messages (e.g. ``"cams.json: cameras[1]"``).
+
+        Raises:
+            CameraFileError: a key is missing, a value has the wrong type, or the
+                camera is invalid.
+        """
+        if not isinstance(d, Mapping):
+            raise CameraFileError(f"{where} must be an object, got {_json_type(d)}")
+        missing = [key for key in ("name", "width", "height", "K", "cam_to_world") if key not in d]
+        if missing:
+            raise CameraFileError(f"{where} is missing key(s) {', '.join(repr(k) for k in missing)}")
+        if not isinstance(d["name"], str):
+            raise CameraFileError(f"{where}.name must be a string, got {_json_type(d['name'])}")
+        for key in ("width", "height"):
+            if not _is_int(d[key]) or d[key] <= 0:
+                raise CameraFileError(f"{where}.{key} must be a positive integer, got {d[key]!r}")
+        K = _matrix(d["K"], 3, 3, f"{where}.K")
+        T = _matrix(d["cam_to_world"], 4, 4, f"{where}.cam_to_world")
+        try:
+            return cls(name=d["name"], width=d["width"], height=d["height"], K=K, cam_to_world=T)
+        except CameraFileError as e:
+            raise CameraFileError(f"{where}: {e}") from None
+
+
+def _json_type(v: object) -> str:
+    if v is None:
+        return "null"
+    if isinstance(v, bool):
+        return "a boolean"
+    if isinstance(v, (int, float)):
+        return "a number"
+    if isinstance(v, str):
+        return "a string"
+    if isinstance(v, list):
+        return "a list"
+    if isinstance(v, Mapping):
+        return "an object"
+    return type(v).__name__
+
+
+def _matrix(value: object, rows: int, cols: int, what: str) -> np.ndarray:
+    """A ``rows × cols`` JSON list of lists of numbers as a float64 array, or a CameraFileError."""
+    ok = (
+        isinstance(value, list)
+        and len(value) == rows
+        and all(
+            isinstance(row, list)
+            and len(row) == cols
+            and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in row)
+            for row in value
+        )
+    )
+    if not ok:
+        raise CameraFileError(f"{what} must be a {rows}x{cols} matrix of numbers")
+    return np.array(value, dtype=np.float64)
+
+
+# ------------------------------------------------------------------------------------ CameraSet
+@dataclass
+class CameraSet:
+    """Cameras sharing one world frame.
+
+    Attributes:
+        cameras: at least one camera, names unique.
+        scale: ``"relative"`` if the world is known up to scale, ``"metric"`` if in metres.
+        world: name of the world frame (``"camera_0"``: the first camera's frame;
+            ``"colmap"``/``"nerfstudio"`` for worlds imported from those tools).
+        convention: always ``"opencv"`` (class constant).
+    """
+
+    cameras: list[Camera]
+    scale: Scale = "relative"
+    world: str = "camera_0"
+    convention: ClassVar[str] = "opencv"
+
+    def __post_init__(self) -> None:
+        self.cameras = list(self.cameras)
+        if not self.cameras:
+            raise CameraFileError("a camera set needs at least one camera")
+        for i, cam in enumerate(self.cameras):
+            if not isinstance(cam, Camera):
+                raise CameraFileError(f"cameras[{i}] is a {type(cam).__name__}, not a Camera")
+        names = [cam.name for cam in self.cameras]
+        duplicates = sorted({n for n in names if names.count(n) > 1})
+        if duplicates:
+            repeated = ", ".join(map(repr, duplicates))
+            raise CameraFileError(f"camera names must be unique; repeated: {repeated}")
+        if self.scale not in _SCALES:
+            raise CameraFileError(f"scale must be 'relative' or 'metric', got {self.scale!r}")
+        if not isinstance(self.world, str):
+            raise CameraFileError(f"world must be a string, got {type(self.world).__name__}")
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    def __getitem__(self, index: int) -> Camera:
+        return self.cameras[index]
+
+    def __iter__(self) -> Iterator[Camera]:
+        return iter(self.cameras)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict in the file format of the module docstring."""
+        return {
+            "convention": self.convention,
+            "world": self.world,
+            "scale": self.scale,
+            "cameras": [cam.to_dict() for cam in self.cameras],
+        }
+
+    @classmethod
+    def from_dict(cls, d: object, where: str = "cameras") -> CameraSet:
+        """Parse the file format; ``where`` (usually the file name) prefixes error messages.
+
+        ``convention`` and ``cameras`` are required; ``world`` defaults to
+        ``"camera_0"`` and ``scale`` to ``"relative"``. Unknown keys are ignored.
+
+        Raises:
+            CameraFileError: the content does not follow the format.
+        """
+        if not isinstance(d, Mapping):
+            raise CameraFileError(f"{where}: the top level must be an object, got {_json_type(d)}")
+        if "convention" not in d:
+            raise CameraFileError(f"{where}: missing key 'convention' (must be \"opencv\")")
+        if d["convention"] != cls.convention:
+            raise CameraFileError(
+                f'{where}: convention must be "opencv" (x right, y down, z forward), got {d["convention"]!r}'
+            )
+        scale = d.get("scale", "relative")
+        if scale not in _SCALES:
+            raise CameraFileError(f'{where}: scale must be "relative" or "metric", got {scale!r}')
+        world = d.get("world", "camera_0")
+        if not isinstance(world, str):
+            raise CameraFileError(f"{where}: world must be a string, got {_json_type(world)}")
+        if "cameras" not in d:
+            raise CameraFileError(f"{where}: missing key 'cameras'")
+        cams = d["cameras"]
+        if not isinstance(cams, list) or not cams:
+            raise CameraFileError(f"{where}: cameras must be a non-empty list of camera objects")
+        cameras = [Camera.from_dict(c, f"{where}: cameras[{i}]") for i, c in enumerate(cams)]
+        try:
+            return cls(cameras=cameras, scale=scale, world=world)
+        except CameraFileError as e:
+            raise CameraFileError(f"{where}: {e}") from None
+
+
+# ------------------------------------------------------------------------------------ JSON files
+def _read_json(path: Path) -> Any:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise CameraFileError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise CameraFileError(f"{path}: is a directory, not a camera file") from None
+    except UnicodeDecodeError as e:
+        raise CameraFileError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
+    except OSError as e:
+        raise CameraFileError(f"{path}: cannot read ({e.strerror or e})") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as e:
+        raise CameraFileError(f"{path}: invalid JSON at line {e.lineno}, column {e.colno}: {e.msg}") from None
+
+
+def _write_text(path: str | os.PathLike[str], text: str) -> None:
+    try:
+        atomic_write_text(path, text)
+    except OSError as e:
+        raise OutputPathError(f"cannot write {path}: {e.strerror or e}") from e
+
+
+def load_cameras(path: str | os.PathLike[str]) -> CameraSet:
+    """Load a ``cameras.json`` file (format in the module docstring).
+
+    Raises:
+        CameraFileError: the file is missing, not JSON, or does not follow the
+            format; the one-line message names the file and the problem.
+    """
+    p = Path(path)
+    return CameraSet.from_dict(_read_json(p), str(p))
+
+
+def save_cameras(path: str | os.PathLike[str], camera_set: CameraSet) -> None:
+    """Write ``camera_set`` to ``path`` as indented JSON, atomically.
+
+    Floats are written with ``repr`` precision, so :func:`load_cameras` gives back
+    exactly the same values.
+
+    Raises:
+        OutputPathError: ``path`` cannot be written.
+    """
+    _write_text(path, json.dumps(camera_set.to_dict(), indent=2) + "\n")

@@ -1,0 +1,76 @@
+"""Shared CLI plumbing: consoles, common options, and turning errors into exit codes."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Annotated
+
+import typer
+from rich.console import Console
+
+from .._log import setup_logging
+from ..errors import MacsplatError
+
+__all__ = ["QuietOpt", "VerboseOpt", "State", "command_context", "err_console", "out_console"]
+
+logger = logging.getLogger("macsplat_cli.cli")
+
+err_console = Console(stderr=True, highlight=False)
+"""Human-facing output: logs, progress, summaries."""
+out_console = Console(highlight=False, soft_wrap=True)
+"""Machine-readable output (``--json``) only."""
+
+VerboseOpt = Annotated[bool, typer.Option("--verbose", "-v", help="Debug logging, and tracebacks on errors.")]
+QuietOpt = Annotated[bool, typer.Option("--quiet", "-q", help="Only warnings and errors; no progress or summary.")]
+
+
+@dataclass
+class State:
+    """Options given before the command name (``macsplat -v render ...``)."""
+
+    verbose: bool = False
+    quiet: bool = False
+
+
+def _one_line(msg: str) -> str:
+    return " ".join(str(msg).split())
+
+
+@contextlib.contextmanager
+def command_context(ctx: typer.Context, verbose: bool, quiet: bool) -> Iterator[State]:
+    """Set up logging for a command and convert its errors into one line and an exit code.
+
+    * :class:`MacsplatError` → ``error: <message>`` and the error's exit code (2 bad input,
+      3 not reconstructable);
+    * any other exception → ``internal error: ...`` and exit code 1;
+    * with ``--verbose`` the traceback is printed as well.
+    """
+    root = ctx.find_root().obj if ctx.find_root().obj is not None else State()
+    state = State(verbose=verbose or root.verbose, quiet=(quiet or root.quiet) and not (verbose or root.verbose))
+    setup_logging(err_console, verbose=state.verbose, quiet=state.quiet)
+    try:
+        yield state
+    except (typer.Exit, typer.Abort):
+        raise
+    except MacsplatError as e:
+        if state.verbose:
+            err_console.print_exception()
+        err_console.print(f"[bold red]error:[/] {_one_line(str(e))}", markup=True, highlight=False, soft_wrap=True)
+        raise typer.Exit(code=e.exit_code) from None
+    except KeyboardInterrupt:
+        err_console.print("interrupted", style="yellow")
+        raise typer.Exit(code=130) from None
+    except Exception as e:  # noqa: BLE001 - the one place where unexpected errors become exit codes
+        if state.verbose:
+            err_console.print_exception()
+        err_console.print(
+            f"[bold red]internal error:[/] {type(e).__name__}: {_one_line(str(e))} "
+            "(run with --verbose for the traceback)",
+            markup=True,
+            highlight=False,
+            soft_wrap=True,
+        )
+        raise typer.Exit(code=1) from None

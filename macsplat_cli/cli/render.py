@@ -1,0 +1,277 @@
+"""``macsplat render``: render a 3DGS PLY from a camera, or along a path between cameras."""
+
+from __future__ import annotations
+
+import logging
+import re
+import time
+from enum import Enum
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from . import app
+from ._common import QuietOpt, VerboseOpt, command_context, err_console
+
+logger = logging.getLogger("macsplat_cli.cli.render")
+
+_NAMED_COLOURS = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0), "gray": (0.5, 0.5, 0.5), "grey": (0.5, 0.5, 0.5)}
+
+
+class BackendChoice(str, Enum):
+    auto = "auto"
+    numba = "numba"
+    torch = "torch"
+    gsplat = "gsplat"
+
+
+class DeviceChoice(str, Enum):
+    cpu = "cpu"
+    cuda = "cuda"
+
+
+def parse_colour(text: str) -> tuple[float, float, float]:
+    """``black``/``white``/``gray``, ``#rrggbb``, or ``r,g,b`` with values in [0, 1]."""
+    from ..errors import InputError
+
+    t = text.strip().lower()
+    if t in _NAMED_COLOURS:
+        return _NAMED_COLOURS[t]
+    if re.fullmatch(r"#[0-9a-f]{6}", t):
+        return tuple(int(t[i : i + 2], 16) / 255.0 for i in (1, 3, 5))  # type: ignore[return-value]
+    parts = t.split(",")
+    try:
+        vals = tuple(float(p) for p in parts)
+    except ValueError:
+        vals = ()
+    if len(vals) != 3 or not all(0.0 <= v <= 1.0 for v in vals):
+        raise InputError(f"--background {text!r}: use black, white, gray, #rrggbb or r,g,b with values in [0, 1]")
+    return vals  # type: ignore[return-value]
+
+
+@app.command("render")
+def render_command(
+    ctx: typer.Context,
+    scene: Annotated[Path, typer.Argument(metavar="SCENE.ply", help="A 3DGS scene in the standard PLY layout.")],
+    output: Annotated[
+        Path | None,
+        typer.Option(
+            "--output", "-o", help="Image to write (.png/.jpg/.webp/.tif/.bmp); with --path, a folder of frames."
+        ),
+    ] = None,
+    pose: Annotated[
+        Path | None, typer.Option("--pose", metavar="CAM.json", help="Camera file (macsplat cameras schema).")
+    ] = None,
+    cameras: Annotated[
+        Path | None, typer.Option("--cameras", metavar="CAMS.json", help="Camera file; same as --pose.")
+    ] = None,
+    view: Annotated[int, typer.Option("--view", min=0, help="Which camera of the file to render.")] = 0,
+    path: Annotated[
+        int | None,
+        typer.Option(
+            "--path", min=1, metavar="N", help="Render N views along the path through all cameras of the file."
+        ),
+    ] = None,
+    width: Annotated[int | None, typer.Option("--width", min=1, help="Output width (K is rescaled).")] = None,
+    height: Annotated[int | None, typer.Option("--height", min=1, help="Output height (K is rescaled).")] = None,
+    background: Annotated[
+        str, typer.Option("--background", help="black, white, gray, #rrggbb or r,g,b in [0, 1].")
+    ] = "black",
+    depth: Annotated[
+        Path | None,
+        typer.Option("--depth", help="Also write the expected depth: .npy/.tif (float32) or .png (16-bit, x1000)."),
+    ] = None,
+    video: Annotated[
+        Path | None, typer.Option("--video", help="With --path: also write the frames as .mp4 or .gif.")
+    ] = None,
+    fps: Annotated[float, typer.Option("--fps", min=1.0, help="Video frame rate.")] = 24.0,
+    backend: Annotated[BackendChoice, typer.Option("--backend", help="Rasterizer.")] = BackendChoice.auto,
+    device: Annotated[DeviceChoice, typer.Option("--device", help="Where to render.")] = DeviceChoice.cpu,
+    verbose: VerboseOpt = False,
+    quiet: QuietOpt = False,
+) -> None:
+    """Render a Gaussian scene from a camera, or a path of views between cameras.
+
+    [bold]Examples[/]
+
+      macsplat render scene.ply --pose cam.json -o view.png --depth depth.npy
+      macsplat render scene.ply --cameras cams.json --path 60 -o frames/ --video orbit.mp4
+    """
+    with command_context(ctx, verbose, quiet) as state:
+        _render(
+            scene=scene,
+            output=output,
+            camera_file=_one_camera_file(pose, cameras),
+            view=view,
+            path=path,
+            width=width,
+            height=height,
+            background=parse_colour(background),
+            depth=depth,
+            video=video,
+            fps=fps,
+            backend=backend.value,
+            device=device.value,
+            quiet=state.quiet,
+        )
+
+
+def _one_camera_file(pose: Path | None, cameras: Path | None) -> Path:
+    from ..errors import InputError
+
+    if pose is None and cameras is None:
+        raise InputError("a camera file is required: --pose CAM.json (or --cameras CAMS.json)")
+    if pose is not None and cameras is not None and pose != cameras:
+        raise InputError("give one camera file: --pose and --cameras are the same option")
+    return pose if pose is not None else cameras  # type: ignore[return-value]
+
+
+def _render(
+    *,
+    scene: Path,
+    output: Path | None,
+    camera_file: Path,
+    view: int,
+    path: int | None,
+    width: int | None,
+    height: int | None,
+    background: tuple[float, float, float],
+    depth: Path | None,
+    video: Path | None,
+    fps: float,
+    backend: str,
+    device: str,
+    quiet: bool,
+) -> None:
+    import torch
+
+    from .._atomic import check_writable
+    from ..cameras import load_cameras
+    from ..errors import InputError
+    from ..images import DEPTH_FORMATS, VIDEO_FORMATS, check_image_path, save_depth, save_image, to_uint8, write_video
+    from ..ply import read_ply
+    from ..render import render_camera
+    from ..trajectory import interpolate_cameras
+
+    # ---- validate everything before any work, so bad input fails fast and writes nothing
+    if path is None:
+        if output is None:
+            raise InputError("--output/-o is required: the image to write")
+        if video is not None:
+            raise InputError("--video needs --path N (a path of views to put in the video)")
+        check_image_path(output)
+        check_writable(output)
+        if depth is not None:
+            if depth.suffix.lower() not in DEPTH_FORMATS:
+                raise InputError(f"{depth}: unsupported depth format; use one of {', '.join(DEPTH_FORMATS)}")
+            check_writable(depth)
+    else:
+        if output is None and video is None:
+            raise InputError("with --path, give a frame folder (-o DIR) and/or a video (--video FILE)")
+        if depth is not None:
+            raise InputError("--depth writes a single view; it cannot be combined with --path")
+        if output is not None:
+            if output.exists() and not output.is_dir():
+                raise InputError(f"{output}: exists and is not a folder (with --path, -o names a folder of frames)")
+            if not output.exists():
+                check_writable(output)
+        if video is not None:
+            if video.suffix.lower() not in VIDEO_FORMATS:
+                raise InputError(f"{video}: unsupported video format; use one of {', '.join(VIDEO_FORMATS)}")
+            check_writable(video)
+    if device == "cuda" and not torch.cuda.is_available():
+        raise InputError("--device cuda: this PyTorch has no CUDA device")
+    if backend == "gsplat" and device != "cuda":
+        raise InputError("--backend gsplat renders on a CUDA device: add --device cuda")
+
+    t0 = time.perf_counter()
+    gaussians = read_ply(scene).to(device)
+    cams = load_cameras(camera_file)
+    if path is None:
+        if view >= len(cams):
+            raise InputError(f"{camera_file}: --view {view} is out of range (the file has {len(cams)} camera(s))")
+        targets = [_resized(cams[view], width, height)]
+    else:
+        w = width or (round(height * cams[0].width / cams[0].height) if height else None)
+        h = height or (round(width * cams[0].height / cams[0].width) if width else None)
+        targets = interpolate_cameras(list(cams), path, width=w, height=h)
+    t_load = time.perf_counter() - t0
+    logger.debug("loaded %d Gaussians (SH degree %d) and %d camera(s)", len(gaussians), gaussians.sh_degree, len(cams))
+
+    frames, n_visible = [], []
+    t0 = time.perf_counter()
+    with _progress(len(targets), quiet or len(targets) == 1) as advance, torch.no_grad():
+        for cam in targets:
+            out = render_camera(gaussians, cam, background=background, backend=backend)
+            frames.append(out)
+            n_visible.append(int(out.visible.numel()))
+            advance()
+    t_render = time.perf_counter() - t0
+
+    written = []
+    if path is None:
+        written.append(save_image(output, frames[0].rgb))  # type: ignore[arg-type]
+        if depth is not None:
+            written.append(save_depth(depth, frames[0].depth))
+    else:
+        images = [to_uint8(f.rgb) for f in frames]
+        if output is not None:
+            output.mkdir(exist_ok=True)
+            for i, img in enumerate(images):
+                written.append(save_image(output / f"frame_{i:04d}.png", img))
+        if video is not None:
+            written.append(write_video(video, images, fps=fps))
+
+    if not quiet:
+        _summary(scene, len(gaussians), targets, n_visible, t_load, t_render, written, backend)
+
+
+def _resized(cam, width: int | None, height: int | None):  # noqa: ANN001, ANN202
+    if width is None and height is None:
+        return cam
+    w = width or round(height * cam.width / cam.height)
+    h = height or round(width * cam.height / cam.width)
+    return cam.rescaled(w, h)
+
+
+class _progress:
+    """A Rich progress bar on stderr (nothing when disabled); yields an ``advance()`` callable."""
+
+    def __init__(self, total: int, disabled: bool) -> None:
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+        self.progress = Progress(
+            TextColumn("rendering"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeRemainingColumn(),
+            console=err_console,
+            disable=disabled,
+            transient=True,
+        )
+        self.total = total
+
+    def __enter__(self):  # noqa: ANN204
+        self.progress.start()
+        task = self.progress.add_task("render", total=self.total)
+        return lambda: self.progress.advance(task)
+
+    def __exit__(self, *exc: object) -> None:
+        self.progress.stop()
+
+
+def _summary(scene, n_gauss, targets, n_visible, t_load, t_render, written, backend) -> None:  # noqa: ANN001
+    from rich.table import Table
+
+    table = Table(title="macsplat render", show_header=False, title_justify="left")
+    table.add_column(style="bold")
+    table.add_column()
+    table.add_row("scene", f"{scene} ({n_gauss:,} Gaussians)")
+    table.add_row("views", f"{len(targets)} at {targets[0].width}x{targets[0].height}")
+    table.add_row("visible", f"{min(n_visible):,}–{max(n_visible):,}" if len(n_visible) > 1 else f"{n_visible[0]:,}")
+    table.add_row("backend", backend)
+    table.add_row("time", f"load {t_load:.2f} s, render {t_render:.2f} s ({1e3 * t_render / len(targets):.0f} ms/view)")
+    shown = written if len(written) <= 4 else [*written[:2], f"... ({len(written) - 3} more)", written[-1]]
+    table.add_row("wrote", "\n".join(str(p) for p in shown))
+    err_console.print(table)
