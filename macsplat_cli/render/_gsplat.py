@@ -29,6 +29,11 @@ def available() -> bool:
     return importlib.util.find_spec("gsplat") is not None and torch.cuda.is_available()
 
 
+def _require_cuda(gaussians: Gaussians) -> None:
+    if gaussians.device.type != "cuda":
+        raise InputError("the gsplat backend renders CUDA tensors; move the Gaussians to a CUDA device")
+
+
 def render_gsplat(
     gaussians: Gaussians,
     viewmat: torch.Tensor,  # [4, 4]
@@ -48,8 +53,7 @@ def render_gsplat(
         import gsplat
     except ImportError as e:  # pragma: no cover - depends on the environment
         raise InputError("the gsplat backend needs gsplat and a CUDA PyTorch: pip install gsplat") from e
-    if gaussians.device.type != "cuda":
-        raise InputError("the gsplat backend renders CUDA tensors; move the Gaussians to a CUDA device")
+    _require_cuda(gaussians)
 
     keep = gaussians.finite_mask().nonzero().squeeze(1)  # gsplat would propagate NaN
     g = gaussians[keep]
