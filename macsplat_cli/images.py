@@ -1,10 +1,14 @@
-"""Writing rendered images, depth maps and videos (atomically)."""
+"""Image I/O: reading photos (EXIF orientation and focal length, any bit depth) and
+writing rendered images, depth maps and videos (atomically)."""
 
 from __future__ import annotations
 
+import io
 import logging
+import math
 import os
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -12,11 +16,13 @@ import numpy as np
 import torch
 
 from ._atomic import atomic_path, atomic_write_bytes
-from .errors import InputError, OutputPathError
+from .errors import ImageReadError, InputError, OutputPathError
 
 __all__ = [
     "DEPTH_FORMATS",
     "IMAGE_FORMATS",
+    "LoadedImage",
+    "load_image",
     "VIDEO_FORMATS",
     "save_depth",
     "save_image",
@@ -31,6 +37,132 @@ DEPTH_FORMATS = (".npy", ".png", ".tif", ".tiff")
 VIDEO_FORMATS = (".mp4", ".gif")
 DEPTH_PNG_SCALE = 1000.0
 """16-bit depth PNGs store ``round(depth · 1000)``: millimetres for a metric scene."""
+
+
+_EXIF_ORIENTATION = 0x0112
+_EXIF_IFD = 0x8769
+_EXIF_FOCAL_35MM = 0xA405
+_FULL_FRAME_DIAGONAL_MM = math.hypot(36.0, 24.0)
+
+
+@dataclass
+class LoadedImage:
+    """A photo as read from disk, upright.
+
+    Attributes:
+        rgb: colour in [0, 1], EXIF orientation applied; grey images are replicated to
+            three channels. [H, W, 3] float32
+        alpha: opacity in [0, 1] when the file has an alpha channel, else None. [H, W] float32
+        focal_35mm: EXIF FocalLengthIn35mmFilm in millimetres, if present and positive.
+        bit_depth: bits per channel of the file (8 or 16; 32 for float TIFF).
+        path: where it was read from.
+    """
+
+    rgb: np.ndarray
+    alpha: np.ndarray | None
+    focal_35mm: float | None
+    bit_depth: int
+    path: Path
+
+    @property
+    def width(self) -> int:
+        return int(self.rgb.shape[1])
+
+    @property
+    def height(self) -> int:
+        return int(self.rgb.shape[0])
+
+    def focal_px_from_exif(self) -> float | None:
+        """Focal length in pixels of this image from the 35 mm equivalent, if known.
+
+        The 35 mm equivalent is defined on the diagonal (CIPA DC-008), so
+        ``f_px = f35 · diagonal_px / 43.27 mm``, which holds for any aspect ratio.
+        """
+        if self.focal_35mm is None:
+            return None
+        return self.focal_35mm * math.hypot(self.width, self.height) / _FULL_FRAME_DIAGONAL_MM
+
+
+def _exif(data: bytes) -> tuple[int, float | None]:
+    """(orientation 1..8, 35 mm focal or None) from a file's EXIF block; (1, None) if absent."""
+    try:
+        from PIL import Image
+
+        with Image.open(io.BytesIO(data)) as im:
+            exif = im.getexif()
+            orientation = int(exif.get(_EXIF_ORIENTATION, 1) or 1)
+            f35 = exif.get_ifd(_EXIF_IFD).get(_EXIF_FOCAL_35MM)
+    except Exception:  # noqa: BLE001 - EXIF is optional metadata; a broken block is ignored
+        return 1, None
+    focal = float(f35) if isinstance(f35, (int, float)) and f35 > 0 else None
+    return (orientation if 1 <= orientation <= 8 else 1), focal
+
+
+def _apply_orientation(img: np.ndarray, orientation: int) -> np.ndarray:
+    """Pixels as displayed for EXIF orientation 1..8 (the transforms of ``ImageOps.exif_transpose``)."""
+    swap = (1, 0) + tuple(range(2, img.ndim))
+    out = {
+        1: lambda a: a,
+        2: lambda a: a[:, ::-1],  # mirror left-right
+        3: lambda a: a[::-1, ::-1],  # rotate 180°
+        4: lambda a: a[::-1],  # mirror top-bottom
+        5: lambda a: a.transpose(swap),  # transpose
+        6: lambda a: np.rot90(a, -1),  # rotate 90° clockwise
+        7: lambda a: a[::-1, ::-1].transpose(swap),  # transverse
+        8: lambda a: np.rot90(a, 1),  # rotate 90° counter-clockwise
+    }[orientation](img)
+    return np.ascontiguousarray(out)
+
+
+def load_image(path: str | os.PathLike[str]) -> LoadedImage:
+    """Read a JPEG/PNG/WebP/TIFF/BMP photo: EXIF orientation applied, any bit depth.
+
+    Grey and grey+alpha images become RGB; 16-bit and float images keep their
+    precision (scaled to [0, 1]); an alpha channel is returned separately.
+
+    Raises:
+        ImageReadError: the file is missing, unreadable or not a decodable image.
+    """
+    p = Path(path)
+    try:
+        data = p.read_bytes()
+    except FileNotFoundError:
+        raise ImageReadError(f"{p}: no such file") from None
+    except IsADirectoryError:
+        raise ImageReadError(f"{p}: is a directory, not an image") from None
+    except OSError as e:
+        raise ImageReadError(f"{p}: cannot read ({e.strerror or e})") from None
+    raw = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION)
+    if raw is None or raw.size == 0:
+        raise ImageReadError(f"{p}: not an image OpenCV can decode (JPEG, PNG, WebP, TIFF, BMP)")
+    orientation, focal = _exif(data)
+    if raw.dtype == np.uint8:
+        scale, depth = 255.0, 8
+    elif raw.dtype == np.uint16:
+        scale, depth = 65535.0, 16
+    elif raw.dtype in (np.float32, np.float64):
+        scale, depth = 1.0, 32
+    else:
+        raise ImageReadError(f"{p}: unsupported pixel type {raw.dtype}")
+    img = raw.astype(np.float32) / scale
+    if img.ndim == 2:
+        img = img[..., None]
+    channels = img.shape[2]
+    alpha = None
+    if channels in (2, 4):
+        alpha = np.clip(img[..., -1], 0.0, 1.0)
+        img = img[..., :-1]
+    if img.shape[2] == 1:
+        img = np.repeat(img, 3, axis=2)
+    elif img.shape[2] == 3:
+        img = img[..., ::-1]  # OpenCV decodes BGR
+    else:
+        raise ImageReadError(f"{p}: unsupported number of channels ({channels})")
+    rgb = np.clip(np.nan_to_num(img, nan=0.0), 0.0, 1.0)
+    rgb = _apply_orientation(rgb, orientation)
+    if alpha is not None:
+        alpha = _apply_orientation(alpha, orientation)
+    return LoadedImage(rgb=rgb.astype(np.float32), alpha=alpha, focal_35mm=focal, bit_depth=depth, path=p)
 
 
 def _suffix(path: str | os.PathLike[str], allowed: Sequence[str], what: str) -> str:

@@ -1,0 +1,221 @@
+"""``macsplat reconstruct``: two photos → a 3DGS PLY, the cameras, novel views, a report."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from . import app
+from ._common import QuietOpt, VerboseOpt, command_context, err_console, out_console
+
+logger = logging.getLogger("macsplat_cli.cli.reconstruct")
+
+
+@app.command("reconstruct")
+def reconstruct_command(
+    ctx: typer.Context,
+    image_a: Annotated[Path, typer.Argument(metavar="A", help="First photo (defines the world frame).")],
+    image_b: Annotated[Path, typer.Argument(metavar="B", help="Second photo.")],
+    output: Annotated[Path, typer.Option("--output", "-o", help="The Gaussian scene to write (.ply).")],
+    cameras: Annotated[
+        Path | None,
+        typer.Option("--cameras", help="Where to write the estimated cameras [default: <stem>.cameras.json]."),
+    ] = None,
+    renders: Annotated[
+        Path | None, typer.Option("--renders", help="Folder for novel views along the path between the cameras.")
+    ] = None,
+    num_renders: Annotated[int, typer.Option("--num-renders", min=2, help="Number of novel views.")] = 10,
+    video: Annotated[Path | None, typer.Option("--video", help="Also write the novel views as .mp4 or .gif.")] = None,
+    report: Annotated[Path | None, typer.Option("--report", help="Write the run report (JSON) here.")] = None,
+    json_out: Annotated[bool, typer.Option("--json", help="Print the report as JSON on stdout.")] = False,
+    size: Annotated[
+        int, typer.Option("--size", min=64, help="Long side of the working images (multiple of 16).")
+    ] = 512,
+    intrinsics: Annotated[
+        Path | None, typer.Option("--intrinsics", help="Camera file (cameras schema) with the photos' intrinsics.")
+    ] = None,
+    focal: Annotated[
+        float | None, typer.Option("--focal", help="Focal length in pixels of the original photos.")
+    ] = None,
+    conf_threshold: Annotated[
+        float, typer.Option("--conf-threshold", help="τ: keep matches whose joint confidence c0·c1 exceeds it.")
+    ] = 0.0,
+    verbose: VerboseOpt = False,
+    quiet: QuietOpt = False,
+) -> None:
+    """Reconstruct a Gaussian splat scene from two photos (no learned weights needed).
+
+    Writes the scene (standard 3DGS PLY), the two estimated cameras (world = first camera,
+    relative scale: baseline 1), and optionally novel views, a video and a JSON report.
+
+    [bold]Example[/]
+
+      macsplat reconstruct a.jpg b.jpg -o scene.ply --renders views/ --video path.mp4
+    """
+    with command_context(ctx, verbose, quiet) as state:
+        _reconstruct(
+            images=[image_a, image_b], output=output, cameras=cameras, renders=renders, num_renders=num_renders,
+            video=video, report=report, json_out=json_out, size=size, intrinsics=intrinsics, focal=focal,
+            conf_threshold=conf_threshold, quiet=state.quiet,
+        )  # fmt: skip
+
+
+def _check_outputs(output: Path, cameras: Path, renders: Path | None, video: Path | None, report: Path | None) -> None:
+    from .._atomic import check_writable
+    from ..errors import InputError
+    from ..images import VIDEO_FORMATS
+
+    if output.suffix.lower() != ".ply":
+        raise InputError(f"{output}: the scene is written as a .ply file")
+    for p in (output, cameras, video, report):
+        if p is not None:
+            check_writable(p)
+    if video is not None and video.suffix.lower() not in VIDEO_FORMATS:
+        raise InputError(f"{video}: unsupported video format; use one of {', '.join(VIDEO_FORMATS)}")
+    if renders is not None:
+        if renders.exists() and not renders.is_dir():
+            raise InputError(f"{renders}: exists and is not a folder")
+        if not renders.exists():
+            check_writable(renders)
+    if len({p.resolve() for p in (output, cameras, video, report) if p is not None}) < sum(
+        p is not None for p in (output, cameras, video, report)
+    ):
+        raise InputError("two outputs point at the same file")
+
+
+def _reconstruct(
+    *, images: list[Path], output: Path, cameras: Path | None, renders: Path | None, num_renders: int,
+    video: Path | None, report: Path | None, json_out: bool, size: int, intrinsics: Path | None,
+    focal: float | None, conf_threshold: float, quiet: bool,
+) -> None:  # fmt: skip
+    from ..pipeline.run import Pipeline, ReconstructConfig
+    from ..pipeline.views import ViewConfig
+
+    cameras = cameras or output.with_name(output.stem + ".cameras.json")
+    _check_outputs(output, cameras, renders, video, report)
+    config = ReconstructConfig(views=ViewConfig(size=size, intrinsics=intrinsics, focal=focal))
+    config.matching.conf_threshold = conf_threshold
+    pipeline = Pipeline(config)
+
+    with _StageProgress(disabled=quiet) as progress:
+        result = pipeline.run(images, on_stage=progress.event)
+        written = _write_outputs(result, output, cameras, renders, num_renders, video, progress)
+
+    result.report["outputs"] = {k: str(v) for k, v in written.items()}
+    if report is not None:
+        from .._atomic import atomic_write_text
+
+        atomic_write_text(report, json.dumps(result.report, indent=2) + "\n")
+    if json_out:
+        out_console.print_json(json.dumps(result.report))
+    if not quiet:
+        _summary(result.report, written)
+
+
+def _write_outputs(result, output, cameras, renders, num_renders, video, progress) -> dict[str, Any]:  # noqa: ANN001
+    import torch
+
+    from ..cameras import save_cameras
+    from ..images import save_image, to_uint8, write_video
+    from ..ply import write_ply
+    from ..render import render_camera
+    from ..trajectory import interpolate_cameras
+
+    written: dict[str, Any] = {}
+    progress.event("write", "start")
+    n = write_ply(output, result.gaussians)
+    result.report["gaussians_written"] = n
+    written["scene"] = output
+    save_cameras(cameras, result.cameras())
+    written["cameras"] = cameras
+    progress.event("write", "end")
+    if renders is not None or video is not None:
+        progress.event("renders", "start")
+        work_cams = result.cameras(original_size=False)
+        path = interpolate_cameras(list(work_cams), num_renders)
+        frames = []
+        with torch.no_grad():
+            for cam in path:
+                frames.append(to_uint8(render_camera(result.gaussians, cam).rgb))
+        if renders is not None:
+            renders.mkdir(exist_ok=True)
+            for i, f in enumerate(frames):
+                save_image(renders / f"view_{i:03d}.png", f)
+            written["renders"] = renders
+        if video is not None:
+            write_video(video, frames)
+            written["video"] = video
+        progress.event("renders", "end")
+    return written
+
+
+class _StageProgress:
+    """One line per stage: a spinner while it runs, then a tick and its wall time."""
+
+    def __init__(self, disabled: bool) -> None:
+        from rich.progress import Progress, SpinnerColumn, TextColumn
+
+        self.progress = Progress(
+            SpinnerColumn(finished_text="[green]✓[/]"), TextColumn("{task.description:<12}"),
+            TextColumn("{task.fields[took]}"), console=err_console, disable=disabled, transient=False,
+        )  # fmt: skip
+        self.tasks: dict[str, Any] = {}
+        self.started: dict[str, float] = {}
+
+    def __enter__(self) -> _StageProgress:
+        self.progress.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for stage, task in self.tasks.items():  # a failed stage stops its spinner
+            if stage in self.started:
+                self.progress.update(task, took="[red]✗ failed[/]")
+            self.progress.stop_task(task)
+        self.progress.stop()
+
+    def event(self, stage: str, kind: str) -> None:
+        import time
+
+        if kind == "start":
+            self.started[stage] = time.perf_counter()
+            self.tasks[stage] = self.progress.add_task(stage, total=1, took="")
+        else:
+            took = time.perf_counter() - self.started.pop(stage)
+            self.progress.update(self.tasks[stage], completed=1, took=f"{took:.2f} s")
+            self.progress.stop_task(self.tasks[stage])
+
+
+def _summary(report: dict[str, Any], written: dict[str, Any]) -> None:
+    from rich.table import Table
+
+    t = Table(title="macsplat reconstruct", show_header=False, title_justify="left")
+    t.add_column(style="bold")
+    t.add_column()
+    imgs = report["images"]
+    t.add_row(
+        "images",
+        "\n".join(
+            f"{Path(p).name}: {i['original_size'][0]}x{i['original_size'][1]} → {i['working_size'][0]}x"
+            f"{i['working_size'][1]}, focal {i['focal_px_working']:.0f} px ({i['intrinsics_source']})"
+            for p, i in zip(report["inputs"], imgs)
+        ),
+    )
+    m = report["matches"]
+    t.add_row("keypoints", " / ".join(str(k) for k in report["keypoints"]))
+    t.add_row("matches", " → ".join(f"{v} {k}" for k, v in m.items()))
+    pose = report["pose"]
+    t.add_row(
+        "pose",
+        f"rotation {pose['rotation_deg']:.1f}°, median parallax {pose['median_parallax_deg']:.1f}°, "
+        f"inlier ratio {pose['inlier_ratio']:.2f}, median epipolar error {pose['median_sampson_px']:.2f} px",
+    )
+    t.add_row("depth", " / ".join(f"{100 * c:.0f} %" for c in report["depth_coverage"]) + " of pixels")
+    t.add_row("Gaussians", f"{report.get('gaussians_written', report['gaussians']):,}")
+    times = report["times_s"]
+    t.add_row("time", ", ".join(f"{k} {v:.2f} s" for k, v in times.items()))
+    t.add_row("wrote", "\n".join(str(v) for v in written.values()))
+    err_console.print(t)

@@ -1,0 +1,304 @@
+"""Stage 5: dense depth with confidence for both views (plane sweep + semi-global matching).
+
+For each view (the *reference*) against the other (the *source*):
+
+1. Hypotheses: fronto-parallel planes in the reference camera, uniform in inverse depth
+   between bounds taken from the triangulated verified matches (with margins). Their
+   number follows the largest pixel shift the range induces in the source image, so
+   consecutive planes move the image by about one pixel.
+2. Matching cost: each plane's homography ``K_s (R + t·[0 0 ρ]) K_r⁻¹`` warps the source
+   image onto the reference; the cost is ``(1 − ZNCC) / 2`` over a small window (robust to
+   exposure differences). Windows that leave the source image cost 0.5, "unknown".
+   No rectification is needed, so converging and forward-moving pairs work.
+3. Semi-global aggregation (4 or 8 paths, Numba; penalty P2 lowered across image edges),
+   winner-take-all with a parabolic sub-plane offset.
+4. Confidence: left-right consistency (a pixel's depth, carried into the other view, must
+   agree with the depth found there within ``consistency`` relative error), the
+   uniqueness of the winning hypothesis, and the ZNCC of the winning match. Pixels that
+   fail are left without depth; the Gaussian stage skips them.
+
+The volume can be built at a fraction of the working resolution (``scale``) for speed;
+the inverse depth is then upsampled with an edge-aware (joint bilateral) filter guided by
+the full-resolution image.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..errors import ReconstructionError
+from . import _sgm_kernels
+from .pose import triangulate
+from .types import DepthMap, TwoViewGeometry, View
+
+__all__ = ["DepthConfig", "estimate_depths", "plane_sweep_cost"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class DepthConfig:
+    """Args:
+    scale: resolution of the cost volume relative to the working images.
+    max_planes: most depth hypotheses; fewer when the depth range moves the image less.
+    min_planes: fewest depth hypotheses.
+    window: ZNCC window side, pixels (odd).
+    p1: SGM penalty for a one-plane jump (cost units; costs lie in [0, 1]).
+    p2: SGM penalty for larger jumps, before lowering across edges.
+    edge_gamma: P2 is divided by ``1 + edge_gamma·|ΔI|`` (intensity in [0, 1]).
+    eight_paths: aggregate along diagonals too (slower, smoother).
+    consistency: largest relative depth disagreement between the two views' estimates.
+    min_uniqueness: smallest uniqueness margin of the winning hypothesis.
+    max_cost: largest matching cost (1 − ZNCC)/2 of the winning hypothesis.
+    fill: give every pixel without a trustworthy depth one propagated from its
+        confident neighbours (edge-aware), at confidence ``fill_confidence`` or less.
+    fill_lambda: smoothness of the fill (OpenCV fast global smoother λ).
+    fill_sigma_color: colour similarity scale of the fill, in 8-bit intensity units.
+    fill_confidence: confidence of filled pixels with strong support nearby.
+    """
+
+    scale: float = 0.5
+    max_planes: int = 96
+    min_planes: int = 32
+    window: int = 5
+    p1: float = 0.04
+    p2: float = 0.5
+    edge_gamma: float = 8.0
+    eight_paths: bool = False
+    consistency: float = 0.02
+    min_uniqueness: float = 0.02
+    max_cost: float = 0.35
+    fill: bool = True
+    fill_lambda: float = 400.0
+    fill_sigma_color: float = 12.0
+    fill_confidence: float = 0.35
+
+
+def _relative(geometry: TwoViewGeometry, ref: int) -> tuple[np.ndarray, np.ndarray]:
+    """(R, t) taking reference-camera points to source-camera points."""
+    if ref == 0:
+        return geometry.R, geometry.t
+    return geometry.R.T, -geometry.R.T @ geometry.t
+
+
+def _inverse_depth_range(geometry: TwoViewGeometry) -> list[tuple[float, float]]:
+    """Per view, (ρ_min, ρ_max) covering the triangulated matches with margins."""
+    m = geometry.inliers
+    h0 = np.concatenate([m.xy0, np.ones((len(m), 1))], 1) @ np.linalg.inv(geometry.K0).T
+    h1 = np.concatenate([m.xy1, np.ones((len(m), 1))], 1) @ np.linalg.inv(geometry.K1).T
+    X = triangulate(geometry.R, geometry.t, h0, h1)
+    z0 = X[:, 2]
+    z1 = X @ geometry.R[2] + geometry.t[2]
+    out = []
+    for z in (z0, z1):
+        z = z[np.isfinite(z) & (z > 0)]
+        if z.size < 8:
+            raise ReconstructionError("dense depth: too few triangulated matches to bound the scene depth")
+        near, far = np.percentile(z, 2), np.percentile(z, 98)
+        out.append((1.0 / (far * 3.0), 1.0 / (near * 0.6)))
+    return out
+
+
+def _scaled_K(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    out = K.copy()
+    out[0] *= sx
+    out[1] *= sy
+    return out
+
+
+def plane_sweep_cost(
+    ref: np.ndarray,  # [h, w] float32
+    src: np.ndarray,  # [hs, ws] float32
+    K_ref: np.ndarray,
+    K_src: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    inv_depths: np.ndarray,  # [D]
+    window: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """ZNCC cost volume of fronto-parallel planes.
+
+    Returns:
+        ``(cost, ncc_valid)``: ``(1 − ZNCC)/2`` per pixel and plane, 0.5 where the window
+        leaves the source image [h, w, D] float32; and, per pixel, whether any plane had a
+        complete window [h, w] bool.
+    """
+    h, w = ref.shape
+    ksize = (window, window)
+    eps = 1e-4
+    mu_r = cv2.blur(ref, ksize)
+    var_r = np.maximum(cv2.blur(ref * ref, ksize) - mu_r * mu_r, 0.0)
+    # cv2 maps pixel centres at integers; our K uses +0.5 centres: shift in and out.
+    shift = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
+    unshift = np.linalg.inv(shift)
+    K_ref_inv = np.linalg.inv(K_ref)
+    cost = np.empty((len(inv_depths), h, w), np.float32)
+    any_valid = np.zeros((h, w), bool)
+    ones = np.ones(src.shape, np.float32)
+    full = 1.0 - 1e-3  # a window is usable only if all its pixels come from inside the source
+    for k, rho in enumerate(inv_depths):
+        H = unshift @ K_src @ (R + np.outer(t, [0.0, 0.0, rho])) @ K_ref_inv @ shift
+        flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+        # No NaN borders: cv2.blur is a running sum, so one NaN would poison the rest of its row.
+        warped = cv2.warpPerspective(src, H, (w, h), flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+        inside = cv2.warpPerspective(ones, H, (w, h), flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+        valid = cv2.blur(inside, ksize) >= full
+        mu_w = cv2.blur(warped, ksize)
+        var_w = cv2.blur(warped * warped, ksize) - mu_w * mu_w
+        cov = cv2.blur(ref * warped, ksize) - mu_r * mu_w
+        ncc = cov / np.sqrt(var_r * np.maximum(var_w, 0.0) + eps * eps)
+        any_valid |= valid
+        cost[k] = np.where(valid, 0.5 * (1.0 - np.clip(ncc, -1.0, 1.0)), 0.5)
+    return np.ascontiguousarray(cost.transpose(1, 2, 0)), any_valid
+
+
+def _n_planes(geometry: TwoViewGeometry, ref: int, rho: tuple[float, float], scale: float, cfg: DepthConfig) -> int:
+    """Planes so that consecutive ones shift the source image by about one (volume) pixel."""
+    K_src = geometry.K1 if ref == 0 else geometry.K0
+    _, t = _relative(geometry, ref)
+    f = 0.5 * (K_src[0, 0] + K_src[1, 1]) * scale
+    shift = f * float(np.linalg.norm(t[:2]) + abs(t[2]) * 0.5) * (rho[1] - rho[0])
+    return int(np.clip(math.ceil(shift), cfg.min_planes, cfg.max_planes))
+
+
+def _depth_one(
+    views: list[View], geometry: TwoViewGeometry, ref: int, rho: tuple[float, float], cfg: DepthConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Depth, uniqueness and winning cost at the volume resolution, plus the volume K."""
+    v_ref, v_src = views[ref], views[1 - ref]
+    K_ref = geometry.K0 if ref == 0 else geometry.K1
+    K_src = geometry.K1 if ref == 0 else geometry.K0
+    R, t = _relative(geometry, ref)
+    h = max(8, int(round(v_ref.height * cfg.scale)))
+    w = max(8, int(round(v_ref.width * cfg.scale)))
+    hs = max(8, int(round(v_src.height * cfg.scale)))
+    ws = max(8, int(round(v_src.width * cfg.scale)))
+    g_ref = cv2.resize(v_ref.gray, (w, h), interpolation=cv2.INTER_AREA)
+    g_src = cv2.resize(v_src.gray, (ws, hs), interpolation=cv2.INTER_AREA)
+    Kr = _scaled_K(K_ref, w / v_ref.width, h / v_ref.height)
+    Ks = _scaled_K(K_src, ws / v_src.width, hs / v_src.height)
+    n = _n_planes(geometry, ref, rho, cfg.scale, cfg)
+    rhos = np.linspace(rho[0], rho[1], n)
+    cost, has_window = plane_sweep_cost(g_ref, g_src, Kr, Ks, R, t, rhos, cfg.window)
+    agg = _sgm_kernels.aggregate(cost, g_ref, cfg.p1, cfg.p2, cfg.edge_gamma, cfg.eight_paths)
+    idx, off, uniq = _sgm_kernels.winner(agg)
+    step = (rho[1] - rho[0]) / max(n - 1, 1)
+    inv_depth = rho[0] + (idx + off) * step
+    win_cost = np.take_along_axis(cost, idx[..., None], axis=2)[..., 0]
+    ok = has_window & (inv_depth > 0) & (win_cost <= cfg.max_cost) & (uniq >= cfg.min_uniqueness)
+    depth = np.where(ok, 1.0 / np.maximum(inv_depth, 1e-12), 0.0).astype(np.float32)
+    return depth, uniq, win_cost, Kr
+
+
+def _consistency(
+    depth_ref: np.ndarray, depth_src: np.ndarray, K_ref: np.ndarray, K_src: np.ndarray, R: np.ndarray, t: np.ndarray
+) -> np.ndarray:
+    """Relative disagreement of each reference depth with the source view's depth. [h, w] (inf if none)"""
+    h, w = depth_ref.shape
+    ys, xs = np.mgrid[0:h, 0:w]
+    pix = np.stack([xs + 0.5, ys + 0.5, np.ones_like(xs, dtype=np.float64)], -1).reshape(-1, 3)
+    X = (pix @ np.linalg.inv(K_ref).T) * depth_ref.reshape(-1, 1)
+    Xs = X @ R.T + t
+    z = Xs[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = (Xs @ K_src.T)[:, :2] / z[:, None]
+    hs, ws = depth_src.shape
+    uv = np.clip(np.nan_to_num(uv, nan=-1.0, posinf=-1.0, neginf=-1.0), -1.0, 1e7)
+    ui = np.floor(uv[:, 0]).astype(np.int64)
+    vi = np.floor(uv[:, 1]).astype(np.int64)
+    inside = (depth_ref.reshape(-1) > 0) & (z > 0) & (ui >= 0) & (ui < ws) & (vi >= 0) & (vi < hs)
+    err = np.full(h * w, np.inf)
+    d_src = depth_src[vi[inside], ui[inside]]
+    rel = np.abs(d_src - z[inside]) / z[inside]
+    err[np.flatnonzero(inside)] = np.where(d_src > 0, rel, np.inf)
+    return err.reshape(h, w)
+
+
+def _upsample_depth(depth: np.ndarray, conf: np.ndarray, guide: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Volume-resolution depth → working resolution: nearest valid, then edge-aware smoothing of 1/z."""
+    H, W = guide.shape
+    d_up = cv2.resize(depth, (W, H), interpolation=cv2.INTER_NEAREST)
+    c_up = cv2.resize(conf, (W, H), interpolation=cv2.INTER_NEAREST)
+    valid = d_up > 0
+    inv = np.where(valid, 1.0 / np.maximum(d_up, 1e-12), 0.0).astype(np.float32)
+    wgt = valid.astype(np.float32)
+    g = guide.astype(np.float32)
+    sigma_space = max(1.0, 1.0 / max(depth.shape[1] / W, 1e-6))
+    num = cv2.ximgproc.jointBilateralFilter(g, inv * wgt, -1, 0.08, sigma_space)
+    den = cv2.ximgproc.jointBilateralFilter(g, wgt, -1, 0.08, sigma_space)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv_s = np.where(valid & (den > 1e-3), num / np.maximum(den, 1e-6), 0.0)
+    out = np.where(inv_s > 0, 1.0 / np.maximum(inv_s, 1e-12), 0.0).astype(np.float32)
+    return out, np.where(out > 0, c_up, 0.0).astype(np.float32)
+
+
+def fill_depth(
+    depth: np.ndarray,  # [H, W]
+    confidence: np.ndarray,  # [H, W]
+    image: np.ndarray,  # [H, W, 3]
+    *,
+    lam: float,
+    sigma_color: float,
+    fill_confidence: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Propagate confident inverse depths into the other pixels, stopping at image edges.
+
+    Normalised convolution with OpenCV's fast global smoother (an edge-aware weighted
+    least-squares filter): ``fill = FGS(ρ·c) / FGS(c)``. The support ``FGS(c)`` scales the
+    filled pixels' confidence, so far-fetched depths get little opacity.
+
+    Returns:
+        ``(depth, confidence)`` with the confident pixels unchanged. [H, W], [H, W]
+    """
+    valid = (depth > 0) & (confidence > 0)
+    if not valid.any():
+        return depth, confidence
+    guide = np.clip(np.rint(image * 255.0), 0, 255).astype(np.uint8)
+    fgs = cv2.ximgproc.createFastGlobalSmootherFilter(guide, lam, sigma_color)
+    wgt = np.where(valid, confidence, 0.0).astype(np.float32)
+    inv = np.where(valid, 1.0 / np.maximum(depth, 1e-12), 0.0).astype(np.float32)
+    num = fgs.filter(inv * wgt)
+    den = fgs.filter(wgt)
+    ok = (den > 1e-4) & (num > 0)
+    inv_fill = np.where(ok, num / np.maximum(den, 1e-12), 0.0)
+    support = np.clip(den / max(float(np.percentile(wgt[valid], 50)), 1e-6), 0.0, 1.0)
+    hole = ~valid & ok
+    out_d = np.where(valid, depth, np.where(hole, 1.0 / np.maximum(inv_fill, 1e-12), 0.0)).astype(np.float32)
+    out_c = np.where(valid, confidence, np.where(hole, fill_confidence * support, 0.0)).astype(np.float32)
+    return out_d, out_c
+
+
+def estimate_depths(views: list[View], geometry: TwoViewGeometry, config: DepthConfig | None = None) -> list[DepthMap]:
+    """Depth maps with confidence for both views, in their own camera frames (working resolution)."""
+    cfg = config or DepthConfig()
+    ranges = _inverse_depth_range(geometry)
+    raw = [_depth_one(views, geometry, ref, ranges[ref], cfg) for ref in (0, 1)]
+    out = []
+    for ref in (0, 1):
+        depth, uniq, win_cost, Kr = raw[ref]
+        depth_o, _, _, Ko = raw[1 - ref]
+        R, t = _relative(geometry, ref)
+        err = _consistency(depth, depth_o, Kr, Ko, R, t)
+        consistent = err < cfg.consistency
+        conf = consistent * np.clip(1.0 - err / cfg.consistency, 0.0, 1.0) ** 0.5
+        conf = conf * np.clip(uniq / 0.1, 0.2, 1.0) * np.clip(1.0 - win_cost / cfg.max_cost, 0.2, 1.0)
+        conf = conf.astype(np.float32)
+        depth = np.where(conf > 0, depth, 0.0).astype(np.float32)
+        v = views[ref]
+        if depth.shape != (v.height, v.width):
+            depth, conf = _upsample_depth(depth, conf, v.gray)
+        if cfg.fill:
+            depth, conf = fill_depth(
+                depth, conf, v.image, lam=cfg.fill_lambda, sigma_color=cfg.fill_sigma_color,
+                fill_confidence=cfg.fill_confidence,
+            )  # fmt: skip
+        conf = np.where(v.mask, conf, 0.0).astype(np.float32)
+        depth = np.where(conf > 0, depth, 0.0).astype(np.float32)
+        logger.debug("depth view %d: %.1f %% of pixels", ref, 100.0 * float((depth > 0).mean()))
+        out.append(DepthMap(depth=depth, confidence=conf))
+    return out

@@ -1,0 +1,153 @@
+"""Stage 6 (classical backend): one Gaussian per pixel with a trustworthy depth.
+
+For every pixel of each view whose depth confidence is positive:
+
+* mean: the pixel's ray at its depth, expressed in the camera-0 (world) frame;
+* rotation: a disc in the local tangent plane, its normal from the depth map's gradient
+  (facing the camera), its first axis along the direction in which the surface tilts
+  away from the viewer;
+* scales: the pixel footprint ``footprint · z / f`` across the tilt, stretched by
+  ``1 / cos θ`` along it (θ: angle between the normal and the viewing ray, capped), and
+  ``thickness`` times that along the normal;
+* colour: the pixel's colour as the SH DC term (degree 0);
+* opacity: ``opacity_min + (opacity_max − opacity_min) · confidence``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..gaussians import Gaussians
+from .types import DepthMap, TwoViewGeometry, View
+
+__all__ = ["GaussianInitConfig", "gaussians_from_depth", "rotmat_to_quat_batch"]
+
+
+@dataclass
+class GaussianInitConfig:
+    """Args:
+    footprint: Gaussian std across the surface, in pixels at the source view.
+    thickness: std along the normal relative to the std across the surface.
+    max_tilt_stretch: cap of the 1/cos θ stretch along the tilt direction.
+    opacity_min: opacity at confidence 0+.
+    opacity_max: opacity at confidence 1.
+    """
+
+    footprint: float = 0.7
+    thickness: float = 0.1
+    max_tilt_stretch: float = 4.0
+    opacity_min: float = 0.4
+    opacity_max: float = 0.97
+
+
+def rotmat_to_quat_batch(R: np.ndarray) -> np.ndarray:
+    """(w, x, y, z) unit quaternions of rotation matrices, ``w ≥ 0``. [N, 3, 3] → [N, 4]
+
+    Each of the four components gives a candidate formula (Shepperd's method); the one
+    built on the largest component is numerically safe and is kept.
+    """
+    m = R
+    sq = np.sqrt(
+        np.maximum(
+            np.stack(
+                [
+                    1 + m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2],
+                    1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2],
+                    1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2],
+                    1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2],
+                ],
+                1,
+            ),
+            0.0,
+        )
+    )  # 2|w|, 2|x|, 2|y|, 2|z|
+    a, b, c = m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]
+    d, e, f = m[:, 1, 0] + m[:, 0, 1], m[:, 0, 2] + m[:, 2, 0], m[:, 2, 1] + m[:, 1, 2]
+    cands = np.stack(
+        [
+            np.stack([sq[:, 0] ** 2, a, b, c], -1),
+            np.stack([a, sq[:, 1] ** 2, d, e], -1),
+            np.stack([b, d, sq[:, 2] ** 2, f], -1),
+            np.stack([c, e, f, sq[:, 3] ** 2], -1),
+        ],
+        1,
+    )  # [N, 4 candidates, 4], candidate k scaled by 2·sq_k
+    best = np.argmax(sq, axis=1)
+    q = cands[np.arange(len(m)), best] / (2.0 * sq[np.arange(len(m)), best])[:, None]
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return np.where(q[:, :1] < 0, -q, q)
+
+
+def _normals(points: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Camera-frame normals from a point map by central differences, facing the camera. [H, W, 3]"""
+    P = points
+    dx = np.zeros_like(P)
+    dy = np.zeros_like(P)
+    dx[:, 1:-1] = P[:, 2:] - P[:, :-2]
+    dy[1:-1] = P[2:] - P[:-2]
+    ok_x = np.zeros_like(valid)
+    ok_y = np.zeros_like(valid)
+    ok_x[:, 1:-1] = valid[:, 2:] & valid[:, :-2]
+    ok_y[1:-1] = valid[2:] & valid[:-2]
+    n = np.cross(dx, dy)
+    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    ray = -P / np.maximum(np.linalg.norm(P, axis=-1, keepdims=True), 1e-12)
+    good = ok_x & ok_y & (norm[..., 0] > 1e-12)
+    n = np.where(good[..., None], n / np.maximum(norm, 1e-12), ray)
+    flip = np.sum(n * ray, axis=-1) < 0
+    n[flip] *= -1
+    return n
+
+
+def gaussians_from_depth(
+    views: list[View], geometry: TwoViewGeometry, depths: list[DepthMap], config: GaussianInitConfig | None = None
+) -> Gaussians:
+    """Gaussians for both views' valid pixels, in the camera-0 frame (float32)."""
+    cfg = config or GaussianInitConfig()
+    parts = []
+    for k, (view, dm) in enumerate(zip(views, depths)):
+        K = geometry.K0 if k == 0 else geometry.K1
+        c2w = geometry.cam_to_world(k)
+        h, w = dm.depth.shape
+        ys, xs = np.mgrid[0:h, 0:w]
+        pix = np.stack([xs + 0.5, ys + 0.5, np.ones((h, w))], -1)
+        rays = pix @ np.linalg.inv(K).T  # z = 1
+        P = rays * dm.depth[..., None]
+        valid = dm.valid
+        n_cam = _normals(P, valid)
+        sel = valid.reshape(-1)
+        if not sel.any():
+            continue
+        Pv = P.reshape(-1, 3)[sel]
+        nv = n_cam.reshape(-1, 3)[sel]
+        z = Pv[:, 2]
+        view_dir = -Pv / np.linalg.norm(Pv, axis=1, keepdims=True)
+        cos = np.clip(np.sum(nv * view_dir, axis=1), 1.0 / cfg.max_tilt_stretch, 1.0)
+        # tilt axis: the viewing direction projected onto the tangent plane
+        t1 = view_dir - np.sum(view_dir * nv, axis=1, keepdims=True) * nv
+        t1_norm = np.linalg.norm(t1, axis=1, keepdims=True)
+        fallback = np.cross(nv, np.array([1.0, 0.0, 0.0]))
+        fallback_alt = np.cross(nv, np.array([0.0, 1.0, 0.0]))
+        fallback = np.where(np.linalg.norm(fallback, axis=1, keepdims=True) > 1e-6, fallback, fallback_alt)
+        t1 = np.where(
+            t1_norm > 1e-6, t1 / np.maximum(t1_norm, 1e-12), fallback / np.linalg.norm(fallback, axis=1, keepdims=True)
+        )
+        t2 = np.cross(nv, t1)
+        R_cam = np.stack([t1, t2, nv], axis=2)  # columns: local x, y, z axes
+        R_world = c2w[:3, :3] @ R_cam
+        f = 0.5 * (K[0, 0] + K[1, 1])
+        base = cfg.footprint * z / f
+        scales = np.stack([base / cos, base, base * cfg.thickness], 1)
+        means = Pv @ c2w[:3, :3].T + c2w[:3, 3]
+        rgb = view.image.reshape(-1, 3)[sel]
+        conf = dm.confidence.reshape(-1)[sel]
+        opacity = cfg.opacity_min + (cfg.opacity_max - cfg.opacity_min) * np.clip(conf, 0.0, 1.0)
+        quats = rotmat_to_quat_batch(R_world)
+        t = lambda a: torch.from_numpy(np.ascontiguousarray(a, np.float32))  # noqa: E731
+        parts.append(Gaussians.from_activated(t(means), t(scales), t(quats), t(opacity), t(rgb)))
+    if not parts:
+        return Gaussians.empty()
+    return Gaussians.cat(parts)

@@ -1,0 +1,338 @@
+"""Relative pose of two views: robust essential matrix, cheirality, non-linear refinement.
+
+1. Geometric verification: MAGSAC++ (OpenCV USAC) on the filtered matches. Points are
+   first mapped through ``K⁻¹`` into one virtual camera whose focal length is the mean of
+   the two, so the inlier threshold stays in pixels even when the two images differ.
+2. Cheirality: ``recoverPose`` picks the decomposition of E that puts the points in
+   front of both cameras.
+3. Refinement: Levenberg–Marquardt on the Sampson distance (pixels) of the inliers with
+   Cauchy weights, over the rotation (3 DOF) and the translation direction (2 DOF).
+4. Focal length, when a view's intrinsics come only from the 60° field-of-view prior:
+   a fundamental matrix is fitted first (it needs no intrinsics), the focal scale that
+   makes ``K1ᵀ F K0`` closest to an essential matrix initialises it (Mendonça–Cipolla),
+   and LM refines it with the pose under a log-normal prior. The estimate replaces the
+   prior only if the matches alone pin it down (its data-only standard deviation is
+   below ``focal_max_std``); object-centric orbits, whose optical axes cross, are the
+   classic case where they do not.
+5. Degeneracies raise :class:`~macsplat_cli.errors.ReconstructionError`: too few
+   verified matches, identical images, and a pure rotation (no baseline, so no depth).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..errors import ReconstructionError
+from .types import Matches, TwoViewGeometry, View
+
+__all__ = ["PoseConfig", "estimate_pose", "sampson_distance"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class PoseConfig:
+    """Args:
+    threshold_px: inlier threshold on the epipolar (Sampson) distance, working-resolution px.
+    confidence: RANSAC confidence.
+    max_iters: RANSAC iterations.
+    min_inliers: fewer verified matches than this is a failure.
+    refine: run the non-linear refinement.
+    estimate_focal: self-calibrate views whose intrinsics come from the prior.
+    focal_prior_sigma: std of the log focal prior (0.25 ≈ ×/÷ 1.28).
+    focal_max_std: largest data-only std of the log focal for the estimate to be used.
+    min_parallax_deg: median parallax below which the pair has no usable baseline.
+    """
+
+    threshold_px: float = 1.0
+    confidence: float = 0.99999
+    max_iters: int = 10000
+    min_inliers: int = 15
+    refine: bool = True
+    estimate_focal: bool = True
+    focal_prior_sigma: float = 0.25
+    focal_max_std: float = 0.05
+    min_parallax_deg: float = 0.5
+
+
+# ----------------------------------------------------------------------------------- geometry
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _homog(xy: np.ndarray) -> np.ndarray:
+    return np.concatenate([xy, np.ones((xy.shape[0], 1))], axis=1)
+
+
+def fundamental_from_pose(R: np.ndarray, t: np.ndarray, K0: np.ndarray, K1: np.ndarray) -> np.ndarray:
+    """``F = K1⁻ᵀ [t]× R K0⁻¹`` (x1ᵀ F x0 = 0 for pixels). [3, 3]"""
+    return np.linalg.inv(K1).T @ _skew(t) @ R @ np.linalg.inv(K0)
+
+
+def sampson_distance(F: np.ndarray, xy0: np.ndarray, xy1: np.ndarray) -> np.ndarray:
+    """Signed first-order geometric distance of each match to ``F``, in pixels. [M]"""
+    p0, p1 = _homog(xy0), _homog(xy1)
+    Fp0 = p0 @ F.T
+    Ftp1 = p1 @ F
+    e = np.sum(p1 * Fp0, axis=1)
+    denom = Fp0[:, 0] ** 2 + Fp0[:, 1] ** 2 + Ftp1[:, 0] ** 2 + Ftp1[:, 1] ** 2
+    return e / np.sqrt(np.maximum(denom, 1e-30))
+
+
+def triangulate(R: np.ndarray, t: np.ndarray, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
+    """Midpoint triangulation of normalised rays; points in camera 0. [M, 3] (NaN if parallel)"""
+    d0 = x0 / np.linalg.norm(x0, axis=1, keepdims=True)
+    d1 = (x1 / np.linalg.norm(x1, axis=1, keepdims=True)) @ R  # ray of camera 1 in camera-0 axes
+    c1 = -R.T @ t
+    # minimise |a d0 − (c1 + b d1)|²
+    b_ = np.sum(d0 * d1, axis=1)
+    w0 = c1 @ d0.T
+    w1 = d1 @ c1
+    den = 1.0 - b_**2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a = (w0 - b_ * w1) / den
+        b = (b_ * w0 - w1) / den
+    p = 0.5 * (a[:, None] * d0 + (c1 + b[:, None] * d1))
+    p[den < 1e-12] = np.nan
+    return p
+
+
+def _parallax_deg(R: np.ndarray, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
+    """Angle between the two viewing rays of each match once the rotation is removed. [M]"""
+    a = x0 @ R.T
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b = x1 / np.linalg.norm(x1, axis=1, keepdims=True)
+    return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=1), -1.0, 1.0)))
+
+
+def _rotation_angle_deg(R: np.ndarray) -> float:
+    return math.degrees(math.acos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+
+
+# ----------------------------------------------------------------------------------- estimation
+def _scaled_K(K: np.ndarray, s: float, unknown: bool) -> np.ndarray:
+    if not unknown or s == 0.0:
+        return K
+    out = K.copy()
+    out[0, 0] *= math.exp(s)
+    out[0, 1] *= math.exp(s)
+    out[1, 1] *= math.exp(s)
+    return out
+
+
+def _focal_search(F: np.ndarray, K0: np.ndarray, K1: np.ndarray, unknown: tuple[bool, bool]) -> tuple[float, float]:
+    """Focal log-scale ``s`` minimising the essential-matrix defect (σ1 − σ2)/σ1 of Kᵀ F K."""
+    grid = np.linspace(math.log(0.4), math.log(2.5), 121)
+    costs = []
+    for s in grid:
+        E = _scaled_K(K1, s, unknown[1]).T @ F @ _scaled_K(K0, s, unknown[0])
+        sv = np.linalg.svd(E, compute_uv=False)
+        costs.append((sv[0] - sv[1]) / max(sv[0], 1e-30))
+    k = int(np.argmin(costs))
+    return float(grid[k]), float(costs[k])
+
+
+def _essential(x0v: np.ndarray, x1v: np.ndarray, f_v: float, cfg: PoseConfig) -> tuple[np.ndarray, np.ndarray]:
+    Kv = np.array([[f_v, 0.0, 0.0], [0.0, f_v, 0.0], [0.0, 0.0, 1.0]])
+    E, mask = cv2.findEssentialMat(
+        x0v, x1v, Kv, method=cv2.USAC_MAGSAC, prob=cfg.confidence, threshold=cfg.threshold_px, maxIters=cfg.max_iters
+    )
+    if E is None or E.shape != (3, 3) or mask is None:
+        raise ReconstructionError("pose could not be estimated: no essential matrix fits the matches")
+    inl = mask.ravel().astype(bool)
+    _, R, t, mask2 = cv2.recoverPose(E, x0v[inl], x1v[inl], Kv)
+    good = np.zeros_like(inl)
+    good[np.flatnonzero(inl)[mask2.ravel() > 0]] = True
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t.ravel() / max(np.linalg.norm(t), 1e-30)
+    return T, good
+
+
+def _refine(
+    R: np.ndarray,
+    t: np.ndarray,
+    s: float,
+    xy0: np.ndarray,
+    xy1: np.ndarray,
+    K0: np.ndarray,
+    K1: np.ndarray,
+    unknown: tuple[bool, bool],
+    *,
+    with_focal: bool,
+    scale: float,
+    prior_sigma: float,
+    iters: int = 30,
+) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """LM on Cauchy-weighted Sampson distances over (ω, α[, s]). Returns R, t, s, data-only std of s."""
+    n_par = 6 if with_focal else 5
+
+    def residuals(R_: np.ndarray, t_: np.ndarray, s_: float) -> np.ndarray:
+        F = fundamental_from_pose(R_, t_, _scaled_K(K0, s_, unknown[0]), _scaled_K(K1, s_, unknown[1]))
+        return sampson_distance(F, xy0, xy1)
+
+    def apply(theta: np.ndarray, R_: np.ndarray, t_: np.ndarray, s_: float):  # noqa: ANN202
+        dR, _ = cv2.Rodrigues(theta[:3].reshape(3, 1))
+        basis = np.linalg.svd(t_.reshape(1, 3))[2][1:]  # two unit vectors ⟂ t
+        t_new = t_ + theta[3:5] @ basis
+        return dR @ R_, t_new / np.linalg.norm(t_new), s_ + (theta[5] if with_focal else 0.0)
+
+    def jacobian(R_: np.ndarray, t_: np.ndarray, s_: float) -> np.ndarray:
+        h = 1e-6
+        cols = []
+        for k in range(n_par):
+            d = np.zeros(n_par)
+            d[k] = h
+            cols.append((residuals(*apply(d, R_, t_, s_)) - residuals(*apply(-d, R_, t_, s_))) / (2 * h))
+        return np.stack(cols, axis=1)
+
+    def cost(r: np.ndarray, s_: float) -> float:
+        c = float(np.sum(np.log1p((r / scale) ** 2)))
+        return c + ((s_ / prior_sigma) ** 2 if with_focal else 0.0)
+
+    lam = 1e-3
+    r = residuals(R, t, s)
+    current = cost(r, s)
+    info_s = 0.0
+    for _ in range(iters):
+        w = 1.0 / (1.0 + (r / scale) ** 2)  # IRLS weights of the Cauchy loss
+        J = jacobian(R, t, s)
+        H = (J * (w / scale**2)[:, None]).T @ J
+        g = (J * (w / scale**2)[:, None]).T @ r
+        if with_focal:
+            H_data = H.copy()
+            H[5, 5] += 1.0 / prior_sigma**2
+            g[5] += s / prior_sigma**2
+            # information about s from the data alone, the pose marginalised (Schur complement)
+            try:
+                info_s = float(H_data[5, 5] - H_data[5, :5] @ np.linalg.solve(H_data[:5, :5], H_data[:5, 5]))
+            except np.linalg.LinAlgError:
+                info_s = 0.0
+        improved = False
+        for _ in range(10):
+            step = -np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), g)
+            cand = apply(step, R, t, s)
+            r_c = residuals(*cand)
+            c_c = cost(r_c, cand[2])
+            if c_c < current:
+                R, t, s = cand
+                r, current = r_c, c_c
+                lam = max(lam / 3, 1e-9)
+                improved = True
+                break
+            lam *= 4
+        if not improved or np.linalg.norm(step) < 1e-10:
+            break
+    std_s = 1.0 / math.sqrt(info_s) if info_s > 0 else math.inf
+    return R, t, s, std_s
+
+
+def estimate_pose(v0: View, v1: View, matches: Matches, config: PoseConfig | None = None) -> TwoViewGeometry:
+    """Relative pose of ``v1`` with respect to ``v0`` from filtered matches.
+
+    Returns:
+        :class:`TwoViewGeometry` with unit-norm ``t``, the verified matches (``counts``
+        gains ``verified``), possibly refined intrinsics, and diagnostics in ``info``.
+
+    Raises:
+        ReconstructionError: too few matches or inliers, identical images, or no baseline.
+    """
+    cfg = config or PoseConfig()
+    n = len(matches)
+    if n < max(cfg.min_inliers, 8):
+        raise ReconstructionError(
+            f"pose could not be estimated: {n} matches survived filtering, need at least {max(cfg.min_inliers, 8)}"
+        )
+    xy0, xy1 = matches.xy0.astype(np.float64), matches.xy1.astype(np.float64)
+    if v0.image.shape == v1.image.shape:
+        shift = np.median(np.linalg.norm(xy1 - xy0, axis=1))
+        if shift < 0.5 and np.mean(np.linalg.norm(xy1 - xy0, axis=1) < 1.0) > 0.8:
+            raise ReconstructionError(
+                f"the two images show the same view (median match displacement {shift:.2f} px): "
+                "move the camera between the photos"
+            )
+    unknown = (v0.intrinsics_source == "prior", v1.intrinsics_source == "prior")
+    K0, K1 = v0.K.copy(), v1.K.copy()
+    info: dict[str, float | int | str | bool] = {}
+
+    s = 0.0
+    with_focal = cfg.estimate_focal and any(unknown)
+    if with_focal:
+        F, fmask = cv2.findFundamentalMat(xy0, xy1, cv2.USAC_MAGSAC, cfg.threshold_px, cfg.confidence, cfg.max_iters)
+        if F is not None and F.shape == (3, 3) and fmask is not None and int(fmask.sum()) >= cfg.min_inliers:
+            s, defect = _focal_search(F, K0, K1, unknown)
+            info["focal_search_scale"] = math.exp(s)
+            info["focal_search_defect"] = defect
+        else:
+            with_focal = False
+
+    def verify(s_: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        K0s, K1s = _scaled_K(K0, s_, unknown[0]), _scaled_K(K1, s_, unknown[1])
+        f_v = float(np.mean([K0s[0, 0], K0s[1, 1], K1s[0, 0], K1s[1, 1]]))
+        x0n = _homog(xy0) @ np.linalg.inv(K0s).T
+        x1n = _homog(xy1) @ np.linalg.inv(K1s).T
+        T, good = _essential(np.ascontiguousarray(x0n[:, :2] * f_v), np.ascontiguousarray(x1n[:, :2] * f_v), f_v, cfg)
+        return T[:3, :3], T[:3, 3], good, x0n, x1n
+
+    R, t, good, x0n, x1n = verify(s)
+    n_ransac = int(good.sum())
+    info["ransac_inliers"] = n_ransac
+    if n_ransac < cfg.min_inliers:
+        raise ReconstructionError(
+            f"pose could not be estimated: {n_ransac} verified matches, need at least {cfg.min_inliers}"
+        )
+
+    if cfg.refine:
+        scale = cfg.threshold_px
+        R, t, s_new, std_s = _refine(
+            R, t, s, xy0[good], xy1[good], K0, K1, unknown,
+            with_focal=with_focal, scale=scale, prior_sigma=cfg.focal_prior_sigma,
+        )  # fmt: skip
+        if with_focal:
+            info["focal_data_std"] = std_s
+            if std_s <= cfg.focal_max_std:
+                s = s_new
+                info["focal_scale"] = math.exp(s)
+            else:  # the matches do not determine the focal length: keep the prior
+                logger.debug("focal not constrained by the matches (std %.3f); keeping the prior", std_s)
+                s = 0.0
+                R, t, good, x0n, x1n = verify(0.0)
+                R, t, _, _ = _refine(
+                    R, t, 0.0, xy0[good], xy1[good], K0, K1, unknown,
+                    with_focal=False, scale=scale, prior_sigma=cfg.focal_prior_sigma,
+                )  # fmt: skip
+    K0s, K1s = _scaled_K(K0, s, unknown[0]), _scaled_K(K1, s, unknown[1])
+    info["focal_estimated"] = bool(with_focal and s != 0.0)
+
+    # final inliers: small epipolar distance and in front of both cameras
+    F = fundamental_from_pose(R, t, K0s, K1s)
+    d = np.abs(sampson_distance(F, xy0, xy1))
+    x0n = _homog(xy0) @ np.linalg.inv(K0s).T
+    x1n = _homog(xy1) @ np.linalg.inv(K1s).T
+    X = triangulate(R, t, x0n, x1n)
+    z1 = X @ R[2] + t[2]
+    final = (d < cfg.threshold_px) & np.isfinite(X).all(1) & (X[:, 2] > 0) & (z1 > 0)
+    n_final = int(final.sum())
+    if n_final < cfg.min_inliers:
+        raise ReconstructionError(
+            f"pose could not be estimated: {n_final} verified matches after refinement, need at least {cfg.min_inliers}"
+        )
+    parallax = float(np.median(_parallax_deg(R, x0n[final], x1n[final])))
+    info.update(
+        inliers=n_final,
+        inlier_ratio=n_final / n,
+        median_sampson_px=float(np.median(d[final])),
+        median_parallax_deg=parallax,
+        rotation_deg=_rotation_angle_deg(R),
+    )
+    if parallax < cfg.min_parallax_deg:
+        raise ReconstructionError(
+            f"no baseline: the median parallax of the {n_final} verified matches is {parallax:.2f}°, below "
+            f"{cfg.min_parallax_deg}° (a pure rotation, or a scene too far away): move the camera sideways"
+        )
+    logger.debug("pose: %s", info)
+    return TwoViewGeometry(R=R, t=t, K0=K0s, K1=K1s, inliers=matches.subset(final, "verified"), info=info)

@@ -1,0 +1,215 @@
+"""The reconstruction pipeline: typed stages chained, each with an interchangeable backend.
+
+``Pipeline(config).run([a, b])`` → :class:`Reconstruction` (Gaussians in the camera-0
+frame, the two cameras, depth maps, and a report). Each stage slot takes any callable
+with the stage's signature and a ``name``; the defaults are the classical, weight-free
+backends. The report names the backend of every stage.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from .. import __version__
+from ..cameras import CameraSet
+from ..gaussians import Gaussians
+from .depth import DepthConfig, estimate_depths
+from .descriptors import DescriptorBackend, SiftConfig, SiftDescriptors
+from .gaussian_init import GaussianInitConfig, gaussians_from_depth
+from .matching import MatchConfig, match_features
+from .pose import PoseConfig, estimate_pose
+from .types import DepthMap, Features, Matches, TwoViewGeometry, View
+from .views import ViewConfig, load_views
+
+__all__ = ["STAGES", "Pipeline", "ReconstructConfig", "Reconstruction"]
+
+logger = logging.getLogger(__name__)
+
+STAGES = ("images", "descriptors", "matching", "pose", "depth", "gaussians")
+StageEvent = Callable[[str, Literal["start", "end"]], None]
+
+
+@dataclass
+class ReconstructConfig:
+    """Every setting of the default pipeline, one dataclass per stage."""
+
+    views: ViewConfig = field(default_factory=ViewConfig)
+    descriptors: SiftConfig = field(default_factory=SiftConfig)
+    matching: MatchConfig = field(default_factory=MatchConfig)
+    pose: PoseConfig = field(default_factory=PoseConfig)
+    depth: DepthConfig = field(default_factory=DepthConfig)
+    gaussians: GaussianInitConfig = field(default_factory=GaussianInitConfig)
+
+
+class FilteredMatcher:
+    name = "reciprocal-nn+confidence"
+
+    def __init__(self, config: MatchConfig) -> None:
+        self.config = config
+
+    def __call__(self, f0: Features, f1: Features) -> Matches:
+        return match_features(f0, f1, self.config)
+
+
+class EssentialPose:
+    name = "classical:essential-magsac+lm"
+
+    def __init__(self, config: PoseConfig) -> None:
+        self.config = config
+
+    def __call__(self, v0: View, v1: View, matches: Matches) -> TwoViewGeometry:
+        return estimate_pose(v0, v1, matches, self.config)
+
+
+class PlaneSweepDepth:
+    name = "classical:plane-sweep-sgm"
+
+    def __init__(self, config: DepthConfig) -> None:
+        self.config = config
+
+    def __call__(self, views: list[View], geometry: TwoViewGeometry) -> list[DepthMap]:
+        return estimate_depths(views, geometry, self.config)
+
+
+class DepthGaussians:
+    name = "classical:per-pixel-surfels"
+
+    def __init__(self, config: GaussianInitConfig) -> None:
+        self.config = config
+
+    def __call__(self, views: list[View], geometry: TwoViewGeometry, depths: list[DepthMap]) -> Gaussians:
+        return gaussians_from_depth(views, geometry, depths, self.config)
+
+
+@dataclass
+class Reconstruction:
+    """The result of a run: Gaussians in the camera-0 frame (relative scale: baseline 1)."""
+
+    views: list[View]
+    geometry: TwoViewGeometry
+    depths: list[DepthMap]
+    gaussians: Gaussians
+    report: dict[str, Any]
+    scale: Literal["relative", "metric"] = "relative"
+
+    def cameras(self, *, original_size: bool = True) -> CameraSet:
+        """The two cameras; at the photos' original resolution by default."""
+        K = (self.geometry.K0, self.geometry.K1)
+        cams = []
+        for k, v in enumerate(self.views):
+            cam = View(v.name, v.path, v.image, v.mask, K[k], v.original_size, v.intrinsics_source)
+            cams.append(cam.camera(self.geometry.cam_to_world(k), original_size=original_size))
+        return CameraSet(cams, scale=self.scale, world="camera_0")
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, Path):
+        return str(x)
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, float) and not np.isfinite(x):
+        return None
+    return x
+
+
+class Pipeline:
+    """Chains the stages; each slot accepts any backend with the stage's signature."""
+
+    def __init__(
+        self,
+        config: ReconstructConfig | None = None,
+        *,
+        descriptors: DescriptorBackend | None = None,
+        matcher: Callable[[Features, Features], Matches] | None = None,
+        pose: Callable[[View, View, Matches], TwoViewGeometry] | None = None,
+        depth: Callable[[list[View], TwoViewGeometry], list[DepthMap]] | None = None,
+        gaussians: Callable[[list[View], TwoViewGeometry, list[DepthMap]], Gaussians] | None = None,
+    ) -> None:
+        self.config = config or ReconstructConfig()
+        c = self.config
+        self.descriptors = descriptors or SiftDescriptors(c.descriptors)
+        self.matcher = matcher or FilteredMatcher(c.matching)
+        self.pose = pose or EssentialPose(c.pose)
+        self.depth = depth or PlaneSweepDepth(c.depth)
+        self.gaussians = gaussians or DepthGaussians(c.gaussians)
+
+    def backends(self) -> dict[str, str]:
+        return {
+            "images": "opencv+pillow",
+            "descriptors": getattr(self.descriptors, "name", type(self.descriptors).__name__),
+            "matching": getattr(self.matcher, "name", type(self.matcher).__name__),
+            "pose": getattr(self.pose, "name", type(self.pose).__name__),
+            "depth": getattr(self.depth, "name", type(self.depth).__name__),
+            "gaussians": getattr(self.gaussians, "name", type(self.gaussians).__name__),
+        }
+
+    def run(self, paths: Sequence[str | Path], *, on_stage: StageEvent | None = None) -> Reconstruction:
+        """Reconstruct from two photos.
+
+        Args:
+            paths: the two photos; the first defines the world frame.
+            on_stage: called with (stage, "start"/"end") around each stage (progress display).
+
+        Raises:
+            InputError: unreadable photos or intrinsics.
+            ReconstructionError: the scene cannot be reconstructed (the message says why).
+        """
+        if len(paths) != 2:
+            raise ValueError(f"the pipeline takes exactly two photos, got {len(paths)}")
+        times: dict[str, float] = {}
+        notify = on_stage or (lambda stage, event: None)
+
+        def timed(stage: str, fn: Callable[[], Any]) -> Any:
+            notify(stage, "start")
+            t0 = time.perf_counter()
+            out = fn()
+            times[stage] = time.perf_counter() - t0
+            notify(stage, "end")
+            logger.debug("%-11s %.2f s", stage, times[stage])
+            return out
+
+        views: list[View] = timed("images", lambda: load_views(paths, self.config.views))
+        feats: list[Features] = timed("descriptors", lambda: [self.descriptors(v) for v in views])
+        matches: Matches = timed("matching", lambda: self.matcher(feats[0], feats[1]))
+        geometry: TwoViewGeometry = timed("pose", lambda: self.pose(views[0], views[1], matches))
+        for k, v in enumerate(views):
+            if v.intrinsics_source == "prior" and geometry.info.get("focal_estimated"):
+                v.intrinsics_source = "estimated"
+                v.K = geometry.K0 if k == 0 else geometry.K1
+        depths: list[DepthMap] = timed("depth", lambda: self.depth(views, geometry))
+        gaussians: Gaussians = timed("gaussians", lambda: self.gaussians(views, geometry, depths))
+        report = {
+            "macsplat_version": __version__,
+            "inputs": [str(p) for p in paths],
+            "backends": self.backends(),
+            "times_s": {**times, "total": sum(times.values())},
+            "images": [
+                {
+                    "name": v.name,
+                    "original_size": list(v.original_size),
+                    "working_size": [v.width, v.height],
+                    "intrinsics_source": v.intrinsics_source,
+                    "focal_px_working": float(v.K[0, 0]),
+                }
+                for v in views
+            ],
+            "keypoints": [len(f) for f in feats],
+            "matches": {**geometry.inliers.counts},
+            "inlier_ratio": geometry.info.get("inlier_ratio"),
+            "pose": {k: v for k, v in geometry.info.items()},
+            "depth_coverage": [float(d.valid.mean()) for d in depths],
+            "gaussians": len(gaussians),
+            "config": asdict(self.config),
+        }
+        return Reconstruction(views, geometry, depths, gaussians, _jsonable(report))
