@@ -160,7 +160,7 @@ class _StageProgress:
         from rich.progress import Progress, SpinnerColumn, TextColumn
 
         self.progress = Progress(
-            SpinnerColumn(finished_text="[green]✓[/]"), TextColumn("{task.description:<12}"),
+            SpinnerColumn(finished_text="[green]✓[/]"), TextColumn("{task.description:<22}"),
             TextColumn("{task.fields[took]}"), console=err_console, disable=disabled, transient=False,
         )  # fmt: skip
         self.tasks: dict[str, Any] = {}
@@ -171,7 +171,7 @@ class _StageProgress:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        for stage, task in self.tasks.items():  # a failed stage stops its spinner
+        for stage, task in self.tasks.items():  # a stage interrupted by an error stops its spinner
             if stage in self.started:
                 self.progress.update(task, took="[red]✗ failed[/]")
             self.progress.stop_task(task)
@@ -183,6 +183,10 @@ class _StageProgress:
         if kind == "start":
             self.started[stage] = time.perf_counter()
             self.tasks[stage] = self.progress.add_task(stage, total=1, took="")
+        elif kind == "fail":
+            self.started.pop(stage, None)
+            self.progress.update(self.tasks[stage], took="[red]✗ failed[/]")
+            self.progress.stop_task(self.tasks[stage])
         else:
             took = time.perf_counter() - self.started.pop(stage)
             self.progress.update(self.tasks[stage], completed=1, took=f"{took:.2f} s")

@@ -36,7 +36,7 @@ from . import _sgm_kernels
 from .pose import triangulate
 from .types import DepthMap, TwoViewGeometry, View
 
-__all__ = ["DepthConfig", "estimate_depths", "plane_sweep_cost"]
+__all__ = ["DepthConfig", "estimate_depths", "fill_depth", "plane_sweep_cost", "push_pull"]
 
 logger = logging.getLogger(__name__)
 
@@ -63,7 +63,7 @@ class DepthConfig:
     """
 
     scale: float = 0.5
-    max_planes: int = 96
+    max_planes: int = 128
     min_planes: int = 32
     window: int = 5
     p1: float = 0.04
@@ -99,8 +99,10 @@ def _inverse_depth_range(geometry: TwoViewGeometry) -> list[tuple[float, float]]
         z = z[np.isfinite(z) & (z > 0)]
         if z.size < 8:
             raise ReconstructionError("dense depth: too few triangulated matches to bound the scene depth")
-        near, far = np.percentile(z, 2), np.percentile(z, 98)
-        out.append((1.0 / (far * 3.0), 1.0 / (near * 0.6)))
+        # Robust percentiles: a few wrong matches triangulate far too near or far, and the
+        # plane budget must not be spent on them.
+        near, far = np.percentile(z, 5), np.percentile(z, 95)
+        out.append((1.0 / (far * 2.5), 1.0 / (near * 0.7)))
     return out
 
 
@@ -237,6 +239,39 @@ def _upsample_depth(depth: np.ndarray, conf: np.ndarray, guide: np.ndarray) -> t
     return out, np.where(out > 0, c_up, 0.0).astype(np.float32)
 
 
+def push_pull(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Fill every pixel from the weighted samples by a push-pull pyramid (Gortler et al. 1996).
+
+    Push: sum weights and weighted values 2×2 → 1 until one pixel is left. Pull: from the
+    coarsest level down, each pixel keeps its own average where its weight is ≥ 1 and
+    blends in the upsampled coarser estimate where it is lighter.
+
+    Args:
+        values: samples. [H, W] float32
+        weights: sample weights ≥ 0; 0 = no sample. [H, W] float32
+
+    Returns:
+        A value for every pixel. [H, W] float32
+    """
+    levels = [(values * weights, weights)]
+    while max(levels[-1][1].shape) > 1:
+        vw, w = levels[-1]
+        h2, w2 = (vw.shape[0] + 1) // 2, (vw.shape[1] + 1) // 2
+        pad = ((0, 2 * h2 - vw.shape[0]), (0, 2 * w2 - vw.shape[1]))
+        vw_p, w_p = np.pad(vw, pad), np.pad(w, pad)
+        vw_c = vw_p.reshape(h2, 2, w2, 2).sum((1, 3))
+        w_c = w_p.reshape(h2, 2, w2, 2).sum((1, 3))
+        levels.append((vw_c, w_c))
+    vw, w = levels[-1]
+    est = np.where(w > 0, vw / np.maximum(w, 1e-12), 0.0)
+    for vw, w in reversed(levels[:-1]):
+        up = np.repeat(np.repeat(est, 2, 0), 2, 1)[: vw.shape[0], : vw.shape[1]]
+        own = np.where(w > 0, vw / np.maximum(w, 1e-12), 0.0)
+        a = np.clip(w, 0.0, 1.0)
+        est = a * own + (1.0 - a) * up
+    return est.astype(np.float32)
+
+
 def fill_depth(
     depth: np.ndarray,  # [H, W]
     confidence: np.ndarray,  # [H, W]
@@ -246,11 +281,13 @@ def fill_depth(
     sigma_color: float,
     fill_confidence: float,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Propagate confident inverse depths into the other pixels, stopping at image edges.
+    """Give every pixel a depth: confident ones keep theirs, the others are propagated.
 
-    Normalised convolution with OpenCV's fast global smoother (an edge-aware weighted
-    least-squares filter): ``fill = FGS(ρ·c) / FGS(c)``. The support ``FGS(c)`` scales the
-    filled pixels' confidence, so far-fetched depths get little opacity.
+    Near the confident pixels: normalised convolution with OpenCV's fast global smoother
+    (an edge-aware weighted least-squares filter), ``fill = FGS(ρ·c) / FGS(c)`` on inverse
+    depth ρ, which stops at image edges. Where that support vanishes (regions the other
+    view never saw), a push-pull pyramid extends the nearest depths. Filled pixels get at
+    most ``fill_confidence``, scaled by the support.
 
     Returns:
         ``(depth, confidence)`` with the confident pixels unchanged. [H, W], [H, W]
@@ -267,9 +304,13 @@ def fill_depth(
     ok = (den > 1e-4) & (num > 0)
     inv_fill = np.where(ok, num / np.maximum(den, 1e-12), 0.0)
     support = np.clip(den / max(float(np.percentile(wgt[valid], 50)), 1e-6), 0.0, 1.0)
-    hole = ~valid & ok
+    if not ok.all():  # far from any confident pixel: push-pull from what the smoother reached
+        inv_far = push_pull(inv_fill.astype(np.float32), ok.astype(np.float32) * np.maximum(support, 1e-3))
+        inv_fill = np.where(ok, inv_fill, inv_far)
+    hole = ~valid & (inv_fill > 0)
     out_d = np.where(valid, depth, np.where(hole, 1.0 / np.maximum(inv_fill, 1e-12), 0.0)).astype(np.float32)
-    out_c = np.where(valid, confidence, np.where(hole, fill_confidence * support, 0.0)).astype(np.float32)
+    fill_c = fill_confidence * np.maximum(support, 0.1)
+    out_c = np.where(valid, confidence, np.where(hole, fill_c, 0.0)).astype(np.float32)
     return out_d, out_c
 
 
@@ -292,6 +333,7 @@ def estimate_depths(views: list[View], geometry: TwoViewGeometry, config: DepthC
         v = views[ref]
         if depth.shape != (v.height, v.width):
             depth, conf = _upsample_depth(depth, conf, v.gray)
+        measured = (depth > 0) & (conf > 0) & v.mask
         if cfg.fill:
             depth, conf = fill_depth(
                 depth, conf, v.image, lam=cfg.fill_lambda, sigma_color=cfg.fill_sigma_color,
@@ -299,6 +341,9 @@ def estimate_depths(views: list[View], geometry: TwoViewGeometry, config: DepthC
             )  # fmt: skip
         conf = np.where(v.mask, conf, 0.0).astype(np.float32)
         depth = np.where(conf > 0, depth, 0.0).astype(np.float32)
-        logger.debug("depth view %d: %.1f %% of pixels", ref, 100.0 * float((depth > 0).mean()))
-        out.append(DepthMap(depth=depth, confidence=conf))
+        logger.debug(
+            "depth view %d: %.1f %% measured, %.1f %% with depth",
+            ref, 100.0 * float(measured.mean()), 100.0 * float((depth > 0).mean()),
+        )  # fmt: skip
+        out.append(DepthMap(depth=depth, confidence=conf, measured=measured))
     return out

@@ -11,6 +11,7 @@ For every pixel of each view whose depth confidence is positive:
   ``thickness`` times that along the normal;
 * colour: the pixel's colour as the SH DC term (degree 0);
 * opacity: ``opacity_min + (opacity_max − opacity_min) · confidence``.
+
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ class GaussianInitConfig:
     footprint: float = 0.7
     thickness: float = 0.1
     max_tilt_stretch: float = 4.0
-    opacity_min: float = 0.4
+    opacity_min: float = 0.8
     opacity_max: float = 0.97
 
 

@@ -44,8 +44,9 @@ class PoseConfig:
     min_inliers: fewer verified matches than this is a failure.
     refine: run the non-linear refinement.
     estimate_focal: self-calibrate views whose intrinsics come from the prior.
-    focal_prior_sigma: std of the log focal prior (0.25 ≈ ×/÷ 1.28).
-    focal_max_std: largest data-only std of the log focal for the estimate to be used.
+    focal_prior_sigma: std of the log focal prior (0.5 ≈ ×/÷ 1.65).
+    focal_max_std: largest data-only std of the log focal for the estimate to be used
+        (computed with the residuals' robust noise level, 1.4826·MAD).
     min_parallax_deg: median parallax below which the pair has no usable baseline.
     """
 
@@ -55,7 +56,7 @@ class PoseConfig:
     min_inliers: int = 15
     refine: bool = True
     estimate_focal: bool = True
-    focal_prior_sigma: float = 0.25
+    focal_prior_sigma: float = 0.5
     focal_max_std: float = 0.05
     min_parallax_deg: float = 0.5
 
@@ -204,10 +205,13 @@ def _refine(
         H = (J * (w / scale**2)[:, None]).T @ J
         g = (J * (w / scale**2)[:, None]).T @ r
         if with_focal:
-            H_data = H.copy()
+            # Information about s from the data alone, at the residuals' actual noise level
+            # (the Cauchy scale is a tolerance, not a noise estimate), with the pose
+            # marginalised out (Schur complement).
+            noise = max(1.4826 * float(np.median(np.abs(r))), 0.02)
+            H_data = (J * (w / noise**2)[:, None]).T @ J
             H[5, 5] += 1.0 / prior_sigma**2
             g[5] += s / prior_sigma**2
-            # information about s from the data alone, the pose marginalised (Schur complement)
             try:
                 info_s = float(H_data[5, 5] - H_data[5, :5] @ np.linalg.solve(H_data[:5, :5], H_data[:5, 5]))
             except np.linalg.LinAlgError:

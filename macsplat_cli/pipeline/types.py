@@ -46,6 +46,9 @@ class View:
         K: intrinsics at the working resolution. [3, 3] float64
         original_size: (width, height) of the upright original photo.
         intrinsics_source: where ``K`` came from.
+        detail: the photo at up to ``DETAIL_SIZE`` px on the long side (never upsampled),
+            for stages that benefit from more pixels than the working size (keypoints).
+            Same aspect as the original. [h, w, 3] float32
     """
 
     name: str
@@ -55,6 +58,7 @@ class View:
     K: np.ndarray
     original_size: tuple[int, int]
     intrinsics_source: IntrinsicsSource
+    detail: np.ndarray | None = None
 
     @property
     def width(self) -> int:
@@ -170,10 +174,13 @@ class DepthMap:
     Attributes:
         depth: camera-space z at each pixel; 0 where unknown. [H, W] float32
         confidence: trust in each depth, in [0, 1]; 0 where unknown. [H, W] float32
+        measured: pixels whose depth was measured (matched in the other view), as opposed
+            to propagated from neighbours; None means all valid pixels. [H, W] bool
     """
 
     depth: np.ndarray
     confidence: np.ndarray
+    measured: np.ndarray | None = None
 
     @property
     def valid(self) -> np.ndarray:

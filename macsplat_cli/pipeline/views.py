@@ -38,6 +38,7 @@ logger = logging.getLogger(__name__)
 
 MIN_IMAGE_SIDE = 64
 PATCH = 16
+DETAIL_SIZE = 1024
 
 
 @dataclass
