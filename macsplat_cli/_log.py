@@ -7,7 +7,7 @@ import logging
 from rich.console import Console
 from rich.logging import RichHandler
 
-__all__ = ["setup_logging"]
+__all__ = ["remove_logging", "setup_logging"]
 
 
 def setup_logging(console: Console, *, verbose: bool = False, quiet: bool = False) -> None:
@@ -20,3 +20,12 @@ def setup_logging(console: Console, *, verbose: bool = False, quiet: bool = Fals
     logger.addHandler(handler)
     logger.setLevel(logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO)
     logger.propagate = False
+
+
+def remove_logging() -> None:
+    """Detach the handler installed by :func:`setup_logging` (library use after a CLI call)."""
+    logger = logging.getLogger("macsplat_cli")
+    for h in list(logger.handlers):
+        logger.removeHandler(h)
+    logger.propagate = True
+    logger.setLevel(logging.NOTSET)

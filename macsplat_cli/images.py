@@ -132,7 +132,12 @@ def load_image(path: str | os.PathLike[str]) -> LoadedImage:
         raise ImageReadError(f"{p}: is a directory, not an image") from None
     except OSError as e:
         raise ImageReadError(f"{p}: cannot read ({e.strerror or e})") from None
-    raw = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION)
+    if not data:
+        raise ImageReadError(f"{p}: the file is empty")
+    try:
+        raw = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION)
+    except cv2.error:  # some truncated files make OpenCV raise instead of returning None
+        raw = None
     if raw is None or raw.size == 0:
         raise ImageReadError(f"{p}: not an image OpenCV can decode (JPEG, PNG, WebP, TIFF, BMP)")
     orientation, focal = _exif(data)

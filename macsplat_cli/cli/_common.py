@@ -11,7 +11,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
-from .._log import setup_logging
+from .._log import remove_logging, setup_logging
 from ..errors import MacsplatError
 
 __all__ = ["QuietOpt", "VerboseOpt", "State", "command_context", "err_console", "out_console"]
@@ -74,3 +74,5 @@ def command_context(ctx: typer.Context, verbose: bool, quiet: bool) -> Iterator[
             soft_wrap=True,
         )
         raise typer.Exit(code=1) from None
+    finally:
+        remove_logging()

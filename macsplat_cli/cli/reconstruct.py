@@ -42,8 +42,11 @@ def reconstruct_command(
         float | None, typer.Option("--focal", help="Focal length in pixels of the original photos.")
     ] = None,
     conf_threshold: Annotated[
-        float, typer.Option("--conf-threshold", help="τ: keep matches whose joint confidence c0·c1 exceeds it.")
-    ] = 0.0,
+        float | None,
+        typer.Option(
+            "--conf-threshold", help="τ: keep matches whose joint confidence c0·c1 exceeds it [default: 0.04]."
+        ),
+    ] = None,
     verbose: VerboseOpt = False,
     quiet: QuietOpt = False,
 ) -> None:
@@ -90,7 +93,7 @@ def _check_outputs(output: Path, cameras: Path, renders: Path | None, video: Pat
 def _reconstruct(
     *, images: list[Path], output: Path, cameras: Path | None, renders: Path | None, num_renders: int,
     video: Path | None, report: Path | None, json_out: bool, size: int, intrinsics: Path | None,
-    focal: float | None, conf_threshold: float, quiet: bool,
+    focal: float | None, conf_threshold: float | None, quiet: bool,
 ) -> None:  # fmt: skip
     from ..pipeline.run import Pipeline, ReconstructConfig
     from ..pipeline.views import ViewConfig
@@ -98,7 +101,8 @@ def _reconstruct(
     cameras = cameras or output.with_name(output.stem + ".cameras.json")
     _check_outputs(output, cameras, renders, video, report)
     config = ReconstructConfig(views=ViewConfig(size=size, intrinsics=intrinsics, focal=focal))
-    config.matching.conf_threshold = conf_threshold
+    if conf_threshold is not None:
+        config.matching.conf_threshold = conf_threshold
     pipeline = Pipeline(config)
 
     with _StageProgress(disabled=quiet) as progress:
@@ -142,7 +146,7 @@ def _write_outputs(result, output, cameras, renders, num_renders, video, progres
             for cam in path:
                 frames.append(to_uint8(render_camera(result.gaussians, cam).rgb))
         if renders is not None:
-            renders.mkdir(exist_ok=True)
+            renders.mkdir(parents=True, exist_ok=True)
             for i, f in enumerate(frames):
                 save_image(renders / f"view_{i:03d}.png", f)
             written["renders"] = renders

@@ -92,9 +92,9 @@ def reciprocal_nearest_neighbours(
     bt = torch.from_numpy(np.ascontiguousarray(desc1, dtype=np.float32)).T.contiguous()
     rows = max(1, max_block_elems // m1)
     k = min(2, m1)
-    row_top = torch.full((m0, 2), -1.0)
+    row_top = torch.full((m0, 2), -1.0)  # a missing second best counts as the farthest, −1
     row_arg = torch.zeros(m0, dtype=torch.int64)
-    col_top = torch.full((2, m1), -2.0)  # best and second-best similarity per column
+    col_top = torch.full((2, m1), -1.0)  # best and second-best similarity per column
     col_arg = torch.zeros(m1, dtype=torch.int64)
     for start in range(0, m0, rows):
         sim = a[start : start + rows] @ bt  # [rows, M1]

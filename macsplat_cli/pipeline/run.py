@@ -224,7 +224,7 @@ class Pipeline:
         fallback_used = False
         n_verified = len(geometry.inliers) if geometry is not None else 0
         if self.fallback_descriptors is not None and n_verified < self.config.fallback_min_inliers:
-            logger.info(
+            logger.debug(
                 "%d verified matches (< %d): retrying with %s",
                 n_verified, self.config.fallback_min_inliers, self.fallback_descriptors.name,
             )  # fmt: skip

@@ -59,9 +59,20 @@ class ViewConfig:
 
 
 def working_size(width: int, height: int, size: int) -> tuple[int, int]:
-    """(W', H'): long side scaled to ``size`` (not up), sides rounded to multiples of 16."""
+    """(W', H'): long side scaled to ``size`` (never up), sides rounded to multiples of 16.
+
+    Each side is rounded to the nearest multiple of 16, or down when rounding up would
+    exceed the photo's own size.
+    """
     s = min(1.0, size / max(width, height))
-    return (max(PATCH, int(round(width * s / PATCH)) * PATCH), max(PATCH, int(round(height * s / PATCH)) * PATCH))
+
+    def side(n: int) -> int:
+        r = int(round(n * s / PATCH)) * PATCH
+        if r > n:
+            r = (n // PATCH) * PATCH
+        return max(PATCH, r)
+
+    return side(width), side(height)
 
 
 def prior_focal(width: int, height: int, fov_deg: float = 60.0) -> float:
@@ -152,8 +163,22 @@ def load_views(paths: Sequence[str | Path], config: ViewConfig | None = None) ->
         else:
             mask = np.ones((h, w), bool)
         name = img.path.stem
+        s_detail = min(1.0, DETAIL_SIZE / max(img.width, img.height))
+        detail = img.rgb
+        if s_detail < 1.0:
+            size_d = (round(img.width * s_detail), round(img.height * s_detail))
+            detail = cv2.resize(img.rgb, size_d, interpolation=cv2.INTER_AREA)
         views.append(
-            View(name, img.path, np.ascontiguousarray(rgb, np.float32), mask, K, (img.width, img.height), source)
+            View(
+                name,
+                img.path,
+                np.ascontiguousarray(rgb, np.float32),
+                mask,
+                K,
+                (img.width, img.height),
+                source,
+                detail=detail,
+            )  # fmt: skip
         )
         logger.debug("%s: %dx%d → %dx%d, intrinsics from %s", img.path.name, img.width, img.height, w, h, source)
     if len(views) == 2 and views[0].name == views[1].name:
