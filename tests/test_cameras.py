@@ -267,9 +267,12 @@ def test_save_load_round_trip(tmp_path: Path) -> None:
     assert [p.name for p in tmp_path.iterdir()] == ["cams.json"]  # no temporary files left
 
 
-def test_save_to_missing_folder(tmp_path: Path) -> None:
-    with pytest.raises(OutputPathError):
-        save_cameras(tmp_path / "nope" / "cams.json", random_camera_set(0, 1))
+def test_save_creates_missing_folders_but_not_under_a_file(tmp_path: Path) -> None:
+    save_cameras(tmp_path / "new" / "cams.json", random_camera_set(0, 1))
+    assert load_cameras(tmp_path / "new" / "cams.json") == random_camera_set(0, 1)
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(OutputPathError, match="is a file"):
+        save_cameras(tmp_path / "file" / "cams.json", random_camera_set(0, 1))
 
 
 def test_defaults_for_optional_keys(tmp_path: Path) -> None:

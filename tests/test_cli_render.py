@@ -93,6 +93,13 @@ def test_render_png_depth_is_16bit_millimetres(capsys, scene, tmp_path: Path) ->
     assert err == ""  # --quiet
 
 
+def test_render_creates_missing_output_folders(capsys, scene, tmp_path: Path) -> None:  # noqa: ANN001
+    ply, cams = scene
+    code, _, err = run(capsys, "render", ply, "--pose", cams, "-o", tmp_path / "new" / "dir" / "v.png", "-q")
+    assert code == 0, err
+    assert (tmp_path / "new" / "dir" / "v.png").is_file()
+
+
 def test_render_rescales_intrinsics(capsys, scene, tmp_path: Path) -> None:  # noqa: ANN001
     ply, cams = scene
     assert run(capsys, "render", ply, "--pose", cams, "-o", tmp_path / "big.png", "--width", "160")[0] == 0
@@ -213,7 +220,7 @@ def test_bad_inputs_give_one_line_and_exit_2(capsys, scene, tmp_path: Path) -> N
     doc["cameras"][0]["cam_to_world"][0][0] = 2.0  # a scaled, non-rigid rotation
     (tmp_path / "nonrigid.json").write_text(json.dumps(doc))
     assert "rigid" in _bad(capsys, "render", ply, "--pose", tmp_path / "nonrigid.json", "-o", out)
-    assert "does not exist" in _bad(capsys, "render", ply, "--pose", cams, "-o", tmp_path / "no" / "dir" / "x.png")
+    assert "is a file" in _bad(capsys, "render", ply, "--pose", cams, "-o", tmp_path / "bad.json" / "x.png")
     assert "format" in _bad(capsys, "render", ply, "--pose", cams, "-o", tmp_path / "x.xyz")
     assert "--view 5" in _bad(capsys, "render", ply, "--pose", cams, "--view", "5", "-o", out)
     assert "camera file" in _bad(capsys, "render", ply, "-o", out)

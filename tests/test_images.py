@@ -46,11 +46,12 @@ def test_unsupported_formats_and_paths(tmp_path: Path) -> None:
         save_image(tmp_path / "a.gifx", np.zeros((2, 2, 3)))
     with pytest.raises(InputError, match="unsupported depth format"):
         save_depth(tmp_path / "a.jpg", np.zeros((2, 2)))
-    with pytest.raises(OutputPathError, match="does not exist"):
-        save_image(tmp_path / "nope" / "a.png", np.zeros((2, 2, 3)))
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(OutputPathError, match="is a file"):
+        save_image(tmp_path / "file" / "a.png", np.zeros((2, 2, 3)))
     with pytest.raises(InputError, match="no frames"):
         write_video(tmp_path / "v.mp4", [])
-    assert list(tmp_path.iterdir()) == []
+    assert [p.name for p in tmp_path.iterdir()] == ["file"]
 
 
 @pytest.mark.parametrize("ext", [".mp4", ".gif"])

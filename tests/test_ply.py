@@ -381,10 +381,16 @@ def test_non_finite_in_ignored_property_is_kept(tmp_path: Path, caplog: pytest.L
 
 
 # ------------------------------------------------------------------------------------ output paths
-def test_missing_folder_is_an_output_error(tmp_path: Path) -> None:
-    with pytest.raises(OutputPathError, match="does not exist"):
-        write_ply(tmp_path / "missing" / "scene.ply", random_gaussians(3, 0))
-    assert list(tmp_path.iterdir()) == []
+def test_missing_folders_are_created(tmp_path: Path) -> None:
+    assert write_ply(tmp_path / "new" / "dir" / "scene.ply", random_gaussians(3, 0)) == 3
+    assert [p.name for p in (tmp_path / "new" / "dir").iterdir()] == ["scene.ply"]
+
+
+def test_path_under_a_file_is_an_output_error(tmp_path: Path) -> None:
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(OutputPathError, match="is a file"):
+        write_ply(tmp_path / "file" / "scene.ply", random_gaussians(3, 0))
+    assert [p.name for p in tmp_path.iterdir()] == ["file"]
 
 
 def test_failed_write_leaves_nothing_behind(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

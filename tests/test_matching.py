@@ -1,0 +1,343 @@
+"""Filtered matching: reciprocal nearest neighbours, the ratio confidence, the gate, epipolar guidance."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from macsplat_cli.pipeline.matching import (
+    MatchConfig,
+    guided_matches,
+    match_features,
+    ratio_distinctiveness,
+    reciprocal_nearest_neighbours,
+)
+from macsplat_cli.pipeline.pose import fundamental_from_pose
+from macsplat_cli.pipeline.types import Features
+from macsplat_cli.synthetic import rotation_about
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    return (x / np.linalg.norm(x, axis=-1, keepdims=True)).astype(np.float32)
+
+
+def _random_desc(n: int, dim: int, rng: np.random.Generator) -> np.ndarray:
+    return _unit(rng.normal(size=(n, dim)))
+
+
+def _features(xy: np.ndarray, desc: np.ndarray, conf: np.ndarray | None = None) -> Features:
+    n = len(desc)
+    return Features(np.asarray(xy, np.float64), desc, np.ones(n, np.float32) if conf is None else conf)
+
+
+def _brute_force(d0: np.ndarray, d1: np.ndarray) -> tuple[set[tuple[int, int]], np.ndarray, np.ndarray]:
+    """Mutual argmax pairs of the full similarity matrix, and the sorted top-2 of every row and column."""
+    sim = d0.astype(np.float64) @ d1.astype(np.float64).T
+    row_arg, col_arg = sim.argmax(1), sim.argmax(0)
+    pairs = {(i, int(row_arg[i])) for i in range(sim.shape[0]) if col_arg[row_arg[i]] == i}
+    top_rows = -np.sort(-sim, axis=1)[:, :2]
+    top_cols = -np.sort(-sim.T, axis=1)[:, :2]
+    return pairs, top_rows, top_cols
+
+
+def _check_top2(actual: np.ndarray, expected: np.ndarray, m: int) -> None:
+    """The best two similarities; where only one exists, the second is a sentinel no similarity beats."""
+    assert actual.shape == (m, 2)
+    k = expected.shape[1]
+    np.testing.assert_allclose(actual[:, :k], expected, atol=1e-5)
+    if k == 1:
+        assert (actual[:, 1] <= -1.0).all()
+
+
+# ------------------------------------------------------------------------------------ reciprocal NN
+@pytest.mark.parametrize(
+    ("m0", "m1", "dim"),
+    [(37, 53, 16), (53, 37, 8), (1, 20, 16), (20, 1, 16), (1, 1, 4), (64, 64, 32), (5, 200, 24)],
+)
+@pytest.mark.parametrize("max_block_elems", [1, 7, 64, 1 << 24])
+def test_reciprocal_nn_equals_brute_force(m0: int, m1: int, dim: int, max_block_elems: int) -> None:
+    """Blocked mutual NN and top-2 similarities equal those of the full similarity matrix, for any block size."""
+    rng = np.random.default_rng(m0 * 1000 + m1)
+    d0, d1 = _random_desc(m0, dim, rng), _random_desc(m1, dim, rng)
+    nn = reciprocal_nearest_neighbours(d0, d1, max_block_elems=max_block_elems)
+    pairs, top_rows, top_cols = _brute_force(d0, d1)
+    got = set(zip(nn.idx0.tolist(), nn.idx1.tolist()))
+    assert got == pairs
+    assert len(got) == len(nn.idx0)  # no duplicates
+    assert nn.idx0.dtype == np.int64 and nn.idx1.dtype == np.int64
+    np.testing.assert_allclose(nn.sim, np.sum(d0[nn.idx0].astype(np.float64) * d1[nn.idx1], axis=1), atol=1e-5)
+    _check_top2(nn.top2_0, top_rows, m0)
+    _check_top2(nn.top2_1, top_cols, m1)
+
+
+def test_reciprocal_nn_recovers_a_permutation() -> None:
+    """Noisy permuted copies are each other's mutual nearest neighbours, whatever the block size."""
+    rng = np.random.default_rng(3)
+    d0 = _random_desc(100, 32, rng)
+    perm = rng.permutation(100)
+    d1 = _unit(d0[perm] + 0.05 * rng.normal(size=(100, 32)))
+    for block in (1, 100, 1 << 24):
+        nn = reciprocal_nearest_neighbours(d0, d1, max_block_elems=block)
+        assert len(nn.idx0) == 100
+        np.testing.assert_array_equal(perm[nn.idx1], nn.idx0)
+
+
+@pytest.mark.parametrize(("m0", "m1"), [(0, 5), (5, 0), (0, 0)])
+def test_reciprocal_nn_empty(m0: int, m1: int) -> None:
+    """An empty side gives no pairs and top-2 arrays of the right (empty) shapes."""
+    rng = np.random.default_rng(0)
+    nn = reciprocal_nearest_neighbours(_random_desc(m0, 8, rng), _random_desc(m1, 8, rng))
+    assert len(nn.idx0) == len(nn.idx1) == len(nn.sim) == 0
+    assert nn.top2_0.shape == (m0, 2) and nn.top2_1.shape == (m1, 2)
+
+
+# ------------------------------------------------------------------------------------ ratio confidence
+def _sims_at_angles(a_deg: float, b_deg: float) -> np.ndarray:
+    """Cosine similarities of (1, 0) to the unit vectors at angles a and b."""
+    q = np.array([1.0, 0.0])
+    va = np.array([math.cos(math.radians(a_deg)), math.sin(math.radians(a_deg))])
+    vb = np.array([math.cos(math.radians(b_deg)), math.sin(math.radians(b_deg))])
+    return np.array([q @ va, q @ vb])
+
+
+@pytest.mark.parametrize(
+    ("a_deg", "b_deg", "expected"),
+    [
+        (60.0, 90.0, 1.0 - 1.0 / math.sqrt(2.0)),  # chord lengths 1 and √2
+        (0.0, 90.0, 1.0),  # an exact match
+        (45.0, 45.0, 0.0),  # two equally good candidates
+        (30.0, 120.0, 1.0 - math.sin(math.radians(15.0)) / math.sin(math.radians(60.0))),
+        (90.0, 180.0, 1.0 - math.sqrt(2.0) / 2.0),  # the second is antipodal: distance 2
+        (0.0, 0.0, 0.0),  # both identical to the query: no distinctiveness (no division by zero)
+        (90.0, 60.0, 0.0),  # "second" closer than "best" clips to 0
+    ],
+)
+def test_ratio_distinctiveness_hand_computed(a_deg: float, b_deg: float, expected: float) -> None:
+    """``1 − d1/d2`` with ``d = 2 sin(θ/2)`` the chord between unit vectors θ apart."""
+    out = ratio_distinctiveness(_sims_at_angles(a_deg, b_deg)[None])
+    assert out.shape == (1,) and out.dtype == np.float32
+    assert out[0] == pytest.approx(expected, abs=1e-6)
+
+
+def test_ratio_distinctiveness_is_vectorised() -> None:
+    """Rows are independent: a batch gives the per-row values, all in [0, 1]."""
+    angles = [(10.0, 80.0), (20.0, 25.0), (5.0, 170.0)]
+    batch = np.stack([_sims_at_angles(a, b) for a, b in angles])
+    out = ratio_distinctiveness(batch)
+    expected = [1.0 - math.sin(math.radians(a / 2)) / math.sin(math.radians(b / 2)) for a, b in angles]
+    np.testing.assert_allclose(out, expected, atol=1e-6)
+
+
+# ------------------------------------------------------------------------------------ the confidence gate
+def _ambiguous_pair(seed: int = 0) -> tuple[Features, Features, np.ndarray]:
+    """View 1 holds noisy copies of 60 of view 0's 80 descriptors (permuted), 20 of them with a near-twin
+    decoy, plus 30 distractors. Returns the features and the true view-1 index of each view-0 descriptor (−1)."""
+    rng = np.random.default_rng(seed)
+    d0 = _random_desc(80, 32, rng)
+    copies = _unit(d0[:60] + rng.normal(scale=0.15, size=(60, 32)) / math.sqrt(32))
+    twins = _unit(d0[:20] + rng.normal(scale=0.2, size=(20, 32)) / math.sqrt(32))
+    d1 = np.concatenate([copies, twins, _random_desc(30, 32, rng)])
+    perm = rng.permutation(len(d1))
+    d1 = d1[perm]
+    truth = np.full(80, -1)
+    truth[:60] = np.argsort(perm)[:60]
+    xy0 = rng.uniform(0, 100, (80, 2))
+    xy1 = rng.uniform(0, 100, (len(d1), 2))
+    conf0 = rng.uniform(0.2, 1.0, 80).astype(np.float32)
+    conf1 = rng.uniform(0.2, 1.0, len(d1)).astype(np.float32)
+    return _features(xy0, d0, conf0), _features(xy1, d1, conf1), truth
+
+
+def test_match_features_counts_and_ratio_weights() -> None:
+    """Counts: reciprocal ≥ confident = len; weights are c·(1 − d1/d2) on both sides from the brute-force top-2."""
+    f0, f1, _ = _ambiguous_pair()
+    m = match_features(f0, f1, MatchConfig(conf_threshold=0.04, max_block_elems=50))
+    pairs, top_rows, top_cols = _brute_force(f0.desc, f1.desc)
+    assert m.counts["reciprocal"] == len(pairs)
+    assert m.counts["confident"] == len(m) < m.counts["reciprocal"]  # the decoys make some matches ambiguous
+    assert set(zip(m.idx0.tolist(), m.idx1.tolist())) <= pairs
+    c0 = f0.conf * ratio_distinctiveness(top_rows)
+    c1 = f1.conf * ratio_distinctiveness(top_cols)
+    np.testing.assert_allclose(m.conf, c0[m.idx0] * c1[m.idx1], atol=1e-5)
+    assert (m.conf > 0.04).all()
+    np.testing.assert_array_equal(m.xy0, f0.xy[m.idx0])
+    np.testing.assert_array_equal(m.xy1, f1.xy[m.idx1])
+    dropped = [(i, j) for i, j in pairs if (i, j) not in set(zip(m.idx0.tolist(), m.idx1.tolist()))]
+    assert all(c0[i] * c1[j] <= 0.04 + 1e-6 for i, j in dropped)  # only the gate removed them
+
+
+def test_match_features_keeps_true_matches() -> None:
+    """The confident matches are (almost all) the true correspondences."""
+    f0, f1, truth = _ambiguous_pair(1)
+    m = match_features(f0, f1)
+    assert len(m) >= 30
+    assert np.mean(truth[m.idx0] == m.idx1) >= 0.95
+
+
+def test_raising_the_threshold_never_adds_matches() -> None:
+    """The accepted pairs for a higher τ are a subset of those for a lower τ, and the gate is exact."""
+    f0, f1, _ = _ambiguous_pair(2)
+    previous: set[tuple[int, int]] | None = None
+    sizes = []
+    for tau in (0.0, 0.02, 0.04, 0.1, 0.2, 0.4, 0.7):
+        m = match_features(f0, f1, MatchConfig(conf_threshold=tau))
+        got = set(zip(m.idx0.tolist(), m.idx1.tolist()))
+        assert (m.conf > tau).all()
+        if previous is not None:
+            assert got <= previous
+        previous = got
+        sizes.append(len(got))
+    assert sizes[0] > sizes[-1]  # the thresholds did bite
+
+
+def test_match_features_without_ratio_uses_feature_confidence() -> None:
+    """``ratio_confidence=False``: w = c0·c1 of the features' own confidences, gated at τ."""
+    f0, f1, _ = _ambiguous_pair(4)
+    tau = 0.3
+    m = match_features(f0, f1, MatchConfig(conf_threshold=tau, ratio_confidence=False))
+    pairs, _, _ = _brute_force(f0.desc, f1.desc)
+    expected = {(i, j) for i, j in pairs if f0.conf[i] * f1.conf[j] > tau}
+    assert set(zip(m.idx0.tolist(), m.idx1.tolist())) == expected
+    np.testing.assert_allclose(m.conf, f0.conf[m.idx0] * f1.conf[m.idx1], rtol=1e-6)
+    assert m.counts["reciprocal"] == len(pairs) > len(m)
+    # the gate is strict: a zero confidence is dropped even at τ = 0
+    f0.conf[:40] = 0.0
+    m0 = match_features(f0, f1, MatchConfig(conf_threshold=0.0, ratio_confidence=False))
+    assert len(m0) > 0 and (m0.idx0 >= 40).all()
+
+
+@pytest.mark.parametrize(
+    ("m0", "m1"),
+    [
+        (40, 50),
+        (2, 30),
+        (1, 30),
+    ],
+)
+def test_match_features_is_symmetric(m0: int, m1: int) -> None:
+    """Swapping the two views swaps the matches and keeps their confidences."""
+    rng = np.random.default_rng(m0 + m1)
+    d0 = _random_desc(m0, 16, rng)
+    d1 = np.concatenate([_unit(d0 + 0.3 * rng.normal(size=d0.shape) / 4), _random_desc(m1 - m0, 16, rng)])
+    f0 = _features(rng.uniform(0, 50, (m0, 2)), d0)
+    f1 = _features(rng.uniform(0, 50, (m1, 2)), d1)
+    cfg = MatchConfig(conf_threshold=0.0)
+    a, b = match_features(f0, f1, cfg), match_features(f1, f0, cfg)
+    fwd = dict(zip(zip(a.idx0.tolist(), a.idx1.tolist()), a.conf.tolist()))
+    bwd = dict(zip(zip(b.idx1.tolist(), b.idx0.tolist()), b.conf.tolist()))
+    assert fwd.keys() == bwd.keys() and len(fwd) > 0
+    for key, w in fwd.items():
+        assert bwd[key] == pytest.approx(w, abs=1e-6)
+
+
+# ------------------------------------------------------------------------------------ guided matching
+K_GUIDED = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+
+
+def _stereo_setup(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Exact correspondences of random points for a generic pose, and its fundamental matrix."""
+    rng = np.random.default_rng(seed)
+    R = rotation_about((0.2, 1.0, 0.1), 8.0)
+    t = np.array([0.9, 0.2, 0.1])
+    X = np.c_[rng.uniform(-2, 2, (n, 2)), rng.uniform(4, 8, n)]
+    x0 = X @ K_GUIDED.T
+    Xc = X @ R.T + t
+    x1 = Xc @ K_GUIDED.T
+    return x0[:, :2] / x0[:, 2:], x1[:, :2] / x1[:, 2:], fundamental_from_pose(R, t, K_GUIDED, K_GUIDED)
+
+
+def _line_distance(F: np.ndarray, xy0: np.ndarray, xy1: np.ndarray) -> np.ndarray:
+    """Distance of each xy1 to the epipolar line of its xy0 in view 1 (pixels)."""
+    lines = np.c_[xy0, np.ones(len(xy0))] @ F.T
+    return np.abs(np.sum(lines * np.c_[xy1, np.ones(len(xy1))], axis=1)) / np.linalg.norm(lines[:, :2], axis=1)
+
+
+def test_guided_matches_separate_duplicates_by_the_epipolar_band() -> None:
+    """Each descriptor appears twice in view 1: a slightly noisy copy at the true place and an exact copy far from
+    the epipolar line. Plain mutual NN picks the decoys; guided matching recovers the true correspondences."""
+    n = 120
+    rng = np.random.default_rng(5)
+    xy0, xy1_true, F = _stereo_setup(n, 5)
+    d0 = _random_desc(n, 32, rng)
+    true_desc = _unit(d0 + 0.1 * rng.normal(size=d0.shape) / math.sqrt(32))
+    decoy_xy = rng.uniform([0, 0], [640, 480], (4 * n, 2))
+    far = _line_distance(F, np.repeat(xy0, 4, 0), decoy_xy).reshape(n, 4) > 20.0
+    decoy_xy = decoy_xy.reshape(n, 4, 2)[np.arange(n), far.argmax(1)]  # one decoy per point, > 20 px off its line
+    assert far.any(1).all()
+    xy1 = np.concatenate([xy1_true, decoy_xy])
+    d1 = np.concatenate([true_desc, d0])  # the decoys are exact copies: more similar than the true matches
+    f0, f1 = _features(xy0, d0), _features(xy1, d1)
+
+    plain = match_features(f0, f1, MatchConfig(conf_threshold=0.0, ratio_confidence=False))
+    assert len(plain) == n and (plain.idx1 >= n).all()  # every plain match is a decoy
+
+    guided = guided_matches(f0, f1, F, band_px=2.0)
+    assert guided.counts == {"guided": len(guided)}
+    assert len(guided) >= 0.95 * n
+    np.testing.assert_array_equal(guided.idx1, guided.idx0)  # true match of i is view-1 feature i
+    np.testing.assert_allclose(guided.xy1, xy1_true[guided.idx0])
+    assert ((guided.conf > 0) & (guided.conf <= 1)).all()
+
+
+@pytest.mark.parametrize("band_px", [0.5, 2.0, 8.0])
+def test_guided_matches_lie_in_the_band(band_px: float) -> None:
+    """Random descriptors and positions: every returned pair is within ``band_px`` of its epipolar line."""
+    rng = np.random.default_rng(int(band_px * 10))
+    xy0, xy1, F = _stereo_setup(300, 7)
+    xy1 = rng.uniform([0, 0], [640, 480], xy1.shape)  # unrelated positions: many pairs fall outside any band
+    d0 = _random_desc(300, 8, rng)
+    d1 = _unit(d0[rng.permutation(300)] + 0.5 * rng.normal(size=(300, 8)) / math.sqrt(8))
+    m = guided_matches(_features(xy0, d0), _features(xy1, d1), F, band_px=band_px, ratio=1.0)
+    assert len(m) > 0
+    assert (_line_distance(F, m.xy0, m.xy1) <= band_px + 1e-6).all()
+    assert len(set(m.idx0.tolist())) == len(m) and len(set(m.idx1.tolist())) == len(m)  # one-to-one
+
+
+def test_guided_matches_band_and_block_size() -> None:
+    """A wider band never loses a pair whose true match is inside the narrow one; block size does not matter."""
+    rng = np.random.default_rng(11)
+    xy0, xy1, F = _stereo_setup(150, 11)
+    d0 = _random_desc(150, 16, rng)
+    d1 = _unit(d0 + 0.2 * rng.normal(size=d0.shape) / 4)
+    f0, f1 = _features(xy0, d0), _features(xy1 + rng.normal(scale=0.3, size=xy1.shape), d1)
+    a = guided_matches(f0, f1, F, band_px=2.0)
+    b = guided_matches(f0, f1, F, band_px=2.0, max_block_elems=7)
+    np.testing.assert_array_equal(a.idx0, b.idx0)
+    np.testing.assert_array_equal(a.idx1, b.idx1)
+    np.testing.assert_allclose(a.conf, b.conf, atol=1e-6)
+    assert len(a) >= 140 and (a.idx0 == a.idx1).all()
+
+
+def test_guided_matches_ratio_test_inside_the_band() -> None:
+    """A near-twin of the true match, further along the same epipolar line, makes the pair ambiguous: the ratio
+    test drops it; with ``ratio=1`` (only a positive margin needed) most come back."""
+    n, n_amb = 120, 20
+    rng = np.random.default_rng(13)
+    xy0, xy1, F = _stereo_setup(n, 13)
+    lines = np.c_[xy0, np.ones(n)] @ F.T
+    along = np.c_[-lines[:, 1], lines[:, 0]] / np.linalg.norm(lines[:, :2], axis=1, keepdims=True)
+    d0 = _random_desc(n, 32, rng)
+    d1 = _unit(d0 + 0.1 * rng.normal(size=d0.shape) / math.sqrt(32))
+    twin_xy = xy1[:n_amb] + 40.0 * along[:n_amb]  # on the epipolar line, 40 px away
+    twin_desc = _unit(d1[:n_amb] + 0.01 * rng.normal(size=(n_amb, 32)) / math.sqrt(32))
+    f0 = _features(xy0, d0)
+    f1 = _features(np.concatenate([xy1, twin_xy]), np.concatenate([d1, twin_desc]))
+    strict = guided_matches(f0, f1, F, band_px=2.0, ratio=0.95)
+    assert not np.isin(strict.idx0, np.arange(n_amb)).any()
+    assert len(strict) >= 0.95 * (n - n_amb) and (strict.idx0 == strict.idx1).all()
+    loose = guided_matches(f0, f1, F, band_px=2.0, ratio=1.0)
+    assert np.isin(loose.idx0, np.arange(n_amb)).sum() >= n_amb // 2
+
+
+@pytest.mark.parametrize(("n0", "n1"), [(0, 10), (10, 0), (0, 0)])
+def test_guided_matches_empty(n0: int, n1: int) -> None:
+    """No features on a side: no matches, well-shaped arrays, ``counts["guided"] == 0``."""
+    rng = np.random.default_rng(0)
+    _, _, F = _stereo_setup(1, 0)
+    f0 = _features(rng.uniform(0, 100, (n0, 2)), _random_desc(n0, 8, rng))
+    f1 = _features(rng.uniform(0, 100, (n1, 2)), _random_desc(n1, 8, rng))
+    m = guided_matches(f0, f1, F)
+    assert len(m) == 0 and m.counts == {"guided": 0}
+    assert m.xy0.shape == (0, 2) and m.xy1.shape == (0, 2) and m.idx0.shape == (0,)
