@@ -19,17 +19,23 @@ __all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_text", "check_writ
 def check_writable(path: str | os.PathLike[str]) -> Path:
     """Fail early, before any work, if ``path`` cannot be written.
 
-    Returns the path. Raises :class:`OutputPathError` when the parent folder is
-    missing or not writable, or when ``path`` is an existing folder.
+    Missing parent folders are fine (they are created when the file is written), but the
+    nearest existing ancestor must be a writable folder. Returns the path.
+
+    Raises:
+        OutputPathError: ``path`` is a folder, an ancestor is a file, or the nearest
+            existing ancestor is not writable.
     """
     p = Path(path)
-    parent = p.parent if str(p.parent) else Path(".")
     if p.is_dir():
         raise OutputPathError(f"cannot write {p}: it is a directory")
-    if not parent.is_dir():
-        raise OutputPathError(f"cannot write {p}: folder {parent} does not exist")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise OutputPathError(f"cannot write {p}: folder {parent} is not writable")
+    ancestor = p.parent if str(p.parent) else Path(".")
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise OutputPathError(f"cannot write {p}: {ancestor} is a file, not a folder")
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        raise OutputPathError(f"cannot write {p}: folder {ancestor} is not writable")
     return p
 
 
@@ -42,6 +48,10 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     the temporary file is removed and ``path`` is left untouched.
     """
     target = check_writable(path)
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OutputPathError(f"cannot create folder {target.parent}: {e.strerror or e}") from None
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=f".tmp{target.suffix}", dir=target.parent)
     os.close(fd)
     tmp_path = Path(tmp)

@@ -113,7 +113,7 @@ def write_ply(path: str | os.PathLike[str], gaussians: Gaussians, *, normals: bo
         The number of Gaussians written.
 
     Raises:
-        OutputPathError: the folder does not exist or the file cannot be written.
+        OutputPathError: the file cannot be written (missing folders are created).
     """
     n = len(gaussians)
     k = gaussians.sh.shape[1]

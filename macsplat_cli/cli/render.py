@@ -217,7 +217,7 @@ def _render(
     else:
         images = [to_uint8(f.rgb) for f in frames]
         if output is not None:
-            output.mkdir(exist_ok=True)
+            output.mkdir(parents=True, exist_ok=True)
             for i, img in enumerate(images):
                 written.append(save_image(output / f"frame_{i:04d}.png", img))
         if video is not None:
