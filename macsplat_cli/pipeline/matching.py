@@ -172,11 +172,13 @@ def guided_matches(
         return Matches(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, np.float32), e, e, {"guided": 0})
     a = torch.from_numpy(np.ascontiguousarray(f0.desc, np.float32))
     bt = torch.from_numpy(np.ascontiguousarray(f1.desc, np.float32)).T.contiguous()
-    p0 = torch.from_numpy(np.concatenate([f0.xy, np.ones((n0, 1))], 1))
-    p1 = torch.from_numpy(np.concatenate([f1.xy, np.ones((n1, 1))], 1))
-    Ft = torch.from_numpy(np.asarray(F, np.float64))
-    lines1 = p0 @ Ft.T  # epipolar lines in view 1 of view-0 points. [N0, 3]
-    lines1 = lines1 / torch.linalg.vector_norm(lines1[:, :2], dim=1, keepdim=True).clamp_min(1e-12)
+    p0 = np.concatenate([f0.xy, np.ones((n0, 1))], 1)
+    lines = p0 @ np.asarray(F, np.float64).T  # epipolar lines in view 1 of view-0 points. [N0, 3]
+    lines /= np.maximum(np.linalg.norm(lines[:, :2], axis=1, keepdims=True), 1e-12)
+    # float32 is exact enough here: unit normals and coordinates ≤ a few thousand px
+    lines1 = torch.from_numpy(np.ascontiguousarray(lines, np.float32))
+    p1 = torch.from_numpy(np.ascontiguousarray(np.concatenate([f1.xy, np.ones((n1, 1))], 1), np.float32))
+    p1t = p1.T.contiguous()
     neg = -4.0
     rows = max(1, max_block_elems // n1)
     row_top = torch.full((n0, 2), neg, dtype=torch.float32)
@@ -185,7 +187,7 @@ def guided_matches(
     col_arg = torch.zeros(n1, dtype=torch.int64)
     for start in range(0, n0, rows):
         sim = a[start : start + rows] @ bt
-        dist = (lines1[start : start + rows] @ p1.T).abs()  # point-to-line distance in view 1
+        dist = (lines1[start : start + rows] @ p1t).abs_()  # point-to-line distance in view 1
         sim = torch.where(dist <= band_px, sim, torch.full_like(sim, neg))
         k = min(2, n1)
         v, j = sim.topk(k, dim=1)

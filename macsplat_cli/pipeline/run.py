@@ -51,7 +51,9 @@ class ReconstructConfig:
     distance of their epipolar lines (:func:`~.matching.guided_matches`, ratio
     ``guided_ratio`` among the candidates in the band) and the pose is re-estimated; the
     result is kept if it verifies more matches. On a low-texture 27° pair this took the
-    verified matches from 30 to 461. ``None`` disables it.
+    verified matches from 30 to 461. It is skipped when the first pose already has
+    ``guided_below`` verified matches (a second dense matching pass for a pose that is
+    already at 0.01–0.05° on synthetic pairs). ``None`` disables it.
     """
 
     views: ViewConfig = field(default_factory=ViewConfig)
@@ -62,6 +64,7 @@ class ReconstructConfig:
     fallback_min_inliers: int = 100
     guided_band_px: float | None = 2.0
     guided_ratio: float = 0.95
+    guided_below: int = 1000
     matching: MatchConfig = field(default_factory=MatchConfig)
     pose: PoseConfig = field(default_factory=PoseConfig)
     depth: DepthConfig = field(default_factory=DepthConfig)
@@ -239,7 +242,7 @@ class Pipeline:
         if geometry is None:
             assert failure is not None
             raise failure
-        if self.config.guided_band_px is not None:
+        if self.config.guided_band_px is not None and len(geometry.inliers) < self.config.guided_below:
             F = fundamental_from_pose(geometry.R, geometry.t, geometry.K0, geometry.K1)
             guided = timed(
                 "matching (guided)",
