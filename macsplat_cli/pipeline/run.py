@@ -21,6 +21,7 @@ from .. import __version__
 from ..cameras import CameraSet
 from ..errors import ReconstructionError
 from ..gaussians import Gaussians
+from ..metrics import rotation_error_deg, translation_direction_error_deg
 from .depth import DepthConfig, estimate_depths
 from .descriptors import DescriptorBackend, SiftConfig, SiftDescriptors
 from .gaussian_init import GaussianInitConfig, gaussians_from_depth
@@ -53,7 +54,10 @@ class ReconstructConfig:
     result is kept if it verifies more matches. On a low-texture 27° pair this took the
     verified matches from 30 to 461. It is skipped when the first pose already has
     ``guided_below`` verified matches (a second dense matching pass for a pose that is
-    already at 0.01–0.05° on synthetic pairs). ``None`` disables it.
+    already at 0.01–0.05° on synthetic pairs), and its pose is rejected if it moved more
+    than ``guided_max_change_deg`` (rotation, translation direction) from the first one:
+    it refines a pose, it must not jump to another solution (measured: a 2.4° pose
+    "refined" into a 50° wrong one on a 90° object pair). ``None`` disables it.
     """
 
     views: ViewConfig = field(default_factory=ViewConfig)
@@ -65,6 +69,7 @@ class ReconstructConfig:
     guided_band_px: float | None = 2.0
     guided_ratio: float = 0.95
     guided_below: int = 1000
+    guided_max_change_deg: tuple[float, float] = (3.0, 10.0)
     matching: MatchConfig = field(default_factory=MatchConfig)
     pose: PoseConfig = field(default_factory=PoseConfig)
     depth: DepthConfig = field(default_factory=DepthConfig)
@@ -253,7 +258,12 @@ class Pipeline:
             guided.counts = {**geometry.inliers.counts, **guided.counts}
             guided.counts.pop("verified", None)
             refined, _ = self._try_pose(views, guided, timed, "pose (guided)")
-            if refined is not None and len(refined.inliers) > len(geometry.inliers):
+            if (
+                refined is not None
+                and len(refined.inliers) > len(geometry.inliers)
+                and rotation_error_deg(refined.R, geometry.R) <= self.config.guided_max_change_deg[0]
+                and translation_direction_error_deg(refined.t, geometry.t) <= self.config.guided_max_change_deg[1]
+            ):
                 geometry = refined
         for k, v in enumerate(views):
             if v.intrinsics_source == "prior" and geometry.info.get("focal_estimated"):
