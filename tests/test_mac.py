@@ -1,0 +1,272 @@
+"""The Multi-Attribute Consistency loss."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from macsplat_cli.errors import InputError, NonFiniteError
+from macsplat_cli.gaussians import quat_to_rotmat
+from macsplat_cli.mac import GaussianMaps, MACConfig, huber, mac_loss, sample_maps
+
+from _helpers import GC_ATOL, GC_EPS, GC_RTOL
+
+D = torch.float64
+
+
+def _maps(b: int, h: int, w: int, seed: int, k: int = 4, dtype: torch.dtype = D) -> GaussianMaps:
+    g = torch.Generator().manual_seed(seed)
+    means = torch.randn(b, h, w, 3, generator=g, dtype=dtype) * 0.3
+    means[..., 2] = means[..., 2].abs() + 2.0
+    return GaussianMaps(
+        means=means,
+        opacities=torch.rand(b, h, w, generator=g, dtype=dtype),
+        sh=torch.randn(b, h, w, k, 3, generator=g, dtype=dtype),
+        log_scales=torch.randn(b, h, w, 3, generator=g, dtype=dtype) * 0.5 - 3.0,
+        quats=torch.randn(b, h, w, 4, generator=g, dtype=dtype),
+    )
+
+
+def _cov_maps(m: GaussianMaps) -> GaussianMaps:
+    """The same Gaussians with raw camera-frame covariances R S² Rᵀ."""
+    R = quat_to_rotmat(m.quats)
+    S2 = torch.diag_embed(torch.exp(2 * m.log_scales))
+    return GaussianMaps(means=m.means, opacities=m.opacities, sh=m.sh, covariances=R @ S2 @ R.transpose(-1, -2))
+
+
+def _poses(b: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    out = []
+    for _ in range(2):
+        T = torch.eye(4, dtype=D).repeat(b, 1, 1)
+        T[:, :3, :3] = quat_to_rotmat(torch.randn(b, 4, generator=g, dtype=D))
+        T[:, :3, 3] = torch.randn(b, 3, generator=g, dtype=D)
+        out.append(T)
+    return out[0], out[1]
+
+
+def _matches(b: int, h: int, w: int, m: int, seed: int):  # noqa: ANN202
+    g = torch.Generator().manual_seed(seed)
+    xy1 = torch.rand(m, 2, generator=g, dtype=D) * torch.tensor([w, h], dtype=D)
+    xy2 = torch.rand(m, 2, generator=g, dtype=D) * torch.tensor([w, h], dtype=D)
+    batch = torch.randint(0, b, (m,), generator=g)
+    wts = torch.rand(m, generator=g, dtype=D)
+    return xy1, xy2, batch, wts
+
+
+def test_sample_maps_matches_hand_bilinear_interpolation() -> None:
+    maps = torch.arange(2 * 3 * 4 * 2, dtype=D).reshape(2, 3, 4, 2)
+    xy = torch.tensor([[0.5, 0.5], [1.0, 0.5], [1.25, 1.75], [3.5, 2.5], [-3.0, 9.0]], dtype=D)
+    out = sample_maps(maps, xy, torch.tensor([0, 0, 1, 1, 0]))
+    torch.testing.assert_close(out[0], maps[0, 0, 0])  # a pixel centre
+    torch.testing.assert_close(out[1], 0.5 * (maps[0, 0, 0] + maps[0, 0, 1]))  # between two centres
+    # (1.25, 1.75): x between columns 0 and 1 (t = 0.75), y between rows 1 and 2 (t = 0.25)
+    m = maps[1]
+    want = 0.75 * (0.25 * m[1, 0] + 0.75 * m[1, 1]) + 0.25 * (0.25 * m[2, 0] + 0.75 * m[2, 1])
+    torch.testing.assert_close(out[2], want)
+    torch.testing.assert_close(out[3], maps[1, 2, 3])
+    torch.testing.assert_close(out[4], maps[0, 2, 0])  # outside: the border clamps
+
+
+def test_identical_gaussians_give_zero_loss() -> None:
+    m = _maps(2, 5, 6, 0)
+    T1, _ = _poses(2, 1)
+    xy1, _, batch, wts = _matches(2, 5, 6, 30, 2)
+    out = mac_loss(m, m, xy1, xy1, batch, wts, T1, T1)
+    assert float(out.loss) == pytest.approx(0.0, abs=1e-12)
+
+
+def test_terms_match_a_hand_computation() -> None:
+    """Two single-pixel maps, identity poses: each term from its definition."""
+    cfg = MACConfig(delta_pos=0.5, delta_shape=0.1)
+
+    def one(mu, ls, op, sh):  # noqa: ANN001, ANN202
+        t = lambda x: torch.tensor(x, dtype=D).reshape(1, 1, 1, -1)  # noqa: E731
+        return GaussianMaps(means=t(mu), opacities=t(op)[..., 0], sh=t(sh).reshape(1, 1, 1, 1, 3), log_scales=t(ls))
+
+    a = one([0.0, 0.0, 2.0], [0.0, -1.0, -2.0], 0.9, [0.1, 0.2, 0.3])
+    b = one([0.1, -0.2, 2.0], [-2.0, 0.5, -1.0], 0.5, [0.0, 0.2, -0.3])
+    T = torch.eye(4, dtype=D)[None]
+    xy = torch.tensor([[0.5, 0.5]], dtype=D)
+    out = mac_loss(a, b, xy, xy, torch.tensor([0]), torch.tensor([2.0], dtype=D), T, T, cfg)
+    pos = 0.3**2 / (2 * 0.5)  # L1 distance 0.3 < δ = 0.5: quadratic part
+    # sorted 2·log s: a → (-4, -2, 0), b → (-4, -2, 1): L1 = 1 ≥ δs → 1 − 0.05
+    shape = 1.0 - 0.05
+    app = 0.4 + (0.1 + 0.0 + 0.6)
+    w = 2.0 / (2.0 + cfg.eps)
+    assert float(out.position) == pytest.approx(w * pos)
+    assert float(out.shape) == pytest.approx(w * shape)
+    assert float(out.appearance) == pytest.approx(w * app)
+    assert float(out.loss) == pytest.approx(w * (pos + 0.02 * shape + 0.1 * app))
+
+
+def test_position_term_only_where_both_depths_are_positive() -> None:
+    m1, m2 = _maps(1, 4, 4, 3), _maps(1, 4, 4, 4)
+    m1.means[0, 0, 0, 2] = -1.0  # behind camera 1 at pixel (0, 0)
+    T1, T2 = _poses(1, 5)
+    xy = torch.tensor([[0.5, 0.5], [2.5, 2.5]], dtype=D)
+    both = mac_loss(m1, m2, xy, xy, torch.tensor([0, 0]), torch.tensor([1.0, 0.0], dtype=D), T1, T2)
+    assert float(both.position) == 0.0 and float(both.shape) > 0  # only the behind-camera match has weight
+
+
+def test_world_translation_invariance_and_rotation_dependence() -> None:
+    """Translating the world changes nothing; rotating it changes the L1 position term (the
+    paper's definition), but not the shape and appearance terms."""
+    m1, m2 = _maps(2, 5, 6, 6), _maps(2, 5, 6, 7)
+    T1, T2 = _poses(2, 8)
+    G = torch.eye(4, dtype=D)
+    G[:3, :3] = quat_to_rotmat(torch.tensor([0.3, -0.2, 0.9, 0.1], dtype=D))
+    G[:3, 3] = torch.tensor([1.0, -2.0, 0.5], dtype=D)
+    xy1, xy2, batch, wts = _matches(2, 5, 6, 40, 9)
+    a = mac_loss(m1, m2, xy1, xy2, batch, wts, T1, T2)
+    b = mac_loss(m1, m2, xy1, xy2, batch, wts, G @ T1, G @ T2)
+    torch.testing.assert_close(a.shape, b.shape)
+    torch.testing.assert_close(a.appearance, b.appearance)
+    assert abs(float(a.position) - float(b.position)) > 1e-3  # L1 is not rotation-invariant
+    G[:3, :3] = torch.eye(3, dtype=D)
+    c = mac_loss(m1, m2, xy1, xy2, batch, wts, G @ T1, G @ T2)
+    torch.testing.assert_close(a.loss, c.loss)
+
+
+def test_scale_and_covariance_paths_agree() -> None:
+    m1, m2 = _maps(2, 5, 6, 10), _maps(2, 5, 6, 11)
+    T1, T2 = _poses(2, 12)
+    xy1, xy2, batch, wts = _matches(2, 5, 6, 50, 13)
+    # sample at pixel centres so both paths interpolate the same quantity (interpolating
+    # log-scales and covariances differs between centres)
+    xy1 = torch.floor(xy1) + 0.5
+    xy2 = torch.floor(xy2) + 0.5
+    a = mac_loss(m1, m2, xy1, xy2, batch, wts, T1, T2)
+    b = mac_loss(_cov_maps(m1), _cov_maps(m2), xy1, xy2, batch, wts, T1, T2)
+    torch.testing.assert_close(a.shape, b.shape, rtol=1e-6, atol=1e-8)
+    torch.testing.assert_close(a.loss, b.loss, rtol=1e-6, atol=1e-8)
+
+
+def test_no_matches_or_all_gated_out_is_exactly_zero_with_zero_gradients() -> None:
+    m1, m2 = _maps(1, 4, 5, 14), _maps(1, 4, 5, 15)
+    for t in (m1.means, m1.log_scales, m1.sh, m2.opacities):
+        t.requires_grad_(True)
+    T1, T2 = _poses(1, 16)
+    empty = torch.zeros(0, 2, dtype=D)
+    out = mac_loss(m1, m2, empty, empty, torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=D), T1, T2)
+    assert float(out.loss.detach()) == 0.0 and out.matches == 0
+    out.loss.backward()
+    for t in (m1.means, m1.log_scales, m1.sh, m2.opacities):
+        assert t.grad is not None and torch.equal(t.grad, torch.zeros_like(t))
+        t.grad = None
+    xy1, xy2, batch, _ = _matches(1, 4, 5, 10, 17)
+    gated = mac_loss(m1, m2, xy1, xy2, batch, torch.zeros(10, dtype=D), T1, T2)
+    assert float(gated.loss.detach()) == 0.0
+    gated.loss.backward()
+    for t in (m1.means, m1.log_scales, m1.sh, m2.opacities):
+        assert torch.isfinite(t.grad).all() and torch.equal(t.grad, torch.zeros_like(t))
+
+
+@pytest.mark.parametrize("use_cov", [False, True])
+def test_gradcheck_float64(use_cov: bool) -> None:
+    m1, m2 = _maps(1, 3, 4, 18, k=1), _maps(1, 3, 4, 19, k=1)
+    T1, T2 = _poses(1, 20)
+    xy1, xy2, batch, wts = _matches(1, 3, 4, 6, 21)
+    cfg = MACConfig(delta_pos=0.05, delta_shape=0.05)
+
+    def fn(means1, ls1, op1, sh1, means2):  # noqa: ANN001, ANN202
+        a = GaussianMaps(means=means1, opacities=op1, sh=sh1, log_scales=ls1, quats=m1.quats)
+        b = GaussianMaps(means=means2, opacities=m2.opacities, sh=m2.sh, log_scales=m2.log_scales, quats=m2.quats)
+        if use_cov:
+            a, b = _cov_maps(a), _cov_maps(b)
+        return mac_loss(a, b, xy1, xy2, batch, wts, T1, T2, cfg).loss
+
+    inputs = [t.clone().requires_grad_(True) for t in (m1.means, m1.log_scales, m1.opacities, m1.sh, m2.means)]
+    assert torch.autograd.gradcheck(fn, inputs, eps=GC_EPS, atol=GC_ATOL, rtol=GC_RTOL)
+
+
+@pytest.mark.parametrize(
+    "eigs",
+    [[2.0, 2.0, 2.0], [1.0, 3.0, 3.0], [1e-4, 1e-4, 5.0], [1e-12, 1e-12, 5.0], [0.5, 0.5, 0.5 + 1e-13]],
+    ids=["isotropic", "disc", "needle", "extreme-needle", "nearly-isotropic"],
+)
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_covariance_shape_term_is_stable_for_repeated_eigenvalues(eigs: list[float], dtype: torch.dtype) -> None:
+    """Repeated eigenvalues (isotropic, disc and needle Gaussians, the usual initial state):
+    the shape term and its gradient stay finite and equal the scale path's, where an
+    eigendecomposition with eigenvectors would give NaN/inf gradients. The extreme needle
+    (1e-12 against ‖Σ‖ = 5) is below what a covariance's entries resolve, so only
+    finiteness is checked there."""
+    R = quat_to_rotmat(torch.tensor([0.9, 0.1, -0.3, 0.2], dtype=D))
+    ev = torch.tensor(eigs, dtype=D)
+    cov = (R @ torch.diag(ev) @ R.T).to(dtype).reshape(1, 1, 1, 3, 3).requires_grad_(True)
+    other = torch.tensor([0.2, 0.3, 0.4], dtype=dtype)
+    base = dict(means=torch.tensor([[[[0.0, 0.0, 2.0]]]], dtype=dtype), opacities=torch.ones(1, 1, 1, dtype=dtype),
+                sh=torch.zeros(1, 1, 1, 1, 3, dtype=dtype))  # fmt: skip
+    T = torch.eye(4, dtype=dtype)[None]
+    xy = torch.tensor([[0.5, 0.5]], dtype=dtype)
+    b = GaussianMaps(log_scales=(0.5 * torch.log(other)).reshape(1, 1, 1, 3), **base)
+    one = torch.ones(1, dtype=dtype)
+    out = mac_loss(GaussianMaps(covariances=cov, **base), b, xy, xy, torch.tensor([0]), one, T, T)
+    (g,) = torch.autograd.grad(out.shape, cov)
+    assert torch.isfinite(g).all() and torch.isfinite(out.shape)
+    if eigs[0] < 1e-8:
+        return
+    ref = GaussianMaps(log_scales=(0.5 * torch.log(ev)).to(dtype).reshape(1, 1, 1, 3), **base)
+    want = mac_loss(ref, b, xy, xy, torch.tensor([0]), one, T, T)
+    # eigenvalues carry ~eps·‖Σ‖ absolute error: 1e-3 relative for the float32 needle
+    torch.testing.assert_close(out.shape, want.shape, rtol=1e-3 if dtype == torch.float32 else 1e-9, atol=0)
+    if eigs[0] == eigs[1] == eigs[2]:  # contrast: eigenvector gradients are not finite here
+        Y = cov.detach()[0, 0, 0].to(D).requires_grad_(True)
+        torch.linalg.eigh(Y)[1].sum().backward()
+        assert not torch.isfinite(Y.grad).all()
+
+
+@pytest.mark.parametrize(("path", "smallest"), [("scales", 1e-12), ("covariances", 1e-10)])
+def test_shape_gradient_scales_as_one_over_lambda(path: str, smallest: float) -> None:
+    """The paper's claim: near degeneracy |∂L_shape/∂λ| ∝ 1/λ (log-log slope −1) as λ_min → 0.
+
+    With scales, λ = s² exactly, checked down to λ = 1e-12. With raw covariances the
+    eigenvalues come from the matrix entries, which resolve ~1e-16·‖Σ‖, so the check stops
+    at 1e-10 (here ‖Σ‖ = 2)."""
+    lams = [10.0 ** (-k) for k in range(2, round(-math.log10(smallest)) + 1, 2)]
+    grads = []
+    base = dict(means=torch.tensor([[[[0.0, 0.0, 2.0]]]], dtype=D), opacities=torch.ones(1, 1, 1, dtype=D),
+                sh=torch.zeros(1, 1, 1, 1, 3, dtype=D))  # fmt: skip
+    T = torch.eye(4, dtype=D)[None]
+    xy = torch.tensor([[0.5, 0.5]], dtype=D)
+    for lam in lams:
+        ev1 = torch.tensor([lam, 1.0, 2.0], dtype=D).requires_grad_(True)
+        ev2 = torch.tensor([10 * lam, 1.0, 2.0], dtype=D)
+        if path == "scales":
+            a = GaussianMaps(log_scales=(0.5 * torch.log(ev1)).reshape(1, 1, 1, 3), **base)
+            b = GaussianMaps(log_scales=(0.5 * torch.log(ev2)).reshape(1, 1, 1, 3), **base)
+        else:
+            a = GaussianMaps(covariances=torch.diag_embed(ev1).reshape(1, 1, 1, 3, 3), **base)
+            b = GaussianMaps(covariances=torch.diag_embed(ev2).reshape(1, 1, 1, 3, 3), **base)
+        out = mac_loss(a, b, xy, xy, torch.tensor([0]), torch.ones(1, dtype=D), T, T, MACConfig())
+        (g,) = torch.autograd.grad(out.shape, ev1)
+        grads.append(abs(float(g[0])))
+    slopes = [math.log(grads[i + 1] / grads[i]) / math.log(lams[i + 1] / lams[i]) for i in range(len(lams) - 1)]
+    assert all(s == pytest.approx(-1.0, abs=0.01) for s in slopes), slopes
+    assert all(math.isfinite(g) and g > 0 for g in grads)
+
+
+def test_non_finite_and_malformed_inputs_are_rejected() -> None:
+    m1, m2 = _maps(1, 3, 3, 23), _maps(1, 3, 3, 24)
+    T1, T2 = _poses(1, 25)
+    xy1, xy2, batch, wts = _matches(1, 3, 3, 4, 26)
+    bad = xy1.clone()
+    bad[0, 0] = float("nan")
+    with pytest.raises(NonFiniteError, match="xy1"):
+        mac_loss(m1, m2, bad, xy2, batch, wts, T1, T2)
+    m1.sh[0, 0, 0, 0, 0] = float("inf")
+    with pytest.raises(NonFiniteError, match="sh"):
+        mac_loss(m1, m2, xy1, xy2, batch, wts, T1, T2)
+    m1.sh[0, 0, 0, 0, 0] = 0.0
+    with pytest.raises(InputError, match="weights"):
+        mac_loss(m1, m2, xy1, xy2, batch, -wts, T1, T2)
+    with pytest.raises(InputError, match="batch"):
+        mac_loss(m1, m2, xy1, xy2, batch + 5, wts, T1, T2)
+
+
+def test_huber() -> None:
+    x = torch.tensor([0.0, 0.05, 0.1, 1.0, -2.0], dtype=D)
+    torch.testing.assert_close(huber(x, 0.1), torch.tensor([0.0, 0.0125, 0.05, 0.95, 1.95], dtype=D))
