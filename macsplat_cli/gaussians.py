@@ -15,7 +15,7 @@ from ._checks import check_finite, check_shape
 from .errors import InputError, ShapeError
 from .sh import MAX_SH_DEGREE, rgb_to_sh0, sh_degree_from_bases
 
-__all__ = ["Gaussians", "quat_to_rotmat"]
+__all__ = ["Gaussians", "quat_multiply", "quat_to_rotmat"]
 
 
 @dataclass
@@ -225,3 +225,18 @@ def quat_to_rotmat(quats: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
         dim=-1,
     )
     return r.reshape(*quats.shape[:-1], 3, 3)
+
+
+def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Hamilton product ``a ⊗ b`` of (w, x, y, z) quaternions: rotation ``a`` after ``b``. [..., 4]"""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        dim=-1,
+    )

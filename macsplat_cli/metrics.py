@@ -13,7 +13,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-__all__ = ["psnr", "rotation_error_deg", "ssim", "translation_direction_error_deg"]
+__all__ = ["psnr", "rotation_error_deg", "ssim", "ssim_map", "translation_direction_error_deg"]
 
 
 def _t(x: torch.Tensor | np.ndarray) -> torch.Tensor:
@@ -39,10 +39,35 @@ def psnr(
     return math.inf if mse == 0 else -10.0 * math.log10(mse)
 
 
-def _gaussian_window(size: int, sigma: float) -> torch.Tensor:
-    x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
+def _gaussian_window(size: int, sigma: float, dtype: torch.dtype) -> torch.Tensor:
+    x = torch.arange(size, dtype=dtype) - (size - 1) / 2
     g = torch.exp(-(x**2) / (2 * sigma**2))
     return g / g.sum()
+
+
+def ssim_map(pred: torch.Tensor, target: torch.Tensor, *, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """Differentiable per-pixel SSIM, averaged over channels. ``[H, W, C]`` → ``[H − w + 1, W − w + 1]``
+
+    Gaussian window (11×11, σ = 1.5), ``C1 = 0.01²``, ``C2 = 0.03²`` for data range 1,
+    population statistics, computed where the window fits inside the image (the
+    convention of scikit-image's ``structural_similarity``).
+    """
+    p = pred.permute(2, 0, 1)[None]
+    t = target.to(pred.dtype).permute(2, 0, 1)[None]
+    c = p.shape[1]
+    g = _gaussian_window(window, sigma, pred.dtype).to(pred.device)
+    k = (g[:, None] * g[None, :]).expand(c, 1, window, window).contiguous()
+
+    def blur(x: torch.Tensor) -> torch.Tensor:
+        return F.conv2d(x, k, groups=c)
+
+    mu_p, mu_t = blur(p), blur(t)
+    s_pp = blur(p * p) - mu_p**2
+    s_tt = blur(t * t) - mu_t**2
+    s_pt = blur(p * t) - mu_p * mu_t
+    c1, c2 = 0.01**2, 0.03**2
+    smap = ((2 * mu_p * mu_t + c1) * (2 * s_pt + c2)) / ((mu_p**2 + mu_t**2 + c1) * (s_pp + s_tt + c2))
+    return smap[0].mean(0)
 
 
 def ssim(
@@ -53,31 +78,15 @@ def ssim(
     window: int = 11,
     sigma: float = 1.5,
 ) -> float:
-    """Structural similarity (Wang et al. 2004) with an 11×11 Gaussian window, σ = 1.5.
+    """Structural similarity (Wang et al. 2004): :func:`ssim_map` in float64, averaged.
 
-    Constants ``C1 = (0.01)²``, ``C2 = (0.03)²`` for data range 1, population statistics.
-    The SSIM map is computed per channel where the window fits inside the image (a
-    ``window // 2`` border is excluded, as scikit-image does) and averaged over the
-    (masked) pixels and channels. ``[H, W, C]``, mask ``[H, W]``.
+    The map covers the pixels where the window fits (a ``window // 2`` border is
+    excluded, as scikit-image does); with ``mask``, only the masked ones. ``[H, W, C]``,
+    mask ``[H, W]``; an empty mask gives ``nan``.
     """
-    p = _t(pred).permute(2, 0, 1)[None]
-    t = _t(target).permute(2, 0, 1)[None]
-    c = p.shape[1]
-    g = _gaussian_window(window, sigma)
-    k = (g[:, None] * g[None, :]).expand(c, 1, window, window).contiguous()
-    pad = window // 2
-
-    def blur(x: torch.Tensor) -> torch.Tensor:
-        return F.conv2d(x, k, groups=c)  # 'valid': the map covers the interior pixels
-
-    mu_p, mu_t = blur(p), blur(t)
-    s_pp = blur(p * p) - mu_p**2
-    s_tt = blur(t * t) - mu_t**2
-    s_pt = blur(p * t) - mu_p * mu_t
-    c1, c2 = 0.01**2, 0.03**2
-    smap = ((2 * mu_p * mu_t + c1) * (2 * s_pt + c2)) / ((mu_p**2 + mu_t**2 + c1) * (s_pp + s_tt + c2))
-    smap = smap[0].mean(0)  # [H, W]
+    smap = ssim_map(_t(pred), _t(target), window=window, sigma=sigma)
     if mask is not None:
+        pad = window // 2
         m = _t(mask).bool()[pad : pad + smap.shape[0], pad : pad + smap.shape[1]]
         if not bool(m.any()):
             return math.nan

@@ -9,12 +9,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _helpers import random_gaussians
 
 from macsplat_cli.cameras import Camera, CameraSet, save_cameras
 from macsplat_cli.cli import main
 from macsplat_cli.ply import read_ply, write_ply
 from macsplat_cli.render import render_camera
+
+from _helpers import random_gaussians
 
 K = np.array([[120.0, 0.0, 40.0], [0.0, 120.0, 30.0], [0.0, 0.0, 1.0]])
 

@@ -6,11 +6,12 @@ import math
 
 import pytest
 import torch
-from _helpers import random_gaussians
 
 from macsplat_cli.errors import InputError, NonFiniteError, ShapeError
 from macsplat_cli.gaussians import Gaussians, quat_to_rotmat
 from macsplat_cli.sh import C0, eval_sh, rgb_to_sh0, sh0_to_rgb
+
+from _helpers import random_gaussians
 
 
 def _params(n: int = 4, k: int = 1, dtype: torch.dtype = torch.float32) -> dict:

@@ -9,10 +9,11 @@ import types
 
 import pytest
 import torch
-from _helpers import pinhole, random_gaussians
 
 from macsplat_cli.errors import InputError
 from macsplat_cli.render import _gsplat, render
+
+from _helpers import pinhole, random_gaussians
 
 
 def test_gsplat_arguments_and_outputs(monkeypatch: pytest.MonkeyPatch) -> None:

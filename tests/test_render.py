@@ -6,13 +6,14 @@ import math
 
 import pytest
 import torch
-from _helpers import GC_ATOL, GC_EPS, GC_RTOL, TOL, max_rel_err, pinhole, random_gaussians
 
 from macsplat_cli.gaussians import Gaussians
 from macsplat_cli.render import render
 from macsplat_cli.render.composite import bin_tiles, composite
 from macsplat_cli.render.projection import project_gaussians
 from macsplat_cli.render.reference import composite_reference
+
+from _helpers import GC_ATOL, GC_EPS, GC_RTOL, TOL, max_rel_err, pinhole, random_gaussians
 
 EYE = torch.eye(4)
 

@@ -47,6 +47,18 @@ def reconstruct_command(
             "--conf-threshold", help="τ: keep matches whose joint confidence c0·c1 exceeds it [default: 0.04]."
         ),
     ] = None,
+    refine: Annotated[
+        str,
+        typer.Option(
+            "--refine",
+            metavar="STEPS",
+            help="Refine the Gaussians on the two photos (+ MAC loss) for up to STEPS steps; 'auto' = 50. 0 = off.",
+        ),
+    ] = "0",
+    refine_scale: Annotated[
+        int, typer.Option("--refine-scale", min=1, max=4, help="Refine at 1/N resolution (2: ~4x faster per step).")
+    ] = 2,
+    no_mac: Annotated[bool, typer.Option("--no-mac", help="Refine without the MAC loss (ablation).")] = False,
     verbose: VerboseOpt = False,
     quiet: QuietOpt = False,
 ) -> None:
@@ -63,8 +75,24 @@ def reconstruct_command(
         _reconstruct(
             images=[image_a, image_b], output=output, cameras=cameras, renders=renders, num_renders=num_renders,
             video=video, report=report, json_out=json_out, size=size, intrinsics=intrinsics, focal=focal,
-            conf_threshold=conf_threshold, quiet=state.quiet,
+            conf_threshold=conf_threshold, refine_steps=_refine_steps(refine), refine_scale=refine_scale,
+            use_mac=not no_mac, quiet=state.quiet,
         )  # fmt: skip
+
+
+def _refine_steps(text: str) -> int:
+    from ..errors import InputError
+    from ..refine import RefineConfig
+
+    if text.strip().lower() == "auto":
+        return RefineConfig().steps
+    try:
+        steps = int(text)
+    except ValueError:
+        steps = -1
+    if steps < 0:
+        raise InputError(f"--refine {text!r}: give a number of steps (0 = off) or 'auto'")
+    return steps
 
 
 def _check_outputs(output: Path, cameras: Path, renders: Path | None, video: Path | None, report: Path | None) -> None:
@@ -93,7 +121,8 @@ def _check_outputs(output: Path, cameras: Path, renders: Path | None, video: Pat
 def _reconstruct(
     *, images: list[Path], output: Path, cameras: Path | None, renders: Path | None, num_renders: int,
     video: Path | None, report: Path | None, json_out: bool, size: int, intrinsics: Path | None,
-    focal: float | None, conf_threshold: float | None, quiet: bool,
+    focal: float | None, conf_threshold: float | None, refine_steps: int, refine_scale: int, use_mac: bool,
+    quiet: bool,
 ) -> None:  # fmt: skip
     from ..pipeline.run import Pipeline, ReconstructConfig
     from ..pipeline.views import ViewConfig
@@ -107,6 +136,8 @@ def _reconstruct(
 
     with _StageProgress(disabled=quiet) as progress:
         result = pipeline.run(images, on_stage=progress.event)
+        if refine_steps > 0:
+            result = _refine(result, refine_steps, refine_scale, use_mac, progress)
         written = _write_outputs(result, output, cameras, renders, num_renders, video, progress)
 
     result.report["outputs"] = {k: str(v) for k, v in written.items()}
@@ -118,6 +149,43 @@ def _reconstruct(
         out_console.print_json(json.dumps(result.report))
     if not quiet:
         _summary(result.report, written)
+
+
+def _refine(result, steps: int, scale: int, use_mac: bool, progress: _StageProgress):  # noqa: ANN001, ANN202
+    import dataclasses
+
+    from ..errors import InputError
+    from ..refine import RefineConfig, refine
+
+    h, w = result.maps[0].size
+    if any(m.size[0] % scale or m.size[1] % scale for m in result.maps):
+        raise InputError(f"--refine-scale {scale}: the working size {w}x{h} is not divisible by it")
+    cfg = RefineConfig(steps=steps, scale=scale, use_mac=use_mac)
+    progress.event("refine", "start")
+    task = progress.progress.add_task("", total=steps, took="")
+
+    def on_step(step: int, terms: dict[str, float]) -> None:
+        mac = f", mac {terms['mac']:.4f}" if "mac" in terms else ""
+        progress.progress.update(task, completed=step, took=f"step {step}/{steps}: photo {terms['photo']:.4f}{mac}")
+
+    out = refine(result.views, result.geometry, result.maps, cfg, on_step=on_step)
+    progress.progress.remove_task(task)
+    progress.event("refine", "end")
+    report = dict(result.report)
+    report["refine"] = {
+        "steps": out.steps,
+        "max_steps": steps,
+        "stopped_early": out.stopped_early,
+        "seconds": out.seconds,
+        "scale": scale,
+        "mac": use_mac,
+        "loss_first": out.history[0],
+        "loss_last": out.history[-1],
+    }
+    times = {k: v for k, v in report["times_s"].items() if k != "total"}
+    report["times_s"] = {**times, "refine": out.seconds, "total": report["times_s"]["total"] + out.seconds}
+    report["gaussians"] = int(sum(int(m.valid.sum()) for m in out.maps))
+    return dataclasses.replace(result, maps=out.maps, report=report)
 
 
 def _write_outputs(result, output, cameras, renders, num_renders, video, progress) -> dict[str, Any]:  # noqa: ANN001

@@ -1,8 +1,10 @@
 """Stage 6 (classical backend): one Gaussian per pixel with a trustworthy depth.
 
-For every pixel of each view whose depth confidence is positive:
+The stage returns :class:`~.types.PixelGaussians`, one parameter map per view in that
+view's camera frame (what a Splatt3R-style head predicts too). For every pixel of each
+view whose depth confidence is positive:
 
-* mean: the pixel's ray at its depth, expressed in the camera-0 (world) frame;
+* mean: the pixel's ray at its depth, in the view's camera frame;
 * rotation: a disc in the local tangent plane, its normal from the depth map's gradient
   (facing the camera), its first axis along the direction in which the surface tilts
   away from the viewer;
@@ -22,7 +24,7 @@ import numpy as np
 import torch
 
 from ..gaussians import Gaussians
-from .types import DepthMap, TwoViewGeometry, View
+from .types import DepthMap, PixelGaussians, TwoViewGeometry, View
 
 __all__ = ["GaussianInitConfig", "gaussians_from_depth", "rotmat_to_quat_batch"]
 
@@ -105,50 +107,49 @@ def _normals(points: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
 def gaussians_from_depth(
     views: list[View], geometry: TwoViewGeometry, depths: list[DepthMap], config: GaussianInitConfig | None = None
-) -> Gaussians:
-    """Gaussians for both views' valid pixels, in the camera-0 frame (float32)."""
+) -> list[PixelGaussians]:
+    """One Gaussian per pixel of each view, in the view's camera frame (float32)."""
     cfg = config or GaussianInitConfig()
-    parts = []
+    out = []
     for k, (view, dm) in enumerate(zip(views, depths)):
         K = geometry.K0 if k == 0 else geometry.K1
-        c2w = geometry.cam_to_world(k)
         h, w = dm.depth.shape
         ys, xs = np.mgrid[0:h, 0:w]
         pix = np.stack([xs + 0.5, ys + 0.5, np.ones((h, w))], -1)
         rays = pix @ np.linalg.inv(K).T  # z = 1
         P = rays * dm.depth[..., None]
         valid = dm.valid
-        n_cam = _normals(P, valid)
-        sel = valid.reshape(-1)
-        if not sel.any():
-            continue
-        Pv = P.reshape(-1, 3)[sel]
-        nv = n_cam.reshape(-1, 3)[sel]
-        z = Pv[:, 2]
-        view_dir = -Pv / np.linalg.norm(Pv, axis=1, keepdims=True)
-        cos = np.clip(np.sum(nv * view_dir, axis=1), 1.0 / cfg.max_tilt_stretch, 1.0)
+        n = _normals(P, valid).reshape(-1, 3)
+        Pf = P.reshape(-1, 3)
+        z = np.maximum(Pf[:, 2], 1e-12)
+        view_dir = -Pf / np.maximum(np.linalg.norm(Pf, axis=1, keepdims=True), 1e-12)
+        cos = np.clip(np.sum(n * view_dir, axis=1), 1.0 / cfg.max_tilt_stretch, 1.0)
         # tilt axis: the viewing direction projected onto the tangent plane
-        t1 = view_dir - np.sum(view_dir * nv, axis=1, keepdims=True) * nv
+        t1 = view_dir - np.sum(view_dir * n, axis=1, keepdims=True) * n
         t1_norm = np.linalg.norm(t1, axis=1, keepdims=True)
-        fallback = np.cross(nv, np.array([1.0, 0.0, 0.0]))
-        fallback_alt = np.cross(nv, np.array([0.0, 1.0, 0.0]))
+        fallback = np.cross(n, np.array([1.0, 0.0, 0.0]))
+        fallback_alt = np.cross(n, np.array([0.0, 1.0, 0.0]))
         fallback = np.where(np.linalg.norm(fallback, axis=1, keepdims=True) > 1e-6, fallback, fallback_alt)
-        t1 = np.where(
-            t1_norm > 1e-6, t1 / np.maximum(t1_norm, 1e-12), fallback / np.linalg.norm(fallback, axis=1, keepdims=True)
-        )
-        t2 = np.cross(nv, t1)
-        R_cam = np.stack([t1, t2, nv], axis=2)  # columns: local x, y, z axes
-        R_world = c2w[:3, :3] @ R_cam
+        fallback /= np.maximum(np.linalg.norm(fallback, axis=1, keepdims=True), 1e-12)
+        t1 = np.where(t1_norm > 1e-6, t1 / np.maximum(t1_norm, 1e-12), fallback)
+        t2 = np.cross(n, t1)
+        quats = rotmat_to_quat_batch(np.stack([t1, t2, n], axis=2))  # columns: local x, y, z axes
         f = 0.5 * (K[0, 0] + K[1, 1])
         base = cfg.footprint * z / f
         scales = np.stack([base / cos, base, base * cfg.thickness], 1)
-        means = Pv @ c2w[:3, :3].T + c2w[:3, 3]
-        rgb = view.image.reshape(-1, 3)[sel]
-        conf = dm.confidence.reshape(-1)[sel]
+        conf = dm.confidence.reshape(-1)
         opacity = cfg.opacity_min + (cfg.opacity_max - cfg.opacity_min) * np.clip(conf, 0.0, 1.0)
-        quats = rotmat_to_quat_batch(R_world)
         t = lambda a: torch.from_numpy(np.ascontiguousarray(a, np.float32))  # noqa: E731
-        parts.append(Gaussians.from_activated(t(means), t(scales), t(quats), t(opacity), t(rgb)))
-    if not parts:
-        return Gaussians.empty()
-    return Gaussians.cat(parts)
+        g = Gaussians.from_activated(t(Pf), t(scales), t(quats), t(opacity), t(view.image.reshape(-1, 3)))
+        out.append(
+            PixelGaussians(
+                means=g.means.reshape(h, w, 3),
+                log_scales=g.log_scales.reshape(h, w, 3),
+                quats=g.quats.reshape(h, w, 4),
+                opacity_logits=g.opacity_logits.reshape(h, w),
+                sh=g.sh.reshape(h, w, -1, 3),
+                valid=torch.from_numpy(np.ascontiguousarray(valid)),
+                cam_to_world=torch.from_numpy(geometry.cam_to_world(k)),
+            )
+        )
+    return out

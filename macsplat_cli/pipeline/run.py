@@ -8,6 +8,7 @@ backends. The report names the backend of every stage.
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
 from collections.abc import Callable, Sequence
@@ -16,6 +17,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
+import torch
 
 from .. import __version__
 from ..cameras import CameraSet
@@ -27,7 +29,7 @@ from .descriptors import DescriptorBackend, SiftConfig, SiftDescriptors
 from .gaussian_init import GaussianInitConfig, gaussians_from_depth
 from .matching import MatchConfig, guided_matches, match_features
 from .pose import PoseConfig, estimate_pose, fundamental_from_pose
-from .types import DepthMap, Features, Matches, TwoViewGeometry, View
+from .types import DepthMap, Features, Matches, PixelGaussians, TwoViewGeometry, View
 from .views import ViewConfig, load_views
 
 __all__ = ["STAGES", "Pipeline", "ReconstructConfig", "Reconstruction"]
@@ -112,7 +114,7 @@ class DepthGaussians:
     def __init__(self, config: GaussianInitConfig) -> None:
         self.config = config
 
-    def __call__(self, views: list[View], geometry: TwoViewGeometry, depths: list[DepthMap]) -> Gaussians:
+    def __call__(self, views: list[View], geometry: TwoViewGeometry, depths: list[DepthMap]) -> list[PixelGaussians]:
         return gaussians_from_depth(views, geometry, depths, self.config)
 
 
@@ -123,9 +125,16 @@ class Reconstruction:
     views: list[View]
     geometry: TwoViewGeometry
     depths: list[DepthMap]
-    gaussians: Gaussians
+    maps: list[PixelGaussians]
     report: dict[str, Any]
     scale: Literal["relative", "metric"] = "relative"
+
+    @functools.cached_property
+    def gaussians(self) -> Gaussians:
+        """All views' Gaussians in the world (camera-0) frame (computed once; a refined
+        reconstruction is a new object)."""
+        with torch.no_grad():
+            return Gaussians.cat([m.to_world() for m in self.maps])
 
     def cameras(self, *, original_size: bool = True) -> CameraSet:
         """The two cameras; at the photos' original resolution by default."""
@@ -162,7 +171,7 @@ class Pipeline:
         matcher: Callable[[Features, Features], Matches] | None = None,
         pose: Callable[[View, View, Matches], TwoViewGeometry] | None = None,
         depth: Callable[[list[View], TwoViewGeometry], list[DepthMap]] | None = None,
-        gaussians: Callable[[list[View], TwoViewGeometry, list[DepthMap]], Gaussians] | None = None,
+        gaussians: Callable[[list[View], TwoViewGeometry, list[DepthMap]], list[PixelGaussians]] | None = None,
         fallback_descriptors: DescriptorBackend | None = None,
     ) -> None:
         self.config = config or ReconstructConfig()
@@ -270,7 +279,7 @@ class Pipeline:
                 v.intrinsics_source = "estimated"
                 v.K = geometry.K0 if k == 0 else geometry.K1
         depths: list[DepthMap] = timed("depth", lambda: self.depth(views, geometry))
-        gaussians: Gaussians = timed("gaussians", lambda: self.gaussians(views, geometry, depths))
+        maps: list[PixelGaussians] = timed("gaussians", lambda: self.gaussians(views, geometry, depths))
         report = {
             "macsplat_version": __version__,
             "inputs": [str(p) for p in paths],
@@ -293,7 +302,7 @@ class Pipeline:
             "pose": {k: v for k, v in geometry.info.items()},
             "depth_coverage": [float(d.valid.mean()) for d in depths],
             "depth_measured": [float(d.measured.mean()) if d.measured is not None else None for d in depths],
-            "gaussians": len(gaussians),
+            "gaussians": int(sum(int(m.valid.sum()) for m in maps)),
             "config": asdict(self.config),
         }
-        return Reconstruction(views, geometry, depths, gaussians, _jsonable(report))
+        return Reconstruction(views, geometry, depths, maps, _jsonable(report))
