@@ -169,7 +169,9 @@ def refine(
         if cfg.use_mac and len(match):
             mac = mac_loss(*_mac_maps(params), xy0, xy1, batch, w, c2w[0], c2w[1], cfg.mac, check_inputs=False)
             loss = loss + cfg.mac.weight * mac.loss
-            terms.update(mac=float(mac.loss), mac_pos=float(mac.position), mac_shape=float(mac.shape))
+            terms.update(
+                mac=float(mac.loss.detach()), mac_pos=float(mac.position.detach()), mac_shape=float(mac.shape.detach())
+            )
         terms["loss"] = float(loss.detach())
         loss.backward()
         opt.step()

@@ -6,6 +6,8 @@ import logging
 
 import pytest
 
+import macsplat_cli  # noqa: F401  (first: sets OMP_WAIT_POLICY before any test imports torch)
+
 
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--runslow", action="store_true", default=False, help="also run tests marked slow")

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..errors import ReconstructionError
+from ..errors import NonFiniteError, ReconstructionError
 from .types import Matches, TwoViewGeometry, View
 
 __all__ = ["PoseConfig", "estimate_pose", "sampson_distance"]
@@ -56,6 +56,9 @@ class PoseConfig:
     min_inlier_ratio: smallest fraction of the matches that must agree with the pose.
     homography_excess: the pose is rejected when a homography explains more than this
         many times its inliers (plus 10).
+    planar_ambiguity: when a homography explains at least ``planar_fraction`` of the
+        inliers, the pose is rejected if another relative pose from the homography's
+        decomposition explains this fraction of them too (a plane has two).
     """
 
     threshold_px: float = 1.0
@@ -69,6 +72,8 @@ class PoseConfig:
     min_parallax_deg: float = 0.5
     min_inlier_ratio: float = 0.5
     homography_excess: float = 1.2
+    planar_fraction: float = 0.8
+    planar_ambiguity: float = 0.95
 
 
 # ----------------------------------------------------------------------------------- geometry
@@ -270,6 +275,32 @@ def _refine(
     return R, t, s, std_s
 
 
+def _planar_rival(
+    R: np.ndarray, t: np.ndarray, K0: np.ndarray, K1: np.ndarray, xy0: np.ndarray, xy1: np.ndarray, cfg: PoseConfig
+) -> int:
+    """Most matches that a relative pose other than ``(R, t)`` explains, among the poses of the
+    homography through the matches (up to four; planar scenes have two physical ones)."""
+    H, _ = cv2.findHomography(xy0, xy1, 0)
+    if H is None:
+        return 0
+    Hn = np.linalg.inv(K1) @ H @ K0
+    x0n, x1n = _homog(xy0) @ np.linalg.inv(K0).T, _homog(xy1) @ np.linalg.inv(K1).T
+    _, Rs, ts, _ = cv2.decomposeHomographyMat(Hn, np.eye(3))
+    best = 0
+    for Ri, ti in zip(Rs, ts):
+        ti = ti.ravel()
+        if np.linalg.norm(ti) < 1e-9:
+            continue
+        ti = ti / np.linalg.norm(ti)
+        if _rotation_angle_deg(Ri @ R.T) < 1.0 and math.degrees(math.acos(np.clip(ti @ t, -1, 1))) < 5.0:
+            continue  # the same pose
+        d = np.abs(sampson_distance(fundamental_from_pose(Ri, ti, K0, K1), xy0, xy1))
+        X = triangulate(Ri, ti, x0n, x1n)
+        ok = (d < cfg.threshold_px) & np.isfinite(X).all(1) & (X[:, 2] > 0) & (X @ Ri[2] + ti[2] > 0)
+        best = max(best, int(ok.sum()))
+    return best
+
+
 def estimate_pose(v0: View, v1: View, matches: Matches, config: PoseConfig | None = None) -> TwoViewGeometry:
     """Relative pose of ``v1`` with respect to ``v0`` from filtered matches.
 
@@ -278,9 +309,18 @@ def estimate_pose(v0: View, v1: View, matches: Matches, config: PoseConfig | Non
         gains ``verified``), possibly refined intrinsics, and diagnostics in ``info``.
 
     Raises:
+        NonFiniteError: a match coordinate or an intrinsic matrix holds NaN/Inf.
         ReconstructionError: too few matches or inliers, identical images, or no baseline.
     """
     cfg = config or PoseConfig()
+    for name, a in (
+        ("matches.xy0", matches.xy0),
+        ("matches.xy1", matches.xy1),
+        ("K of view 0", v0.K),
+        ("K of view 1", v1.K),
+    ):
+        if not np.isfinite(a).all():
+            raise NonFiniteError(f"{name} holds {int((~np.isfinite(a)).sum())} non-finite value(s) (NaN or Inf)")
     n = len(matches)
     if n < max(cfg.min_inliers, 8):
         raise ReconstructionError(
@@ -386,5 +426,13 @@ def estimate_pose(v0: View, v1: View, matches: Matches, config: PoseConfig | Non
             f"pose is unreliable: a homography explains {n_h} matches but the relative pose only {n_final} "
             "(the matches lie on one plane, or the pose is wrong)"
         )
+    if n_h >= cfg.planar_fraction * n_final:
+        rival = _planar_rival(R, t, K0s, K1s, xy0[final], xy1[final], cfg)
+        info["planar_rival_inliers"] = rival
+        if rival >= cfg.planar_ambiguity * n_final:
+            raise ReconstructionError(
+                f"pose is ambiguous: the {n_final} verified matches lie on one plane, and two different relative "
+                f"poses explain them ({rival} and {n_final} matches): photograph more of the scene's depth"
+            )
     logger.debug("pose: %s", info)
     return TwoViewGeometry(R=R, t=t, K0=K0s, K1=K1s, inliers=matches.subset(final, "verified"), info=info)

@@ -8,6 +8,7 @@ from typing import Literal
 
 import torch
 
+from .._checks import check_finite, check_shape
 from ..cameras import Camera
 from ..gaussians import Gaussians
 from .composite import bin_tiles, composite
@@ -74,6 +75,9 @@ def render(
 
     Returns:
         :class:`RenderOutput`. Non-finite Gaussians are culled, so the outputs are finite.
+
+    Raises:
+        ShapeError, NonFiniteError: a malformed or non-finite camera or background.
     """
     if width <= 0 or height <= 0:
         raise ValueError(f"image size must be positive, got {width}x{height}")
@@ -81,6 +85,11 @@ def render(
     bg = torch.as_tensor(background, dtype=dtype, device=device).reshape(3)
     viewmat = torch.as_tensor(viewmat).to(device=device, dtype=dtype)
     K = torch.as_tensor(K).to(device=device, dtype=dtype)
+    check_shape(viewmat, (4, 4), "viewmat")
+    check_shape(K, (3, 3), "K")
+    check_finite(viewmat, "viewmat")
+    check_finite(K, "K")
+    check_finite(bg, "background")
 
     if backend == "gsplat" or (backend == "auto" and device.type == "cuda"):
         from . import _gsplat
