@@ -1,0 +1,347 @@
+"""MASt3R-compatible backbone, RoPE2D and the Splatt3R-style Gaussian head (tiny random-weight networks)."""
+
+from __future__ import annotations
+
+# First, before torch: importing macsplat_cli sets OMP_WAIT_POLICY=PASSIVE, which OpenMP reads when torch
+# loads (on 2 busy cores the default spinning made this file ~4x slower).
+import math
+
+import pytest
+import torch
+
+from macsplat_cli.errors import InputError, ShapeError
+from macsplat_cli.gaussians import quat_to_rotmat
+from macsplat_cli.neural import (
+    BackboneConfig,
+    GaussianHead,
+    GaussianHeadConfig,
+    MASt3RBackbone,
+    RoPE2D,
+    conf_activation,
+    depth_activation,
+    patch_positions,
+)
+from macsplat_cli.sh import C0, rgb_to_sh0
+
+TINY = BackboneConfig.tiny()
+
+
+def _images(b: int, h: int, w: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(b, 3, h, w, generator=g) * 2 - 1, torch.rand(b, 3, h, w, generator=g) * 2 - 1
+
+
+@pytest.fixture(scope="module")
+def net() -> MASt3RBackbone:
+    torch.manual_seed(0)
+    return MASt3RBackbone(TINY).eval()
+
+
+@pytest.fixture(scope="module")
+def gauss_head() -> GaussianHead:
+    torch.manual_seed(1)
+    return GaussianHead(TINY).eval()
+
+
+# ============================================================================================= RoPE
+def test_patch_positions_are_row_major_y_x() -> None:
+    pos = patch_positions(2, 3)
+    assert pos.tolist() == [[0, 0], [0, 1], [0, 2], [1, 0], [1, 1], [1, 2]]
+
+
+def _rope_reference(x: torch.Tensor, pos: torch.Tensor, base: float) -> torch.Tensor:
+    """Per-channel loop over the reference's description: y on the first half, x on the second,
+    inside each half channel j paired with j + D'/2, angle pos·base^(-2i/D')."""
+    out = x.clone()
+    dh = x.shape[-1]
+    half = dh // 2
+    for axis in (0, 1):
+        off = axis * half
+        for n in range(x.shape[-2]):
+            p = float(pos[n, axis])
+            for i in range(half // 2):
+                theta = p * base ** (-2 * i / half)
+                a, b = x[..., n, off + i], x[..., n, off + i + half // 2]
+                out[..., n, off + i] = a * math.cos(theta) - b * math.sin(theta)
+                out[..., n, off + i + half // 2] = b * math.cos(theta) + a * math.sin(theta)
+    return out
+
+
+def test_rope_matches_the_per_channel_formula() -> None:
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(2, 3, 6, 16, generator=g, dtype=torch.float64)
+    pos = patch_positions(2, 3)
+    got = RoPE2D(100.0)(x, pos)
+    torch.testing.assert_close(got, _rope_reference(x, pos, 100.0), rtol=1e-12, atol=1e-12)
+
+
+def test_rope_dot_products_depend_only_on_relative_position() -> None:
+    g = torch.Generator().manual_seed(1)
+    rope = RoPE2D(100.0)
+    q = torch.randn(1, 2, 1, 32, generator=g, dtype=torch.float64)
+    k = torch.randn(1, 2, 1, 32, generator=g, dtype=torch.float64)
+    pq, pk = torch.tensor([[3, 5]]), torch.tensor([[7, 1]])
+    base = (rope(q, pq) * rope(k, pk)).sum(-1)
+    for shift in ([0, 4], [9, 0], [11, 13]):
+        t = torch.tensor([shift])
+        shifted = (rope(q, pq + t) * rope(k, pk + t)).sum(-1)
+        torch.testing.assert_close(shifted, base, rtol=1e-10, atol=1e-10)
+    # A change of the relative position does change the score.
+    moved = (rope(q, pq) * rope(k, pk + torch.tensor([[0, 1]]))).sum(-1)
+    assert (moved - base).abs().max() > 1e-3
+
+
+def test_rope_preserves_norms_and_splits_axes() -> None:
+    g = torch.Generator().manual_seed(2)
+    rope = RoPE2D(100.0)
+    x = torch.randn(2, 2, 4, 16, generator=g)
+    pos = torch.tensor([[0, 0], [1, 5], [3, 2], [7, 7]])
+    y = rope(x, pos)
+    torch.testing.assert_close(y.norm(dim=-1), x.norm(dim=-1))
+    torch.testing.assert_close(y[..., 0, :], x[..., 0, :])  # position (0, 0) is the identity
+    # Changing only x positions leaves the y half (first 8 channels) unchanged, and vice versa.
+    y_x = rope(x, pos + torch.tensor([0, 3]))
+    torch.testing.assert_close(y_x[..., :8], y[..., :8])
+    assert (y_x[..., 8:] - y[..., 8:]).abs().max() > 1e-3
+    y_y = rope(x, pos + torch.tensor([2, 0]))
+    torch.testing.assert_close(y_y[..., 8:], y[..., 8:])
+
+
+# ============================================================================================= activations
+def test_depth_activation_is_expm1_of_the_norm_along_the_raw_direction() -> None:
+    v = torch.tensor([[0.6, 0.8, 0.0], [0.0, 0.0, -2.0], [0.0, 0.0, 0.0]])
+    out = depth_activation(v, ("exp", -math.inf, math.inf))
+    torch.testing.assert_close(out[0], v[0] * math.expm1(1.0))
+    torch.testing.assert_close(out[1], torch.tensor([0.0, 0.0, -math.expm1(2.0)]))
+    assert torch.equal(out[2], torch.zeros(3))  # no NaN at zero
+    assert torch.equal(depth_activation(v, ("linear", -math.inf, math.inf)), v)
+
+
+def test_conf_activation_offsets_and_clips() -> None:
+    x = torch.tensor([-30.0, 0.0, 2.0])
+    torch.testing.assert_close(conf_activation(x, ("exp", 1.0, math.inf)), 1 + x.exp())
+    torch.testing.assert_close(conf_activation(x, ("exp", 0.0, math.inf)), x.exp())
+    assert conf_activation(x, ("exp", 1.0, 3.0)).tolist() == pytest.approx([1.0, 2.0, 3.0], abs=1e-6)
+
+
+# ============================================================================================= backbone
+@pytest.mark.parametrize(("h", "w", "b"), [(48, 64, 2), (64, 48, 1), (32, 80, 1), (16, 16, 1)])
+def test_output_shapes(net: MASt3RBackbone, h: int, w: int, b: int) -> None:
+    img1, img2 = _images(b, h, w)
+    with torch.no_grad():
+        v1, v2 = net(img1, img2)
+    gh, gw = h // 16, w // 16
+    for v in (v1, v2):
+        assert v.pts3d.shape == (b, h, w, 3)
+        assert v.conf.shape == (b, h, w)
+        assert v.desc.shape == (b, h, w, 24)
+        assert v.desc_conf.shape == (b, h, w)
+        assert v.grid == (gh, gw) and v.image_size == (h, w)
+        assert len(v.tokens) == TINY.dec_depth + 1
+        assert v.enc_tokens.shape == (b, gh * gw, TINY.enc_embed_dim)
+        assert v.dec_tokens.shape == (b, gh * gw, TINY.dec_embed_dim)
+        assert v.dec_feature_map().shape == (b, TINY.dec_embed_dim, gh, gw)
+        assert all(torch.isfinite(t).all() for t in (v.pts3d, v.conf, v.desc, v.desc_conf))
+
+
+def test_dec_feature_map_is_the_token_grid(net: MASt3RBackbone) -> None:
+    with torch.no_grad():
+        v1, _ = net(*_images(1, 32, 48))
+    fmap = v1.dec_feature_map()
+    # token n = y·w + x sits at (y, x)
+    torch.testing.assert_close(fmap[0, :, 1, 2], v1.dec_tokens[0, 1 * 3 + 2])
+
+
+@pytest.mark.parametrize(
+    ("shape1", "shape2"),
+    [
+        ((1, 3, 48, 64), (1, 3, 64, 48)),  # different sizes
+        ((1, 3, 48, 64), (2, 3, 48, 64)),  # different batch sizes
+        ((1, 3, 40, 64), (1, 3, 40, 64)),  # not a multiple of 16
+        ((1, 1, 48, 64), (1, 1, 48, 64)),  # not RGB
+        ((3, 48, 64), (3, 48, 64)),  # no batch axis
+    ],
+)
+def test_bad_image_shapes_raise_shape_error(net: MASt3RBackbone, shape1: tuple, shape2: tuple) -> None:
+    with pytest.raises(ShapeError) as info:
+        net(torch.zeros(shape1), torch.zeros(shape2))
+    assert isinstance(info.value, InputError)
+
+
+def test_integer_images_raise_input_error(net: MASt3RBackbone) -> None:
+    img = torch.zeros(1, 3, 16, 16, dtype=torch.uint8)
+    with pytest.raises(InputError, match="floating-point"):
+        net(img, img)
+
+
+def test_activations_on_the_network_outputs(net: MASt3RBackbone) -> None:
+    img1, img2 = _images(1, 48, 64, seed=3)
+    with torch.no_grad():
+        v1, v2 = net(img1, img2)
+        raw = net.downstream_head2.raw(v2.tokens, v2.grid)
+    for v in (v1, v2):
+        assert v.conf.min() >= 1.0  # conf_mode ('exp', 1, inf)
+        assert v.desc_conf.min() > 0.0  # desc_conf_mode ('exp', 0, inf)
+        torch.testing.assert_close(v.desc.norm(dim=-1), torch.ones(v.desc.shape[:-1]))
+    torch.testing.assert_close(v2.conf, 1 + raw[..., 3].exp())
+    torch.testing.assert_close(v2.desc_conf, raw[..., 28].exp())
+    d = raw[..., :3].norm(dim=-1, keepdim=True)
+    torch.testing.assert_close(v2.pts3d, raw[..., :3] / d * torch.expm1(d))
+
+
+def test_local_features_are_pixel_shuffled_channel_major(net: MASt3RBackbone) -> None:
+    """Descriptor channel c of pixel (16y + i, 16x + j) is MLP output c·256 + 16i + j of token (y, x)."""
+    with torch.no_grad():
+        v1, _ = net(*_images(1, 32, 48, seed=4))
+        head = net.downstream_head1
+        raw = head.raw(v1.tokens, v1.grid)
+        mlp = head.head_local_features(torch.cat((v1.tokens[0], v1.tokens[-1]), dim=-1))  # [1, N, 25·256]
+    y, x, i, j, c = 1, 2, 5, 11, 7
+    token = y * v1.grid[1] + x
+    assert raw[0, 16 * y + i, 16 * x + j, 4 + c] == mlp[0, token, c * 256 + 16 * i + j]
+
+
+def test_eval_mode_is_deterministic_and_batch_independent(net: MASt3RBackbone) -> None:
+    img1, img2 = _images(2, 48, 32, seed=5)
+    with torch.no_grad():
+        a1, a2 = net(img1, img2)
+        b1, b2 = net(img1, img2)
+        s1, s2 = net(img1[1:], img2[1:])
+    assert torch.equal(a1.pts3d, b1.pts3d) and torch.equal(a2.desc, b2.desc)
+    torch.testing.assert_close(s2.pts3d[0], a2.pts3d[1], rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(s1.conf[0], a1.conf[1], rtol=1e-4, atol=1e-5)
+
+
+def test_decoders_cross_attend_symmetrically_when_weights_are_tied() -> None:
+    """With dec_blocks2 = dec_blocks and head2 = head1, view 2 of (a, b) equals view 1 of (b, a)."""
+    torch.manual_seed(7)
+    model = MASt3RBackbone(TINY).eval()
+    model.dec_blocks2.load_state_dict(model.dec_blocks.state_dict())
+    model.downstream_head2.load_state_dict(model.downstream_head1.state_dict())
+    a, b = _images(1, 32, 48, seed=6)
+    with torch.no_grad():
+        _, ab2 = model(a, b)
+        ba1, _ = model(b, a)
+        untied = MASt3RBackbone(TINY).eval()
+        _, u2 = untied(a, b)
+        u1, _ = untied(b, a)
+    torch.testing.assert_close(ab2.pts3d, ba1.pts3d, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(ab2.desc, ba1.desc, rtol=1e-5, atol=1e-6)
+    assert (u2.pts3d - u1.pts3d).abs().max() > 1e-4  # separate weights do break the symmetry
+
+
+def test_view_outputs_depend_on_the_other_view(net: MASt3RBackbone) -> None:
+    a, b = _images(1, 32, 32, seed=8)
+    c, _ = _images(1, 32, 32, seed=9)
+    with torch.no_grad():
+        v1, _ = net(a, b)
+        w1, _ = net(a, c)
+    assert (v1.pts3d - w1.pts3d).abs().max() > 1e-5  # cross-attention carries view 2 into view 1
+    assert torch.equal(v1.enc_tokens, w1.enc_tokens)  # the encoder sees each image alone
+
+
+def test_predict_view_uses_given_tokens(net: MASt3RBackbone) -> None:
+    """A fusion module can alter the decoder tokens and re-run a head."""
+    with torch.no_grad():
+        v1, _ = net(*_images(1, 32, 32, seed=10))
+        tokens = list(v1.tokens)
+        tokens[-1] = tokens[-1] + 0.5
+        fused = net.predict_view(1, tokens, v1.grid)
+        same = net.predict_view(1, v1.tokens, v1.grid)
+    assert torch.equal(same.pts3d, v1.pts3d)
+    assert (fused.desc - v1.desc).abs().max() > 1e-4
+
+
+@pytest.mark.parametrize(("h", "w"), [(384, 512), (512, 336)])
+def test_full_size_network_shapes_on_meta(h: int, w: int) -> None:
+    """The released ViT-L/ViT-B network and Splatt3R's head, shape-checked without weights (``meta`` device)."""
+    cfg = BackboneConfig(head_type="gaussian_head")
+    with torch.device("meta"):
+        net, head = MASt3RBackbone(cfg), GaussianHead(cfg)
+        img = torch.empty(1, 3, h, w)
+        v1, v2 = net(img, img)
+        g1, g2 = head(v1, v2, img, img)
+    assert v2.pts3d.shape == (1, h, w, 3) and v2.desc.shape == (1, h, w, 24) and v2.desc_conf.shape == (1, h, w)
+    assert [tuple(t.shape[1:]) for t in v1.tokens] == [(h * w // 256, 1024)] + [(h * w // 256, 768)] * 12
+    assert g2.means.shape == (1, h, w, 3) and g2.sh.shape == (1, h, w, 3, 1) and g2.opacities.shape == (1, h, w, 1)
+
+
+def test_official_dpt_hooks() -> None:
+    assert BackboneConfig().dpt_hooks == (0, 6, 9, 12)
+    assert TINY.dpt_hooks == (0, 1, 2, 3)
+
+
+# ============================================================================================= Gaussian head
+def test_gaussian_head_outputs(net: MASt3RBackbone, gauss_head: GaussianHead) -> None:
+    img1, img2 = _images(2, 48, 64, seed=11)
+    rgb1, rgb2 = (img1 + 1) / 2, (img2 + 1) / 2
+    with torch.no_grad():
+        v1, v2 = net(img1, img2)
+        g1, g2 = gauss_head(v1, v2, rgb1, rgb2)
+    for g, v in ((g1, v1), (g2, v2)):
+        assert g.means.shape == g.offsets.shape == g.scales.shape == (2, 48, 64, 3)
+        assert g.rotations.shape == (2, 48, 64, 4) and g.sh.shape == (2, 48, 64, 3, 1)
+        assert g.opacities.shape == (2, 48, 64, 1)
+        torch.testing.assert_close(g.means, v.pts3d + g.offsets)
+        torch.testing.assert_close(g.rotations.norm(dim=-1), torch.ones(2, 48, 64))
+        # Initialisation: offsets "small at init", scales ≈ e^-7, opacity ≈ sigmoid(-2).
+        assert g.offsets.abs().max() < 1e-3
+        assert 1e-4 < g.scales.min() and g.scales.max() < 1e-2
+        assert g.opacities.mean().item() == pytest.approx(1 / (1 + math.exp(2)), abs=0.02)
+        assert ((g.opacities > 0) & (g.opacities < 1)).all()
+    # The DC colour is a residual on the pixel colour: within a small residual of RGB2SH(rgb).
+    dc_rgb = g1.sh[..., 0] * C0 + 0.5
+    assert (dc_rgb - rgb1.permute(0, 2, 3, 1)).abs().mean() < 0.5
+
+
+def test_gaussian_sh_residual_is_exact_with_zero_sh_weights(net: MASt3RBackbone) -> None:
+    torch.manual_seed(12)
+    head = GaussianHead(TINY, GaussianHeadConfig(sh_coeffs=4)).eval()
+    conv = head.downstream_head1.gaussian_dpt.dpt.head[-1]
+    with torch.no_grad():
+        conv.weight[10:22].zero_()
+        conv.bias[10:22].zero_()
+        img1, img2 = _images(1, 32, 32, seed=13)
+        v1, v2 = net(img1, img2)
+        g1, _ = head(v1, v2, (img1 + 1) / 2, (img2 + 1) / 2)
+    assert g1.sh.shape == (1, 32, 32, 3, 4)
+    torch.testing.assert_close(g1.sh[..., 0], rgb_to_sh0((img1 + 1).permute(0, 2, 3, 1) / 2))
+    assert torch.equal(g1.sh[..., 1:], torch.zeros(1, 32, 32, 3, 3))
+    assert g1.sh_band_major.shape == (1, 32, 32, 4, 3)
+
+
+def test_gaussian_conventions_match_macsplat(net: MASt3RBackbone, gauss_head: GaussianHead) -> None:
+    img1, img2 = _images(1, 16, 32, seed=14)
+    with torch.no_grad():
+        v1, v2 = net(img1, img2)
+        g1, _ = gauss_head(v1, v2, (img1 + 1) / 2, (img2 + 1) / 2)
+    r_wxyz = quat_to_rotmat(g1.quats_wxyz)
+    cov = r_wxyz @ torch.diag_embed(torch.exp(2 * g1.log_scales)) @ r_wxyz.transpose(-1, -2)
+    torch.testing.assert_close(g1.covariances(), cov, rtol=1e-4, atol=1e-10)
+    torch.testing.assert_close(torch.sigmoid(g1.opacity_logits), g1.opacities[..., 0])
+    # xyzw: a quaternion (x, y, z, w) = (0, 0, sin 45°, cos 45°) is +90° about z.
+    from macsplat_cli.neural import quat_xyzw_to_rotmat
+
+    s = math.sqrt(0.5)
+    r = quat_xyzw_to_rotmat(torch.tensor([0.0, 0.0, s, s]))
+    torch.testing.assert_close(r @ torch.tensor([1.0, 0.0, 0.0]), torch.tensor([0.0, 1.0, 0.0]))
+
+
+def test_gaussian_means_do_not_backpropagate_into_the_point_map(net: MASt3RBackbone, gauss_head: GaussianHead) -> None:
+    img1, img2 = _images(1, 16, 16, seed=15)
+    with torch.no_grad():
+        v1, v2 = net(img1, img2)
+    v1.pts3d.requires_grad_(True)
+    g1, _ = gauss_head(v1, v2, (img1 + 1) / 2, (img2 + 1) / 2)
+    g1.means.sum().backward()
+    assert v1.pts3d.grad is None
+    assert gauss_head.downstream_head1.gaussian_dpt.dpt.head[-1].weight.grad is not None
+    gauss_head.zero_grad(set_to_none=True)
+
+
+def test_gaussian_head_checks_rgb_shape(net: MASt3RBackbone, gauss_head: GaussianHead) -> None:
+    img1, img2 = _images(1, 16, 32)
+    with torch.no_grad():
+        v1, v2 = net(img1, img2)
+        with pytest.raises(ShapeError):
+            gauss_head(v1, v2, torch.zeros(1, 3, 32, 16), torch.zeros(1, 3, 16, 32))
