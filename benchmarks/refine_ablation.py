@@ -34,14 +34,22 @@ from macsplat_cli.pipeline.views import ViewConfig, working_size
 from macsplat_cli.refine import RefineConfig, refine
 from macsplat_cli.render import render_camera
 
-MODES = ("none", "refine w/o MAC", "refine + MAC")
+MODES = {
+    "refine w/o MAC": dict(use_mac=False),
+    "refine + MAC": dict(use_mac=True),
+    "refine + dense MAC": dict(use_mac=True, mac_matches="dense"),  # only with --dense-mac
+}
+DENSE = False
 
 
 def _scenes(rec, steps: int, scale: int) -> dict[str, tuple[Gaussians, float]]:  # noqa: ANN001
     out = {"none": (rec.gaussians, 0.0)}
-    for name, use_mac in (("refine w/o MAC", False), ("refine + MAC", True)):
+    for name, opts in MODES.items():
+        if name == "refine + dense MAC" and not DENSE:
+            continue
         t0 = time.perf_counter()
-        r = refine(rec.views, rec.geometry, rec.maps, RefineConfig(steps=steps, scale=scale, use_mac=use_mac))
+        cfg = RefineConfig(steps=steps, scale=scale, **opts)
+        r = refine(rec.views, rec.geometry, rec.maps, cfg, depths=rec.depths)
         with torch.no_grad():
             out[name] = (Gaussians.cat([m.to_world() for m in r.maps]), time.perf_counter() - t0)
     return out
@@ -152,7 +160,10 @@ def main() -> None:
     ap.add_argument("--data", type=Path, help="the shared dev data folder; omit for synthetic scenes only")
     ap.add_argument("--steps", type=int, default=RefineConfig().steps)
     ap.add_argument("--scale", type=int, default=RefineConfig().scale)
+    ap.add_argument("--dense-mac", action="store_true", help="also MAC over dense depth-consistent pixel pairs")
     args = ap.parse_args()
+    global DENSE
+    DENSE = args.dense_mac
     print(f"refinement: up to {args.steps} steps at 1/{args.scale} resolution, early stop on plateau\n")
     print("| scene | pair | mode | PSNR | SSIM | masked PSNR | depth err % (cam 0) | refine s |")
     print("|---|---|---|---:|---:|---:|---:|---:|")
