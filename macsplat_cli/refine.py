@@ -4,7 +4,9 @@ The Gaussians of both views (per-pixel maps, optionally pooled ``scale × scale`
 speed) are optimised with Adam so that they render the two context photos well, and —
 with the MAC loss — so that matched pixels of the two views agree on one Gaussian:
 
-``L = Σ_views [ L2 + w_ssim · (1 − SSIM) ] + λ_MAC · L_MAC``
+``L = Σ_views [ L2 + w_ssim · (1 − SSIM) (+ w_lpips · LPIPS) ] + λ_MAC · L_MAC``
+
+(LPIPS only with user-supplied VGG weights, :func:`macsplat_cli.lpips.load_lpips`.)
 
 over means, scales, rotations, opacities and colours (the cameras are fixed). It stops
 early once the loss plateaus (relative improvement of its running mean below
@@ -47,6 +49,8 @@ class RefineConfig:
         depth-consistent pixel in view 1.
     mac: MAC loss weights; ``mac.weight`` is λ_MAC.
     ssim_weight: weight of the D-SSIM term.
+    lpips_weight: weight of the LPIPS term, when an LPIPS model is passed to :func:`refine`
+        (0.25, as Splatt3R's training loss).
     lr_means: learning rate of the means, as a fraction of the median scene depth.
     lr_log_scales: learning rate of the log-scales.
     lr_quats: learning rate of the quaternions.
@@ -64,6 +68,7 @@ class RefineConfig:
     dense_stride: int = 4
     mac: MACConfig = field(default_factory=MACConfig)
     ssim_weight: float = 0.2
+    lpips_weight: float = 0.25
     lr_means: float = 1e-3
     lr_log_scales: float = 5e-3
     lr_quats: float = 2e-3
@@ -100,6 +105,7 @@ def refine(
     config: RefineConfig | None = None,
     *,
     depths: list[DepthMap] | None = None,
+    lpips: torch.nn.Module | None = None,
     on_step: Callable[[int, dict[str, float]], None] | None = None,
 ) -> RefineResult:
     """Refine both views' Gaussians on their photos (+ the MAC loss over the verified matches).
@@ -109,6 +115,8 @@ def refine(
         geometry: their relative pose; its verified matches feed the MAC loss.
         maps: the per-view Gaussians to refine (not modified).
         config: settings.
+        depths: the views' depth maps (needed for ``mac_matches="dense"``).
+        lpips: an LPIPS model (:class:`macsplat_cli.lpips.LPIPS`) adds its term to the photometric loss.
         on_step: called after each step with the step number and the loss terms.
 
     Returns:
@@ -161,10 +169,16 @@ def refine(
         opt.zero_grad(set_to_none=True)
         world = Gaussians.cat([m.to_world() for m in params])
         photo = torch.zeros(())
+        perceptual = torch.zeros(())
         for (w2c, K, width, height), target in zip(cams, targets):
             rgb = render(world, w2c, K, width, height).rgb
             photo = photo + ((rgb - target) ** 2).mean() + cfg.ssim_weight * (1.0 - ssim_map(rgb, target).mean())
+            if lpips is not None:
+                perceptual = perceptual + lpips(rgb, target)
         terms = {"photo": float(photo.detach())}
+        if lpips is not None:
+            terms["lpips"] = float(perceptual.detach())
+            photo = photo + cfg.lpips_weight * perceptual
         loss = photo
         if cfg.use_mac and len(match):
             mac = mac_loss(*_mac_maps(params), xy0, xy1, batch, w, c2w[0], c2w[1], cfg.mac, check_inputs=False)

@@ -170,3 +170,16 @@ def test_cli_bad_refine_values(pair: tuple[Path, Path, Path], tmp_path: Path, op
     assert code == 2
     assert message in err and "Traceback" not in err
     assert not (tmp_path / "s.ply").exists()
+
+
+def test_refinement_with_an_lpips_term(rec: Reconstruction) -> None:
+    """An LPIPS model (random weights here) adds its term; the loss still goes down."""
+    from macsplat_cli.lpips import LPIPS
+
+    torch.manual_seed(0)
+    model = LPIPS()
+    for lin in model.lins:
+        lin.weight.abs_()  # the official linear layers are non-negative
+    out = refine(rec.views, rec.geometry, rec.maps, RefineConfig(steps=4, scale=4, min_steps=100), lpips=model)
+    assert all(np.isfinite(h["lpips"]) and h["lpips"] > 0 for h in out.history)
+    assert out.history[-1]["loss"] < out.history[0]["loss"]
