@@ -71,3 +71,7 @@ class ReconstructionError(MacsplatError):
     """Well-formed input from which no scene can be reconstructed."""
 
     exit_code = 3
+
+
+class DatasetError(InputError):
+    """An evaluation data set is malformed: a missing file, inconsistent cameras, an unreadable image."""

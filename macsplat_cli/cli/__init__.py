@@ -43,7 +43,7 @@ def _root(
 
 
 def _register() -> None:
-    from . import reconstruct, render  # noqa: F401 - registers the commands
+    from . import bench, eval, reconstruct, render  # noqa: F401 - registers the commands
 
 
 _register()

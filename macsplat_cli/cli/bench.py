@@ -1,0 +1,167 @@
+"""``macsplat bench``: the evaluation over a grid of settings; time vs quality and its Pareto front."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from . import app
+from ._common import QuietOpt, VerboseOpt, command_context, err_console, out_console
+from .eval import (
+    AssignmentChoice,
+    AssignmentOpt,
+    CasesOpt,
+    DataOpt,
+    IntrinsicsChoice,
+    IntrinsicsOpt,
+    LayoutChoice,
+    LayoutOpt,
+    MaxPairsOpt,
+    MaxTargetsOpt,
+    ScannetSplitOpt,
+    ScenesOpt,
+    SeedOpt,
+    Splatt3rOpt,
+    SplitByChoice,
+    SplitByOpt,
+    SplitOpt,
+    load_data,
+    run_with_progress,
+    select_cases,
+)
+
+logger = logging.getLogger("macsplat_cli.cli.bench")
+
+
+def _list(text: str, kind: type, option: str, *, allow_default: bool = False) -> list:
+    """Comma-separated values of ``kind``; ``default`` stands for None where allowed."""
+    from ..errors import InputError
+
+    out = []
+    for part in (p.strip() for p in text.split(",")):
+        if not part:
+            continue
+        if allow_default and part.lower() == "default":
+            out.append(None)
+            continue
+        try:
+            out.append(kind(part))
+        except ValueError:
+            raise InputError(f"{option} {text!r}: {part!r} is not a {kind.__name__}") from None
+    if not out:
+        raise InputError(f"{option}: give at least one value")
+    return out
+
+
+@app.command("bench")
+def bench_command(
+    ctx: typer.Context,
+    data: DataOpt,
+    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for bench.md, bench.png, bench.json, runs/.")] = Path(
+        "bench"
+    ),
+    backend: Annotated[str, typer.Option("--backend", help="Backends, comma-separated.")] = "classical",
+    size: Annotated[str, typer.Option("--size", help="Working sizes, comma-separated.")] = "384,512",
+    conf_threshold: Annotated[
+        str, typer.Option("--conf-threshold", help="Matching thresholds τ, comma-separated ('default' allowed).")
+    ] = "default",
+    refine: Annotated[str, typer.Option("--refine", help="Refinement steps, comma-separated.")] = "0",
+    eval_size: Annotated[
+        int | None,
+        typer.Option(
+            "--eval-size", min=64, help="Compare all settings' views at this long side (default: the largest --size)."
+        ),
+    ] = None,
+    metric: Annotated[
+        str, typer.Option("--metric", help="Quality axis: psnr, psnr_masked, ssim, auc@10, rotation_error_deg, ...")
+    ] = "psnr",
+    split: SplitOpt = "all",
+    layout: LayoutOpt = LayoutChoice.auto,
+    scannetpp_split: ScannetSplitOpt = "nvs_sem_val",
+    scenes: ScenesOpt = None,
+    cases: CasesOpt = None,
+    intrinsics: IntrinsicsOpt = IntrinsicsChoice.given,
+    max_pairs: MaxPairsOpt = 2,
+    max_targets: MaxTargetsOpt = 2,
+    split_by: SplitByOpt = SplitByChoice.auto,
+    assignment: AssignmentOpt = AssignmentChoice.bin,
+    seed: SeedOpt = 0,
+    splatt3r_compatible: Splatt3rOpt = False,
+    json_out: Annotated[bool, typer.Option("--json", help="Print the bench as JSON on stdout.")] = False,
+    verbose: VerboseOpt = False,
+    quiet: QuietOpt = False,
+) -> None:
+    """Run the evaluation over a grid of settings; report time vs quality and the Pareto front.
+
+    Every combination of --backend, --size, --conf-threshold and --refine is evaluated on the
+    same cases. Writes a Markdown table (bench.md), a plot (bench.png), bench.json, and each
+    setting's full results under runs/.
+
+    [bold]Example[/]
+
+      macsplat bench --data co3d_apple/ --size 256,384,512 --refine 0,50 --metric psnr
+    """
+    with command_context(ctx, verbose, quiet) as state:
+        _bench(
+            data=data, out=out, backends=_list(backend, str, "--backend"), sizes=_list(size, int, "--size"),
+            taus=_list(conf_threshold, float, "--conf-threshold", allow_default=True),
+            steps=_list(refine, int, "--refine"), eval_size=eval_size, metric=metric, split=split,
+            layout=layout.value,
+            scannetpp_split=scannetpp_split, scenes=scenes, cases_file=cases, intrinsics=intrinsics.value,
+            max_pairs=max_pairs, max_targets=max_targets, split_by=split_by.value, assignment=assignment.value,
+            seed=seed, splatt3r_compatible=splatt3r_compatible, json_out=json_out, quiet=state.quiet,
+        )  # fmt: skip
+
+
+def _bench(
+    *, data: Path, out: Path, backends: list[str], sizes: list[int], taus: list[float | None], steps: list[int],
+    eval_size: int | None, metric: str, split: str, layout: str, scannetpp_split: str, scenes: str | None,
+    cases_file: Path | None, intrinsics: str, max_pairs: int, max_targets: int, split_by: str, assignment: str,
+    seed: int, splatt3r_compatible: bool, json_out: bool, quiet: bool,
+) -> None:  # fmt: skip
+    import json
+
+    from .._atomic import check_writable
+    from ..errors import InputError
+    from ..evaluation import BACKENDS
+    from ..evaluation.bench import METRICS, bench_json, bench_markdown, grid, run_bench
+    from ..evaluation.protocol import ResultWriter
+
+    if metric not in METRICS:
+        raise InputError(f"--metric {metric!r}: use one of {', '.join(METRICS)}")
+    unknown = [b for b in backends if b not in BACKENDS]
+    if unknown:
+        raise InputError(f"--backend {unknown[0]!r}: available: {', '.join(sorted(BACKENDS))}")
+    if any(s < 64 for s in sizes) or any(r < 0 for r in steps) or any(t is not None and t < 0 for t in taus):
+        raise InputError("--size must be ≥ 64, --refine ≥ 0 and --conf-threshold ≥ 0")
+    check_writable(out / "bench.md")
+    dataset = load_data(data, layout, scannetpp_split, scenes)
+    sel = select_cases(
+        dataset, cases_file=cases_file, split=split, split_by=split_by, assignment=assignment,
+        max_pairs=max_pairs, max_targets=max_targets, seed=seed, quiet=quiet,
+    )  # fmt: skip
+    settings = grid(backends, sizes, taus, steps)
+    if not quiet:
+        err_console.print(
+            f"{len(settings)} setting(s) × {len(sel.cases)} case(s) from {len(dataset.scenes)} scene(s)",
+            highlight=False,
+        )
+
+    def run_fn(dataset, cases, recon, cfg, writer: ResultWriter | None, index: int):  # noqa: ANN001, ANN202
+        label = f"[{index + 1}/{len(settings)}] {settings[index].slug} "
+        return run_with_progress(dataset, list(cases), recon, cfg, writer, quiet, label=label)
+
+    rows = run_bench(
+        dataset, sel.cases, settings, metric=metric, intrinsics=intrinsics, eval_size=eval_size,
+        splatt3r_compatible=splatt3r_compatible, out_dir=out, run_fn=run_fn,
+    )  # fmt: skip
+    if not quiet:
+        from rich.markdown import Markdown
+
+        err_console.print(Markdown(bench_markdown(rows, metric)))
+        err_console.print(f"wrote {out / 'bench.md'}, {out / 'bench.png'}, {out / 'bench.json'}", highlight=False)
+    if json_out:
+        out_console.print_json(json.dumps(bench_json(rows, metric)))

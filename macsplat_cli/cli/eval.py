@@ -1,0 +1,367 @@
+"""``macsplat eval``: measure a backend on a data set of posed images (splits, metrics, baselines)."""
+
+from __future__ import annotations
+
+import json
+import logging
+from enum import Enum
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Any
+
+import typer
+
+from . import app
+from ._common import QuietOpt, VerboseOpt, command_context, err_console, out_console
+
+if TYPE_CHECKING:
+    from ..evaluation import CaseSelection, EvalCase, EvalDataset, EvalRun
+
+logger = logging.getLogger("macsplat_cli.cli.eval")
+
+
+class LayoutChoice(str, Enum):
+    auto = "auto"
+    generic = "generic"
+    scannetpp = "scannetpp"
+    co3d_json = "co3d-json"
+    icl_nuim = "icl-nuim"
+    nyu_rgbd = "nyu-rgbd"
+
+
+class IntrinsicsChoice(str, Enum):
+    given = "given"
+    estimated = "estimated"
+
+
+class SplitByChoice(str, Enum):
+    auto = "auto"
+    coverage = "coverage"
+    angle = "angle"
+
+
+class AssignmentChoice(str, Enum):
+    bin = "bin"
+    threshold = "threshold"
+
+
+DataOpt = Annotated[
+    Path,
+    typer.Option(
+        "--data", metavar="DIR", help="Data set folder (generic, ScanNet++, CO3D sample, ICL-NUIM/NYU RGB-D)."
+    ),
+]
+SplitOpt = Annotated[str, typer.Option("--split", help="close, medium, wide, very-wide (comma-separated), or all.")]
+LayoutOpt = Annotated[LayoutChoice, typer.Option("--layout", help="Folder layout (auto: detect it).")]
+ScannetSplitOpt = Annotated[
+    str, typer.Option("--scannetpp-split", help="ScanNet++: the split file to take the scenes from.")
+]
+ScenesOpt = Annotated[str | None, typer.Option("--scenes", help="Only these scenes (comma-separated).")]
+CasesOpt = Annotated[
+    Path | None,
+    typer.Option("--cases", metavar="FILE", help="Explicit test cases (JSON; also Splatt3R's test_set_*.json)."),
+]
+IntrinsicsOpt = Annotated[
+    IntrinsicsChoice,
+    typer.Option("--intrinsics", help="given: pass the true intrinsics; estimated: the backend finds them."),
+]
+MaxPairsOpt = Annotated[
+    int, typer.Option("--max-pairs", min=0, help="Context pairs per split and scene (0 = all), drawn with --seed.")
+]
+MaxTargetsOpt = Annotated[int, typer.Option("--max-targets", min=0, help="Targets per pair (0 = all).")]
+SplitByOpt = Annotated[SplitByChoice, typer.Option("--split-by", help="Coverage (needs depth), view angle, or auto.")]
+AssignmentOpt = Annotated[
+    AssignmentChoice,
+    typer.Option("--assignment", help="bin: each pair in its tightest split; threshold: thresholds as lower bounds."),
+]
+SeedOpt = Annotated[int, typer.Option("--seed", help="Seed of the pair and target draws.")]
+Splatt3rOpt = Annotated[
+    bool,
+    typer.Option(
+        "--splatt3r-compatible", help="Splatt3R's metric convention (mask-then-compare, channel-summed masked PSNR)."
+    ),
+]
+
+
+def load_data(data: Path, layout: str, scannetpp_split: str, scenes: str | None) -> EvalDataset:
+    """The data set, validated (DatasetError names the bad file)."""
+    from ..evaluation import load_dataset
+
+    names = [s.strip() for s in scenes.split(",") if s.strip()] if scenes else None
+    return load_dataset(data, layout, scannetpp_split=scannetpp_split, scenes=names)
+
+
+def select_cases(
+    dataset: EvalDataset,
+    *,
+    cases_file: Path | None,
+    split: str,
+    split_by: str,
+    assignment: str,
+    max_pairs: int,
+    max_targets: int,
+    seed: int,
+    quiet: bool,
+) -> CaseSelection:
+    """Test cases from a file or from the splits, with a spinner while coverage is computed."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+
+    from ..errors import DatasetError
+    from ..evaluation import SplitConfig, load_cases, make_cases, parse_splits
+
+    splits = parse_splits(split)
+    if cases_file is not None:
+        sel = load_cases(cases_file, dataset)
+        if split.strip().lower() != "all":
+            sel.cases = [c for c in sel.cases if c.split in splits]
+    else:
+        cfg = SplitConfig(
+            splits=splits,
+            mode=split_by,  # type: ignore[arg-type]
+            assignment=assignment,  # type: ignore[arg-type]
+            max_pairs=max_pairs or None,
+            max_targets=max_targets or None,
+            seed=seed,
+        )
+        progress = Progress(
+            TextColumn("coverage {task.description}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            console=err_console,
+            disable=quiet,
+            transient=True,
+        )
+        tasks: dict[str, Any] = {}
+
+        def on_coverage(scene: str, done: int, total: int) -> None:
+            if scene not in tasks:
+                tasks[scene] = progress.add_task(scene, total=total)
+            progress.update(tasks[scene], completed=done)
+
+        with progress:
+            sel = make_cases(dataset, cfg, on_coverage=on_coverage)
+    if not sel.cases:
+        raise DatasetError(
+            f"{dataset.root}: no test case for split {split!r} (a pair needs a target, and an overlap or angle in "
+            "the split's range); try --split all, --assignment threshold, or --cases FILE"
+        )
+    return sel
+
+
+def run_with_progress(
+    dataset: EvalDataset,
+    cases: list[EvalCase],
+    reconstructor: Any,
+    config: Any,
+    writer: Any,
+    quiet: bool,
+    label: str = "",
+) -> EvalRun:
+    """:func:`~macsplat_cli.evaluation.evaluate` with a progress bar; partial results stay written on Ctrl-C."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from ..evaluation import evaluate
+
+    progress = Progress(
+        TextColumn(label + "{task.description:<32}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TextColumn("{task.fields[last]}"),
+        console=err_console,
+        disable=quiet,
+        transient=True,
+    )
+    task = progress.add_task("", total=len(cases), last="")
+
+    def on_case(i: int, case: Any, res: Any) -> None:
+        if res is None:
+            progress.update(task, description=case.key)
+            return
+        last = {"ok": f"pose err {res.pose_error_deg:.1f}°", "failed": "failed", "error": "input error"}[res.status]
+        progress.update(task, completed=i + 1, last=last)
+
+    try:
+        with progress:
+            return evaluate(dataset, cases, reconstructor, config, writer=writer, on_case=on_case)
+    except KeyboardInterrupt:
+        if writer is not None:
+            err_console.print(f"interrupted: the cases finished so far are in {writer.folder}", style="yellow")
+        raise
+
+
+def _cell(v: Any, digits: int = 2) -> str:
+    import math
+
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "–"
+    if isinstance(v, float):
+        return f"{v:.{digits}f}"
+    return str(v)
+
+
+def summary_tables(rows: list[dict[str, Any]], title: str) -> list[Any]:
+    """The summary rows as two Rich tables: novel views (every method), then geometry and time (the backend)."""
+    from rich import box
+    from rich.table import Table
+
+    views = [
+        ("split", "split", None), ("method", "method", None), ("cases", "cases", None), ("targets", "targets", None),
+        ("psnr", "PSNR", 2), ("ssim", "SSIM", 3), ("psnr_masked", "PSNR mask", 2), ("ssim_masked", "SSIM mask", 3),
+    ]  # fmt: skip
+    geometry = [
+        ("split", "split", None), ("ok", "ok/cases", None), ("rotation_error_deg", "rot °", 2),
+        ("translation_error_deg", "t °", 2), ("auc", "AUC@5/10/20", None), ("focal_error_pct", "focal %", 1),
+        ("depth_absrel", "AbsRel", 3), ("depth_delta1", "δ<1.25", 3), ("time_s", "time s", 2),
+    ]  # fmt: skip
+    backend_rows = [
+        {
+            **r,
+            "ok": f"{r['cases'] - r['failed']}/{r['cases']}",
+            "auc": " ".join(_cell(r.get(f"auc@{t}"), 2) for t in (5, 10, 20)),
+        }
+        for r in rows
+        if "failed" in r
+    ]
+    tables = []
+    for cols, subset, sub in ((views, rows, "novel views"), (geometry, backend_rows, "pose, depth, time")):
+        method = f" ({backend_rows[0]['method']})" if sub != "novel views" and backend_rows else ""
+        table = Table(
+            title=f"{title}: {sub}{method}",
+            title_justify="left",
+            box=box.SIMPLE_HEAD,
+            pad_edge=False,
+            collapse_padding=True,
+        )
+        for key, head, _ in cols:
+            table.add_column(head, justify="left" if key in ("split", "method") else "right", no_wrap=True)
+        for row in subset:
+            table.add_row(*[_cell(row.get(key), digits or 0) for key, _, digits in cols])
+        tables.append(table)
+    return tables
+
+
+@app.command("eval")
+def eval_command(
+    ctx: typer.Context,
+    data: DataOpt,
+    split: SplitOpt = "all",
+    backend: Annotated[str, typer.Option("--backend", help="Reconstruction backend (classical).")] = "classical",
+    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for results.json, results.csv, cases.jsonl.")] = Path(
+        "results"
+    ),
+    layout: LayoutOpt = LayoutChoice.auto,
+    scannetpp_split: ScannetSplitOpt = "nvs_sem_val",
+    scenes: ScenesOpt = None,
+    cases: CasesOpt = None,
+    size: Annotated[int, typer.Option("--size", min=64, help="Long side of the working images.")] = 512,
+    eval_size: Annotated[
+        int | None,
+        typer.Option("--eval-size", min=64, help="Compare views at this long side (default: --size)."),
+    ] = None,
+    intrinsics: IntrinsicsOpt = IntrinsicsChoice.given,
+    conf_threshold: Annotated[
+        float | None, typer.Option("--conf-threshold", help="Matching confidence threshold τ (default 0.04).")
+    ] = None,
+    refine: Annotated[int, typer.Option("--refine", min=0, metavar="STEPS", help="Refinement steps (0 = off).")] = 0,
+    max_pairs: MaxPairsOpt = 5,
+    max_targets: MaxTargetsOpt = 3,
+    split_by: SplitByOpt = SplitByChoice.auto,
+    assignment: AssignmentOpt = AssignmentChoice.bin,
+    seed: SeedOpt = 0,
+    splatt3r_compatible: Splatt3rOpt = False,
+    no_baselines: Annotated[
+        bool, typer.Option("--no-baselines", help="Skip the point-cloud and copy baselines.")
+    ] = False,
+    json_out: Annotated[bool, typer.Option("--json", help="Print the summary as JSON on stdout.")] = False,
+    verbose: VerboseOpt = False,
+    quiet: QuietOpt = False,
+) -> None:
+    """Evaluate a reconstruction backend on a data set of posed images.
+
+    Two context views per case (their relative pose estimated by the backend), target views
+    between them rendered from their true cameras; PSNR/SSIM (whole image and over the
+    Splatt3R visibility mask), pose error and AUC, focal and depth error, time, next to two
+    baselines (coloured point cloud, nearest context photo). Results are written after every
+    case: a partial run keeps what it finished. LPIPS is not computed (it needs VGG weights).
+
+    [bold]Examples[/]
+
+      macsplat eval --data scannetpp/ --split close,wide --out results/
+      macsplat eval --data co3d_apple/ --intrinsics estimated --max-pairs 3
+    """
+    with command_context(ctx, verbose, quiet) as state:
+        _eval(
+            data=data, split=split, backend=backend, out=out, layout=layout.value, scannetpp_split=scannetpp_split,
+            scenes=scenes, cases_file=cases, size=size, eval_size=eval_size, intrinsics=intrinsics.value,
+            conf_threshold=conf_threshold,
+            refine=refine, max_pairs=max_pairs, max_targets=max_targets, split_by=split_by.value,
+            assignment=assignment.value, seed=seed, splatt3r_compatible=splatt3r_compatible,
+            baselines=not no_baselines, json_out=json_out, quiet=state.quiet,
+        )  # fmt: skip
+
+
+def _eval(
+    *, data: Path, split: str, backend: str, out: Path, layout: str, scannetpp_split: str, scenes: str | None,
+    cases_file: Path | None, size: int, eval_size: int | None, intrinsics: str, conf_threshold: float | None,
+    refine: int, max_pairs: int,
+    max_targets: int, split_by: str, assignment: str, seed: int, splatt3r_compatible: bool, baselines: bool,
+    json_out: bool, quiet: bool,
+) -> None:  # fmt: skip
+    import time
+
+    from ..errors import DatasetError
+    from ..evaluation import BackendOptions, EvalConfig, ReconstructSettings, ResultWriter, make_reconstructor
+    from ..evaluation.protocol import BASELINES, summarize, to_jsonable
+    from ..evaluation.splits import parse_splits
+
+    parse_splits(split)  # bad options fail before any work
+    reconstructor = make_reconstructor(backend, BackendOptions(conf_threshold=conf_threshold, refine_steps=refine))
+    dataset = load_data(data, layout, scannetpp_split, scenes)
+    sel = select_cases(
+        dataset, cases_file=cases_file, split=split, split_by=split_by, assignment=assignment,
+        max_pairs=max_pairs, max_targets=max_targets, seed=seed, quiet=quiet,
+    )  # fmt: skip
+    config = EvalConfig(
+        settings=ReconstructSettings(size=size, intrinsics=intrinsics),  # type: ignore[arg-type]
+        eval_size=eval_size,
+        splatt3r_compatible=splatt3r_compatible,
+        baselines=BASELINES if baselines else (),
+    )
+    extra = {
+        "command": "macsplat eval",
+        "split_modes": sel.modes,
+        "candidates": sel.candidates,
+        "options": {"split": split, "max_pairs": max_pairs, "max_targets": max_targets, "seed": seed,
+                    "assignment": assignment, "split_by": split_by, "backend": backend, "refine": refine,
+                    "conf_threshold": conf_threshold},
+    }  # fmt: skip
+    writer = ResultWriter(out, extra)
+    writer.write_coverage(sel.coverage, {s.name: [f.name for f in s.frames] for s in dataset.scenes})
+    if not quiet:
+        err_console.print(
+            f"{len(sel.cases)} case(s) from {len(dataset.scenes)} scene(s) ({dataset.layout}), "
+            f"{sum(len(c.targets) for c in sel.cases)} target view(s); backend {reconstructor.name}"
+        )
+    t0 = time.perf_counter()
+    run = run_with_progress(dataset, sel.cases, reconstructor, config, writer, quiet)
+    rows = summarize(run)
+    if not quiet:
+        mode = "Splatt3R-compatible metrics" if splatt3r_compatible else "standard metrics"
+        for table in summary_tables(rows, f"macsplat eval ({mode})"):
+            err_console.print(table)
+        for r in run.failures:
+            err_console.print(f"[yellow]failed[/] {r.case.key}: {r.error}", highlight=False, soft_wrap=True)
+        err_console.print(
+            f"{len(run.results)} case(s) in {time.perf_counter() - t0:.1f} s; wrote {writer.json_path}, "
+            f"{writer.csv_path}, {writer.jsonl}",
+            highlight=False,
+            soft_wrap=True,
+        )
+    if json_out:
+        out_console.print_json(json.dumps({"summary": to_jsonable(rows), "results": str(writer.json_path)}))
+    if run.errors:
+        first = run.errors[0]
+        raise DatasetError(
+            f"{len(run.errors)} of {len(run.results)} case(s) could not be evaluated because of bad input "
+            f"(first: {first.case.key}: {first.error}); the other cases' results are in {out}"
+        )

@@ -1,0 +1,75 @@
+"""Evaluation of two-view reconstruction: data sets, test splits, the protocol, metrics, baselines, benches.
+
+Layering: :mod:`.datasets` (posed frames from a folder) → :mod:`.coverage` (Splatt3R's
+visibility mask and pairwise coverage) → :mod:`.splits` (test cases by coverage or view
+angle) → :mod:`.reconstructors` (what reconstructs a case: a pipeline backend, or the
+ground truth) → :mod:`.protocol` (measuring a case and a run, writing results) →
+:mod:`.bench` (a grid of settings and its Pareto front). :mod:`.metrics` and
+:mod:`.baselines` hold the measures. The CLI commands ``macsplat eval`` and
+``macsplat bench`` only parse options and draw progress and tables.
+"""
+
+from __future__ import annotations
+
+from .baselines import PointsConfig, nearest_context, point_cloud, render_points
+from .bench import BenchRow, BenchSetting, bench_markdown, bench_plot, grid, pareto_front, run_bench
+from .coverage import coverage_matrix, visibility_mask
+from .datasets import EvalDataset, EvalScene, Frame, detect_layout, load_dataset
+from .metrics import depth_metrics, image_metrics, pose_auc, splatt3r_psnr
+from .protocol import CaseResult, EvalConfig, EvalRun, ResultWriter, evaluate, evaluate_case, summarize
+from .reconstructors import (
+    BACKENDS,
+    BackendOptions,
+    ClassicalReconstructor,
+    OracleReconstructor,
+    Reconstructor,
+    ReconstructSettings,
+    make_reconstructor,
+)
+from .splits import SPLITS, CaseSelection, EvalCase, SplitConfig, load_cases, make_cases, parse_splits
+
+__all__ = [
+    "BACKENDS",
+    "SPLITS",
+    "BackendOptions",
+    "BenchRow",
+    "BenchSetting",
+    "CaseResult",
+    "CaseSelection",
+    "ClassicalReconstructor",
+    "EvalCase",
+    "EvalConfig",
+    "EvalDataset",
+    "EvalRun",
+    "EvalScene",
+    "Frame",
+    "OracleReconstructor",
+    "PointsConfig",
+    "ReconstructSettings",
+    "Reconstructor",
+    "ResultWriter",
+    "SplitConfig",
+    "bench_markdown",
+    "bench_plot",
+    "coverage_matrix",
+    "depth_metrics",
+    "detect_layout",
+    "evaluate",
+    "evaluate_case",
+    "grid",
+    "image_metrics",
+    "load_cases",
+    "load_dataset",
+    "make_cases",
+    "make_reconstructor",
+    "nearest_context",
+    "pareto_front",
+    "parse_splits",
+    "point_cloud",
+    "pose_auc",
+    "render_points",
+    "run_bench",
+    "splatt3r_psnr",
+    "summarize",
+    "visibility_mask",
+]
