@@ -151,3 +151,29 @@ def test_bench_writes_markdown_plot_and_json(capsys, plane: Path, tmp_path: Path
     assert json.loads((out / "bench.json").read_text())["rows"] == doc["rows"]
     code, _, err = run(capsys, *args, "--metric", "beauty")
     assert code == 2 and "--metric 'beauty'" in err
+
+
+def test_eval_lpips_with_local_weights(capsys, plane: Path, tmp_path: Path, oracle_backend: None) -> None:  # noqa: ANN001
+    """--lpips-weights adds LPIPS for every method (random weights in the official layouts here);
+    a missing weights folder is bad input (exit 2) before any work."""
+    import torch
+
+    from macsplat_cli.lpips import LPIPS
+
+    model = LPIPS()
+    sd = {f"features.{i}.{p}": getattr(model.features[i], p).detach() for i in (0, 2, 5, 7, 10, 12, 14, 17, 19, 21,
+          24, 26, 28) for p in ("weight", "bias")}  # fmt: skip
+    torch.save(sd, tmp_path / "vgg16-397923af.pth")
+    torch.save({f"lin{k}.model.1.weight": lin.weight.detach().abs() for k, lin in enumerate(model.lins)},
+               tmp_path / "vgg.pth")  # fmt: skip
+    args = ["eval", "--data", plane, "--backend", "oracle", "--split", "wide", "--json", "-q"]
+    code, stdout, err = run(capsys, *args, "--out", tmp_path / "r", "--lpips-weights", tmp_path)
+    assert code == 0, err
+    summary = json.loads(stdout)["summary"]
+    lp = {r["method"]: r["lpips"] for r in summary}
+    assert set(lp) == {"oracle", "points", "copy"}
+    assert all(v is not None and v >= 0 for v in lp.values())
+    assert lp["oracle"] < lp["copy"]  # ground truth geometry looks more like the target than a context photo
+    assert "lpips" in (tmp_path / "r" / "results.csv").read_text().splitlines()[0]
+    code, _, err = run(capsys, *args, "--out", tmp_path / "s", "--lpips-weights", tmp_path / "nope")
+    assert code == 2 and "nope" in err and not (tmp_path / "s").exists()

@@ -208,6 +208,8 @@ def summary_tables(rows: list[dict[str, Any]], title: str) -> list[Any]:
         ("split", "split", None), ("method", "method", None), ("cases", "cases", None), ("targets", "targets", None),
         ("psnr", "PSNR", 2), ("ssim", "SSIM", 3), ("psnr_masked", "PSNR mask", 2), ("ssim_masked", "SSIM mask", 3),
     ]  # fmt: skip
+    if any(r.get("lpips") is not None and r["lpips"] == r["lpips"] for r in rows):  # NaN when not measured
+        views.append(("lpips", "LPIPS", 3))
     geometry = [
         ("split", "split", None), ("ok", "ok/cases", None), ("rotation_error_deg", "rot °", 2),
         ("translation_error_deg", "t °", 2), ("auc", "AUC@5/10/20", None), ("focal_error_pct", "focal %", 1),
@@ -273,6 +275,14 @@ def eval_command(
         bool, typer.Option("--no-baselines", help="Skip the point-cloud and copy baselines.")
     ] = False,
     json_out: Annotated[bool, typer.Option("--json", help="Print the summary as JSON on stdout.")] = False,
+    lpips_weights: Annotated[
+        Path | None,
+        typer.Option(
+            "--lpips-weights",
+            metavar="PATH",
+            help="Also LPIPS: a folder with torchvision's vgg16-*.pth and LPIPS v0.1 vgg.pth (or one file with both).",
+        ),
+    ] = None,
     verbose: VerboseOpt = False,
     quiet: QuietOpt = False,
 ) -> None:
@@ -282,7 +292,7 @@ def eval_command(
     between them rendered from their true cameras; PSNR/SSIM (whole image and over the
     Splatt3R visibility mask), pose error and AUC, focal and depth error, time, next to two
     baselines (coloured point cloud, nearest context photo). Results are written after every
-    case: a partial run keeps what it finished. LPIPS is not computed (it needs VGG weights).
+    case: a partial run keeps what it finished. LPIPS only with --lpips-weights (local VGG weights).
 
     [bold]Examples[/]
 
@@ -296,7 +306,7 @@ def eval_command(
             conf_threshold=conf_threshold,
             refine=refine, max_pairs=max_pairs, max_targets=max_targets, split_by=split_by.value,
             assignment=assignment.value, seed=seed, splatt3r_compatible=splatt3r_compatible,
-            baselines=not no_baselines, json_out=json_out, quiet=state.quiet,
+            baselines=not no_baselines, json_out=json_out, quiet=state.quiet, lpips_weights=lpips_weights,
         )  # fmt: skip
 
 
@@ -305,7 +315,7 @@ def _eval(
     cases_file: Path | None, size: int, eval_size: int | None, intrinsics: str, conf_threshold: float | None,
     refine: int, max_pairs: int,
     max_targets: int, split_by: str, assignment: str, seed: int, splatt3r_compatible: bool, baselines: bool,
-    json_out: bool, quiet: bool,
+    json_out: bool, quiet: bool, lpips_weights: Path | None = None,
 ) -> None:  # fmt: skip
     import time
 
@@ -313,8 +323,10 @@ def _eval(
     from ..evaluation import BackendOptions, EvalConfig, ReconstructSettings, ResultWriter, make_reconstructor
     from ..evaluation.protocol import BASELINES, summarize, to_jsonable
     from ..evaluation.splits import parse_splits
+    from ..lpips import load_lpips
 
     parse_splits(split)  # bad options fail before any work
+    lpips = load_lpips(lpips_weights) if lpips_weights is not None else None
     reconstructor = make_reconstructor(backend, BackendOptions(conf_threshold=conf_threshold, refine_steps=refine))
     dataset = load_data(data, layout, scannetpp_split, scenes)
     sel = select_cases(
@@ -326,6 +338,7 @@ def _eval(
         eval_size=eval_size,
         splatt3r_compatible=splatt3r_compatible,
         baselines=BASELINES if baselines else (),
+        lpips=lpips,
     )
     extra = {
         "command": "macsplat eval",

@@ -111,16 +111,29 @@ def image_metrics(
     mask: np.ndarray | None = None,  # [H, W]
     *,
     splatt3r: bool = False,
+    lpips: torch.nn.Module | None = None,
 ) -> dict[str, float]:
     """PSNR and SSIM of a rendered view, whole-image and over the visibility mask (module docstring).
 
+    Args:
+        lpips: an LPIPS model (:func:`macsplat_cli.lpips.load_lpips`): adds ``lpips``, over the
+            whole image (Splatt3R convention: over the masked images).
+
     Returns:
         ``psnr``, ``ssim``, and with a mask ``psnr_masked``, ``ssim_masked`` (NaN in the
-        Splatt3R convention) and ``mask_fraction``.
+        Splatt3R convention) and ``mask_fraction``; ``lpips`` with an LPIPS model.
     """
     p = np.clip(_arr(pred), 0.0, 1.0)
     t = _arr(target)
     out: dict[str, float] = {}
+    if lpips is not None:
+        lp, lt = p, t
+        if splatt3r and mask is not None:
+            mm = _arr(mask).astype(bool)[..., None]
+            lp, lt = p * mm, t * mm
+        with torch.no_grad():
+            out["lpips"] = float(lpips(torch.from_numpy(np.ascontiguousarray(lp, np.float32)),
+                                       torch.from_numpy(np.ascontiguousarray(lt, np.float32))))  # fmt: skip
     if mask is None:
         out["psnr"], out["ssim"] = psnr(p, t), ssim_means(p, t)[0]
         return out

@@ -105,6 +105,7 @@ class EvalConfig:
     depth_atol: absolute depth tolerance of the visibility mask (scene units).
     depth_rtol: relative depth tolerance of the visibility mask.
     background: colour behind the Gaussians and the discs (Splatt3R: black).
+    lpips: an LPIPS model (:func:`macsplat_cli.lpips.load_lpips`); None: no LPIPS.
     """
 
     settings: ReconstructSettings = field(default_factory=ReconstructSettings)
@@ -115,6 +116,7 @@ class EvalConfig:
     depth_atol: float = DEPTH_ATOL
     depth_rtol: float = DEPTH_RTOL
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    lpips: torch.nn.Module | None = None
 
 
 @dataclass
@@ -299,7 +301,9 @@ def evaluate_case(
         tr = TargetResult(ti, frames[ti].name, wh)
         if "copy" in cfg.baselines:
             near = case.context[nearest_context(frames[ti].camera, (gt[0], gt[1]))]
-            tr.metrics["copy"] = image_metrics(photo(near, wh), image, mask, splatt3r=cfg.splatt3r_compatible)
+            tr.metrics["copy"] = image_metrics(
+                photo(near, wh), image, mask, splatt3r=cfg.splatt3r_compatible, lpips=cfg.lpips
+            )
         targets.append((tr, image, mask))
     res.targets = [t[0] for t in targets]
 
@@ -347,12 +351,12 @@ def evaluate_case(
         with torch.no_grad():
             out = render_camera(rec.gaussians, cam, background=cfg.background)
         pred = out.rgb.clamp(0.0, 1.0).cpu().numpy()
-        m = image_metrics(pred, image, mask, splatt3r=cfg.splatt3r_compatible)
+        m = image_metrics(pred, image, mask, splatt3r=cfg.splatt3r_compatible, lpips=cfg.lpips)
         m["alpha_coverage"] = float((out.alpha > 0.5).float().mean())
         tr.metrics[res.method] = m
         if points is not None:
             rgb, covered = render_points(points, cam, background=cfg.background, config=cfg.points)
-            pm = image_metrics(rgb, image, mask, splatt3r=cfg.splatt3r_compatible)
+            pm = image_metrics(rgb, image, mask, splatt3r=cfg.splatt3r_compatible, lpips=cfg.lpips)
             pm["alpha_coverage"] = float(covered.mean())
             tr.metrics["points"] = pm
     return res
@@ -414,7 +418,7 @@ def _median(values: Sequence[float | None]) -> float:
     return float(np.median(v)) if len(v) else math.nan
 
 
-_IMAGE_KEYS = ("psnr", "ssim", "psnr_masked", "ssim_masked")
+_IMAGE_KEYS = ("psnr", "ssim", "psnr_masked", "ssim_masked", "lpips")
 
 
 def _image_summary(results: Sequence[CaseResult], method: str) -> dict[str, float]:
@@ -471,6 +475,7 @@ def summary_markdown(rows: Sequence[dict[str, Any]]) -> str:
         ("ssim", "SSIM", 3),
         ("psnr_masked", "masked PSNR", 2),
         ("ssim_masked", "masked SSIM", 3),
+        ("lpips", "LPIPS", 3),
     )
     geo = (
         ("rotation_error_deg", "rot err °", 2), ("translation_error_deg", "t err °", 2), ("auc@5", "AUC@5", 3),
@@ -494,7 +499,7 @@ def summary_markdown(rows: Sequence[dict[str, Any]]) -> str:
 # ------------------------------------------------------------------------------------ files
 CSV_COLUMNS = (
     "scene", "split", "context_0", "context_1", "target", "target_name", "method", "status",
-    "psnr", "ssim", "psnr_masked", "ssim_masked", "mask_fraction", "alpha_coverage",
+    "psnr", "ssim", "psnr_masked", "ssim_masked", "lpips", "mask_fraction", "alpha_coverage",
     "rotation_error_deg", "translation_error_deg", "pose_error_deg", "focal_error_pct_0", "focal_error_pct_1",
     "depth_absrel", "depth_delta1", "time_s", "error",
 )  # fmt: skip
@@ -581,13 +586,13 @@ class ResultWriter:
         self.write(run)
 
     def write(self, run: EvalRun) -> None:
-        from dataclasses import asdict
+        from dataclasses import asdict, replace
 
         doc = {
             "dataset": run.dataset,
             "layout": run.layout,
             "method": run.method,
-            "config": to_jsonable(asdict(run.config)),
+            "config": to_jsonable({**asdict(replace(run.config, lpips=None)), "lpips": run.config.lpips is not None}),
             **to_jsonable(self.extra),
             "complete": run.complete,
             "cases_total": len(run.cases),
