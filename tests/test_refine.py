@@ -183,3 +183,22 @@ def test_refinement_with_an_lpips_term(rec: Reconstruction) -> None:
     out = refine(rec.views, rec.geometry, rec.maps, RefineConfig(steps=4, scale=4, min_steps=100), lpips=model)
     assert all(np.isfinite(h["lpips"]) and h["lpips"] > 0 for h in out.history)
     assert out.history[-1]["loss"] < out.history[0]["loss"]
+
+
+def test_cli_refine_with_lpips_weights(pair: tuple[Path, Path, Path], tmp_path: Path) -> None:
+    from macsplat_cli.lpips import LPIPS
+
+    model = LPIPS()
+    convs = (0, 2, 5, 7, 10, 12, 14, 17, 19, 21, 24, 26, 28)
+    torch.save({f"features.{i}.{p}": getattr(model.features[i], p).detach() for i in convs for p in ("weight", "bias")},
+               tmp_path / "vgg16-397923af.pth")  # fmt: skip
+    torch.save({f"lin{k}.model.1.weight": lin.weight.detach().abs() for k, lin in enumerate(model.lins)},
+               tmp_path / "vgg.pth")  # fmt: skip
+    base = ["reconstruct", pair[0], pair[1], "-o", tmp_path / "s.ply", "--size", str(SIZE[0]), "-q",
+            "--lpips-weights", tmp_path]  # fmt: skip
+    code, _, err = _main(base)  # no --refine: the weights would be unused
+    assert code == 2 and "--refine" in err and not (tmp_path / "s.ply").exists()
+    code, _, err = _main([*base, "--refine", "2", "--refine-scale", "4", "--report", tmp_path / "r.json"])
+    assert code == 0, err
+    r = json.loads((tmp_path / "r.json").read_text())["refine"]
+    assert r["lpips"] is True and r["loss_last"]["lpips"] > 0

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -44,7 +45,8 @@ def reconstruct_command(
     conf_threshold: Annotated[
         float | None,
         typer.Option(
-            "--conf-threshold", help="τ: keep matches whose joint confidence c0·c1 exceeds it [default: 0.04]."
+            "--conf-threshold",
+            help="τ: keep matches whose joint confidence c0·c1 exceeds it [default: 0.04; 1 with --backend neural].",
         ),
     ] = None,
     refine: Annotated[
@@ -59,25 +61,92 @@ def reconstruct_command(
         int, typer.Option("--refine-scale", min=1, max=4, help="Refine at 1/N resolution (2: ~4x faster per step).")
     ] = 2,
     no_mac: Annotated[bool, typer.Option("--no-mac", help="Refine without the MAC loss (ablation).")] = False,
+    lpips_weights: Annotated[
+        Path | None,
+        typer.Option(
+            "--lpips-weights",
+            metavar="PATH",
+            help="Add LPIPS to the refinement's loss: a folder with torchvision's vgg16-*.pth and LPIPS v0.1 vgg.pth.",
+        ),
+    ] = None,
+    backend: Annotated[
+        str,
+        typer.Option(
+            "--backend",
+            metavar="classical|neural",
+            help="classical: no learned weights (default); neural: MASt3R point maps and descriptors (--weights).",
+        ),
+    ] = "classical",
+    weights: Annotated[
+        Path | None,
+        typer.Option("--weights", help="MASt3R checkpoint (.pth or Hugging Face folder) for --backend neural."),
+    ] = None,
+    dino: Annotated[
+        Path | None, typer.Option("--dino", help="DINOv3 weights for semantic fusion of the descriptors (neural).")
+    ] = None,
+    fusion: Annotated[
+        Path | None, typer.Option("--fusion", help="Residual Semantic Fusion weights (with --dino; neural).")
+    ] = None,
+    gaussian_head: Annotated[
+        Path | None,
+        typer.Option(
+            "--gaussian-head",
+            help="Splatt3R checkpoint (.ckpt): Gaussians from its head; alone it also provides the backbone (neural).",
+        ),
+    ] = None,
+    device: Annotated[str, typer.Option("--device", metavar="cpu|cuda", help="Where the neural backend runs.")] = "cpu",
     verbose: VerboseOpt = False,
     quiet: QuietOpt = False,
 ) -> None:
-    """Reconstruct a Gaussian splat scene from two photos (no learned weights needed).
+    """Reconstruct a Gaussian splat scene from two photos.
 
-    Writes the scene (standard 3DGS PLY), the two estimated cameras (world = first camera,
-    relative scale: baseline 1), and optionally novel views, a video and a JSON report.
+    Writes the scene (standard 3DGS PLY), the two estimated cameras (world = first camera;
+    relative scale, baseline 1, with the classical backend; metres with the neural one), and
+    optionally novel views, a video and a JSON report. The default backend needs no learned
+    weights; [bold]--backend neural[/] uses MASt3R (user-supplied checkpoint, see models/).
 
-    [bold]Example[/]
+    [bold]Examples[/]
 
       macsplat reconstruct a.jpg b.jpg -o scene.ply --renders views/ --video path.mp4
+
+      macsplat reconstruct a.jpg b.jpg -o scene.ply --backend neural --weights mast3r.pth
     """
     with command_context(ctx, verbose, quiet) as state:
         _reconstruct(
             images=[image_a, image_b], output=output, cameras=cameras, renders=renders, num_renders=num_renders,
             video=video, report=report, json_out=json_out, size=size, intrinsics=intrinsics, focal=focal,
             conf_threshold=conf_threshold, refine_steps=_refine_steps(refine), refine_scale=refine_scale,
-            use_mac=not no_mac, quiet=state.quiet,
+            use_mac=not no_mac, quiet=state.quiet, lpips_weights=lpips_weights,
+            neural=_neural_options(backend, weights, dino, fusion, gaussian_head, device),
         )  # fmt: skip
+
+
+def _neural_options(
+    backend: str, weights: Path | None, dino: Path | None, fusion: Path | None, gaussian_head: Path | None,
+    device: str,
+) -> dict[str, Any] | None:  # fmt: skip
+    """The neural backend's files and device, or None for the classical backend (usage checked here)."""
+    from ..errors import InputError
+
+    name = backend.strip().lower()
+    if name not in ("classical", "neural"):
+        raise InputError(f"--backend {backend!r}: use classical or neural")
+    dev = device.strip().lower()
+    if dev not in ("cpu", "cuda"):
+        raise InputError(f"--device {device!r}: use cpu or cuda")
+    given = {"--weights": weights, "--dino": dino, "--fusion": fusion, "--gaussian-head": gaussian_head}
+    if name == "classical":
+        extra = [opt for opt, v in given.items() if v is not None] + (["--device"] if dev != "cpu" else [])
+        if extra:
+            raise InputError(f"{', '.join(extra)} only apply to --backend neural")
+        return None
+    from ..pipeline.neural import MISSING_WEIGHTS_HELP, check_fusion_files, resolve_device
+
+    if weights is None and gaussian_head is None:
+        raise InputError(MISSING_WEIGHTS_HELP)
+    check_fusion_files(dino, fusion)
+    resolve_device(dev)
+    return {"weights": weights, "dino": dino, "fusion": fusion, "gaussian_head": gaussian_head, "device": dev}
 
 
 def _refine_steps(text: str) -> int:
@@ -122,22 +191,49 @@ def _reconstruct(
     *, images: list[Path], output: Path, cameras: Path | None, renders: Path | None, num_renders: int,
     video: Path | None, report: Path | None, json_out: bool, size: int, intrinsics: Path | None,
     focal: float | None, conf_threshold: float | None, refine_steps: int, refine_scale: int, use_mac: bool,
-    quiet: bool,
+    quiet: bool, neural: dict[str, Any] | None = None, lpips_weights: Path | None = None,
 ) -> None:  # fmt: skip
+    from ..errors import InputError
     from ..pipeline.run import Pipeline, ReconstructConfig
     from ..pipeline.views import ViewConfig
 
     cameras = cameras or output.with_name(output.stem + ".cameras.json")
     _check_outputs(output, cameras, renders, video, report)
+    lpips = None
+    if lpips_weights is not None:
+        if refine_steps == 0:
+            raise InputError("--lpips-weights is used by the refinement: add --refine STEPS or --refine auto")
+        from ..lpips import load_lpips
+
+        lpips = load_lpips(lpips_weights)
     config = ReconstructConfig(views=ViewConfig(size=size, intrinsics=intrinsics, focal=focal))
-    if conf_threshold is not None:
-        config.matching.conf_threshold = conf_threshold
-    pipeline = Pipeline(config)
 
     with _StageProgress(disabled=quiet) as progress:
+        if neural is not None:
+            from ..pipeline.neural import NeuralBackend, NeuralPipeline, load_neural_models, neural_reconstruct_config
+
+            config = neural_reconstruct_config(config)
+            if conf_threshold is not None:
+                config.matching.conf_threshold = conf_threshold
+            progress.event("weights", "start")
+            t0 = time.perf_counter()
+            try:
+                models = load_neural_models(**neural)
+            except BaseException:
+                progress.event("weights", "fail")
+                raise
+            load_s = time.perf_counter() - t0
+            progress.event("weights", "end")
+            pipeline: Pipeline = NeuralPipeline(NeuralBackend(models), config)
+        else:
+            if conf_threshold is not None:
+                config.matching.conf_threshold = conf_threshold
+            pipeline = Pipeline(config)
         result = pipeline.run(images, on_stage=progress.event)
+        if neural is not None:
+            result.report["neural"]["load_s"] = load_s
         if refine_steps > 0:
-            result = _refine(result, refine_steps, refine_scale, use_mac, progress)
+            result = _refine(result, refine_steps, refine_scale, use_mac, progress, lpips)
         written = _write_outputs(result, output, cameras, renders, num_renders, video, progress)
 
     result.report["outputs"] = {k: str(v) for k, v in written.items()}
@@ -151,7 +247,7 @@ def _reconstruct(
         _summary(result.report, written)
 
 
-def _refine(result, steps: int, scale: int, use_mac: bool, progress: _StageProgress):  # noqa: ANN001, ANN202
+def _refine(result, steps: int, scale: int, use_mac: bool, progress: _StageProgress, lpips=None):  # noqa: ANN001, ANN202
     import dataclasses
 
     from ..errors import InputError
@@ -166,9 +262,10 @@ def _refine(result, steps: int, scale: int, use_mac: bool, progress: _StageProgr
 
     def on_step(step: int, terms: dict[str, float]) -> None:
         mac = f", mac {terms['mac']:.4f}" if "mac" in terms else ""
+        mac += f", lpips {terms['lpips']:.4f}" if "lpips" in terms else ""
         progress.progress.update(task, completed=step, took=f"step {step}/{steps}: photo {terms['photo']:.4f}{mac}")
 
-    out = refine(result.views, result.geometry, result.maps, cfg, on_step=on_step)
+    out = refine(result.views, result.geometry, result.maps, cfg, depths=result.depths, lpips=lpips, on_step=on_step)
     progress.progress.remove_task(task)
     progress.event("refine", "end")
     report = dict(result.report)
@@ -179,6 +276,7 @@ def _refine(result, steps: int, scale: int, use_mac: bool, progress: _StageProgr
         "seconds": out.seconds,
         "scale": scale,
         "mac": use_mac,
+        "lpips": lpips is not None,
         "loss_first": out.history[0],
         "loss_last": out.history[-1],
     }
@@ -284,11 +382,22 @@ def _summary(report: dict[str, Any], written: dict[str, Any]) -> None:
     t.add_row("keypoints", " / ".join(str(k) for k in report["keypoints"]))
     t.add_row("matches", " → ".join(f"{v} {k}" for k, v in m.items()))
     pose = report["pose"]
-    t.add_row(
-        "pose",
-        f"rotation {pose['rotation_deg']:.1f}°, median parallax {pose['median_parallax_deg']:.1f}°, "
-        f"inlier ratio {pose['inlier_ratio']:.2f}, median epipolar error {pose['median_sampson_px']:.2f} px",
+
+    def num(key: str, fmt: str) -> str:
+        v = pose.get(key)
+        return format(v, fmt) if isinstance(v, (int, float)) else "n/a"
+
+    line = (
+        f"rotation {num('rotation_deg', '.1f')}°, median parallax {num('median_parallax_deg', '.1f')}°, "
+        f"inlier ratio {num('inlier_ratio', '.2f')}, median epipolar error {num('median_sampson_px', '.2f')} px"
     )
+    if "translation_norm" in pose:
+        line += f", baseline {num('translation_norm', '.3f')} m"
+    t.add_row("pose", line)
+    if "neural" in report:
+        n = report["neural"]
+        t.add_row("backend", f"neural ({n['device']}): forward pass {n['forward_s']:.2f} s")
+        t.add_row("fusion", n["fusion"]["detail"])
     t.add_row("depth", " / ".join(f"{100 * c:.0f} %" for c in report["depth_coverage"]) + " of pixels")
     t.add_row("Gaussians", f"{report.get('gaussians_written', report['gaussians']):,}")
     times = report["times_s"]

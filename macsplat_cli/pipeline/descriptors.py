@@ -35,7 +35,11 @@ logger = logging.getLogger(__name__)
 
 
 class DescriptorBackend(Protocol):
-    """``View → Features``; ``name`` identifies the backend in the report."""
+    """``View → Features``; ``name`` identifies the backend in the report.
+
+    A backend that needs both views at once (a two-view network) also defines
+    ``describe_pair(v0, v1) -> [Features, Features]``, which the pipeline then calls instead.
+    """
 
     name: str
 

@@ -160,6 +160,11 @@ def _jsonable(x: Any) -> Any:
     return x
 
 
+def _describe(backend: DescriptorBackend, views: list[View]) -> list[Features]:
+    pair = getattr(backend, "describe_pair", None)
+    return list(pair(views[0], views[1])) if pair is not None else [backend(v) for v in views]
+
+
 class Pipeline:
     """Chains the stages; each slot accepts any backend with the stage's signature."""
 
@@ -235,7 +240,7 @@ class Pipeline:
             return out
 
         views: list[View] = timed("images", lambda: load_views(paths, self.config.views))
-        feats: list[Features] = timed("descriptors", lambda: [self.descriptors(v) for v in views])
+        feats: list[Features] = timed("descriptors", lambda: _describe(self.descriptors, views))
         matches: Matches = timed("matching", lambda: self.matcher(feats[0], feats[1]))
         geometry, failure = self._try_pose(views, matches, timed, "pose")
         fallback_used = False
@@ -246,7 +251,7 @@ class Pipeline:
                 n_verified, self.config.fallback_min_inliers, self.fallback_descriptors.name,
             )  # fmt: skip
             fb = self.fallback_descriptors
-            feats_fb = timed("descriptors (fallback)", lambda: [fb(v) for v in views])
+            feats_fb = timed("descriptors (fallback)", lambda: _describe(fb, views))
             matches_fb = timed("matching (fallback)", lambda: self.matcher(feats_fb[0], feats_fb[1]))
             geometry_fb, failure_fb = self._try_pose(views, matches_fb, timed, "pose (fallback)")
             if geometry_fb is not None and len(geometry_fb.inliers) > n_verified:

@@ -1,0 +1,522 @@
+"""``macsplat reconstruct --backend neural``: the neural stages, end to end and one by one.
+
+* The CLI end to end with tiny random-weight checkpoints written in the official layouts (MASt3R
+  ``.pth``, DINOv3 ``.pth``, macsplat fusion ``.pth``, Splatt3R Lightning ``.ckpt``): random weights
+  give meaningless geometry, so these check the plumbing (exit codes, files, report), not accuracy.
+* The pipeline with a stand-in backbone that returns the exact point maps of a ray-traced pair:
+  the pose (metric), the focal length and the depth must come out right.
+* The geometry routines on synthetic point maps with noise and outliers, descriptor sampling, and
+  the shared matcher on dense maps.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+from test_dinov3 import random_official_state_dict
+from test_neural_checkpoints import TINY, TINY_ARGS, random_state_dict, save_pth
+
+from macsplat_cli import synthetic as syn
+from macsplat_cli.cameras import load_cameras
+from macsplat_cli.cli import main
+from macsplat_cli.errors import ReconstructionError
+from macsplat_cli.images import save_image
+from macsplat_cli.neural import BackboneConfig, BackboneView, GaussianHead, MASt3RBackbone
+from macsplat_cli.neural.dinov3 import DINOv3Config
+from macsplat_cli.neural.fusion import FusionConfig, ResidualSemanticFusion, save_fusion
+from macsplat_cli.pipeline.matching import MatchConfig, match_features
+from macsplat_cli.pipeline.neural import (
+    NeuralBackend,
+    NeuralModels,
+    NeuralPipeline,
+    ViewWarp,
+    estimate_focal_weiszfeld,
+    pose_from_pointmap,
+    sample_descriptors,
+)
+from macsplat_cli.pipeline.run import FilteredMatcher
+from macsplat_cli.pipeline.types import Features
+from macsplat_cli.ply import read_ply
+
+SIZE = (96, 64)  # multiples of 16: the working images are the rendered ones, pixel for pixel
+DINO_TINY = DINOv3Config.preset("tiny")  # 64-d features
+
+
+# ------------------------------------------------------------------------------ helpers and fixtures
+def _run(args: list[str | Path]) -> tuple[int, str, str]:
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main([str(a) for a in args])
+    return code, out.getvalue(), err.getvalue()
+
+
+def _backproject(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Camera-frame points of a depth map (pixel centres at +0.5). [H, W] → [H, W, 3]"""
+    h, w = depth.shape
+    ys, xs = np.mgrid[0:h, 0:w]
+    pix = np.stack([xs + 0.5, ys + 0.5, np.ones((h, w))], -1)
+    return pix @ np.linalg.inv(K).T * depth[..., None]
+
+
+class Scene:
+    """A ray-traced 96×64 room pair, 20° apart, 50° field of view (not the pipeline's 60° prior)."""
+
+    def __init__(self, folder: Path) -> None:
+        scene = syn.make_scene("room", 0)
+        self.cam0, self.cam1 = syn.orbit_pair("room", 20, width=SIZE[0], height=SIZE[1], fov_deg=50.0)
+        v0, v1 = syn.render(scene, self.cam0), syn.render(scene, self.cam1)
+        self.depth0, self.depth1 = v0.depth, v1.depth
+        self.a, self.b = folder / "a.png", folder / "b.png"
+        save_image(self.a, v0.image)
+        save_image(self.b, v1.image)
+        self.R, self.t = syn.relative_pose(self.cam0, self.cam1)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory: pytest.TempPathFactory) -> Scene:
+    return Scene(tmp_path_factory.mktemp("scene"))
+
+
+@pytest.fixture(scope="module")
+def ckpts(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """Tiny random-weight checkpoints in the official layouts."""
+    root = tmp_path_factory.mktemp("ckpt")
+    files = {"mast3r": save_pth(root / "mast3r_tiny.pth", random_state_dict(TINY))}
+    torch.save(random_official_state_dict(DINO_TINY, seed=1), root / "dinov3_tiny.pth")
+    files["dino"] = root / "dinov3_tiny.pth"
+    torch.manual_seed(0)
+    fusion = ResidualSemanticFusion(FusionConfig(desc_dim=24, dino_dim=DINO_TINY.embed_dim, hidden_dim=16))
+    with torch.no_grad():  # as after training: a non-zero last layer, so the fusion changes the descriptors
+        fusion.layers[-1].weight.normal_(0.0, 0.5)
+    files["fusion"] = save_fusion(fusion, root / "fusion.pth")
+    # Splatt3R: a Lightning checkpoint holding the frozen MASt3R and the Gaussian head under "encoder."
+    cfg = TINY.replace(head_type="gaussian_head", desc_conf_mode=("exp", 1.0, math.inf))
+    torch.manual_seed(1)
+    head = GaussianHead(cfg).state_dict()
+    state = {"encoder." + k: v for k, v in {**random_state_dict(cfg), **head}.items()}
+    state["lpips_criterion.scaling_layer.shift"] = torch.zeros(1, 3, 1, 1)
+    torch.save({"state_dict": state, "epoch": 19, "global_step": 1200}, root / "splatt3r_tiny.ckpt")
+    files["splatt3r"] = root / "splatt3r_tiny.ckpt"
+    bad = random_state_dict(TINY)
+    bad["dec_blocks.1.mlp.fc1.weight"] = torch.zeros(16, 32)
+    files["bad"] = save_pth(root / "mismatched.pth", bad, args=TINY_ARGS)
+    return files
+
+
+def _neural_args(scene: Scene, out: Path, *extra: str | Path) -> list[str | Path]:
+    return ["reconstruct", scene.a, scene.b, "-o", out / "scene.ply", "--backend", "neural", *extra]
+
+
+# ------------------------------------------------------------------------------ CLI end to end
+def test_cli_neural_end_to_end(scene: Scene, ckpts: dict[str, Path], tmp_path: Path) -> None:
+    """Exit 0, a standard PLY, a metric cameras file, renders, and a report naming every backend."""
+    code, out, err = _run(
+        _neural_args(scene, tmp_path, "--weights", ckpts["mast3r"], "--report", tmp_path / "report.json",
+                     "--renders", tmp_path / "views", "--num-renders", "2")
+    )  # fmt: skip
+    assert code == 0, err
+    assert out == "" and "error:" not in err and "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report.json", "scene.cameras.json", "scene.ply", "views"]
+    g = read_ply(tmp_path / "scene.ply")
+    assert len(g) > 0 and all(torch.isfinite(t).all() for t in (g.means, g.log_scales, g.quats, g.sh))
+    cams = load_cameras(tmp_path / "scene.cameras.json")
+    assert cams.scale == "metric" and cams.world == "camera_0" and len(cams) == 2
+    np.testing.assert_array_equal(cams[0].cam_to_world, np.eye(4))
+    assert len(list((tmp_path / "views").iterdir())) == 2
+    r = json.loads((tmp_path / "report.json").read_text())
+    assert r["scale"] == "metric"
+    b = r["backends"]
+    assert b["descriptors"] == "neural:mast3r-desc24 (semantic fusion skipped)"
+    assert b["matching"] == "reciprocal-nn+confidence"  # the shared matcher
+    assert b["pose"] == "neural:mast3r-pointmap-pnp" and b["depth"] == "neural:mast3r-pointmap"
+    assert b["gaussians"] == "classical:per-pixel-surfels"
+    assert b["descriptors_fallback"] is None
+    assert b["fusion"].startswith("skipped")
+    n = r["neural"]
+    assert n["fusion"]["applied"] is False and "skipped" in n["fusion"]["detail"]
+    assert n["forward_calls"] == 1  # one forward pass for descriptors, pose, depth
+    assert n["network_size"] == list(SIZE) and n["files"]["weights"] == str(ckpts["mast3r"])
+    assert r["keypoints"] == [(SIZE[0] // 4) * (SIZE[1] // 4)] * 2  # the 4-px descriptor grid
+    assert r["gaussians_written"] == len(g) == r["gaussians"]
+
+
+def test_cli_neural_fusion_gaussian_head_and_refine(scene: Scene, ckpts: dict[str, Path], tmp_path: Path) -> None:
+    """--dino + --fusion apply the fusion; --gaussian-head gives the head's Gaussians; --refine runs on top."""
+    code, out, err = _run(
+        _neural_args(scene, tmp_path, "--weights", ckpts["mast3r"], "--dino", ckpts["dino"], "--fusion",
+                     ckpts["fusion"], "--gaussian-head", ckpts["splatt3r"], "--refine", "3", "--json", "-q")
+    )  # fmt: skip
+    assert code == 0, err
+    assert "error:" not in err  # -q: only warnings (random weights give an inconsistent pose)
+    r = json.loads(out)
+    assert r["neural"]["fusion"]["applied"] is True and "applied" in r["neural"]["fusion"]["detail"]
+    fusion = "dinov3-custom-64d-2x2h-mlp128+residual-semantic-fusion"  # the tiny variant, inferred from its shapes
+    assert r["backends"]["fusion"] == fusion and r["backends"]["descriptors"] == "neural:mast3r-desc24+" + fusion
+    assert r["backends"]["gaussians"] == "neural:splatt3r-gaussian-head"
+    assert r["neural"]["gaussian_head"] is True and r["neural"]["forward_calls"] == 1
+    assert r["refine"]["steps"] >= 1 and r["refine"]["scale"] == 2
+    assert load_cameras(tmp_path / "scene.cameras.json").scale == "metric"
+    assert len(read_ply(tmp_path / "scene.ply")) == r["gaussians_written"] > 0
+
+
+def _one_error_line(err: str, *, after_progress: bool = False) -> str:
+    """The single ``error:`` line; with ``after_progress``, it may follow the failed stage's progress line."""
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    if after_progress:
+        assert all("✗ failed" in ln for ln in lines[:-1]), err
+        lines = lines[-1:]
+    assert len(lines) == 1, err
+    assert lines[0].startswith("error: ")
+    return lines[0]
+
+
+def test_cli_neural_without_weights_names_the_file(scene: Scene, tmp_path: Path) -> None:
+    code, out, err = _run(_neural_args(scene, tmp_path))
+    assert code == 2 and out == ""
+    line = _one_error_line(err)
+    assert "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth" in line
+    assert "huggingface.co/naver" in line and "--weights" in line and "models/mast3r.md" in line
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    ("which", "key"),
+    [("bad", "dec_blocks.1.mlp.fc1.weight"), ("splatt3r-alone", "encoder.patch_embed.proj.weight")],
+)
+def test_cli_neural_mismatched_checkpoint_names_the_key(
+    scene: Scene, ckpts: dict[str, Path], tmp_path: Path, which: str, key: str
+) -> None:
+    """A file that does not fit: exit 2, the first bad key named, no output written.
+
+    A tiny Splatt3R file alone is read as the released architecture (its OmegaConf config is not read).
+    """
+    opts = ["--weights", ckpts["bad"]] if which == "bad" else ["--gaussian-head", ckpts["splatt3r"]]
+    code, _, err = _run(_neural_args(scene, tmp_path, *opts))
+    assert code == 2
+    assert f"'{key}'" in _one_error_line(err, after_progress=True)
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    ("opts", "message"),
+    [
+        (["--dino", "DINO"], "--dino needs --fusion"),
+        (["--fusion", "FUSION"], "--fusion needs --dino"),
+        (["--device", "tpu"], "--device 'tpu'"),
+        (["--weights", "nope.pth"], "MASt3R checkpoint not found: nope.pth"),
+    ],
+)
+def test_cli_neural_bad_options(
+    scene: Scene, ckpts: dict[str, Path], tmp_path: Path, opts: list[str], message: str
+) -> None:
+    opts = [{"DINO": str(ckpts["dino"]), "FUSION": str(ckpts["fusion"])}.get(o, o) for o in opts]
+    if "--weights" not in opts:
+        opts += ["--weights", str(ckpts["mast3r"])]
+    code, _, err = _run(_neural_args(scene, tmp_path, *opts))
+    assert code == 2
+    assert message in _one_error_line(err, after_progress="nope.pth" in opts)  # files are read under a progress line
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA is available here")
+def test_cli_neural_cuda_unavailable(scene: Scene, ckpts: dict[str, Path], tmp_path: Path) -> None:
+    code, _, err = _run(_neural_args(scene, tmp_path, "--weights", ckpts["mast3r"], "--device", "cuda"))
+    assert code == 2
+    assert "CUDA is not available" in _one_error_line(err)
+
+
+def test_cli_classical_rejects_neural_options(scene: Scene, ckpts: dict[str, Path], tmp_path: Path) -> None:
+    args = ["reconstruct", scene.a, scene.b, "-o", tmp_path / "s.ply", "--weights", ckpts["mast3r"]]
+    code, _, err = _run(args)
+    assert code == 2
+    assert "--weights only apply to --backend neural" in _one_error_line(err)
+
+
+# ------------------------------------------------------------------------------ pipeline with exact point maps
+class OracleBackbone(torch.nn.Module):
+    """Stands in for MASt3R: the true point maps of a scene (both in camera 0's frame), descriptors that
+    are a fixed random function of the 3-D point (so that matching works), and constant confidences."""
+
+    def __init__(self, scene: Scene) -> None:
+        super().__init__()
+        self.config = BackboneConfig.tiny()
+        P0 = _backproject(scene.depth0, scene.cam0.K)
+        P1 = (_backproject(scene.depth1, scene.cam1.K) - scene.t) @ scene.R  # camera 1 → camera 0
+        rng = np.random.default_rng(0)
+        omega = rng.standard_normal((256, 3)) * 2 * np.pi / 0.3  # descriptors vary over ~30 cm (a few pixels)
+        mix = rng.standard_normal((256, 24))
+
+        def describe(P: np.ndarray) -> torch.Tensor:
+            Xw = P @ scene.cam0.cam_to_world[:3, :3].T + scene.cam0.cam_to_world[:3, 3]
+            return F.normalize(torch.from_numpy(np.cos(Xw @ omega.T) @ mix).float(), dim=-1)[None]
+
+        self.pts = [torch.from_numpy(p).float()[None] for p in (P0, P1)]
+        self.desc = [describe(P0), describe(P1)]
+        self.calls = 0
+
+    def forward(self, img1: torch.Tensor, img2: torch.Tensor) -> tuple[BackboneView, BackboneView]:
+        self.calls += 1
+        h, w = img1.shape[2:]
+        assert self.pts[0].shape[1:3] == (h, w), "the images must reach the network at their working size"
+        views = []
+        for pts, desc in zip(self.pts, self.desc):
+            conf = torch.full((1, h, w), 5.0)
+            views.append(BackboneView(pts, conf, desc, torch.full((1, h, w), 3.0), (), (h // 16, w // 16)))
+        return views[0], views[1]
+
+
+def test_pipeline_recovers_metric_pose_focal_and_depth(scene: Scene) -> None:
+    """Exact point maps in → the true relative pose in metres, the true focal length, the true depth."""
+    oracle = OracleBackbone(scene)
+    backend = NeuralBackend(NeuralModels(oracle, None, None, None, torch.device("cpu")))  # type: ignore[arg-type]
+    rec = NeuralPipeline(backend).run([scene.a, scene.b])
+    assert oracle.calls == backend.forward_calls == 1
+    assert rec.scale == "metric" and rec.cameras().scale == "metric"
+    geo = rec.geometry
+    rot_err, t_err = syn.pose_errors(geo.R, geo.t, scene.R, scene.t)
+    assert rot_err < 0.05 and t_err < 0.1, (rot_err, t_err)
+    assert np.linalg.norm(geo.t) == pytest.approx(np.linalg.norm(scene.t), rel=1e-3)  # metric: no unit baseline
+    for K, cam in ((geo.K0, scene.cam0), (geo.K1, scene.cam1)):  # 50° field of view, not the 60° prior
+        assert K[0, 0] == pytest.approx(cam.K[0, 0], rel=1e-3)
+    assert [im["intrinsics_source"] for im in rec.report["images"]] == ["estimated", "estimated"]
+    for d, gt in zip(rec.depths, (scene.depth0, scene.depth1)):
+        sel = d.valid & (gt > 0)
+        assert sel.mean() > 0.95
+        np.testing.assert_allclose(d.depth[sel], gt[sel], rtol=1e-3)
+    # matching on the dense descriptor maps, verified against the point maps: correct to a few pixels
+    m = geo.inliers
+    assert rec.report["matches"]["verified"] == len(m) > 60
+    X = _backproject(scene.depth0, scene.cam0.K)[(m.xy0[:, 1]).astype(int), (m.xy0[:, 0]).astype(int)]
+    uv = (X @ scene.R.T + scene.t) @ scene.cam1.K.T
+    err = np.linalg.norm(uv[:, :2] / uv[:, 2:] - m.xy1, axis=1)
+    assert np.median(err) < 1.0 and np.mean(err < 2.0) > 0.9  # snapped off the 4-px grid by refine_matches
+    # the report is JSON and names the stages
+    r = json.loads(json.dumps(rec.report))
+    assert r["pose"]["method"] == "pnp-ransac" and r["pose"]["inlier_ratio"] > 0.95
+
+
+def test_pipeline_with_given_intrinsics_keeps_them(scene: Scene, tmp_path: Path) -> None:
+    from macsplat_cli.cameras import CameraSet, save_cameras
+    from macsplat_cli.pipeline.neural import neural_reconstruct_config
+    from macsplat_cli.pipeline.views import ViewConfig
+
+    save_cameras(tmp_path / "cams.json", CameraSet([scene.cam0.rescaled(*SIZE)], scale="metric"))
+    oracle = OracleBackbone(scene)
+    backend = NeuralBackend(NeuralModels(oracle, None, None, None, torch.device("cpu")))  # type: ignore[arg-type]
+    config = neural_reconstruct_config()
+    config.views = ViewConfig(intrinsics=tmp_path / "cams.json")
+    rec = NeuralPipeline(backend, config).run([scene.a, scene.b])
+    np.testing.assert_allclose(rec.geometry.K0, scene.cam0.K)
+    assert rec.geometry.info["focal_estimated"] is False
+    assert syn.pose_errors(rec.geometry.R, rec.geometry.t, scene.R, scene.t)[0] < 0.05
+
+
+# ------------------------------------------------------------------------------ geometry units
+def _synthetic_pointmap(f: float, w: int = 160, h: int = 120, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A wavy surface seen by a pinhole camera with focal ``f``: (points [H, W, 3], K)."""
+    rng = np.random.default_rng(seed)
+    K = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])
+    ys, xs = np.mgrid[0:h, 0:w]
+    depth = 2.0 + 0.5 * np.sin(xs / 17.0) * np.cos(ys / 11.0) + 0.3 * rng.random((h, w))
+    return _backproject(depth, K), K
+
+
+@pytest.mark.parametrize("fov", [40.0, 60.0, 85.0])
+def test_weiszfeld_focal_recovers_the_focal(fov: float) -> None:
+    w, h = 160, 120
+    f = w / (2 * math.tan(math.radians(fov) / 2))
+    pts, _ = _synthetic_pointmap(f)
+    assert estimate_focal_weiszfeld(pts) == pytest.approx(f, rel=1e-9)
+    # depth noise along the rays leaves it exact; 20 % wild outliers move the robust fit by < 1 %
+    rng = np.random.default_rng(1)
+    noisy = pts * (1 + 0.05 * rng.standard_normal((h, w)))[..., None]
+    bad = rng.random((h, w)) < 0.2
+    noisy[bad] = rng.uniform(-2, 2, (int(bad.sum()), 3)) + [0, 0, 3]
+    assert estimate_focal_weiszfeld(noisy) == pytest.approx(f, rel=0.01)
+    # masked-out pixels are ignored; NaNs and points behind the camera too
+    noisy[bad] = np.nan
+    assert estimate_focal_weiszfeld(noisy, mask=~bad) == pytest.approx(f, rel=1e-6)
+
+
+def test_weiszfeld_focal_is_clipped_around_the_prior() -> None:
+    pts, _ = _synthetic_pointmap(30.0)  # a 138° field of view
+    base = 160 / (2 * math.tan(math.radians(30.0)))
+    assert estimate_focal_weiszfeld(pts) == pytest.approx(0.5 * base)
+    assert estimate_focal_weiszfeld(pts, focal_range=(0.1, 3.5)) == pytest.approx(30.0, rel=1e-6)
+    with pytest.raises(ReconstructionError):
+        estimate_focal_weiszfeld(-pts)  # everything behind the camera
+
+
+def _rotation(axis: list[float], deg: float) -> np.ndarray:
+    import cv2
+
+    a = np.asarray(axis, float)
+    return cv2.Rodrigues(a / np.linalg.norm(a) * math.radians(deg))[0]
+
+
+def test_pose_from_pointmap_recovers_a_known_pose_with_noise_and_outliers() -> None:
+    """View 1's point map in camera 0's frame + its pixels → X_cam1 = R·X_cam0 + t, metric."""
+    rng = np.random.default_rng(0)
+    pts1, K = _synthetic_pointmap(150.0)  # view 1's points in its own frame
+    R, t = _rotation([0.2, 1.0, 0.1], 25.0), np.array([-0.8, 0.05, 0.2])
+    h, w = pts1.shape[:2]
+    ys, xs = np.mgrid[0:h, 0:w]
+    xy = np.stack([xs + 0.5, ys + 0.5], -1).reshape(-1, 2)
+    P1 = pts1.reshape(-1, 3)
+    P1 = P1 * (1 + 0.03 * rng.standard_normal(len(P1)))[:, None]  # depth noise along view 1's rays
+    P1 = P1 + 0.002 * rng.standard_normal(P1.shape) * P1[:, 2:]  # and a little everywhere (≈0.3 px)
+    X = (P1 - t) @ R  # in camera 0's frame
+    bad = rng.random(len(X)) < 0.15
+    X[bad] = rng.uniform(-3, 3, (int(bad.sum()), 3)) + [0, 0, 3]
+    res = pose_from_pointmap(xy, X, K)
+    rot_err, t_err = syn.pose_errors(res.R, res.t, R, t)
+    assert rot_err < 0.2 and t_err < 0.5, (rot_err, t_err)
+    assert np.linalg.norm(res.t) == pytest.approx(np.linalg.norm(t), rel=0.01)
+    assert res.inliers[~bad].mean() > 0.95 and res.inliers[bad].mean() < 0.1
+    with pytest.raises(ReconstructionError, match="only 3 pixels"):
+        pose_from_pointmap(xy[:3], X[:3], K)
+
+
+def test_view_warp_keeps_intrinsics_consistent() -> None:
+    """A view of another size: scaled to cover the network size, centre-cropped; K follows the pixels."""
+    warp = ViewWarp.fit((120, 80), (96, 64))  # 1.5 : 1 → 1.5 : 1 exactly: scale 0.8, no crop
+    assert warp.scale == (0.8, 0.8) and warp.offset == (0, 0)
+    warp = ViewWarp.fit((64, 64), (96, 64))  # square → landscape: scale 1.5, crop 16 px top and bottom
+    assert warp.scale == (1.5, 1.5) and warp.offset == (0, 16)
+    K = np.array([[70.0, 0, 32], [0, 70.0, 32], [0, 0, 1]])
+    X = np.array([[0.1, -0.2, 2.0], [-0.3, 0.25, 1.5]])
+    p = X @ K.T
+    xy = p[:, :2] / p[:, 2:]
+    pn = X @ warp.K_net(K).T
+    np.testing.assert_allclose(warp.to_net(xy), pn[:, :2] / pn[:, 2:], atol=1e-12)
+    np.testing.assert_allclose(warp.from_net(warp.to_net(xy)), xy, atol=1e-12)
+    img = np.zeros((64, 64, 3), np.float32)
+    img[40:44, 10:14] = 1.0  # a bright square at view pixels x 10–14, y 40–44
+    net = warp.image(img)
+    assert net.shape == (64, 96, 3)
+    ys, xs = np.nonzero(net[..., 0] > 0.5)
+    np.testing.assert_allclose([xs.mean() + 0.5, ys.mean() + 0.5], warp.to_net(np.array([[12.0, 42.0]]))[0], atol=0.6)
+    back, inside = warp.sample(np.arange(64 * 96, dtype=float).reshape(64, 96))
+    assert back.shape == (64, 64) and inside[11:53].all() and not inside[:10].any() and not inside[54:].any()
+
+
+# ------------------------------------------------------------------------------ descriptors and matching
+def test_sample_descriptors_grid_topk_and_mask() -> None:
+    h, w = 12, 16
+    conf = np.arange(h * w, dtype=np.float32).reshape(h, w)
+    idx, grid = sample_descriptors(conf, stride=4)
+    assert grid == (3, 4)
+    np.testing.assert_array_equal(idx, [(r * w + c) for r in (2, 6, 10) for c in (2, 6, 10, 14)])
+    idx, grid = sample_descriptors(conf, sampling="topk", top_k=5)
+    assert grid is None and sorted(idx.tolist()) == list(range(h * w - 5, h * w))
+    mask = np.ones((h, w), bool)
+    mask[:, :8] = False
+    idx, grid = sample_descriptors(conf, stride=4, mask=mask)
+    assert grid is None and len(idx) == 6 and (idx % w >= 8).all()
+
+
+def test_shared_matcher_on_dense_descriptor_maps() -> None:
+    """Two dense maps, the second shifted by 8 px: grid-sampled descriptors match at the true shift,
+    and the joint-confidence gate drops the region where view 1 is unsure."""
+    rng = np.random.default_rng(0)
+    h, w, shift = 48, 64, 8
+    scene = F.normalize(torch.from_numpy(rng.standard_normal((h, w + shift, 24))).float(), dim=-1).numpy()
+    desc0, desc1 = scene[:, :w], scene[:, shift:]  # view-1 pixel x shows view-0 pixel x + 8
+    conf0 = np.full((h, w), 2.0, np.float32)
+    conf1 = np.full((h, w), 2.0, np.float32)
+    conf1[: h // 2] = 0.1  # unsure in the top half: joint confidence 0.2 < τ = 1
+
+    def features(desc: np.ndarray, conf: np.ndarray) -> Features:
+        idx, grid = sample_descriptors(conf, stride=4)
+        xy = np.stack([idx % w + 0.5, idx // w + 0.5], 1)
+        return Features(xy, desc.reshape(-1, 24)[idx], conf.reshape(-1)[idx], grid=grid)
+
+    matcher = FilteredMatcher(MatchConfig(conf_threshold=1.0, ratio_confidence=False))
+    f0, f1 = features(desc0, conf0), features(desc1, conf1)
+    every = match_features(f0, f1, MatchConfig(conf_threshold=0.0, ratio_confidence=False))
+    right = (every.xy0[:, 0] - every.xy1[:, 0] == shift) & (every.xy0[:, 1] == every.xy1[:, 1])
+    assert right.sum() == (h // 4) * ((w - shift) // 4)  # every grid point that both views see
+    assert (~right).sum() <= 3  # chance pairs among the columns that only one view sees
+    m = matcher(f0, f1)
+    assert m.counts == {"reciprocal": len(every), "confident": len(m)}
+    assert (m.xy1[:, 1] > h // 2).all() and np.all(m.conf > 1.0)  # the unsure half is gated out
+    assert np.sum((m.xy0[:, 0] - m.xy1[:, 0] == shift) & (m.xy0[:, 1] == m.xy1[:, 1])) == right.sum() // 2
+
+
+def test_descriptor_stage_runs_the_network_once_per_pair(scene: Scene) -> None:
+    """The stage describes both views from one forward pass, and the pair is cached."""
+    from macsplat_cli.pipeline.neural import NeuralDescriptors
+    from macsplat_cli.pipeline.views import load_views
+
+    torch.manual_seed(0)
+    net = MASt3RBackbone(TINY).eval()
+    net.load_state_dict(random_state_dict(TINY))
+    backend = NeuralBackend(NeuralModels(net, None, None, None, torch.device("cpu")))
+    stage = NeuralDescriptors(backend)
+    v0, v1 = load_views([scene.a, scene.b])
+    with pytest.raises(TypeError, match="both views"):
+        stage(v0)
+    assert backend.forward_calls == 0
+    f0, f1 = stage.describe_pair(v0, v1)
+    assert backend.forward_calls == 1 and len(f0) == len(f1) == (SIZE[0] // 4) * (SIZE[1] // 4)
+    assert f0.desc.shape == (len(f0), 24) and np.allclose(np.linalg.norm(f0.desc, axis=1), 1.0, atol=1e-5)
+    assert (f0.conf >= 0).all()
+    again = stage.describe_pair(v0, v1)
+    assert backend.forward_calls == 1
+    np.testing.assert_array_equal(again[0].desc, f0.desc)
+    backend.predict(v1, v0)  # another order is another pair
+    assert backend.forward_calls == 2
+
+
+def test_fusion_changes_descriptors_and_head_gaussians_keep_their_frame(
+    scene: Scene, ckpts: dict[str, Path], tmp_path: Path
+) -> None:
+    """Library path with every file: the fused descriptors differ from MASt3R's own (trained-like fusion);
+    the head's Gaussians, moved into camera 1's frame, come back to the head's camera-0 positions in the
+    world; a second photo of another size is fitted to the network and mapped back to its own pixels."""
+    import cv2
+
+    from macsplat_cli.pipeline.neural import load_neural_models
+    from macsplat_cli.pipeline.views import load_views
+
+    small = tmp_path / "b_small.png"  # 80×64: another aspect ratio than view 0's 96×64
+    save_image(small, cv2.resize(cv2.imread(str(scene.b))[..., ::-1], (80, 64)).astype(np.float32) / 255.0)
+    models = load_neural_models(
+        weights=ckpts["mast3r"], gaussian_head=ckpts["splatt3r"], dino=ckpts["dino"], fusion=ckpts["fusion"]
+    )
+    backend = NeuralBackend(models)
+    rec = NeuralPipeline(backend).run([scene.a, small])
+    pred = backend.last
+    assert pred is not None and pred.fusion_applied and backend.forward_calls == 1
+    v0, v1 = load_views([scene.a, small])
+    img = torch.from_numpy(np.stack([v0.image, pred.warps[1].image(v1.image)])).permute(0, 3, 1, 2) * 2 - 1
+    with torch.no_grad():
+        raw1, raw2 = models.backbone(img[:1], img[1:])
+    assert not np.allclose(pred.desc, torch.cat([raw1.desc, raw2.desc]).numpy(), atol=1e-3)
+    np.testing.assert_allclose(pred.pts3d[1], raw2.pts3d[0].numpy(), rtol=1e-5, atol=1e-6)  # same forward pass
+    # view 1: an 80×64 photo, a 96×64 network input: scaled to 96×77, then rows 6–69 kept
+    assert pred.warps[1].scale == (1.2, 77 / 64) and pred.warps[1].offset == (0, 6)
+    maps = rec.maps
+    assert maps[0].size == (64, 96) and maps[1].size == (64, 80) and rec.depths[1].depth.shape == (64, 80)
+    assert pred.gaussians is not None
+    head0, head1 = pred.gaussians
+    world0 = maps[0].to_world().means
+    np.testing.assert_allclose(world0.numpy(), head0.means[0][maps[0].valid].numpy(), atol=1e-5)
+    # view 1: back in the world (camera 0) frame, each Gaussian is the head's at the network pixel it came from
+    ys, xs = np.nonzero(maps[1].valid.numpy())
+    uv = pred.warps[1].to_net(np.stack([xs + 0.5, ys + 0.5], 1))
+    i, j = np.floor(uv[:, 1]).astype(int), np.floor(uv[:, 0]).astype(int)
+    world1 = maps[1].to_world()
+    np.testing.assert_allclose(world1.means.numpy(), head1.means[0][i, j].numpy(), rtol=1e-4, atol=1e-5)
+    q_head = head1.quats_wxyz[0][i, j].double()
+    q_world = world1.quats.double() / world1.quats.double().norm(dim=-1, keepdim=True)
+    assert torch.allclose((q_world * q_head).sum(-1).abs(), torch.ones(len(q_head), dtype=torch.float64), atol=1e-4)
+    np.testing.assert_allclose(world1.sh[:, 0].numpy(), head1.sh_band_major[0][i, j, 0].numpy(), atol=1e-6)
