@@ -364,6 +364,9 @@ def test_point_discs_nearest_wins() -> None:
     )
     rgb, covered = render_points(both, cam, config=PointsConfig())
     assert covered.sum() == 4 and (rgb[7:9, 7:9] == [0, 1, 0]).all()  # the nearer point wins
+    unseen = PointCloud(np.array([[0.0, 0.0, -1.0], [50.0, 0.0, 1.0]]), np.ones((2, 3), np.float32), np.full(2, 0.1))
+    rgb, covered = render_points(unseen, cam, background=(0.5, 0.5, 0.5))  # behind and off screen
+    assert not covered.any() and (rgb == 0.5).all()
 
 
 def test_nearest_context() -> None:

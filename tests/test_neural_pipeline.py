@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import json
 import math
@@ -520,3 +521,25 @@ def test_fusion_changes_descriptors_and_head_gaussians_keep_their_frame(
     q_world = world1.quats.double() / world1.quats.double().norm(dim=-1, keepdim=True)
     assert torch.allclose((q_world * q_head).sum(-1).abs(), torch.ones(len(q_head), dtype=torch.float64), atol=1e-4)
     np.testing.assert_allclose(world1.sh[:, 0].numpy(), head1.sh_band_major[0][i, j, 0].numpy(), atol=1e-6)
+
+
+def test_eval_with_the_neural_backend(ckpts: dict[str, Path], tmp_path: Path) -> None:
+    """``macsplat eval --backend neural`` runs the network on every case (random weights: the poses
+    are whatever they are, but every case is measured or counted as failed, none skipped); without
+    weights it stops before any case with exit 2."""
+    from macsplat_cli import synthetic as syn
+
+    data = tmp_path / "data"
+    room = syn.make_scene("room", 0)
+    cams = syn.orbit_cameras(room, [0.0, 6.0, 12.0], width=SIZE[0], height=SIZE[1])
+    syn.write_dataset(data, room, [dataclasses.replace(c, name=f"f{i}") for i, c in enumerate(cams)], supersample=1)
+    args = ["eval", "--data", data, "--backend", "neural", "--max-pairs", "1", "--max-targets", "1", "--json", "-q",
+            "--size", str(SIZE[0])]  # fmt: skip
+    code, out, err = _run([*args, "--out", tmp_path / "r", "--weights", ckpts["mast3r"]])
+    assert code == 0, err
+    doc = json.loads((tmp_path / "r" / "results.json").read_text())
+    assert doc["cases_done"] == doc["cases_total"] > 0
+    assert {c["method"] for c in doc["cases"]} == {"neural"}
+    assert all(c["status"] in ("ok", "failed") for c in doc["cases"])
+    code, _, err = _run([*args, "--out", tmp_path / "s"])
+    assert code == 2 and "mast3r" in err.lower() and not (tmp_path / "s").exists()

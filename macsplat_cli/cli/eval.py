@@ -247,7 +247,9 @@ def eval_command(
     ctx: typer.Context,
     data: DataOpt,
     split: SplitOpt = "all",
-    backend: Annotated[str, typer.Option("--backend", help="Reconstruction backend (classical).")] = "classical",
+    backend: Annotated[
+        str, typer.Option("--backend", help="Reconstruction backend: classical, or neural (--weights ...).")
+    ] = "classical",
     out: Annotated[Path, typer.Option("--out", "-o", help="Folder for results.json, results.csv, cases.jsonl.")] = Path(
         "results"
     ),
@@ -275,6 +277,15 @@ def eval_command(
         bool, typer.Option("--no-baselines", help="Skip the point-cloud and copy baselines.")
     ] = False,
     json_out: Annotated[bool, typer.Option("--json", help="Print the summary as JSON on stdout.")] = False,
+    weights: Annotated[
+        Path | None, typer.Option("--weights", metavar="PATH", help="neural: MASt3R checkpoint (models/mast3r.md).")
+    ] = None,
+    gaussian_head: Annotated[
+        Path | None, typer.Option("--gaussian-head", metavar="PATH", help="neural: Splatt3R checkpoint.")
+    ] = None,
+    dino: Annotated[Path | None, typer.Option("--dino", metavar="PATH", help="neural: DINOv3 weights.")] = None,
+    fusion: Annotated[Path | None, typer.Option("--fusion", metavar="PATH", help="neural: fusion weights.")] = None,
+    device: Annotated[str, typer.Option("--device", metavar="cpu|cuda", help="neural: where networks run.")] = "cpu",
     lpips_weights: Annotated[
         Path | None,
         typer.Option(
@@ -307,6 +318,8 @@ def eval_command(
             refine=refine, max_pairs=max_pairs, max_targets=max_targets, split_by=split_by.value,
             assignment=assignment.value, seed=seed, splatt3r_compatible=splatt3r_compatible,
             baselines=not no_baselines, json_out=json_out, quiet=state.quiet, lpips_weights=lpips_weights,
+            neural={"weights": weights, "gaussian_head": gaussian_head, "dino": dino, "fusion": fusion,
+                    "device": device},
         )  # fmt: skip
 
 
@@ -315,11 +328,11 @@ def _eval(
     cases_file: Path | None, size: int, eval_size: int | None, intrinsics: str, conf_threshold: float | None,
     refine: int, max_pairs: int,
     max_targets: int, split_by: str, assignment: str, seed: int, splatt3r_compatible: bool, baselines: bool,
-    json_out: bool, quiet: bool, lpips_weights: Path | None = None,
+    json_out: bool, quiet: bool, lpips_weights: Path | None = None, neural: dict[str, Any] | None = None,
 ) -> None:  # fmt: skip
     import time
 
-    from ..errors import DatasetError
+    from ..errors import DatasetError, InputError
     from ..evaluation import BackendOptions, EvalConfig, ReconstructSettings, ResultWriter, make_reconstructor
     from ..evaluation.protocol import BASELINES, summarize, to_jsonable
     from ..evaluation.splits import parse_splits
@@ -327,7 +340,11 @@ def _eval(
 
     parse_splits(split)  # bad options fail before any work
     lpips = load_lpips(lpips_weights) if lpips_weights is not None else None
-    reconstructor = make_reconstructor(backend, BackendOptions(conf_threshold=conf_threshold, refine_steps=refine))
+    neural = {k: v for k, v in (neural or {}).items() if v is not None}
+    if backend != "neural" and any(k != "device" for k in neural):
+        raise InputError("--weights, --gaussian-head, --dino and --fusion need --backend neural")
+    options = BackendOptions(conf_threshold=conf_threshold, refine_steps=refine, neural=neural)
+    reconstructor = make_reconstructor(backend, options)
     dataset = load_data(data, layout, scannetpp_split, scenes)
     sel = select_cases(
         dataset, cases_file=cases_file, split=split, split_by=split_by, assignment=assignment,

@@ -103,6 +103,8 @@ def render_points(
     r_px = np.clip(rad * 0.5 * (K[0, 0] + K[1, 1]) / z, cfg.min_radius_px, cfg.max_radius_px)
     near = (x > -r_px) & (x < W + r_px) & (y > -r_px) & (y < H + r_px)
     x, y, z, rgb, r_px = x[near], y[near], z[near], rgb[near], r_px[near]
+    if len(x) == 0:  # nothing in front of the camera and on screen
+        return image.reshape(H, W, 3), covered.reshape(H, W)
     reach = np.ceil(r_px).astype(np.int64)
     pix_all, z_all, src_all = [], [], []
     for R in np.unique(reach):

@@ -2,10 +2,9 @@
 
 A :class:`Reconstructor` is any callable ``(scene, case, settings) → Reconstruction`` with a
 ``name``; it sees the two context frames (and, for the oracle only, their ground truth).
-The evaluation measures whatever it returns, so new backends plug in through
-:data:`BACKENDS` (``--backend`` choices): a factory from :class:`BackendOptions` to a
-reconstructor. ``classical`` is the weight-free pipeline; a ``neural`` entry can be added
-by its module without touching the evaluation.
+The evaluation measures whatever it returns, so backends plug in through :data:`BACKENDS`
+(``--backend`` choices): a factory from :class:`BackendOptions` to a reconstructor.
+``classical`` is the weight-free pipeline; ``neural`` the network (user-supplied weights).
 
 :class:`OracleReconstructor` builds the reconstruction from ground truth — the true
 relative pose and the true depth of both context views fed to the classical Gaussian
@@ -39,6 +38,7 @@ __all__ = [
     "BackendOptions",
     "ClassicalReconstructor",
     "IntrinsicsMode",
+    "NeuralReconstructor",
     "OracleReconstructor",
     "ReconstructSettings",
     "Reconstructor",
@@ -81,11 +81,14 @@ class BackendOptions:
         conf_threshold: τ of the filtered matching (None: the default).
         refine_steps: test-time refinement steps (0: off).
         refine_scale: refinement resolution divisor.
+        neural: the neural backend's files and device (keyword arguments of
+            :func:`macsplat_cli.pipeline.neural.load_neural_models`).
     """
 
     conf_threshold: float | None = None
     refine_steps: int = 0
     refine_scale: int = 2
+    neural: dict[str, str | Path | None] = field(default_factory=dict)
 
 
 def _context_paths(scene: EvalScene, case: EvalCase) -> list[Path]:
@@ -99,8 +102,15 @@ class ClassicalReconstructor:
     options: BackendOptions = field(default_factory=BackendOptions)
     name: str = "classical"
 
+    def pipeline(self, config: ReconstructConfig) -> Pipeline:
+        return Pipeline(config)
+
+    def base_config(self) -> ReconstructConfig:
+        return ReconstructConfig()
+
     def __call__(self, scene: EvalScene, case: EvalCase, settings: ReconstructSettings) -> Reconstruction:
-        config = ReconstructConfig(views=ViewConfig(size=settings.size))
+        config = self.base_config()
+        config.views = ViewConfig(size=settings.size)
         if self.options.conf_threshold is not None:
             config.matching.conf_threshold = self.options.conf_threshold
         paths = _context_paths(scene, case)
@@ -110,10 +120,33 @@ class ClassicalReconstructor:
                 named = [dataclasses.replace(cam, name=p.name) for cam, p in zip(cams, paths)]
                 config.views.intrinsics = Path(tmp) / "intrinsics.json"
                 save_cameras(config.views.intrinsics, CameraSet(named))
-            rec = Pipeline(config).run(paths)
+            rec = self.pipeline(config).run(paths)
         if self.options.refine_steps > 0:
             rec = _refined(rec, self.options.refine_steps, self.options.refine_scale)
         return rec
+
+
+@dataclass
+class NeuralReconstructor(ClassicalReconstructor):
+    """The neural backend (:mod:`macsplat_cli.pipeline.neural`); the networks load once, at construction,
+    so that a missing or mismatched checkpoint stops the run before any case."""
+
+    name: str = "neural"
+
+    def __post_init__(self) -> None:
+        from ..pipeline.neural import NeuralBackend, load_neural_models
+
+        self.backend = NeuralBackend(load_neural_models(**self.options.neural))
+
+    def base_config(self) -> ReconstructConfig:
+        from ..pipeline.neural import neural_reconstruct_config
+
+        return neural_reconstruct_config()
+
+    def pipeline(self, config: ReconstructConfig) -> Pipeline:
+        from ..pipeline.neural import NeuralPipeline
+
+        return NeuralPipeline(self.backend, config)
 
 
 def _refined(rec: Reconstruction, steps: int, scale: int) -> Reconstruction:
@@ -165,8 +198,9 @@ class OracleReconstructor:
 BackendFactory = Callable[[BackendOptions], Reconstructor]
 BACKENDS: dict[str, BackendFactory] = {
     "classical": lambda options: ClassicalReconstructor(options),
+    "neural": lambda options: NeuralReconstructor(options),
 }
-"""``--backend`` name → factory. Other backends register here (e.g. ``BACKENDS["neural"] = ...``)."""
+"""``--backend`` name → factory."""
 
 
 def make_reconstructor(backend: str, options: BackendOptions | None = None) -> Reconstructor:
