@@ -189,20 +189,12 @@ def run_with_progress(
         raise
 
 
-def _cell(v: Any, digits: int = 2) -> str:
-    import math
-
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return "–"
-    if isinstance(v, float):
-        return f"{v:.{digits}f}"
-    return str(v)
-
-
 def summary_tables(rows: list[dict[str, Any]], title: str) -> list[Any]:
     """The summary rows as two Rich tables: novel views (every method), then geometry and time (the backend)."""
     from rich import box
     from rich.table import Table
+
+    from ..evaluation.protocol import format_cell
 
     views = [
         ("split", "split", None), ("method", "method", None), ("cases", "cases", None), ("targets", "targets", None),
@@ -219,7 +211,7 @@ def summary_tables(rows: list[dict[str, Any]], title: str) -> list[Any]:
         {
             **r,
             "ok": f"{r['cases'] - r['failed']}/{r['cases']}",
-            "auc": " ".join(_cell(r.get(f"auc@{t}"), 2) for t in (5, 10, 20)),
+            "auc": " ".join(format_cell(r.get(f"auc@{t}"), 2) for t in (5, 10, 20)),
         }
         for r in rows
         if "failed" in r
@@ -237,7 +229,7 @@ def summary_tables(rows: list[dict[str, Any]], title: str) -> list[Any]:
         for key, head, _ in cols:
             table.add_column(head, justify="left" if key in ("split", "method") else "right", no_wrap=True)
         for row in subset:
-            table.add_row(*[_cell(row.get(key), digits or 0) for key, _, digits in cols])
+            table.add_row(*[format_cell(row.get(key), digits or 0) for key, _, digits in cols])
         tables.append(table)
     return tables
 

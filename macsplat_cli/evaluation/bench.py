@@ -37,7 +37,7 @@ import numpy as np
 from .._atomic import atomic_write_bytes, atomic_write_text
 from ..errors import InputError, OutputPathError
 from .datasets import EvalDataset
-from .protocol import EvalConfig, EvalRun, ResultWriter, evaluate, summarize, to_jsonable
+from .protocol import EvalConfig, EvalRun, ResultWriter, evaluate, format_cell, summarize, to_jsonable
 from .reconstructors import BackendOptions, Reconstructor, ReconstructSettings, make_reconstructor
 from .splits import EvalCase
 
@@ -275,14 +275,6 @@ def write_bench(out_dir: Path, rows: Sequence[BenchRow], metric: str, *, title: 
     return paths
 
 
-def _cell(v: Any, digits: int = 2) -> str:
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return "–"
-    if isinstance(v, float):
-        return f"{v:.{digits}f}"
-    return str(v)
-
-
 BENCH_COLUMNS = (
     ("common_targets", "common targets", 0),
     ("time_s", "time s", 2),
@@ -306,10 +298,10 @@ def bench_markdown(rows: Sequence[BenchRow], metric: str) -> str:
         cells = [
             s.backend,
             str(s.size),
-            _cell(s.conf_threshold, 3) if s.conf_threshold else "default",
+            format_cell(s.conf_threshold, 3) if s.conf_threshold else "default",
             str(s.refine_steps),
         ]
-        cells += [_cell(r.summary.get(k), d) for k, _, d in BENCH_COLUMNS]
+        cells += [format_cell(r.summary.get(k), d) for k, _, d in BENCH_COLUMNS]
         cells += [f"{r.summary.get('failed', 0)}/{r.summary.get('cases', 0)}", "✓" if r.pareto else ""]
         if r.pareto:
             cells = [f"**{c}**" if c else c for c in cells]
@@ -324,9 +316,8 @@ def bench_markdown(rows: Sequence[BenchRow], metric: str) -> str:
         f"Pareto front (time vs {metric}, {direction} is better, vs failures), fastest first:",
         "",
     ]
-    lines += [
-        f"1. {r.setting.label}: {_cell(r.value('time_s'))} s, {metric} {_cell(r.value(metric), 3)}" for r in front
-    ]
+    cell = format_cell
+    lines += [f"1. {r.setting.label}: {cell(r.value('time_s'))} s, {metric} {cell(r.value(metric), 3)}" for r in front]
     return "\n".join(lines) + "\n"
 
 

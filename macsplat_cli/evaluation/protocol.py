@@ -462,7 +462,8 @@ def summarize(run: EvalRun) -> list[dict[str, Any]]:
     return rows
 
 
-def _md(v: Any, digits: int) -> str:
+def format_cell(v: Any, digits: int = 2) -> str:
+    """A table cell: floats to ``digits`` decimals, None/NaN/inf as "–"."""
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "–"
     return f"{v:.{digits}f}" if isinstance(v, float) else str(v)
@@ -486,13 +487,13 @@ def summary_markdown(rows: Sequence[dict[str, Any]]) -> str:
     out.append("|---|---|---:|---:|" + "---:|" * len(views))
     for r in rows:
         cells = [r["split"], r["method"], str(r["cases"]), str(r.get("targets", "–"))]
-        out.append("| " + " | ".join(cells + [_md(r.get(k), d) for k, _, d in views]) + " |")
+        out.append("| " + " | ".join(cells + [format_cell(r.get(k), d) for k, _, d in views]) + " |")
     out += ["", "| split | ok / cases | " + " | ".join(h for _, h, _ in geo) + " |"]
     out.append("|---|---:|" + "---:|" * len(geo))
     for r in rows:
         if "failed" in r:
             cells = [r["split"], f"{r['cases'] - r['failed']} / {r['cases']}"]
-            out.append("| " + " | ".join(cells + [_md(r.get(k), d) for k, _, d in geo]) + " |")
+            out.append("| " + " | ".join(cells + [format_cell(r.get(k), d) for k, _, d in geo]) + " |")
     return "\n".join(out) + "\n"
 
 
