@@ -161,13 +161,15 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=RefineConfig().steps)
     ap.add_argument("--scale", type=int, default=RefineConfig().scale)
     ap.add_argument("--dense-mac", action="store_true", help="also MAC over dense depth-consistent pixel pairs")
+    ap.add_argument("--real-only", action="store_true", help="skip the synthetic scenes")
     args = ap.parse_args()
     global DENSE
     DENSE = args.dense_mac
     print(f"refinement: up to {args.steps} steps at 1/{args.scale} resolution, early stop on plateau\n")
     print("| scene | pair | mode | PSNR | SSIM | masked PSNR | depth err % (cam 0) | refine s |")
     print("|---|---|---|---:|---:|---:|---:|---:|")
-    synthetic_rows(args.steps, args.scale)
+    if not args.real_only:
+        synthetic_rows(args.steps, args.scale)
     if args.data:
         real_rows(args.data, args.steps, args.scale)
 
