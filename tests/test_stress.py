@@ -253,8 +253,9 @@ def test_render_outputs_and_gradients_stay_finite(scene: Gaussians, dtype: torch
     out = render(g, torch.eye(4, dtype=dtype), pinhole(24, 16, 20.0, dtype), 24, 16, background=(0.2, 0.4, 0.6))
     for name in ("rgb", "depth", "alpha"):
         assert torch.isfinite(getattr(out, name)).all(), name
-    assert float(out.rgb.min()) >= 0.0  # colours are clamped at 0 (not at 1, as in 3DGS)
-    assert float(out.alpha.min()) >= 0 and float(out.alpha.max()) <= 1 + 1e-6 and float(out.depth.min()) >= 0
+    assert float(out.rgb.detach().min()) >= 0.0  # colours are clamped at 0 (not at 1, as in 3DGS)
+    alpha, depth = out.alpha.detach(), out.depth.detach()
+    assert float(alpha.min()) >= 0 and float(alpha.max()) <= 1 + 1e-6 and float(depth.min()) >= 0
     loss = out.rgb.square().sum() + out.depth.sum() + out.alpha.sum()
     grads = torch.autograd.grad(loss, leaves, allow_unused=True)
     assert all(gr is None or bool(torch.isfinite(gr).all()) for gr in grads)
