@@ -275,30 +275,45 @@ def _refine(
     return R, t, s, std_s
 
 
-def _planar_rival(
+def _planar_check(
     R: np.ndarray, t: np.ndarray, K0: np.ndarray, K1: np.ndarray, xy0: np.ndarray, xy1: np.ndarray, cfg: PoseConfig
-) -> int:
-    """Most matches that a relative pose other than ``(R, t)`` explains, among the poses of the
-    homography through the matches (up to four; planar scenes have two physical ones)."""
-    H, _ = cv2.findHomography(xy0, xy1, 0)
-    if H is None:
-        return 0
+) -> tuple[int, int, float]:
+    """How the verified matches relate to their dominant plane.
+
+    The homography is fitted robustly (MAGSAC++) to the verified matches: a least-squares fit
+    through the few off-plane matches missed the ambiguity of a 75° wide-baseline pair whose
+    matches lie almost all on one wall.
+
+    Returns:
+        ``(off_plane, rival, agreement_deg)``, for the report: matches off the plane's
+        homography; the most matches that a relative pose other than ``(R, t)`` among the
+        homography's decompositions explains (a plane has two physical ones); and how far
+        ``(R, t)`` is from the nearest decomposition (max of rotation and
+        translation-direction/3 differences, °).
+    """
+    H, hmask = cv2.findHomography(xy0, xy1, cv2.USAC_MAGSAC, 1.5 * cfg.threshold_px, maxIters=cfg.max_iters)
+    if H is None or hmask is None:
+        return len(xy0), 0, 0.0
+    off_plane = int(len(xy0) - hmask.sum())
     Hn = np.linalg.inv(K1) @ H @ K0
     x0n, x1n = _homog(xy0) @ np.linalg.inv(K0).T, _homog(xy1) @ np.linalg.inv(K1).T
     _, Rs, ts, _ = cv2.decomposeHomographyMat(Hn, np.eye(3))
-    best = 0
+    best, agreement = 0, math.inf
     for Ri, ti in zip(Rs, ts):
         ti = ti.ravel()
         if np.linalg.norm(ti) < 1e-9:
             continue
         ti = ti / np.linalg.norm(ti)
-        if _rotation_angle_deg(Ri @ R.T) < 1.0 and math.degrees(math.acos(np.clip(ti @ t, -1, 1))) < 5.0:
+        dr = _rotation_angle_deg(Ri @ R.T)
+        dt = math.degrees(math.acos(np.clip(ti @ t, -1, 1)))
+        agreement = min(agreement, max(dr, dt / 3))
+        if dr < 1.0 and dt < 5.0:
             continue  # the same pose
         d = np.abs(sampson_distance(fundamental_from_pose(Ri, ti, K0, K1), xy0, xy1))
         X = triangulate(Ri, ti, x0n, x1n)
         ok = (d < cfg.threshold_px) & np.isfinite(X).all(1) & (X[:, 2] > 0) & (X @ Ri[2] + ti[2] > 0)
         best = max(best, int(ok.sum()))
-    return best
+    return off_plane, best, agreement
 
 
 def estimate_pose(v0: View, v1: View, matches: Matches, config: PoseConfig | None = None) -> TwoViewGeometry:
@@ -427,8 +442,8 @@ def estimate_pose(v0: View, v1: View, matches: Matches, config: PoseConfig | Non
             "(the matches lie on one plane, or the pose is wrong)"
         )
     if n_h >= cfg.planar_fraction * n_final:
-        rival = _planar_rival(R, t, K0s, K1s, xy0[final], xy1[final], cfg)
-        info["planar_rival_inliers"] = rival
+        off_plane, rival, agreement = _planar_check(R, t, K0s, K1s, xy0[final], xy1[final], cfg)
+        info.update(planar_rival_inliers=rival, off_plane_inliers=off_plane, planar_agreement_deg=agreement)
         if rival >= cfg.planar_ambiguity * n_final:
             raise ReconstructionError(
                 f"pose is ambiguous: the {n_final} verified matches lie on one plane, and two different relative "
