@@ -543,3 +543,15 @@ def test_eval_with_the_neural_backend(ckpts: dict[str, Path], tmp_path: Path) ->
     assert all(c["status"] in ("ok", "failed") for c in doc["cases"])
     code, _, err = _run([*args, "--out", tmp_path / "s"])
     assert code == 2 and "mast3r" in err.lower() and not (tmp_path / "s").exists()
+    code, _, err = _run(["eval", "--data", data, "--weights", ckpts["mast3r"], "--out", tmp_path / "c", "-q"])
+    assert code == 2 and "--backend neural" in err  # the weights would be ignored by the classical backend
+
+    # and the bench grid over it
+    bench = ["bench", "--data", data, "--backend", "neural", "--size", str(SIZE[0]), "--refine", "0,2",
+             "--max-pairs", "1", "--max-targets", "1", "-q", "--weights", ckpts["mast3r"],
+             "--out", tmp_path / "b"]  # fmt: skip
+    code, _, err = _run(bench)
+    assert code == 0, err
+    rows = json.loads((tmp_path / "b" / "bench.json").read_text())
+    assert (tmp_path / "b" / "bench.md").is_file() and (tmp_path / "b" / "bench.png").is_file()
+    assert "neural" in json.dumps(rows)

@@ -15,6 +15,10 @@ from .eval import (
     AssignmentOpt,
     CasesOpt,
     DataOpt,
+    DeviceOpt,
+    DinoOpt,
+    FusionOpt,
+    GaussianHeadOpt,
     IntrinsicsChoice,
     IntrinsicsOpt,
     LayoutChoice,
@@ -28,7 +32,9 @@ from .eval import (
     SplitByChoice,
     SplitByOpt,
     SplitOpt,
+    WeightsOpt,
     load_data,
+    neural_options,
     run_with_progress,
     select_cases,
 )
@@ -91,6 +97,11 @@ def bench_command(
     seed: SeedOpt = 0,
     splatt3r_compatible: Splatt3rOpt = False,
     json_out: Annotated[bool, typer.Option("--json", help="Print the bench as JSON on stdout.")] = False,
+    weights: WeightsOpt = None,
+    gaussian_head: GaussianHeadOpt = None,
+    dino: DinoOpt = None,
+    fusion: FusionOpt = None,
+    device: DeviceOpt = "cpu",
     verbose: VerboseOpt = False,
     quiet: QuietOpt = False,
 ) -> None:
@@ -113,6 +124,7 @@ def bench_command(
             scannetpp_split=scannetpp_split, scenes=scenes, cases_file=cases, intrinsics=intrinsics.value,
             max_pairs=max_pairs, max_targets=max_targets, split_by=split_by.value, assignment=assignment.value,
             seed=seed, splatt3r_compatible=splatt3r_compatible, json_out=json_out, quiet=state.quiet,
+            neural=neural_options(backend.split(","), weights, gaussian_head, dino, fusion, device),
         )  # fmt: skip
 
 
@@ -120,7 +132,7 @@ def _bench(
     *, data: Path, out: Path, backends: list[str], sizes: list[int], taus: list[float | None], steps: list[int],
     eval_size: int | None, metric: str, split: str, layout: str, scannetpp_split: str, scenes: str | None,
     cases_file: Path | None, intrinsics: str, max_pairs: int, max_targets: int, split_by: str, assignment: str,
-    seed: int, splatt3r_compatible: bool, json_out: bool, quiet: bool,
+    seed: int, splatt3r_compatible: bool, json_out: bool, quiet: bool, neural: dict | None = None,
 ) -> None:  # fmt: skip
     import json
 
@@ -156,7 +168,7 @@ def _bench(
 
     rows = run_bench(
         dataset, sel.cases, settings, metric=metric, intrinsics=intrinsics, eval_size=eval_size,
-        splatt3r_compatible=splatt3r_compatible, out_dir=out, run_fn=run_fn,
+        splatt3r_compatible=splatt3r_compatible, out_dir=out, run_fn=run_fn, neural=neural,
     )  # fmt: skip
     if not quiet:
         from rich.markdown import Markdown

@@ -50,6 +50,31 @@ DataOpt = Annotated[
         "--data", metavar="DIR", help="Data set folder (generic, ScanNet++, CO3D sample, ICL-NUIM/NYU RGB-D)."
     ),
 ]
+WeightsOpt = Annotated[
+    Path | None, typer.Option("--weights", metavar="PATH", help="neural: MASt3R checkpoint (models/mast3r.md).")
+]
+GaussianHeadOpt = Annotated[
+    Path | None, typer.Option("--gaussian-head", metavar="PATH", help="neural: Splatt3R checkpoint.")
+]
+DinoOpt = Annotated[Path | None, typer.Option("--dino", metavar="PATH", help="neural: DINOv3 weights.")]
+FusionOpt = Annotated[Path | None, typer.Option("--fusion", metavar="PATH", help="neural: fusion weights.")]
+DeviceOpt = Annotated[str, typer.Option("--device", metavar="cpu|cuda", help="neural: where the networks run.")]
+
+
+def neural_options(
+    backends: list[str], weights: Path | None, gaussian_head: Path | None, dino: Path | None, fusion: Path | None,
+    device: str,
+) -> dict[str, Any]:  # fmt: skip
+    """The neural backend's files and device (only those given); an error if given without that backend."""
+    from ..errors import InputError
+
+    files = {"weights": weights, "gaussian_head": gaussian_head, "dino": dino, "fusion": fusion}
+    given = {k: v for k, v in files.items() if v is not None}
+    if given and "neural" not in backends:
+        raise InputError("--weights, --gaussian-head, --dino and --fusion need --backend neural")
+    return {**given, "device": device}
+
+
 SplitOpt = Annotated[str, typer.Option("--split", help="close, medium, wide, very-wide (comma-separated), or all.")]
 LayoutOpt = Annotated[LayoutChoice, typer.Option("--layout", help="Folder layout (auto: detect it).")]
 ScannetSplitOpt = Annotated[
@@ -269,15 +294,11 @@ def eval_command(
         bool, typer.Option("--no-baselines", help="Skip the point-cloud and copy baselines.")
     ] = False,
     json_out: Annotated[bool, typer.Option("--json", help="Print the summary as JSON on stdout.")] = False,
-    weights: Annotated[
-        Path | None, typer.Option("--weights", metavar="PATH", help="neural: MASt3R checkpoint (models/mast3r.md).")
-    ] = None,
-    gaussian_head: Annotated[
-        Path | None, typer.Option("--gaussian-head", metavar="PATH", help="neural: Splatt3R checkpoint.")
-    ] = None,
-    dino: Annotated[Path | None, typer.Option("--dino", metavar="PATH", help="neural: DINOv3 weights.")] = None,
-    fusion: Annotated[Path | None, typer.Option("--fusion", metavar="PATH", help="neural: fusion weights.")] = None,
-    device: Annotated[str, typer.Option("--device", metavar="cpu|cuda", help="neural: where networks run.")] = "cpu",
+    weights: WeightsOpt = None,
+    gaussian_head: GaussianHeadOpt = None,
+    dino: DinoOpt = None,
+    fusion: FusionOpt = None,
+    device: DeviceOpt = "cpu",
     lpips_weights: Annotated[
         Path | None,
         typer.Option(
@@ -310,8 +331,7 @@ def eval_command(
             refine=refine, max_pairs=max_pairs, max_targets=max_targets, split_by=split_by.value,
             assignment=assignment.value, seed=seed, splatt3r_compatible=splatt3r_compatible,
             baselines=not no_baselines, json_out=json_out, quiet=state.quiet, lpips_weights=lpips_weights,
-            neural={"weights": weights, "gaussian_head": gaussian_head, "dino": dino, "fusion": fusion,
-                    "device": device},
+            neural=neural_options([backend], weights, gaussian_head, dino, fusion, device),
         )  # fmt: skip
 
 
@@ -324,7 +344,7 @@ def _eval(
 ) -> None:  # fmt: skip
     import time
 
-    from ..errors import DatasetError, InputError
+    from ..errors import DatasetError
     from ..evaluation import BackendOptions, EvalConfig, ReconstructSettings, ResultWriter, make_reconstructor
     from ..evaluation.protocol import BASELINES, summarize, to_jsonable
     from ..evaluation.splits import parse_splits
@@ -332,10 +352,7 @@ def _eval(
 
     parse_splits(split)  # bad options fail before any work
     lpips = load_lpips(lpips_weights) if lpips_weights is not None else None
-    neural = {k: v for k, v in (neural or {}).items() if v is not None}
-    if backend != "neural" and any(k != "device" for k in neural):
-        raise InputError("--weights, --gaussian-head, --dino and --fusion need --backend neural")
-    options = BackendOptions(conf_threshold=conf_threshold, refine_steps=refine, neural=neural)
+    options = BackendOptions(conf_threshold=conf_threshold, refine_steps=refine, neural=neural or {})
     reconstructor = make_reconstructor(backend, options)
     dataset = load_data(data, layout, scannetpp_split, scenes)
     sel = select_cases(

@@ -38,7 +38,7 @@ from .._atomic import atomic_write_bytes, atomic_write_text
 from ..errors import InputError, OutputPathError
 from .datasets import EvalDataset
 from .protocol import EvalConfig, EvalRun, ResultWriter, evaluate, format_cell, summarize, to_jsonable
-from .reconstructors import BackendOptions, Reconstructor, ReconstructSettings, make_reconstructor
+from .reconstructors import BACKENDS, BackendOptions, Reconstructor, ReconstructSettings, make_reconstructor
 from .splits import EvalCase
 
 __all__ = [
@@ -214,6 +214,7 @@ def run_bench(
     out_dir: Path | None = None,
     run_fn: RunFn | None = None,
     on_row: Callable[[list[BenchRow]], None] | None = None,
+    neural: dict[str, Any] | None = None,
 ) -> list[BenchRow]:
     """Evaluate every setting on the same cases and mark the Pareto front (module docstring).
 
@@ -231,6 +232,7 @@ def run_bench(
         run_fn: runs one setting's evaluation ``(dataset, cases, reconstructor, config,
             writer, setting index)`` (default :func:`~.protocol.evaluate`; the CLI adds progress).
         on_row: called with the rows so far after every setting.
+        neural: the neural backend's files and device (:class:`BackendOptions`).
 
     Raises:
         InputError: unknown metric or backend.
@@ -238,14 +240,16 @@ def run_bench(
     if metric not in METRICS:
         raise InputError(f"unknown bench metric {metric!r}; use one of {', '.join(METRICS)}")
     for s in settings:
-        make_reconstructor(s.backend)  # unknown backends fail before any work
+        if s.backend not in BACKENDS:  # unknown backends fail before any work
+            raise InputError(f"unknown backend {s.backend!r}; available: {', '.join(sorted(BACKENDS))}")
     run = run_fn or _default_run
     eval_size = eval_size or max((s.size for s in settings), default=None)
     runs: list[EvalRun] = []
     rows: list[BenchRow] = []
     for i, s in enumerate(settings):
         recon = make_reconstructor(
-            s.backend, BackendOptions(conf_threshold=s.conf_threshold, refine_steps=s.refine_steps)
+            s.backend,
+            BackendOptions(conf_threshold=s.conf_threshold, refine_steps=s.refine_steps, neural=dict(neural or {})),
         )
         cfg = EvalConfig(
             settings=ReconstructSettings(size=s.size, intrinsics=intrinsics),  # type: ignore[arg-type]
