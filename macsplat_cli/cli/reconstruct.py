@@ -95,6 +95,9 @@ def reconstruct_command(
         ),
     ] = None,
     device: Annotated[str, typer.Option("--device", metavar="cpu|cuda", help="Where the neural backend runs.")] = "cpu",
+    precision: Annotated[
+        str, typer.Option("--precision", metavar="fp32|bf16", help="Neural backend arithmetic (bf16: faster).")
+    ] = "fp32",
     verbose: VerboseOpt = False,
     quiet: QuietOpt = False,
 ) -> None:
@@ -117,13 +120,13 @@ def reconstruct_command(
             video=video, report=report, json_out=json_out, size=size, intrinsics=intrinsics, focal=focal,
             conf_threshold=conf_threshold, refine_steps=_refine_steps(refine), refine_scale=refine_scale,
             use_mac=not no_mac, quiet=state.quiet, lpips_weights=lpips_weights,
-            neural=_neural_options(backend, weights, dino, fusion, gaussian_head, device),
+            neural=_neural_options(backend, weights, dino, fusion, gaussian_head, device, precision),
         )  # fmt: skip
 
 
 def _neural_options(
     backend: str, weights: Path | None, dino: Path | None, fusion: Path | None, gaussian_head: Path | None,
-    device: str,
+    device: str, precision: str = "fp32",
 ) -> dict[str, Any] | None:  # fmt: skip
     """The neural backend's files and device, or None for the classical backend (usage checked here)."""
     from ..errors import InputError
@@ -134,9 +137,12 @@ def _neural_options(
     dev = device.strip().lower()
     if dev not in ("cpu", "cuda"):
         raise InputError(f"--device {device!r}: use cpu or cuda")
+    if precision not in ("fp32", "bf16"):
+        raise InputError(f"--precision {precision!r}: use fp32 or bf16")
     given = {"--weights": weights, "--dino": dino, "--fusion": fusion, "--gaussian-head": gaussian_head}
     if name == "classical":
         extra = [opt for opt, v in given.items() if v is not None] + (["--device"] if dev != "cpu" else [])
+        extra += ["--precision"] if precision != "fp32" else []
         if extra:
             raise InputError(f"{', '.join(extra)} only apply to --backend neural")
         return None
@@ -146,7 +152,8 @@ def _neural_options(
         raise InputError(MISSING_WEIGHTS_HELP)
     check_fusion_files(dino, fusion)
     resolve_device(dev)
-    return {"weights": weights, "dino": dino, "fusion": fusion, "gaussian_head": gaussian_head, "device": dev}
+    files = {"weights": weights, "dino": dino, "fusion": fusion, "gaussian_head": gaussian_head, "device": dev}
+    return {**files, "precision": precision}
 
 
 def _refine_steps(text: str) -> int:
@@ -210,7 +217,13 @@ def _reconstruct(
 
     with _StageProgress(disabled=quiet) as progress:
         if neural is not None:
-            from ..pipeline.neural import NeuralBackend, NeuralPipeline, load_neural_models, neural_reconstruct_config
+            from ..pipeline.neural import (
+                NeuralBackend,
+                NeuralConfig,
+                NeuralPipeline,
+                load_neural_models,
+                neural_reconstruct_config,
+            )
 
             config = neural_reconstruct_config(config)
             if conf_threshold is not None:
@@ -218,13 +231,14 @@ def _reconstruct(
             progress.event("weights", "start")
             t0 = time.perf_counter()
             try:
-                models = load_neural_models(**neural)
+                models = load_neural_models(**{k: v for k, v in neural.items() if k != "precision"})
             except BaseException:
                 progress.event("weights", "fail")
                 raise
             load_s = time.perf_counter() - t0
             progress.event("weights", "end")
-            pipeline: Pipeline = NeuralPipeline(NeuralBackend(models), config)
+            backend = NeuralBackend(models, NeuralConfig(precision=neural["precision"]))
+            pipeline: Pipeline = NeuralPipeline(backend, config)
         else:
             if conf_threshold is not None:
                 config.matching.conf_threshold = conf_threshold
