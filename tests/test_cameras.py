@@ -217,7 +217,8 @@ def test_scaled_rotation_message_reports_deviation() -> None:
 def test_small_rotation_noise_is_accepted() -> None:
     T = np.eye(4)
     T[:3, :3] += 1e-6
-    Camera("x", 10, 10, intrinsics(5, 5, 5, 5), T)
+    cam = Camera("x", 10, 10, intrinsics(5, 5, 5, 5), T)
+    np.testing.assert_allclose(cam.cam_to_world, T, atol=1e-5)  # accepted, and still that pose
 
 
 @pytest.mark.parametrize(
