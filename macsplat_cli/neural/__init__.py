@@ -9,7 +9,6 @@ from __future__ import annotations
 
 from .backbone import BackboneView, MASt3RBackbone, conf_activation, depth_activation
 from .checkpoints import (
-    CheckpointDependencyError,
     CheckpointError,
     CheckpointNotFoundError,
     LoadReport,
@@ -27,7 +26,6 @@ from .rope import RoPE2D, patch_positions
 __all__ = [
     "BackboneConfig",
     "BackboneView",
-    "CheckpointDependencyError",
     "CheckpointError",
     "CheckpointNotFoundError",
     "GaussianHead",

@@ -42,13 +42,13 @@ import torch
 from torch import nn
 
 from ..errors import InputError
+from ._safetensors import read_safetensors
 from .backbone import MASt3RBackbone
 from .config import BackboneConfig, GaussianHeadConfig, ModelConfigError
 from .gaussian_head import GaussianHead
 
 __all__ = [
     "INERT_GLOBAL_PREFIXES",
-    "CheckpointDependencyError",
     "CheckpointError",
     "CheckpointFormat",
     "CheckpointNotFoundError",
@@ -151,10 +151,6 @@ class CheckpointError(InputError):
 
 class CheckpointNotFoundError(CheckpointError, FileNotFoundError):
     """A required checkpoint file does not exist; the message says which file and where to get it."""
-
-
-class CheckpointDependencyError(CheckpointError, ImportError):
-    """An optional package needed to read this checkpoint layout is not installed."""
 
 
 @dataclass
@@ -419,15 +415,8 @@ def _hf_files(folder: Path) -> tuple[Path, Path]:
 
 def _read_safetensors(path: Path) -> dict[str, torch.Tensor]:
     try:
-        from safetensors import SafetensorError
-        from safetensors.torch import load_file
-    except ImportError as e:
-        raise CheckpointDependencyError(
-            f"reading {path} needs the 'safetensors' package: pip install safetensors", path=path
-        ) from e
-    try:
-        return load_file(str(path), device="cpu")
-    except (SafetensorError, OSError) as e:
+        return read_safetensors(path, lambda message: CheckpointError(f"MASt3R weights {message}", path=path))
+    except OSError as e:
         raise CheckpointError(f"MASt3R weights {path} cannot be read: {type(e).__name__}: {e}", path=path) from None
 
 
