@@ -27,6 +27,7 @@ import torch
 from torch import nn
 
 from .errors import InputError
+from .neural._state_dict import StateDictError, check_state_dict_keys, log_sha256
 
 __all__ = ["LPIPS", "LPIPSWeightsError", "load_lpips"]
 
@@ -42,8 +43,8 @@ _SHIFT = (-0.030, -0.088, -0.188)
 _SCALE = (0.458, 0.448, 0.450)
 
 
-class LPIPSWeightsError(InputError):
-    """A missing, unreadable or mismatched LPIPS/VGG weight file."""
+class LPIPSWeightsError(StateDictError):
+    """A missing, unreadable or mismatched LPIPS/VGG weight file (``key``/``file_shape``/``model_shape`` when known)."""
 
 
 class LPIPS(nn.Module):
@@ -105,6 +106,7 @@ class LPIPS(nn.Module):
 
 
 def _read(path: Path) -> dict[str, torch.Tensor]:
+    log_sha256(path, logger, "LPIPS weights")
     try:
         sd = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001 - torch.load raises many kinds on a bad file
@@ -121,7 +123,7 @@ def load_lpips(path: str | Path) -> LPIPS:
 
     Raises:
         LPIPSWeightsError: missing files, or a key missing or of the wrong shape (the first
-            such key is named with both shapes).
+            such key is named with both shapes; :func:`.neural._state_dict.check_state_dict_keys`).
     """
     path = Path(path)
     if path.is_dir():
@@ -144,15 +146,11 @@ def load_lpips(path: str | Path) -> LPIPS:
         wanted[f"features.{idx}.bias"] = model.features[idx].bias
     for k in range(5):
         wanted[f"lin{k}.model.1.weight"] = model.lins[k].weight
+    # The files hold more than LPIPS uses (VGG16's classifier), so unknown keys are ignored.
+    expected = {key: param.shape for key, param in wanted.items()}
+    check_state_dict_keys(expected, sd, LPIPSWeightsError, source=str(path), model="LPIPS-VGG", allow_unexpected=True)
     with torch.no_grad():
         for key, param in wanted.items():
-            if key not in sd:
-                raise LPIPSWeightsError(f"{path}: key {key!r} is missing (expected shape {tuple(param.shape)})")
-            t = sd[key]
-            if tuple(t.shape) != tuple(param.shape):
-                raise LPIPSWeightsError(
-                    f"{path}: key {key!r} has shape {tuple(t.shape)}, expected {tuple(param.shape)}"
-                )
-            param.copy_(t.to(param.dtype))
+            param.copy_(sd[key].to(param.dtype))
     logger.debug("LPIPS weights loaded from %s", path)
     return model

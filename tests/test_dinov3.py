@@ -22,7 +22,10 @@ from torch import nn
 
 from macsplat_cli.errors import InputError, ShapeError
 from macsplat_cli.neural.dinov3 import (
+    IMAGENET_MEAN,
+    IMAGENET_STD,
     SAT493M_MEAN,
+    SAT493M_STD,
     DINOv3CheckpointError,
     DINOv3Config,
     DINOv3Encoder,
@@ -32,6 +35,7 @@ from macsplat_cli.neural.dinov3 import (
     infer_dinov3_config,
     load_dinov3,
     read_safetensors,
+    rope_base_from_periods,
     rope_periods,
     rope_sin_cos,
 )
@@ -331,6 +335,92 @@ def test_infer_rejects_non_vit() -> None:
     assert e.value.key == "cls_token"
     with pytest.raises(DINOv3CheckpointError, match="ConvNeXt"):
         infer_dinov3_config({"downsample_layers.0.0.weight": torch.zeros(96, 3, 4, 4)})
+
+
+def stored_periods(head_dim: int, base: float, dtype: torch.dtype) -> torch.Tensor:
+    """``rope_embed.periods`` as a checkpoint stores it: computed in float32, saved as ``dtype``."""
+    i = torch.arange(head_dim // 4, dtype=torch.float32)
+    return (base ** (2 * i / (head_dim // 2))).to(dtype)
+
+
+def real_state_dict(name: str, periods: torch.Tensor, *, sat: bool = False) -> dict[str, torch.Tensor]:
+    """A CPU (not meta) state dict of the named variant's shapes: zero-stride tensors, plus the given periods."""
+    c, depth, heads, hidden, ffn, _, _ = VARIANTS[name]
+    sd = {k: torch.zeros(()).expand(shape) for k, shape in official_spec(c, depth, heads, hidden, ffn).items()}
+    if sat:
+        sd["local_cls_norm.weight"] = torch.zeros(()).expand(c)
+        sd["local_cls_norm.bias"] = torch.zeros(()).expand(c)
+    sd["rope_embed.periods"] = periods
+    return sd
+
+
+# float32 periods, bfloat16 periods, and bfloat16 periods converted back to float32 (a converted file).
+PERIOD_DTYPES = {
+    "float32": lambda p: p,
+    "bfloat16": lambda p: p.to(torch.bfloat16),
+    "bf16-in-float32": lambda p: p.to(torch.bfloat16).float(),
+}
+
+
+@pytest.mark.parametrize("stored", list(PERIOD_DTYPES))
+@pytest.mark.parametrize("name", list(VARIANTS))
+def test_preset_recognised_from_real_periods(name: str, stored: str) -> None:
+    periods = PERIOD_DTYPES[stored](stored_periods(64, 100.0, torch.float32))
+    sd = real_state_dict(name, periods)
+    assert sd["rope_embed.periods"].device.type == "cpu" and sd["cls_token"].device.type == "cpu"
+    if stored != "float32":  # the old rule, periods[1] ** P, is far from 100 here (102.94)
+        assert abs(float(periods[1].double() ** periods.numel()) - 100.0) > 1.0
+    cfg = infer_dinov3_config(sd)
+    assert cfg == DINOv3Config.preset(name)
+    assert cfg.rope_base == 100.0 and cfg.image_mean == IMAGENET_MEAN
+
+
+@pytest.mark.parametrize("stored", list(PERIOD_DTYPES))
+def test_sat493m_vitl_recognised_from_real_periods(stored: str) -> None:
+    periods = PERIOD_DTYPES[stored](stored_periods(64, 100.0, torch.float32))
+    cfg = infer_dinov3_config(real_state_dict("vitl16", periods, sat=True))
+    assert cfg.name == "vitl16-sat493m" and cfg.rope_base == 100.0
+    assert cfg.image_mean == SAT493M_MEAN and cfg.image_std == SAT493M_STD
+    assert cfg.untie_global_and_local_cls_norm
+    assert dataclasses.replace(cfg, name="vitl16", untie_global_and_local_cls_norm=False, image_mean=IMAGENET_MEAN,
+                               image_std=IMAGENET_STD) == DINOv3Config.preset("vitl16")  # fmt: skip
+
+
+@pytest.mark.parametrize("stored", list(PERIOD_DTYPES))
+@pytest.mark.parametrize("head_dim", [32, 64, 128])
+def test_rope_base_100_from_stored_periods(head_dim: int, stored: str) -> None:
+    periods = PERIOD_DTYPES[stored](stored_periods(head_dim, 100.0, torch.float32))
+    assert rope_base_from_periods(periods) == 100.0
+
+
+@pytest.mark.parametrize("stored", list(PERIOD_DTYPES))
+@pytest.mark.parametrize("base", [101.0, 200.0, 10000.0])
+def test_other_rope_base_is_custom(base: float, stored: str) -> None:
+    periods = PERIOD_DTYPES[stored](stored_periods(64, base, torch.float32))
+    for sat in (False, True):
+        cfg = infer_dinov3_config(real_state_dict("vitl16", periods, sat=sat))
+        assert cfg.name.startswith("custom-1024d-24x16h-mlp4096-rope"), cfg.name
+        assert cfg.image_mean == IMAGENET_MEAN  # not the SAT-493M normalisation: not that model
+        assert cfg.rope_base == pytest.approx(base, rel=1e-6 if stored == "float32" else 5e-3)
+        assert cfg.untie_global_and_local_cls_norm == sat
+        with torch.device("meta"):
+            assert set(DINOv3Encoder(cfg).state_dict()) == set(real_state_dict("vitl16", periods, sat=sat))
+
+
+def test_tiny_bf16_periods_are_not_a_custom_rope() -> None:
+    sd = random_official_state_dict(TINY)
+    sd["rope_embed.periods"] = sd["rope_embed.periods"].to(torch.bfloat16)
+    cfg = infer_dinov3_config(sd)
+    assert cfg.rope_base == 100.0 and cfg.name == "custom-64d-2x2h-mlp128"
+
+
+@pytest.mark.parametrize("bad", [[1.0, 0.0, 3.0, 4.0], [1.0, -2.0, 3.0, 4.0], [1.0, float("nan"), 3.0, 4.0]])
+def test_nonpositive_periods_rejected(bad: list[float]) -> None:
+    sd = random_official_state_dict(dataclasses.replace(TINY, num_heads=4))
+    sd["rope_embed.periods"] = torch.tensor(bad[:4])
+    with pytest.raises(DINOv3CheckpointError, match="positive and finite") as e:
+        infer_dinov3_config(sd)
+    assert e.value.key == "rope_embed.periods"
 
 
 # ------------------------------------------------------------------------------------------------
@@ -633,6 +723,7 @@ def test_bf16_checkpoint_loads_as_float32(tmp_path: Path) -> None:
     torch.save({k: v.to(torch.bfloat16) for k, v in sd.items()}, path)
     enc = load_dinov3(path)
     assert enc.cls_token.dtype == torch.float32 and enc.rope_embed.periods.dtype == torch.float32
+    assert enc.config.rope_base == 100.0 and enc.config.name == "custom-64d-2x2h-mlp128"  # bf16 periods, base 100
     torch.testing.assert_close(enc.cls_token, sd["cls_token"].to(torch.bfloat16).float(), rtol=0, atol=0)
     full = DINOv3Encoder(TINY)
     full.load_state_dict(sd, strict=True)

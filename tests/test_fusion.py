@@ -262,5 +262,9 @@ def test_load_errors(tmp_path: Path) -> None:
     obj = torch.load(tmp_path / "f.pth", weights_only=True)
     obj["state_dict"]["layers.0.weight"] = torch.zeros(32, 40)
     torch.save(obj, tmp_path / "bad.pth")
-    with pytest.raises(FusionCheckpointError, match=r"'layers\.0\.weight' is shape \[32, 40\], expected shape"):
+    with pytest.raises(
+        FusionCheckpointError, match=r"'layers\.0\.weight' has shape \[32, 40\] in the file but shape"
+    ) as e:
         load_fusion(tmp_path / "bad.pth")
+    assert e.value.key == "layers.0.weight" and e.value.file_shape == (32, 40)
+    assert e.value.model_shape == tuple(ResidualSemanticFusion(CFG).state_dict()["layers.0.weight"].shape)

@@ -103,11 +103,17 @@ def test_bad_weights_name_the_problem(weights: tuple[Path, dict, dict], tmp_path
         load_lpips(tmp_path / "empty")
     bad = {**vgg, **lin, "lin2.model.1.weight": torch.rand(1, 128, 1, 1)}
     torch.save(bad, tmp_path / "bad.pth")
-    with pytest.raises(LPIPSWeightsError, match=r"'lin2.model.1.weight' has shape \(1, 128, 1, 1\), expected \(1, 256"):
+    with pytest.raises(
+        LPIPSWeightsError, match=r"'lin2.model.1.weight' has shape \[1, 128, 1, 1\] in the file but shape \[1, 256"
+    ) as e:
         load_lpips(tmp_path / "bad.pth")
+    assert e.value.key == "lin2.model.1.weight"
+    assert (e.value.file_shape, e.value.model_shape) == ((1, 128, 1, 1), (1, 256, 1, 1))
     torch.save(vgg, tmp_path / "vgg_only.pth")
-    with pytest.raises(LPIPSWeightsError, match="lin0.model.1.weight"):
+    with pytest.raises(LPIPSWeightsError, match="lin0.model.1.weight") as e:
         load_lpips(tmp_path / "vgg_only.pth")
+    assert e.value.file_shape is None and e.value.model_shape == (1, 64, 1, 1)
+    assert e.value.missing_keys == tuple(f"lin{k}.model.1.weight" for k in range(5))
     (tmp_path / "junk.pth").write_bytes(b"not a checkpoint")
     with pytest.raises(LPIPSWeightsError, match="not a readable"):
         load_lpips(tmp_path / "junk.pth")

@@ -22,6 +22,7 @@ import pytest
 import torch
 
 from macsplat_cli.errors import InputError
+from macsplat_cli.lpips import LPIPSWeightsError
 from macsplat_cli.neural import (
     BackboneConfig,
     CheckpointError,
@@ -33,6 +34,15 @@ from macsplat_cli.neural import (
     check_state_dict,
     load_mast3r,
     load_splatt3r,
+)
+from macsplat_cli.neural._state_dict import StateDictError, check_state_dict_keys, log_sha256, sha256_file
+from macsplat_cli.neural.dinov3 import DINOv3CheckpointError
+from macsplat_cli.neural.fusion import (
+    FusionCheckpointError,
+    FusionConfig,
+    ResidualSemanticFusion,
+    load_fusion,
+    save_fusion,
 )
 
 TINY = BackboneConfig.tiny()
@@ -406,6 +416,58 @@ def test_sha256_is_logged_at_debug_only(tmp_path: Path, caplog: pytest.LogCaptur
     with caplog.at_level(logging.DEBUG, logger="macsplat_cli"):
         _, report = load_mast3r(path)
     assert report.sha256 == digest and digest in caplog.text
+
+
+def test_fusion_loader_logs_its_sha256_through_the_shared_helper(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path = save_fusion(ResidualSemanticFusion(FusionConfig(dino_dim=16, hidden_dim=8)), tmp_path / "f.pth")
+    digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    assert sha256_file(path) == digest and sha256_file(path, chunk=7) == digest
+    with caplog.at_level(logging.INFO, logger="macsplat_cli"):
+        load_fusion(path)
+        assert log_sha256(path, logging.getLogger("macsplat_cli.neural.fusion"), "x") is None  # DEBUG off: not read
+    assert digest not in caplog.text
+    with caplog.at_level(logging.DEBUG, logger="macsplat_cli"):
+        load_fusion(path)
+    assert f"fusion weights {path} sha256 {digest}" in caplog.text
+
+
+# ============================================================================================= shared strict check
+@pytest.mark.parametrize("error", [CheckpointError, DINOv3CheckpointError, FusionCheckpointError, LPIPSWeightsError])
+def test_shared_check_raises_the_loaders_own_error_class(error: type[Exception]) -> None:
+    expected = {"a.weight": (4, 3), "a.bias": (4,), "b.weight": (2, 4)}
+    sd = {"a.weight": torch.zeros(4, 3), "b.weight": torch.zeros(2, 5), "a.bias": torch.zeros(3)}
+    with pytest.raises(error) as info:
+        check_state_dict_keys(expected, sd, error, source="f.pth", model="net")
+    e = info.value
+    assert type(e) is error and isinstance(e, StateDictError) and isinstance(e, InputError)
+    # First bad key in file order, both shapes, and how many keys are wrong in all.
+    assert e.key == "b.weight" and e.file_shape == (2, 5) and e.model_shape == (2, 4)
+    assert str(e).startswith("f.pth: key 'b.weight' has shape [2, 5] in the file but shape [2, 4] in net")
+    assert "2 key(s) of another shape, 0 unexpected, 0 missing" in str(e)
+
+
+def test_shared_check_missing_unexpected_and_non_tensors() -> None:
+    expected = {"a": (2,), "b": (3,), "opt": (1,)}
+    with pytest.raises(StateDictError, match=r"key 'p.b' \(shape \[3\] in net\) is missing from the file") as info:
+        check_state_dict_keys(expected, {"a": torch.zeros(2)}, StateDictError, source="s", model="net",
+                              optional={"opt"}, key_prefix="p.")  # fmt: skip
+    assert info.value.key == "p.b" and info.value.file_shape is None and info.value.missing_keys == ("p.b",)
+    sd = {"a": torch.zeros(2), "b": torch.zeros(3), "extra": torch.zeros(5, 5), "note": "text"}
+    with pytest.raises(StateDictError, match=r"unexpected key 'extra' \(shape \[5, 5\] in the file; not in net\)"):
+        check_state_dict_keys(expected, sd, StateDictError, source="s", model="net", optional={"opt"})
+    got = check_state_dict_keys(
+        expected, sd, StateDictError, source="s", optional={"opt"}, allow_unexpected=True, allow_missing=True
+    )
+    assert got == ((), ("extra", "note"))
+    assert check_state_dict_keys(expected, {"a": torch.zeros(2)}, StateDictError, source="s", allow_missing=True) == (
+        ("b", "opt"),
+        (),
+    )
+    with pytest.raises(StateDictError, match="'a' has a str, not a tensor, in the file") as info:
+        check_state_dict_keys(expected, {"a": "oops"}, StateDictError, source="s", allow_missing=True)
+    assert info.value.key == "a" and info.value.file_shape is None and info.value.model_shape == (2,)
 
 
 # ============================================================================================= Hugging Face folder

@@ -42,8 +42,12 @@ def read_safetensors(
     that follows the header; an optional ``"__metadata__"`` entry), then the raw
     little-endian data.
 
+    Args:
+        path: the file.
+        error: builds the exception for a malformed file from its message (the loader's error class).
+
     Raises:
-        DINOv3CheckpointError: the file is truncated or its header is malformed.
+        ``error(...)``: the file is truncated or its header is malformed.
     """
     p = Path(path)
     if sys.byteorder != "little":

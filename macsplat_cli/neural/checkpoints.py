@@ -27,7 +27,7 @@ present (except ``mask_token``, unused by inference, and the alias duplicates ab
 from __future__ import annotations
 
 import argparse
-import hashlib
+import functools
 import json
 import logging
 import pickle
@@ -41,8 +41,8 @@ from typing import Any, Literal
 import torch
 from torch import nn
 
-from ..errors import InputError
 from ._safetensors import read_safetensors
+from ._state_dict import StateDictError, check_state_dict_keys, log_sha256, sha256_file
 from .backbone import MASt3RBackbone
 from .config import BackboneConfig, GaussianHeadConfig, ModelConfigError
 from .gaussian_head import GaussianHead
@@ -117,16 +117,12 @@ _LOAD_ERRORS = (
 
 
 # ============================================================================================= errors and report
-class CheckpointError(InputError):
+class CheckpointError(StateDictError):
     """A checkpoint file is missing, unreadable, or does not match the network.
 
-    Attributes:
+    Attributes (besides :class:`StateDictError`'s ``key``, ``file_shape``, ``model_shape``,
+    ``missing_keys``, ``unexpected_keys``):
         path: the file (or folder) concerned.
-        key: the first offending state-dict key, if any.
-        file_shape: that key's shape in the file (``None`` if absent there).
-        model_shape: that key's shape in the model (``None`` if the model has no such key).
-        missing_keys: model keys absent from the file.
-        unexpected_keys: file keys the model does not have.
     """
 
     def __init__(
@@ -141,12 +137,14 @@ class CheckpointError(InputError):
         unexpected_keys: Iterable[str] = (),
     ) -> None:
         self.path = Path(path) if path is not None else None
-        self.key = key
-        self.file_shape = file_shape
-        self.model_shape = model_shape
-        self.missing_keys = tuple(missing_keys)
-        self.unexpected_keys = tuple(unexpected_keys)
-        super().__init__(message)
+        super().__init__(
+            message,
+            key=key,
+            file_shape=file_shape,
+            model_shape=model_shape,
+            missing_keys=missing_keys,
+            unexpected_keys=unexpected_keys,
+        )
 
 
 class CheckpointNotFoundError(CheckpointError, FileNotFoundError):
@@ -174,23 +172,6 @@ class LoadReport:
     ignored_keys: tuple[str, ...] = ()
     notes: tuple[str, ...] = field(default_factory=tuple)
     sha256: str | None = None
-
-
-def sha256_file(path: Path | str, chunk: int = 1 << 24) -> str:
-    """SHA-256 hex digest of a file, read in ``chunk``-byte pieces."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(chunk):
-            h.update(block)
-    return h.hexdigest()
-
-
-def _log_sha256(path: Path) -> str | None:
-    if not logger.isEnabledFor(logging.DEBUG):
-        return None
-    digest = sha256_file(path)
-    logger.debug("sha256(%s) = %s", path.name, digest)
-    return digest
 
 
 # ============================================================================================= restricted torch.load
@@ -324,50 +305,20 @@ def check_state_dict(
 
     Raises:
         CheckpointError: a key has the wrong shape (always), or, with ``strict``, a key is unknown or a
-            model key is missing. The message names the first bad key in file order and both shapes.
+            model key is missing. The message names the first bad key in file order and both shapes
+            (the check every loader shares, :func:`._state_dict.check_state_dict_keys`).
     """
-    path = Path(path)
-    expected = {k: tuple(v.shape) for k, v in module.state_dict(keep_vars=True).items()}
-    optional = set(optional)
-    unexpected = [k for k in state_dict if k not in expected]
-    missing = [k for k in expected if k not in state_dict and k not in optional]
-
-    def error(message: str, key: str, file_shape: tuple[int, ...] | None) -> CheckpointError:
-        return CheckpointError(
-            f"{path}: {message}",
-            path=path,
-            key=key_prefix + key,
-            file_shape=file_shape,
-            model_shape=expected.get(key),
-            missing_keys=[key_prefix + k for k in missing],
-            unexpected_keys=[key_prefix + k for k in unexpected],
-        )
-
-    counts = f"{len(unexpected)} unexpected and {len(missing)} missing key(s) in all"
-    for k, v in state_dict.items():
-        file_shape = tuple(v.shape)
-        if k not in expected:
-            if strict:
-                raise error(
-                    f"unexpected key {key_prefix + k!r} (shape {list(file_shape)} in the file; the model has no "
-                    f"such key); {counts} — the file does not match this architecture",
-                    k,
-                    file_shape,
-                )
-            continue
-        if file_shape != expected[k]:
-            raise error(
-                f"key {key_prefix + k!r} has shape {list(file_shape)} in the file but {list(expected[k])} in the "
-                f"model; {counts} — the file does not match this architecture",
-                k,
-                file_shape,
-            )
-    if missing and strict:
-        k = missing[0]
-        raise error(
-            f"model key {key_prefix + k!r} (shape {list(expected[k])}) is missing from the file; {counts}", k, None
-        )
-    return tuple(missing), tuple(unexpected)
+    expected = {k: v.shape for k, v in module.state_dict(keep_vars=True).items()}
+    return check_state_dict_keys(
+        expected,
+        state_dict,
+        functools.partial(CheckpointError, path=Path(path)),
+        source=str(Path(path)),
+        optional=optional,
+        allow_missing=not strict,
+        allow_unexpected=not strict,
+        key_prefix=key_prefix,
+    )
 
 
 def _build_and_load(
@@ -508,7 +459,7 @@ def load_mast3r(
         CheckpointError: unreadable or unsafe file, unsupported configuration, or mismatched keys/shapes.
     """
     sd, cfg, fmt, weights = read_mast3r_checkpoint(path, config=config)
-    digest = _log_sha256(weights)
+    digest = log_sha256(weights, logger, "MASt3R weights")
     model, missing, unexpected, notes = _build_and_load(lambda: MASt3RBackbone(cfg), sd, path=weights, strict=strict)
     for note in notes:
         logger.debug("%s: %s", weights.name, note)
@@ -591,7 +542,7 @@ def load_splatt3r(
         raise CheckpointError(
             f"{path} has no 'encoder.downstream_head1.gaussian_dpt.*' weights: not a Splatt3R checkpoint", path=path
         )
-    digest = _log_sha256(path)
+    digest = log_sha256(path, logger, "Splatt3R checkpoint")
     bcfg = backbone_config or BackboneConfig(head_type="gaussian_head", desc_conf_mode=("exp", 1.0, float("inf")))
     if head_config is None:
         last = gaussian_sd.get("downstream_head1.gaussian_dpt.dpt.head.4.weight")

@@ -50,7 +50,8 @@ from torch import nn
 
 from macsplat_cli._atomic import atomic_path
 from macsplat_cli._checks import check_shape
-from macsplat_cli.errors import InputError, ShapeError
+from macsplat_cli.errors import ShapeError
+from macsplat_cli.neural._state_dict import StateDictError, check_state_dict_keys, log_sha256
 from macsplat_cli.neural.dinov3 import DINOv3Encoder
 
 __all__ = [
@@ -70,8 +71,8 @@ FUSION_FORMAT = "macsplat.residual_semantic_fusion"
 _FUSION_VERSION = 1
 
 
-class FusionCheckpointError(InputError):
-    """A fusion weight file is missing, unreadable, or does not match its config."""
+class FusionCheckpointError(StateDictError):
+    """A fusion weight file is missing, unreadable, or does not match its config (``key``/``file_shape``/...)."""
 
 
 @dataclass(frozen=True)
@@ -250,6 +251,7 @@ def load_fusion(path: str | os.PathLike[str], *, device: torch.device | str = "c
     p = Path(path)
     if not p.is_file():
         raise FusionCheckpointError(f"fusion weights not found: {p} (train them or omit the fusion step)")
+    log_sha256(p, logger, "fusion weights")
     try:
         obj = torch.load(p, map_location="cpu", weights_only=True)
     except Exception as e:  # torch.load's exception types are unspecified (IndexError on some garbage)
@@ -266,14 +268,7 @@ def load_fusion(path: str | os.PathLike[str], *, device: torch.device | str = "c
     if not isinstance(state, Mapping):
         raise FusionCheckpointError(f"{p}: no state_dict")
     module = ResidualSemanticFusion(cfg)
-    expected = module.state_dict()
-    for key, ref in expected.items():
-        t = state.get(key)
-        if t is None or tuple(t.shape) != tuple(ref.shape):
-            got = "missing" if t is None else f"shape {list(t.shape)}"
-            raise FusionCheckpointError(f"{p}: key {key!r} is {got}, expected shape {list(ref.shape)}")
-    for key in state:
-        if key not in expected:
-            raise FusionCheckpointError(f"{p}: unexpected key {key!r}")
+    expected = {k: v.shape for k, v in module.state_dict().items()}
+    check_state_dict_keys(expected, state, FusionCheckpointError, source=str(p), model="the fusion module")
     module.load_state_dict(state, strict=True)
     return module.to(device)
