@@ -31,9 +31,10 @@ import numpy as np
 import torch
 
 from macsplat_cli.cameras import Camera, CameraSet, save_cameras
+from macsplat_cli.engine import EngineConfig, reconstruct
 from macsplat_cli.errors import MacsplatError
 from macsplat_cli.metrics import psnr, rotation_error_deg, ssim, translation_direction_error_deg
-from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig
+from macsplat_cli.pipeline.run import ReconstructConfig
 from macsplat_cli.pipeline.views import ViewConfig, working_size
 from macsplat_cli.render import render_camera
 
@@ -139,7 +140,7 @@ def run_case(frames: list[Frame], pair: tuple[int, int], targets: tuple[int, ...
         cfg.views.intrinsics = tmp
     t0 = time.perf_counter()
     try:
-        rec = Pipeline(cfg).run([f0.path, f1.path])
+        rec = reconstruct([f0.path, f1.path], EngineConfig(pipeline=cfg))
     except MacsplatError as e:
         return {"failed": str(e), "time_s": time.perf_counter() - t0}
     dt = time.perf_counter() - t0
@@ -149,9 +150,9 @@ def run_case(frames: list[Frame], pair: tuple[int, int], targets: tuple[int, ...
     out = {
         "rotation_error_deg": rotation_error_deg(g.R, R_gt),
         "translation_error_deg": translation_direction_error_deg(g.t, t_gt),
-        "intrinsics": rec.report["images"][0]["intrinsics_source"],
+        "intrinsics": rec.report.images[0].intrinsics_source,
         "inliers": len(g.inliers),
-        "fallback": rec.report["fallback_used"],
+        "fallback": rec.report.fallback_used,
         "time_s": dt,
         "targets": [],
     }

@@ -3,7 +3,7 @@
     python benchmarks/accuracy_synthetic.py                 # 2 seeds, field of view 50°
     python benchmarks/accuracy_synthetic.py --seeds 0 1 2 --fov 75
 
-Scenes: `macsplat_cli.synthetic` room (indoor) and object-centric layouts, ray-traced with
+Scenes: `macsplat_cli.datasets.synthetic` room (indoor) and object-centric layouts, ray-traced with
 textured surfaces; the second camera orbits the scene centre by the baseline angle (with
 small random jitter of elevation, roll and distance). Known intrinsics: the true K is given
 (``--intrinsics``); unknown: no intrinsics, the true field of view differs from the 60°
@@ -21,11 +21,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from macsplat_cli import synthetic as S
 from macsplat_cli.cameras import CameraSet, save_cameras
+from macsplat_cli.datasets import synthetic as S
+from macsplat_cli.engine import EngineConfig, reconstruct
 from macsplat_cli.errors import MacsplatError
 from macsplat_cli.images import save_image
-from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig
+from macsplat_cli.pipeline.run import ReconstructConfig
 from macsplat_cli.pipeline.views import ViewConfig
 
 
@@ -45,7 +46,7 @@ def run(kind: str, angle: float, seed: int, fov: float, known: bool, tmp: Path) 
         cfg.views = ViewConfig(intrinsics=tmp / "k.json")
     R_gt, t_gt = S.relative_pose(c0, c1)
     try:
-        rec = Pipeline(cfg).run(paths)
+        rec = reconstruct(paths, EngineConfig(pipeline=cfg))
     except MacsplatError as e:
         return {"failed": str(e)}
     rot, tdir = S.pose_errors(rec.geometry.R, rec.geometry.t, R_gt, t_gt)
@@ -61,7 +62,7 @@ def run(kind: str, angle: float, seed: int, fov: float, known: bool, tmp: Path) 
         "focal": 100 * (rec.geometry.K0[0, 0] / f_gt - 1),
         "depth": 100 * depth_err,
         "measured": 100 * float(rec.depths[0].measured.mean()),
-        "fallback": rec.report["fallback_used"],
+        "fallback": rec.report.fallback_used,
     }
 
 

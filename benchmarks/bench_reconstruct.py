@@ -25,7 +25,7 @@ from pathlib import Path
 
 
 def _synthetic_pair(folder: Path) -> list[Path]:
-    from macsplat_cli import synthetic
+    from macsplat_cli.datasets import synthetic
     from macsplat_cli.images import save_image
 
     scene = synthetic.make_scene("room", seed=3)
@@ -63,17 +63,17 @@ def main() -> None:
     cached = sorted(_cli(images, tmp, env) for _ in range(args.repeat))[args.repeat // 2]
 
     from macsplat_cli.cameras import save_cameras
-    from macsplat_cli.pipeline.run import Pipeline
+    from macsplat_cli.engine import reconstruct
     from macsplat_cli.ply import write_ply
 
-    Pipeline().run(images)  # warm-up (kernels from the default cache location)
+    reconstruct(images)  # warm-up (kernels from the default cache location)
     runs = []
     for _ in range(args.repeat):
-        rec = Pipeline().run(images)
+        rec = reconstruct(images)
         t0 = time.perf_counter()
         write_ply(tmp / "s.ply", rec.gaussians)
         save_cameras(tmp / "c.json", rec.cameras())
-        times = dict(rec.report["times_s"])
+        times = dict(rec.report.times_s)
         times["write"] = time.perf_counter() - t0
         times["total"] = times["total"] + times["write"]
         runs.append(times)
@@ -85,7 +85,7 @@ def main() -> None:
     print("|---|---:|")
     for k in stages:
         print(f"| {k} | {med[k]:.3f} |")
-    print(f"\nGaussians: {rec.report['gaussians']:,}; matches: {json.dumps(rec.report['matches'])}")
+    print(f"\nGaussians: {rec.report.gaussians:,}; matches: {json.dumps(rec.report.matches)}")
 
 
 if __name__ == "__main__":

@@ -20,9 +20,10 @@ sys.path.insert(0, str(Path(__file__).parent))
 import accuracy_dev as dev  # noqa: E402
 
 from macsplat_cli.cameras import Camera, CameraSet, save_cameras  # noqa: E402
+from macsplat_cli.engine import EngineConfig, reconstruct  # noqa: E402
 from macsplat_cli.metrics import rotation_error_deg, translation_direction_error_deg  # noqa: E402
 from macsplat_cli.pipeline.pose import fundamental_from_pose, sampson_distance  # noqa: E402
-from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig  # noqa: E402
+from macsplat_cli.pipeline.run import ReconstructConfig  # noqa: E402
 from macsplat_cli.pipeline.views import ViewConfig  # noqa: E402
 
 
@@ -41,7 +42,9 @@ def main() -> None:
         f0, f1 = frames[pair[0]], frames[pair[1]]
         tmp = Path(tempfile.mkdtemp()) / "k.json"
         save_cameras(tmp, CameraSet([Camera(f.path.name, *f.size, f.K, np.eye(4)) for f in (f0, f1)]))
-        g = Pipeline(ReconstructConfig(views=ViewConfig(intrinsics=tmp))).run([f0.path, f1.path]).geometry
+        g = reconstruct(
+            [f0.path, f1.path], EngineConfig(pipeline=ReconstructConfig(views=ViewConfig(intrinsics=tmp)))
+        ).geometry
         T = np.linalg.inv(f1.c2w) @ f0.c2w
         R_gt, t_gt = T[:3, :3], T[:3, 3] / np.linalg.norm(T[:3, 3])
         m = g.inliers

@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from macsplat_cli.errors import ReconstructionError
+from macsplat_cli.metrics import rotation_error_deg, translation_direction_error_deg
 from macsplat_cli.pipeline.pose import PoseConfig, estimate_pose
 from macsplat_cli.pipeline.types import Matches, View
 
@@ -41,8 +42,7 @@ def _project(X: np.ndarray, R: np.ndarray, t: np.ndarray, n: int) -> tuple[np.nd
 
 
 def _errors(R_est: np.ndarray, t_est: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[float, float]:
-    rot = math.degrees(math.acos(np.clip((np.trace(R_est @ R.T) - 1) / 2, -1, 1)))
-    return rot, math.degrees(math.acos(np.clip(t_est @ t / np.linalg.norm(t), -1, 1)))
+    return rotation_error_deg(R_est, R), translation_direction_error_deg(t_est, t)
 
 
 def _matches(xy0: np.ndarray, xy1: np.ndarray) -> Matches:

@@ -24,12 +24,13 @@ import cv2
 import numpy as np
 import torch
 
-from macsplat_cli import synthetic as S
 from macsplat_cli.cameras import Camera, CameraSet, save_cameras
+from macsplat_cli.datasets import synthetic as S
+from macsplat_cli.engine import EngineConfig, reconstruct
 from macsplat_cli.gaussians import Gaussians
 from macsplat_cli.images import save_image
 from macsplat_cli.metrics import psnr, ssim
-from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig
+from macsplat_cli.pipeline.run import ReconstructConfig
 from macsplat_cli.pipeline.views import ViewConfig, working_size
 from macsplat_cli.refine import RefineConfig, refine
 from macsplat_cli.render import render_camera
@@ -51,7 +52,7 @@ def _scenes(rec, steps: int, scale: int) -> dict[str, tuple[Gaussians, float]]: 
         cfg = RefineConfig(steps=steps, scale=scale, **opts)
         r = refine(rec.views, rec.geometry, rec.maps, cfg, depths=rec.depths)
         with torch.no_grad():
-            out[name] = (Gaussians.cat([m.to_world() for m in r.maps]), time.perf_counter() - t0)
+            out[name] = (Gaussians.cat([m.to_gaussians() for m in r.maps]), time.perf_counter() - t0)
     return out
 
 
@@ -77,7 +78,10 @@ def synthetic_rows(steps: int, scale: int) -> list[list[str]]:
                 save_image(p, v.image)
                 paths.append(p)
             save_cameras(tmp / "k.json", CameraSet([c0, c1]))
-            rec = Pipeline(ReconstructConfig(views=ViewConfig(intrinsics=tmp / "k.json"))).run([paths[0], paths[2]])
+            rec = reconstruct(
+                [paths[0], paths[2]],
+                EngineConfig(pipeline=ReconstructConfig(views=ViewConfig(intrinsics=tmp / "k.json"))),
+            )
             R, t = S.relative_pose(c0, c1)
             base = float(np.linalg.norm(t))
             Tm = np.linalg.inv(cm.cam_to_world) @ c0.cam_to_world
@@ -121,7 +125,9 @@ def real_rows(data: Path, steps: int, scale: int) -> list[list[str]]:
         f0, f1 = frames[pair[0]], frames[pair[1]]
         tmp = Path(tempfile.mkdtemp()) / "k.json"
         save_cameras(tmp, CameraSet([Camera(f.path.name, *f.size, f.K, np.eye(4)) for f in (f0, f1)]))
-        rec = Pipeline(ReconstructConfig(views=ViewConfig(intrinsics=tmp))).run([f0.path, f1.path])
+        rec = reconstruct(
+            [f0.path, f1.path], EngineConfig(pipeline=ReconstructConfig(views=ViewConfig(intrinsics=tmp)))
+        )
         T_gt = np.linalg.inv(f1.c2w) @ f0.c2w
         s = 1.0 / np.linalg.norm(T_gt[:3, 3])
         v0 = rec.views[0]

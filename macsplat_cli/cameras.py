@@ -34,7 +34,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import math
 import os
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
@@ -45,6 +44,7 @@ import numpy as np
 
 from ._atomic import atomic_write_text
 from .errors import CameraFileError, OutputPathError
+from .rotations import quat_to_rotmat_np, rotmat_to_quat_np  # re-exported: the camera formats' converters
 
 __all__ = [
     "Camera",
@@ -66,61 +66,6 @@ _STRUCTURAL_TOL = 1e-9
 """Tolerance on the entries of ``K`` and ``cam_to_world`` that must be exactly 0 or 1."""
 _GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 """Flips camera y and z: OpenCV (x right, y down, z forward) ↔ OpenGL (x right, y up, z back)."""
-
-
-# ------------------------------------------------------------------------------------ rotations
-def rotmat_to_quat_np(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion (w, x, y, z), Hamilton convention, ``w ≥ 0``, of a rotation matrix.
-
-    Uses the branch of Shepperd's method with the largest pivot (the trace or a
-    diagonal entry), so it is accurate for every rotation, including 180° turns.
-
-    Args:
-        R: a rotation matrix. [3, 3]
-
-    Returns:
-        ``q`` with ``quat_to_rotmat_np(q) ≈ R``. [4]
-    """
-    R = np.asarray(R, dtype=np.float64)
-    m00, m01, m02 = R[0]
-    m10, m11, m12 = R[1]
-    m20, m21, m22 = R[2]
-    trace = m00 + m11 + m22
-    pivot = int(np.argmax([trace, m00, m11, m22]))
-    if pivot == 0:
-        s = 2.0 * math.sqrt(max(1.0 + trace, 0.0))  # s = 4w
-        q = [0.25 * s, (m21 - m12) / s, (m02 - m20) / s, (m10 - m01) / s]
-    elif pivot == 1:
-        s = 2.0 * math.sqrt(max(1.0 + m00 - m11 - m22, 0.0))  # s = 4x
-        q = [(m21 - m12) / s, 0.25 * s, (m01 + m10) / s, (m02 + m20) / s]
-    elif pivot == 2:
-        s = 2.0 * math.sqrt(max(1.0 - m00 + m11 - m22, 0.0))  # s = 4y
-        q = [(m02 - m20) / s, (m01 + m10) / s, 0.25 * s, (m12 + m21) / s]
-    else:
-        s = 2.0 * math.sqrt(max(1.0 - m00 - m11 + m22, 0.0))  # s = 4z
-        q = [(m10 - m01) / s, (m02 + m20) / s, (m12 + m21) / s, 0.25 * s]
-    quat = np.array(q, dtype=np.float64)
-    quat /= np.linalg.norm(quat)
-    return -quat if quat[0] < 0 else quat
-
-
-def quat_to_rotmat_np(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a (w, x, y, z) Hamilton quaternion (normalised first).
-
-    Args:
-        q: a non-zero quaternion. [4]
-
-    Returns:
-        The rotation matrix. [3, 3]
-    """
-    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
 
 
 # ------------------------------------------------------------------------------------ Camera

@@ -19,7 +19,8 @@ per-pixel parameter maps) are compared in world space:
   and needs clamping to keep gradients finite.) No method resolves eigenvalues below
   ~1e-16·‖Σ‖ from a covariance's entries, so prefer scales and rotations for very flat
   Gaussians;
-* appearance: ``L_app = |α¹ − α²| + ‖c¹ − c²‖₁`` (opacity and all SH coefficients).
+* appearance: ``L_app = |α¹ − α²| + ‖c¹ − c²‖₁`` (opacity and all SH coefficients; the maps hold
+  opacity logits, and ``α = sigmoid(logit)`` is taken per pixel before sampling).
 
 ``L_MAC = Σ_k w_k (λp·L_pos + λs·L_shape + λa·L_app) / (Σ_k w_k + ε)``, defaults
 ``λp = 1``, ``λs = 0.02``, ``λa = 0.1``; the total training/refinement loss adds
@@ -41,8 +42,9 @@ import torch.nn.functional as F
 
 from ._checks import check_finite, check_shape
 from .errors import InputError
+from .gaussians import GaussianMaps
 
-__all__ = ["GaussianMaps", "MACConfig", "MACLoss", "huber", "mac_loss", "sample_maps"]
+__all__ = ["MACConfig", "MACLoss", "huber", "mac_loss", "sample_maps"]
 
 
 @dataclass
@@ -66,55 +68,6 @@ class MACConfig:
     delta_shape: float = 0.1
     eps: float = 1e-6
     weight: float = 0.25
-
-
-@dataclass
-class GaussianMaps:
-    """Per-pixel Gaussian parameters of B views (one Gaussian per pixel).
-
-    Give either ``log_scales`` (+ ``quats``, needed only for rendering) or raw
-    ``covariances``; both in the camera frame.
-
-    Attributes:
-        means: centres in the camera frame. [B, H, W, 3]
-        opacities: opacities in [0, 1]. [B, H, W]
-        sh: SH coefficients. [B, H, W, K, 3]
-        log_scales: log standard deviations. [B, H, W, 3] or None
-        quats: (w, x, y, z) rotations in the camera frame. [B, H, W, 4] or None
-        covariances: camera-frame covariances. [B, H, W, 3, 3] or None
-    """
-
-    means: torch.Tensor
-    opacities: torch.Tensor
-    sh: torch.Tensor
-    log_scales: torch.Tensor | None = None
-    quats: torch.Tensor | None = None
-    covariances: torch.Tensor | None = None
-
-    def __post_init__(self) -> None:
-        check_shape(self.means, ("B", "H", "W", 3), "means")
-        b, h, w = self.means.shape[:3]
-        check_shape(self.opacities, (b, h, w), "opacities")
-        check_shape(self.sh, (b, h, w, "K", 3), "sh")
-        if (self.log_scales is None) == (self.covariances is None):
-            raise InputError("GaussianMaps needs exactly one of log_scales or covariances")
-        if self.log_scales is not None:
-            check_shape(self.log_scales, (b, h, w, 3), "log_scales")
-        if self.quats is not None:
-            check_shape(self.quats, (b, h, w, 4), "quats")
-        if self.covariances is not None:
-            check_shape(self.covariances, (b, h, w, 3, 3), "covariances")
-
-    @property
-    def size(self) -> tuple[int, int]:
-        """(H, W)"""
-        return int(self.means.shape[1]), int(self.means.shape[2])
-
-    def check_finite(self) -> None:
-        for name in ("means", "opacities", "sh", "log_scales", "quats", "covariances"):
-            t = getattr(self, name)
-            if t is not None:
-                check_finite(t, name)
 
 
 def huber(x: torch.Tensor, delta: float) -> torch.Tensor:
@@ -152,17 +105,30 @@ def sample_maps(maps: torch.Tensor, xy: torch.Tensor, batch: torch.Tensor) -> to
     return out
 
 
-def _log_eigs(maps: GaussianMaps, xy: torch.Tensor, batch: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
-    """Sorted log-eigenvalues of the world covariances at the match pixels. [M, 3]"""
-    if maps.log_scales is not None:
+def _log_eigs(
+    maps: GaussianMaps, cov: torch.Tensor | None, xy: torch.Tensor, batch: torch.Tensor, R: torch.Tensor
+) -> torch.Tensor:
+    """Sorted log-eigenvalues of the world covariances at the match pixels. [M, 3]
+
+    From ``maps.log_scales``, or from ``cov`` (camera-frame covariances ``[B, H, W, 3, 3]``) when given.
+    """
+    if cov is None:
         ls = sample_maps(maps.log_scales, xy, batch)
         return torch.sort(2.0 * ls, dim=-1).values  # λ = s², rotation-invariant
-    assert maps.covariances is not None
-    b, h, w = maps.covariances.shape[:3]
-    cov = sample_maps(maps.covariances.reshape(b, h, w, 9), xy, batch).reshape(-1, 3, 3)
-    cov_w = R @ cov @ R.transpose(-1, -2)
+    b, h, w = cov.shape[:3]
+    c = sample_maps(cov.reshape(b, h, w, 9), xy, batch).reshape(-1, 3, 3)
+    cov_w = R @ c @ R.transpose(-1, -2)
     lam = torch.linalg.eigvalsh(0.5 * (cov_w + cov_w.transpose(-1, -2)))  # ascending
     return torch.log(lam.clamp_min(torch.finfo(lam.dtype).tiny))
+
+
+def _cam_to_world(given: torch.Tensor | None, maps: GaussianMaps) -> torch.Tensor:
+    """The transforms to use: ``given``, else the maps' own (in their dtype), else the identity. [B, 4, 4]"""
+    if given is not None:
+        return given
+    if maps.cam_to_world is not None:
+        return maps.cam_to_world.to(device=maps.device, dtype=maps.dtype)
+    return torch.eye(4, dtype=maps.dtype, device=maps.device).expand(maps.batch, 4, 4)
 
 
 @dataclass
@@ -183,24 +149,29 @@ def mac_loss(
     xy2: torch.Tensor,  # [M, 2]
     batch: torch.Tensor,  # [M]
     weights: torch.Tensor,  # [M]
-    cam_to_world1: torch.Tensor,  # [B, 4, 4]
-    cam_to_world2: torch.Tensor,  # [B, 4, 4]
+    cam_to_world1: torch.Tensor | None = None,  # [B, 4, 4]
+    cam_to_world2: torch.Tensor | None = None,  # [B, 4, 4]
     config: MACConfig | None = None,
     *,
+    covariances: tuple[torch.Tensor | None, torch.Tensor | None] | None = None,
     check_inputs: bool = True,
 ) -> MACLoss:
     """Multi-Attribute Consistency loss between two views' Gaussian maps.
 
     Args:
-        view1: per-pixel Gaussians of the first view of each pair. [B, H1, W1, ·]
+        view1: per-pixel Gaussians of the first view of each pair (opacity logits). [B, H1, W1, ·]
         view2: per-pixel Gaussians of the second view. [B, H2, W2, ·]
         xy1: match pixels in view 1 (pixel centres at +0.5). [M, 2]
         xy2: match pixels in view 2. [M, 2]
         batch: pair index of each match. [M] int64
         weights: joint confidence ``w = c1·c2`` of each match, ≥ 0. [M]
-        cam_to_world1: camera-to-world transforms of view 1. [B, 4, 4]
-        cam_to_world2: camera-to-world transforms of view 2. [B, 4, 4]
+        cam_to_world1: camera-to-world transforms of view 1; None: ``view1.cam_to_world`` (cast
+            to the maps' dtype), or the identity if that is None too. [B, 4, 4]
+        cam_to_world2: the same for view 2. [B, 4, 4]
         config: weights and Huber thresholds.
+        covariances: raw camera-frame covariances of view 1 and view 2, used by the shape term
+            instead of that view's log-scales (the quaternions are never used); None for a view:
+            its log-scales. ([B, H1, W1, 3, 3], [B, H2, W2, 3, 3])
         check_inputs: validate shapes and finiteness (NaN/Inf raise
             :class:`~macsplat_cli.errors.NonFiniteError`).
 
@@ -209,6 +180,9 @@ def mac_loss(
         and its three weighted terms.
     """
     cfg = config or MACConfig()
+    cam_to_world1 = _cam_to_world(cam_to_world1, view1)
+    cam_to_world2 = _cam_to_world(cam_to_world2, view2)
+    cov1, cov2 = covariances if covariances is not None else (None, None)
     if check_inputs:
         check_shape(xy1, ("M", 2), "xy1")
         m = xy1.shape[0]
@@ -226,6 +200,10 @@ def mac_loss(
         check_finite(cam_to_world2, "cam_to_world2")
         view1.check_finite()
         view2.check_finite()
+        for name, cov, maps in (("covariances[0]", cov1, view1), ("covariances[1]", cov2, view2)):
+            if cov is not None:
+                check_shape(cov, (bsz, *maps.size, 3, 3), name)
+                check_finite(cov, name)
         if m and (bool((weights < 0).any()) or int(batch.min()) < 0 or int(batch.max()) >= bsz):
             raise InputError("match weights must be ≥ 0 and batch indices within the batch")
     batch = batch.long()
@@ -240,11 +218,12 @@ def mac_loss(
     l_pos = huber((mu1 - mu2).abs().sum(-1), cfg.delta_pos) * in_front
 
     l_shape = huber(
-        (_log_eigs(view1, xy1, batch, R1) - _log_eigs(view2, xy2, batch, R2)).abs().sum(-1), cfg.delta_shape
+        (_log_eigs(view1, cov1, xy1, batch, R1) - _log_eigs(view2, cov2, xy2, batch, R2)).abs().sum(-1),
+        cfg.delta_shape,
     )
 
-    a1 = sample_maps(view1.opacities[..., None], xy1, batch)[:, 0]
-    a2 = sample_maps(view2.opacities[..., None], xy2, batch)[:, 0]
+    a1 = sample_maps(torch.sigmoid(view1.opacity_logits)[..., None], xy1, batch)[:, 0]
+    a2 = sample_maps(torch.sigmoid(view2.opacity_logits)[..., None], xy2, batch)[:, 0]
     b, h, w = view1.sh.shape[:3]
     c1 = sample_maps(view1.sh.reshape(b, h, w, -1), xy1, batch)
     b2, h2, w2 = view2.sh.shape[:3]

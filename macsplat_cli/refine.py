@@ -25,10 +25,11 @@ import cv2
 import numpy as np
 import torch
 
-from .gaussians import Gaussians
-from .mac import GaussianMaps, MACConfig, mac_loss
+from .errors import InputError
+from .gaussians import GaussianMaps, Gaussians
+from .mac import MACConfig, mac_loss
 from .metrics import ssim_map
-from .pipeline.types import DepthMap, PixelGaussians, TwoViewGeometry, View
+from .pipeline.types import DepthMap, TwoViewGeometry, View
 from .render import render
 
 __all__ = ["RefineConfig", "RefineResult", "refine"]
@@ -81,9 +82,9 @@ class RefineConfig:
 
 @dataclass
 class RefineResult:
-    """The refined per-view maps (at the refinement resolution) and the loss history."""
+    """The refined per-view maps (``B = 1`` each, at the refinement resolution) and the loss history."""
 
-    maps: list[PixelGaussians]
+    maps: list[GaussianMaps]
     steps: int
     seconds: float
     stopped_early: bool
@@ -101,7 +102,7 @@ def _downscale(image: np.ndarray, factor: int) -> torch.Tensor:
 def refine(
     views: list[View],
     geometry: TwoViewGeometry,
-    maps: list[PixelGaussians],
+    maps: list[GaussianMaps],
     config: RefineConfig | None = None,
     *,
     depths: list[DepthMap] | None = None,
@@ -113,7 +114,8 @@ def refine(
     Args:
         views: the two views (photos at the working resolution).
         geometry: their relative pose; its verified matches feed the MAC loss.
-        maps: the per-view Gaussians to refine (not modified).
+        maps: the per-view Gaussians to refine, ``B = 1`` each, in their view's camera frame with
+            ``cam_to_world`` set (None: the identity) (not modified).
         config: settings.
         depths: the views' depth maps (needed for ``mac_matches="dense"``).
         lpips: an LPIPS model (:class:`macsplat_cli.lpips.LPIPS`) adds its term to the photometric loss.
@@ -134,11 +136,11 @@ def refine(
         img = _downscale(v.image, f)
         K = Ks[k].copy()
         K[:2] /= f
-        w2c = torch.linalg.inv(params[k].cam_to_world).float()
+        w2c = torch.linalg.inv(_cam_to_world(params[k])).float()
         targets.append(img)
         cams.append((w2c, torch.tensor(K, dtype=torch.float32), img.shape[1], img.shape[0]))
 
-    depth = torch.cat([m.means[..., 2][m.valid] for m in params]).detach()
+    depth = torch.cat([m.means[..., 2][m.valid_mask()] for m in params]).detach()
     scene = float(depth.median()) if depth.numel() else 1.0
     opt = torch.optim.Adam(
         [
@@ -158,7 +160,7 @@ def refine(
     w = torch.tensor(m_w, dtype=torch.float32)
     batch = torch.zeros(len(m_xy0), dtype=torch.long)
     match = m_xy0
-    c2w = [m.cam_to_world.float()[None] for m in params]
+    c2w = [_cam_to_world(m).float()[None] for m in params]
 
     history: list[dict[str, float]] = []
     running: list[float] = []
@@ -167,7 +169,7 @@ def refine(
     step = 0
     for step in range(1, cfg.steps + 1):
         opt.zero_grad(set_to_none=True)
-        world = Gaussians.cat([m.to_world() for m in params])
+        world = Gaussians.cat([m.to_gaussians() for m in params])
         photo = torch.zeros(())
         perceptual = torch.zeros(())
         for (w2c, K, width, height), target in zip(cams, targets):
@@ -181,7 +183,7 @@ def refine(
             photo = photo + cfg.lpips_weight * perceptual
         loss = photo
         if cfg.use_mac and len(match):
-            mac = mac_loss(*_mac_maps(params), xy0, xy1, batch, w, c2w[0], c2w[1], cfg.mac, check_inputs=False)
+            mac = mac_loss(params[0], params[1], xy0, xy1, batch, w, c2w[0], c2w[1], cfg.mac, check_inputs=False)
             loss = loss + cfg.mac.weight * mac.loss
             terms.update(
                 mac=float(mac.loss.detach()), mac_pos=float(mac.position.detach()), mac_shape=float(mac.shape.detach())
@@ -208,19 +210,11 @@ def refine(
     )
 
 
-def _mac_maps(params: list[PixelGaussians]) -> tuple[GaussianMaps, GaussianMaps]:
-    out = []
-    for m in params:
-        out.append(
-            GaussianMaps(
-                means=m.means[None],
-                opacities=torch.sigmoid(m.opacity_logits)[None],
-                sh=m.sh[None],
-                log_scales=m.log_scales[None],
-                quats=m.quats[None],
-            )
-        )
-    return out[0], out[1]
+def _cam_to_world(m: GaussianMaps) -> torch.Tensor:
+    """The camera-to-world transform of a one-view map (the identity when it has none). [4, 4] float64"""
+    if m.batch != 1:
+        raise InputError(f"refine() takes one map per view (B = 1), got B = {m.batch}")
+    return m.cam_to_world[0] if m.cam_to_world is not None else torch.eye(4, dtype=torch.float64)
 
 
 def _dense_matches(geometry: TwoViewGeometry, depths: list[DepthMap], stride: int) -> tuple[np.ndarray, ...]:

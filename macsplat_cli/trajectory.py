@@ -7,8 +7,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .cameras import Camera, quat_to_rotmat_np, rotmat_to_quat_np
+from .cameras import Camera
 from .errors import InputError
+from .rotations import quat_to_rotmat_np, rotmat_to_quat_np
 
 __all__ = ["interpolate_cameras", "slerp"]
 

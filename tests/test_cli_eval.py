@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from test_evaluation import ORACLE, translated_camera, write_blank_dataset, write_plane_dataset
 
-from macsplat_cli import synthetic as S
 from macsplat_cli.cli import main
+from macsplat_cli.datasets import synthetic as S
 from macsplat_cli.evaluation.reconstructors import BACKENDS
 
 
@@ -27,7 +27,7 @@ def plane(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture
 def oracle_backend(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setitem(BACKENDS, "oracle", lambda options: ORACLE)
+    monkeypatch.setitem(BACKENDS, "oracle", lambda config, models=None: ORACLE)
 
 
 def run(capsys: pytest.CaptureFixture[str], *args: str | Path) -> tuple[int, str, str]:

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from macsplat_cli import synthetic as S
 from macsplat_cli.cameras import Camera, CameraSet, save_cameras
+from macsplat_cli.datasets import synthetic as S
 from macsplat_cli.images import save_image
 from macsplat_cli.pipeline import _sgm_kernels, _sgm_reference
 from macsplat_cli.pipeline.depth import estimate_depths, plane_sweep_cost, push_pull

@@ -16,8 +16,9 @@ import cv2
 import numpy as np
 import pytest
 
-from macsplat_cli import synthetic as S
 from macsplat_cli.cameras import Camera, CameraSet, save_cameras
+from macsplat_cli.datasets import nerfstudio_to_opencv, opencv_to_nerfstudio
+from macsplat_cli.datasets import synthetic as S
 from macsplat_cli.errors import DatasetError, ReconstructionError
 from macsplat_cli.evaluation import (
     EvalCase,
@@ -43,13 +44,18 @@ from macsplat_cli.evaluation.bench import (
     run_bench,
 )
 from macsplat_cli.evaluation.coverage import coverage_matrix, visibility_mask
-from macsplat_cli.evaluation.datasets import nerfstudio_to_opencv, opencv_to_nerfstudio
 from macsplat_cli.evaluation.metrics import depth_metrics, image_metrics, pose_auc
 from macsplat_cli.evaluation.protocol import target_camera
 from macsplat_cli.evaluation.reconstructors import BACKENDS
 from macsplat_cli.evaluation.splits import COVERAGE_THRESHOLDS, angle_splits, coverage_splits, load_cases
 from macsplat_cli.images import save_depth, save_image
-from macsplat_cli.metrics import ssim
+from macsplat_cli.metrics import (
+    angle_between_deg,
+    rotation_angle_deg,
+    rotation_error_deg,
+    ssim,
+    translation_direction_error_deg,
+)
 from macsplat_cli.pipeline.gaussian_init import GaussianInitConfig
 
 W, H, Z = 96, 64, 3.0
@@ -350,6 +356,63 @@ def test_depth_metrics_hand_computed() -> None:
     assert m2["absrel"] == pytest.approx((1.2 + 1.0 + 0.0) / 3) and m2["delta1"] == pytest.approx(1 / 3)
 
 
+def _acos_rotation_deg(R: np.ndarray) -> float:
+    """The formula the package used before: acos of the clipped trace cosine."""
+    return math.degrees(math.acos(float(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def _acos_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    c = float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
+    return math.degrees(math.acos(max(-1.0, min(1.0, c))))
+
+
+@pytest.mark.parametrize("theta", [1e-7, 1e-8, 1e-10, 1e-13])
+def test_pose_angles_are_accurate_for_tiny_angles(theta: float) -> None:
+    deg = math.degrees(theta)
+    axis = np.array([0.3, -0.8, 0.5])
+    R = S.rotation_about(axis, deg)
+    assert rotation_angle_deg(R) == pytest.approx(deg, rel=1e-6)
+    R_gt = S.rotation_about((1.0, 2.0, -0.5), 37.0)
+    if theta >= 1e-10:  # R_gt·R rounds at ~1e-16 absolute: relative 1e-3 down to ~1e-12 rad
+        assert rotation_error_deg(R_gt @ R, R_gt) == pytest.approx(deg, rel=1e-3)
+    a = np.array([0.2, -0.4, 1.3])
+    b = S.rotation_about(np.cross(a, (1.0, 0.0, 0.0)), deg) @ a
+    assert angle_between_deg(a, b) == pytest.approx(deg, rel=1e-6)
+    assert translation_direction_error_deg(3.0 * a, b) == pytest.approx(deg, rel=1e-6)
+    # acos of the rounded cosine: percents off at 1e-7 rad, exactly 0 below ~1e-8 rad
+    assert abs(_acos_rotation_deg(R) - deg) > 1e-3 * deg
+    assert abs(_acos_angle_deg(a, b) - deg) > 1e-3 * deg
+
+
+def test_pose_angles_agree_with_acos_at_moderate_angles_and_180() -> None:
+    rng = np.random.default_rng(0)
+    for deg in [*rng.uniform(0.5, 179.5, 50), 90.0, 180.0]:
+        R = S.rotation_about(rng.normal(size=3), deg)
+        assert rotation_angle_deg(R) == pytest.approx(deg, abs=1e-9)
+        assert rotation_angle_deg(R) == pytest.approx(_acos_rotation_deg(R), abs=1e-6)
+        R_gt = S.rotation_about(rng.normal(size=3), float(rng.uniform(0, 180)))
+        assert rotation_error_deg(R_gt @ R, R_gt) == pytest.approx(deg, abs=1e-9)
+        a = rng.normal(size=3)
+        b = S.rotation_about(np.cross(a, rng.normal(size=3)), deg) @ a * 2.5
+        assert angle_between_deg(a, b) == pytest.approx(deg, abs=1e-9)
+        assert angle_between_deg(a, b) == pytest.approx(_acos_angle_deg(a, b), abs=1e-6)
+    t = np.array([0.3, 0.1, -1.0])
+    assert translation_direction_error_deg(t, -2 * t) == 180.0
+    assert translation_direction_error_deg(t, t) == 0.0
+    assert math.isnan(translation_direction_error_deg(t, np.zeros(3)))
+    # batched vectors: [M, 3] → [M], the same numbers as one pair at a time, NaN for a zero vector
+    A, B = rng.normal(size=(6, 3)), rng.normal(size=(6, 3))
+    B[4] = 0.0
+    got = angle_between_deg(A, B)
+    assert got.shape == (6,) and math.isnan(got[4])
+    want = [angle_between_deg(x, y) for x, y in zip(A, B)]
+    np.testing.assert_allclose(np.delete(got, 4), np.delete(want, 4), rtol=0, atol=1e-12)
+    # the synthetic generator's pose errors are these
+    R0, R1 = S.rotation_about((1, 1, 0), 10.0), S.rotation_about((0, 1, 1), 25.0)
+    want_pose = (rotation_error_deg(R0, R1), translation_direction_error_deg(A[0], A[1]))
+    assert S.pose_errors(R0, A[0], R1, A[1]) == want_pose
+
+
 # ------------------------------------------------------------------------------------ baselines
 def test_point_discs_nearest_wins() -> None:
     cam = Camera("c", 16, 16, np.array([[10.0, 0.0, 8.0], [0.0, 10.0, 8.0], [0.0, 0.0, 1.0]]), np.eye(4))
@@ -482,7 +545,7 @@ def test_pareto_front_and_grid() -> None:
 
 
 def test_run_bench_writes_table_plot_and_runs(plane: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setitem(BACKENDS, "oracle", lambda options: ORACLE)
+    monkeypatch.setitem(BACKENDS, "oracle", lambda config, models=None: ORACLE)
     ds = load_dataset(plane)
     cases = [EvalCase("plane", "x", (0, 3), (1,))]
     rows = run_bench(ds, cases, grid(["oracle"], [64, 96]), metric="psnr", out_dir=tmp_path)
@@ -501,8 +564,8 @@ def test_run_bench_writes_table_plot_and_runs(plane: Path, tmp_path: Path, monke
 def test_bench_compares_settings_on_the_cases_all_of_them_reconstructed(
     plane: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setitem(BACKENDS, "oracle", lambda options: ORACLE)
-    monkeypatch.setitem(BACKENDS, "flaky", lambda options: _FailingOn({(1, 3)}))
+    monkeypatch.setitem(BACKENDS, "oracle", lambda config, models=None: ORACLE)
+    monkeypatch.setitem(BACKENDS, "flaky", lambda config, models=None: _FailingOn({(1, 3)}))
     ds = load_dataset(plane)
     cases = [EvalCase("plane", "x", (0, 3), (1,)), EvalCase("plane", "x", (1, 3), (2,))]
     oracle, flaky = run_bench(ds, cases, grid(["oracle", "flaky"], [96]), metric="psnr")

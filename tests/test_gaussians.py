@@ -1,4 +1,4 @@
-"""The Gaussians container and the SH basis."""
+"""The Gaussians and GaussianMaps containers and the SH basis."""
 
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from macsplat_cli.errors import InputError, NonFiniteError, ShapeError
-from macsplat_cli.gaussians import Gaussians, quat_to_rotmat
+from macsplat_cli.gaussians import GaussianMaps, Gaussians
+from macsplat_cli.rotations import quat_to_rotmat
 from macsplat_cli.sh import C0, eval_sh, rgb_to_sh0, sh0_to_rgb
 
 from _helpers import random_gaussians
@@ -89,24 +90,6 @@ def test_cat_select_and_covariance() -> None:
     assert torch.all(torch.linalg.eigvalsh(cov) > 0)
 
 
-def test_quat_to_rotmat_is_a_rotation_for_any_norm() -> None:
-    q = torch.randn(100, 4, dtype=torch.float64) * torch.logspace(-5, 5, 100, dtype=torch.float64)[:, None]
-    R = quat_to_rotmat(q)
-    eye = torch.eye(3, dtype=torch.float64).expand(100, 3, 3)
-    torch.testing.assert_close(R @ R.transpose(-1, -2), eye)
-    torch.testing.assert_close(torch.linalg.det(R), torch.ones(100, dtype=torch.float64))
-    # a 90° turn about z maps x to y
-    h = math.sqrt(0.5)
-    Rz = quat_to_rotmat(torch.tensor([h, 0.0, 0.0, h], dtype=torch.float64))
-    x_axis, y_axis = torch.eye(3, dtype=torch.float64)[:2]
-    torch.testing.assert_close(Rz @ x_axis, y_axis)
-    # zero quaternion: identity and zero gradient, not NaN
-    z = torch.zeros(1, 4, requires_grad=True)
-    R0 = quat_to_rotmat(z)
-    R0.sum().backward()
-    assert torch.equal(R0[0], torch.eye(3)) and torch.equal(z.grad, torch.zeros(1, 4))
-
-
 def test_sh_basis_is_orthonormal_on_the_sphere() -> None:
     """∫ Y_i Y_j dΩ = δ_ij: checks every constant and sign pattern of the degree-3 basis."""
     n = 200_000
@@ -128,3 +111,164 @@ def test_dc_conversion() -> None:
     rgb = torch.tensor([[0.0, 0.5, 1.0]])
     torch.testing.assert_close(rgb_to_sh0(rgb), torch.tensor([[-0.5 / C0, 0.0, 0.5 / C0]]))
     torch.testing.assert_close(sh0_to_rgb(rgb_to_sh0(rgb)), rgb)
+
+
+# ------------------------------------------------------------------------------ GaussianMaps
+D = torch.float64
+
+
+def _random_maps(b: int, h: int, w: int, seed: int, valid: torch.Tensor | None = None, *, pose: bool = True,
+                 k: int = 1) -> GaussianMaps:  # fmt: skip
+    g = torch.Generator().manual_seed(seed)
+    T = torch.eye(4, dtype=D).repeat(b, 1, 1)
+    T[:, :3, :3] = quat_to_rotmat(torch.randn(b, 4, generator=g, dtype=D))
+    T[:, :3, 3] = torch.randn(b, 3, generator=g, dtype=D)
+    means = torch.randn(b, h, w, 3, generator=g, dtype=D)
+    means[..., 2] += 4
+    return GaussianMaps(
+        means=means,
+        log_scales=torch.randn(b, h, w, 3, generator=g, dtype=D) - 3,
+        quats=torch.randn(b, h, w, 4, generator=g, dtype=D),
+        opacity_logits=torch.randn(b, h, w, generator=g, dtype=D) * 20,
+        sh=torch.randn(b, h, w, k, 3, generator=g, dtype=D),
+        valid=valid,
+        cam_to_world=T if pose else None,
+    )
+
+
+def _map_params(b: int = 2, h: int = 3, w: int = 4) -> dict:
+    m = _random_maps(b, h, w, 0)
+    return dict(zip(["means", "log_scales", "quats", "opacity_logits", "sh"], m.tensors()))
+
+
+@pytest.mark.parametrize(
+    ("field", "bad", "error", "match"),
+    [
+        ("means", torch.zeros(2, 3, 4), ShapeError, "means has shape"),
+        ("log_scales", torch.zeros(2, 3, 5, 3, dtype=D), ShapeError, "log_scales has shape"),
+        ("quats", torch.zeros(2, 3, 4, 3, dtype=D), ShapeError, "quats has shape"),
+        ("opacity_logits", torch.zeros(2, 3, 4, 1, dtype=D), ShapeError, "opacity_logits has shape"),
+        ("sh", torch.zeros(2, 3, 4, 5, 3, dtype=D), ShapeError, "K in"),
+        ("sh", torch.zeros(2, 3, 4, 3, dtype=D), ShapeError, "sh has shape"),  # colour-major [3, K] is not accepted
+        ("valid", torch.ones(1, 3, 4, dtype=torch.bool), ShapeError, "valid has shape"),
+        ("valid", torch.ones(2, 3, 4), InputError, "bool"),
+        ("cam_to_world", torch.eye(4, dtype=D), ShapeError, "cam_to_world has shape"),
+        ("cam_to_world", torch.eye(4, dtype=torch.int64).repeat(2, 1, 1), InputError, "floating-point"),
+        ("opacity_logits", torch.zeros(2, 3, 4, dtype=torch.float32), InputError, "share one dtype"),
+    ],
+)
+def test_maps_validation(field: str, bad: torch.Tensor, error: type, match: str) -> None:
+    p = _map_params()
+    GaussianMaps(**p)
+    p[field] = bad
+    with pytest.raises(error, match=match):
+        GaussianMaps(**p)
+
+
+def test_to_gaussians_moves_means_and_rotations_into_the_world_frame() -> None:
+    valid = torch.tensor([[[True, False, True], [True, True, False]], [[False, False, False], [True, True, True]]])
+    m = _random_maps(2, 2, 3, 0, valid, k=4)
+    g = m.to_gaussians()
+    assert len(g) == int(valid.sum()) == 7 and g.sh_degree == 1
+    start = 0
+    for b in range(2):
+        n = int(valid[b].sum())
+        part = g[slice(start, start + n)]
+        start += n
+        R, t = m.cam_to_world[b, :3, :3], m.cam_to_world[b, :3, 3]
+        torch.testing.assert_close(part.means, m.means[b][valid[b]] @ R.T + t, rtol=0, atol=1e-14)
+        torch.testing.assert_close(quat_to_rotmat(part.quats), R @ quat_to_rotmat(m.quats[b][valid[b]]))
+        # rotation does not change the other parameters: copied bit for bit
+        assert torch.equal(part.log_scales, m.log_scales[b][valid[b]])
+        assert torch.equal(part.opacity_logits, m.opacity_logits[b][valid[b]])
+        assert torch.equal(part.sh, m.sh[b][valid[b]])
+    # the same as converting view by view
+    views = Gaussians.cat([m.view(b).to_gaussians() for b in range(2)])
+    for x, y in zip(g.tensors(), views.tensors()):
+        assert torch.equal(x, y)
+
+
+def test_to_gaussians_is_lossless_and_round_trips_with_the_identity_camera() -> None:
+    """No activation round trip: opacity logits of ±40, any quaternion norm, come back bit for bit."""
+    m = _random_maps(2, 3, 4, 1, pose=False)
+    m.opacity_logits[0, 0, :2] = torch.tensor([40.0, -40.0], dtype=D)
+    m.quats[1, 2, 3] *= 1e-3
+    for cam in (None, torch.eye(4, dtype=D).repeat(2, 1, 1)):
+        g = GaussianMaps(*m.tensors(), cam_to_world=cam).to_gaussians()
+        assert len(g) == 2 * 3 * 4
+        back = GaussianMaps(*(t.reshape(2, 3, 4, *t.shape[1:]) for t in g.tensors()))
+        for x, y in zip(back.tensors(), m.tensors()):
+            assert torch.equal(x, y)
+
+
+def test_to_gaussians_is_differentiable() -> None:
+    m = _random_maps(1, 2, 2, 2, torch.tensor([[[True, False], [True, True]]]))
+    for t in m.tensors():
+        t.requires_grad_(True)
+    g = m.to_gaussians()
+    sum(t.sum() for t in g.tensors()).backward()
+    for t in m.tensors():
+        assert t.grad is not None and t.grad.abs().sum() > 0
+        assert torch.equal(t.grad[0, 0, 1], torch.zeros_like(t.grad[0, 0, 1]))  # the invalid pixel
+
+
+def test_view_cat_and_properties() -> None:
+    a = _random_maps(2, 3, 4, 3, torch.rand(2, 3, 4) > 0.5, k=1)
+    b = _random_maps(1, 3, 4, 4, pose=False, k=4)
+    assert a.batch == 2 and a.size == (3, 4) and a.sh_degree == 0 and a.dtype == D
+    v = a.view(1)
+    assert v.batch == 1 and torch.equal(v.means[0], a.means[1]) and torch.equal(v.valid[0], a.valid[1])
+    assert torch.equal(a.view(-1).cam_to_world, a.cam_to_world[1:])
+    with pytest.raises(IndexError):
+        a.view(2)
+    c = GaussianMaps.cat([a, b])
+    assert c.batch == 3 and c.sh_degree == 1 and torch.all(c.sh[:2, :, :, 1:] == 0)
+    assert torch.equal(c.valid[2], torch.ones(3, 4, dtype=torch.bool))  # b had every pixel
+    assert torch.equal(c.cam_to_world[2], torch.eye(4, dtype=D)) and torch.equal(c.cam_to_world[:2], a.cam_to_world)
+    assert GaussianMaps.cat([b, b]).valid is None and GaussianMaps.cat([b, b]).cam_to_world is None
+    with pytest.raises(InputError, match="sizes"):
+        GaussianMaps.cat([a, _random_maps(1, 4, 3, 5)])
+    assert torch.equal(b.valid_mask(), torch.ones(1, 3, 4, dtype=torch.bool))
+
+
+def test_pooled_averages_the_valid_pixels_of_each_block() -> None:
+    valid = torch.ones(2, 4, 4, dtype=torch.bool)
+    valid[0, 0, 1] = False  # block (0, 0) averages 3 pixels
+    valid[0, 2:, 2:] = False  # block (1, 1) is empty
+    m = _random_maps(2, 4, 4, 1, valid)
+    p = m.pooled(2)
+    assert p.size == (2, 2) and p.batch == 2
+    assert p.valid[0].tolist() == [[True, True], [True, False]] and bool(p.valid[1].all())
+    block = m.means[0, :2, :2][valid[0, :2, :2]]
+    torch.testing.assert_close(p.means[0, 0, 0], block.mean(0))
+    torch.testing.assert_close(p.log_scales[0, 0, 0], m.log_scales[0, :2, :2][valid[0, :2, :2]].mean(0) + math.log(2))
+    torch.testing.assert_close(p.sh[0, 1, 0], m.sh[0, 2:, :2].reshape(4, 1, 3).mean(0))
+    torch.testing.assert_close(p.opacity_logits[1, 1, 1], m.opacity_logits[1, 2:, 2:].mean())
+    torch.testing.assert_close(torch.linalg.vector_norm(p.quats[0, 0, 0]), torch.tensor(1.0, dtype=D))
+    assert torch.equal(p.cam_to_world, m.cam_to_world)
+    # B views pool as each view alone
+    for b in range(2):
+        for x, y in zip(p.view(b).tensors(), m.view(b).pooled(2).tensors()):
+            assert torch.equal(x, y)
+    assert m.pooled(1) is m
+    everything = _random_maps(1, 4, 4, 2, pose=False).pooled(2)
+    assert everything.valid is None
+    with pytest.raises(ValueError, match="pooled"):
+        _random_maps(1, 3, 4, 2).pooled(2)
+
+
+def test_maps_detach_clones_and_to_converts() -> None:
+    m = _random_maps(1, 2, 3, 6, torch.ones(1, 2, 3, dtype=torch.bool))
+    m.means.requires_grad_(True)
+    d = m.detach()
+    assert not d.means.requires_grad and d.means.data_ptr() != m.means.data_ptr()
+    d.means.add_(1.0)  # optimising the copy leaves the original alone
+    assert not torch.equal(d.means, m.means)
+    f = m.to(dtype=torch.float32)
+    assert all(t.dtype == torch.float32 for t in f.tensors())
+    assert f.valid.dtype == torch.bool and f.cam_to_world.dtype == D
+    m.detach().check_finite()
+    bad = m.detach()
+    bad.opacity_logits[0, 1, 1] = float("nan")
+    with pytest.raises(NonFiniteError, match="opacity_logits"):
+        bad.check_finite()

@@ -8,8 +8,9 @@ import pytest
 import torch
 
 from macsplat_cli.errors import InputError, NonFiniteError
-from macsplat_cli.gaussians import quat_to_rotmat
-from macsplat_cli.mac import GaussianMaps, MACConfig, huber, mac_loss, sample_maps
+from macsplat_cli.gaussians import GaussianMaps
+from macsplat_cli.mac import MACConfig, huber, mac_loss, sample_maps
+from macsplat_cli.rotations import quat_to_rotmat
 
 from _helpers import GC_ATOL, GC_EPS, GC_RTOL
 
@@ -20,20 +21,30 @@ def _maps(b: int, h: int, w: int, seed: int, k: int = 4, dtype: torch.dtype = D)
     g = torch.Generator().manual_seed(seed)
     means = torch.randn(b, h, w, 3, generator=g, dtype=dtype) * 0.3
     means[..., 2] = means[..., 2].abs() + 2.0
+    opacity_logits = torch.logit(torch.rand(b, h, w, generator=g, dtype=dtype))
+    sh = torch.randn(b, h, w, k, 3, generator=g, dtype=dtype)
     return GaussianMaps(
         means=means,
-        opacities=torch.rand(b, h, w, generator=g, dtype=dtype),
-        sh=torch.randn(b, h, w, k, 3, generator=g, dtype=dtype),
         log_scales=torch.randn(b, h, w, 3, generator=g, dtype=dtype) * 0.5 - 3.0,
         quats=torch.randn(b, h, w, 4, generator=g, dtype=dtype),
+        opacity_logits=opacity_logits,
+        sh=sh,
     )
 
 
-def _cov_maps(m: GaussianMaps) -> GaussianMaps:
-    """The same Gaussians with raw camera-frame covariances R S² Rᵀ."""
+def _cov(m: GaussianMaps) -> torch.Tensor:
+    """The maps' Gaussians as raw camera-frame covariances R S² Rᵀ. [B, H, W, 3, 3]"""
     R = quat_to_rotmat(m.quats)
     S2 = torch.diag_embed(torch.exp(2 * m.log_scales))
-    return GaussianMaps(means=m.means, opacities=m.opacities, sh=m.sh, covariances=R @ S2 @ R.transpose(-1, -2))
+    return R @ S2 @ R.transpose(-1, -2)
+
+
+def _one_pixel(log_scales: torch.Tensor | None = None, **fields: torch.Tensor) -> GaussianMaps:
+    """A 1×1 map with an identity rotation (and unit scales unless given)."""
+    dtype = fields["means"].dtype
+    ls = log_scales if log_scales is not None else torch.zeros(1, 1, 1, 3, dtype=dtype)
+    quats = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=dtype).reshape(1, 1, 1, 4)
+    return GaussianMaps(log_scales=ls.reshape(1, 1, 1, 3), quats=quats, **fields)
 
 
 def _poses(b: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -84,7 +95,9 @@ def test_terms_match_a_hand_computation() -> None:
 
     def one(mu, ls, op, sh):  # noqa: ANN001, ANN202
         t = lambda x: torch.tensor(x, dtype=D).reshape(1, 1, 1, -1)  # noqa: E731
-        return GaussianMaps(means=t(mu), opacities=t(op)[..., 0], sh=t(sh).reshape(1, 1, 1, 1, 3), log_scales=t(ls))
+        return _one_pixel(
+            t(ls), means=t(mu), opacity_logits=torch.logit(t(op))[..., 0], sh=t(sh).reshape(1, 1, 1, 1, 3)
+        )
 
     a = one([0.0, 0.0, 2.0], [0.0, -1.0, -2.0], 0.9, [0.1, 0.2, 0.3])
     b = one([0.1, -0.2, 2.0], [-2.0, 0.5, -1.0], 0.5, [0.0, 0.2, -0.3])
@@ -139,28 +152,28 @@ def test_scale_and_covariance_paths_agree() -> None:
     xy1 = torch.floor(xy1) + 0.5
     xy2 = torch.floor(xy2) + 0.5
     a = mac_loss(m1, m2, xy1, xy2, batch, wts, T1, T2)
-    b = mac_loss(_cov_maps(m1), _cov_maps(m2), xy1, xy2, batch, wts, T1, T2)
+    b = mac_loss(m1, m2, xy1, xy2, batch, wts, T1, T2, covariances=(_cov(m1), _cov(m2)))
     torch.testing.assert_close(a.shape, b.shape, rtol=1e-6, atol=1e-8)
     torch.testing.assert_close(a.loss, b.loss, rtol=1e-6, atol=1e-8)
 
 
 def test_no_matches_or_all_gated_out_is_exactly_zero_with_zero_gradients() -> None:
     m1, m2 = _maps(1, 4, 5, 14), _maps(1, 4, 5, 15)
-    for t in (m1.means, m1.log_scales, m1.sh, m2.opacities):
+    for t in (m1.means, m1.log_scales, m1.sh, m2.opacity_logits):
         t.requires_grad_(True)
     T1, T2 = _poses(1, 16)
     empty = torch.zeros(0, 2, dtype=D)
     out = mac_loss(m1, m2, empty, empty, torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=D), T1, T2)
     assert float(out.loss.detach()) == 0.0 and out.matches == 0
     out.loss.backward()
-    for t in (m1.means, m1.log_scales, m1.sh, m2.opacities):
+    for t in (m1.means, m1.log_scales, m1.sh, m2.opacity_logits):
         assert t.grad is not None and torch.equal(t.grad, torch.zeros_like(t))
         t.grad = None
     xy1, xy2, batch, _ = _matches(1, 4, 5, 10, 17)
     gated = mac_loss(m1, m2, xy1, xy2, batch, torch.zeros(10, dtype=D), T1, T2)
     assert float(gated.loss.detach()) == 0.0
     gated.loss.backward()
-    for t in (m1.means, m1.log_scales, m1.sh, m2.opacities):
+    for t in (m1.means, m1.log_scales, m1.sh, m2.opacity_logits):
         assert torch.isfinite(t.grad).all() and torch.equal(t.grad, torch.zeros_like(t))
 
 
@@ -172,13 +185,12 @@ def test_gradcheck_float64(use_cov: bool) -> None:
     cfg = MACConfig(delta_pos=0.05, delta_shape=0.05)
 
     def fn(means1, ls1, op1, sh1, means2):  # noqa: ANN001, ANN202
-        a = GaussianMaps(means=means1, opacities=op1, sh=sh1, log_scales=ls1, quats=m1.quats)
-        b = GaussianMaps(means=means2, opacities=m2.opacities, sh=m2.sh, log_scales=m2.log_scales, quats=m2.quats)
-        if use_cov:
-            a, b = _cov_maps(a), _cov_maps(b)
-        return mac_loss(a, b, xy1, xy2, batch, wts, T1, T2, cfg).loss
+        a = GaussianMaps(means=means1, log_scales=ls1, quats=m1.quats, opacity_logits=op1, sh=sh1)
+        b = GaussianMaps(means2, m2.log_scales, m2.quats, m2.opacity_logits, m2.sh)
+        cov = (_cov(a), _cov(b)) if use_cov else None
+        return mac_loss(a, b, xy1, xy2, batch, wts, T1, T2, cfg, covariances=cov).loss
 
-    inputs = [t.clone().requires_grad_(True) for t in (m1.means, m1.log_scales, m1.opacities, m1.sh, m2.means)]
+    inputs = [t.clone().requires_grad_(True) for t in (m1.means, m1.log_scales, m1.opacity_logits, m1.sh, m2.means)]
     assert torch.autograd.gradcheck(fn, inputs, eps=GC_EPS, atol=GC_ATOL, rtol=GC_RTOL)
 
 
@@ -198,18 +210,21 @@ def test_covariance_shape_term_is_stable_for_repeated_eigenvalues(eigs: list[flo
     ev = torch.tensor(eigs, dtype=D)
     cov = (R @ torch.diag(ev) @ R.T).to(dtype).reshape(1, 1, 1, 3, 3).requires_grad_(True)
     other = torch.tensor([0.2, 0.3, 0.4], dtype=dtype)
-    base = dict(means=torch.tensor([[[[0.0, 0.0, 2.0]]]], dtype=dtype), opacities=torch.ones(1, 1, 1, dtype=dtype),
-                sh=torch.zeros(1, 1, 1, 1, 3, dtype=dtype))  # fmt: skip
+    base = dict(
+        means=torch.tensor([[[[0.0, 0.0, 2.0]]]], dtype=dtype),
+        opacity_logits=torch.zeros(1, 1, 1, dtype=dtype),
+        sh=torch.zeros(1, 1, 1, 1, 3, dtype=dtype),
+    )
     T = torch.eye(4, dtype=dtype)[None]
     xy = torch.tensor([[0.5, 0.5]], dtype=dtype)
-    b = GaussianMaps(log_scales=(0.5 * torch.log(other)).reshape(1, 1, 1, 3), **base)
+    b = _one_pixel(0.5 * torch.log(other), **base)
     one = torch.ones(1, dtype=dtype)
-    out = mac_loss(GaussianMaps(covariances=cov, **base), b, xy, xy, torch.tensor([0]), one, T, T)
+    out = mac_loss(_one_pixel(**base), b, xy, xy, torch.tensor([0]), one, T, T, covariances=(cov, None))
     (g,) = torch.autograd.grad(out.shape, cov)
     assert torch.isfinite(g).all() and torch.isfinite(out.shape)
     if eigs[0] < 1e-8:
         return
-    ref = GaussianMaps(log_scales=(0.5 * torch.log(ev)).to(dtype).reshape(1, 1, 1, 3), **base)
+    ref = _one_pixel((0.5 * torch.log(ev)).to(dtype), **base)
     want = mac_loss(ref, b, xy, xy, torch.tensor([0]), one, T, T)
     # eigenvalues carry ~eps·‖Σ‖ absolute error: 1e-3 relative for the float32 needle
     torch.testing.assert_close(out.shape, want.shape, rtol=1e-3 if dtype == torch.float32 else 1e-9, atol=0)
@@ -228,20 +243,20 @@ def test_shape_gradient_scales_as_one_over_lambda(path: str, smallest: float) ->
     at 1e-10 (here ‖Σ‖ = 2)."""
     lams = [10.0 ** (-k) for k in range(2, round(-math.log10(smallest)) + 1, 2)]
     grads = []
-    base = dict(means=torch.tensor([[[[0.0, 0.0, 2.0]]]], dtype=D), opacities=torch.ones(1, 1, 1, dtype=D),
+    base = dict(means=torch.tensor([[[[0.0, 0.0, 2.0]]]], dtype=D), opacity_logits=torch.zeros(1, 1, 1, dtype=D),
                 sh=torch.zeros(1, 1, 1, 1, 3, dtype=D))  # fmt: skip
     T = torch.eye(4, dtype=D)[None]
     xy = torch.tensor([[0.5, 0.5]], dtype=D)
     for lam in lams:
         ev1 = torch.tensor([lam, 1.0, 2.0], dtype=D).requires_grad_(True)
         ev2 = torch.tensor([10 * lam, 1.0, 2.0], dtype=D)
+        cov = None
         if path == "scales":
-            a = GaussianMaps(log_scales=(0.5 * torch.log(ev1)).reshape(1, 1, 1, 3), **base)
-            b = GaussianMaps(log_scales=(0.5 * torch.log(ev2)).reshape(1, 1, 1, 3), **base)
+            a, b = _one_pixel(0.5 * torch.log(ev1), **base), _one_pixel(0.5 * torch.log(ev2), **base)
         else:
-            a = GaussianMaps(covariances=torch.diag_embed(ev1).reshape(1, 1, 1, 3, 3), **base)
-            b = GaussianMaps(covariances=torch.diag_embed(ev2).reshape(1, 1, 1, 3, 3), **base)
-        out = mac_loss(a, b, xy, xy, torch.tensor([0]), torch.ones(1, dtype=D), T, T, MACConfig())
+            a, b = _one_pixel(**base), _one_pixel(**base)
+            cov = (torch.diag_embed(ev1).reshape(1, 1, 1, 3, 3), torch.diag_embed(ev2).reshape(1, 1, 1, 3, 3))
+        out = mac_loss(a, b, xy, xy, torch.tensor([0]), torch.ones(1, dtype=D), T, T, MACConfig(), covariances=cov)
         (g,) = torch.autograd.grad(out.shape, ev1)
         grads.append(abs(float(g[0])))
     slopes = [math.log(grads[i + 1] / grads[i]) / math.log(lams[i + 1] / lams[i]) for i in range(len(lams) - 1)]
@@ -265,6 +280,31 @@ def test_non_finite_and_malformed_inputs_are_rejected() -> None:
         mac_loss(m1, m2, xy1, xy2, batch, -wts, T1, T2)
     with pytest.raises(InputError, match="batch"):
         mac_loss(m1, m2, xy1, xy2, batch + 5, wts, T1, T2)
+
+
+def test_transforms_default_to_the_maps_own_then_the_identity() -> None:
+    """Without explicit transforms the loss uses each map's ``cam_to_world``, else the identity; the
+    appearance term compares opacities ``sigmoid(logit)``, sampled after the sigmoid."""
+    m1, m2 = _maps(2, 4, 5, 27), _maps(2, 4, 5, 28)
+    T1, T2 = _poses(2, 29)
+    xy1, xy2, batch, wts = _matches(2, 4, 5, 20, 30)
+    want = mac_loss(m1, m2, xy1, xy2, batch, wts, T1, T2)
+    posed = [GaussianMaps(*m.tensors(), cam_to_world=T) for m, T in ((m1, T1), (m2, T2))]
+    got = mac_loss(posed[0], posed[1], xy1, xy2, batch, wts)
+    for term in ("loss", "position", "shape", "appearance"):
+        assert torch.equal(getattr(got, term), getattr(want, term))
+    eye = torch.eye(4, dtype=D).repeat(2, 1, 1)
+    assert torch.equal(
+        mac_loss(m1, m2, xy1, xy2, batch, wts).loss, mac_loss(m1, m2, xy1, xy2, batch, wts, eye, eye).loss
+    )
+    # a single match at pixel centres: the appearance term is |α1 − α2| + ‖c1 − c2‖₁ with α = sigmoid(logit)
+    xy = torch.tensor([[1.5, 2.5]], dtype=D)
+    one = mac_loss(m1, m2, xy, xy, torch.tensor([1]), torch.ones(1, dtype=D))
+    a1, a2 = torch.sigmoid(m1.opacity_logits[1, 2, 1]), torch.sigmoid(m2.opacity_logits[1, 2, 1])
+    app = (a1 - a2).abs() + (m1.sh[1, 2, 1] - m2.sh[1, 2, 1]).abs().sum()
+    torch.testing.assert_close(one.appearance, app / (1 + MACConfig().eps))
+    with pytest.raises(InputError, match="covariances"):
+        mac_loss(m1, m2, xy1, xy2, batch, wts, covariances=(torch.zeros(2, 4, 5, 3), None))
 
 
 def test_huber() -> None:

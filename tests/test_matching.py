@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from macsplat_cli.datasets.synthetic import rotation_about
 from macsplat_cli.pipeline.matching import (
     MatchConfig,
     guided_matches,
@@ -16,7 +17,6 @@ from macsplat_cli.pipeline.matching import (
 )
 from macsplat_cli.pipeline.pose import fundamental_from_pose
 from macsplat_cli.pipeline.types import Features
-from macsplat_cli.synthetic import rotation_about
 
 
 def _unit(x: np.ndarray) -> np.ndarray:

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from macsplat_cli.errors import InputError, ShapeError
-from macsplat_cli.gaussians import quat_to_rotmat
+from macsplat_cli.gaussians import GaussianMaps
 from macsplat_cli.neural import (
     BackboneConfig,
     GaussianHead,
@@ -21,6 +21,7 @@ from macsplat_cli.neural import (
     depth_activation,
     patch_positions,
 )
+from macsplat_cli.rotations import quat_to_rotmat
 from macsplat_cli.sh import C0, rgb_to_sh0
 
 TINY = BackboneConfig.tiny()
@@ -263,7 +264,8 @@ def test_full_size_network_shapes_on_meta(h: int, w: int) -> None:
         g1, g2 = head(v1, v2, img, img)
     assert v2.pts3d.shape == (1, h, w, 3) and v2.desc.shape == (1, h, w, 24) and v2.desc_conf.shape == (1, h, w)
     assert [tuple(t.shape[1:]) for t in v1.tokens] == [(h * w // 256, 1024)] + [(h * w // 256, 768)] * 12
-    assert g2.means.shape == (1, h, w, 3) and g2.sh.shape == (1, h, w, 3, 1) and g2.opacities.shape == (1, h, w, 1)
+    assert isinstance(g2, GaussianMaps) and g2.valid is None and g2.cam_to_world is None
+    assert g2.means.shape == (1, h, w, 3) and g2.sh.shape == (1, h, w, 1, 3) and g2.opacity_logits.shape == (1, h, w)
 
 
 def test_official_dpt_hooks() -> None:
@@ -272,25 +274,88 @@ def test_official_dpt_hooks() -> None:
 
 
 # ============================================================================================= Gaussian head
+def _splatt3r_activation(raw: torch.Tensor, pts3d: torch.Tensor, rgb: torch.Tensor, k: int) -> dict[str, torch.Tensor]:
+    """The head's activations as Splatt3R defines them (reference §3.2), in its own layout: the pre-unification
+    outputs (means, offsets, scales, (x, y, z, w) rotations, colour-major SH [3, K], opacities [.., 1])."""
+    offset, scale, rot, sh, opacity = torch.split(raw, (3, 3, 4, 3 * k, 1), dim=-1)
+    d = torch.linalg.vector_norm(offset, dim=-1, keepdim=True)
+    offsets = offset / d.clamp_min(1e-8) * (torch.exp(d - 6.0) - math.exp(-6.0))
+    sh = sh.reshape(*sh.shape[:-1], 3, k)
+    sh = torch.cat((sh[..., :1] + rgb_to_sh0(rgb)[..., None], sh[..., 1:]), dim=-1)
+    return dict(
+        means=pts3d + offsets,
+        offsets=offsets,
+        scales=torch.exp(scale),
+        rotations=rot / (torch.linalg.vector_norm(rot, dim=-1, keepdim=True) + 1e-8),
+        sh=sh,
+        opacities=torch.sigmoid(opacity),
+    )
+
+
+@pytest.mark.parametrize("k", [1, 4])
+def test_gaussian_head_activations_equal_splatt3rs_exactly(net: MASt3RBackbone, k: int) -> None:
+    """Fixed random weights: exp(log_scales), sigmoid(opacity_logits), the quaternions (reordered from xyzw)
+    and the SH (transposed) are bit for bit Splatt3R's activated outputs; the means and offsets too."""
+    torch.manual_seed(20 + k)
+    head = GaussianHead(TINY, GaussianHeadConfig(sh_coeffs=k)).eval()
+    img1, img2 = _images(2, 32, 48, seed=21)
+    rgb1, rgb2 = (img1 + 1) / 2, (img2 + 1) / 2
+    with torch.no_grad():
+        v1, v2 = net(img1, img2)
+        g1, g2 = head(v1, v2, rgb1, rgb2)
+        for view, g, v, rgb in ((1, g1, v1, rgb1), (2, g2, v2, rgb2)):
+            holder = head.downstream_head1 if view == 1 else head.downstream_head2
+            raw = holder.gaussian_dpt(v.tokens, v.grid)
+            want = _splatt3r_activation(raw, v.pts3d, rgb.permute(0, 2, 3, 1), k)
+            assert g.means.shape == (2, 32, 48, 3) and g.sh.shape == (2, 32, 48, k, 3)
+            assert torch.equal(g.means, want["means"])
+            assert torch.equal(torch.exp(g.log_scales), want["scales"])
+            assert torch.equal(g.quats, want["rotations"][..., [3, 0, 1, 2]])
+            assert torch.equal(torch.sigmoid(g.opacity_logits), want["opacities"][..., 0])
+            assert torch.equal(g.sh, want["sh"].transpose(-1, -2))
+            maps, offsets = head.activate(raw, v.pts3d, rgb.permute(0, 2, 3, 1))
+            assert torch.equal(offsets, want["offsets"]) and torch.equal(maps.means, g.means)
+
+
+def test_gaussian_head_opacity_logits_are_the_raw_channel() -> None:
+    """The opacity logit is the raw channel itself, exact for |raw| up to 30 (logit(sigmoid(raw)) in float32
+    loses digits past |raw| ≈ 10 and saturates near 16.6 (sigmoid rounds to 1), clamped to 13.8 before)."""
+    head = GaussianHead(TINY, GaussianHeadConfig(sh_coeffs=1))
+    opacity = torch.linspace(-30.0, 30.0, 121).reshape(1, 11, 11)
+    raw = torch.zeros(1, 11, 11, 14)
+    raw[..., -1] = opacity
+    maps, _ = head.activate(raw, torch.zeros(1, 11, 11, 3), torch.zeros(1, 11, 11, 3))
+    assert torch.equal(maps.opacity_logits, opacity)
+    assert torch.equal(maps.log_scales, raw[..., 3:6])
+    lossy = torch.logit(torch.sigmoid(opacity), eps=1e-6)  # the former conversion: far off at |raw| = 30
+    assert (lossy - opacity).abs().max() > 10
+
+
 def test_gaussian_head_outputs(net: MASt3RBackbone, gauss_head: GaussianHead) -> None:
     img1, img2 = _images(2, 48, 64, seed=11)
     rgb1, rgb2 = (img1 + 1) / 2, (img2 + 1) / 2
     with torch.no_grad():
         v1, v2 = net(img1, img2)
         g1, g2 = gauss_head(v1, v2, rgb1, rgb2)
-    for g, v in ((g1, v1), (g2, v2)):
-        assert g.means.shape == g.offsets.shape == g.scales.shape == (2, 48, 64, 3)
-        assert g.rotations.shape == (2, 48, 64, 4) and g.sh.shape == (2, 48, 64, 3, 1)
-        assert g.opacities.shape == (2, 48, 64, 1)
-        torch.testing.assert_close(g.means, v.pts3d + g.offsets)
-        torch.testing.assert_close(g.rotations.norm(dim=-1), torch.ones(2, 48, 64))
+    for view, g, v, rgb in ((1, g1, v1, rgb1), (2, g2, v2, rgb2)):
+        holder = gauss_head.downstream_head1 if view == 1 else gauss_head.downstream_head2
+        with torch.no_grad():
+            _, offsets = gauss_head.activate(holder.gaussian_dpt(v.tokens, v.grid), v.pts3d, rgb.permute(0, 2, 3, 1))
+        assert isinstance(g, GaussianMaps) and g.batch == 2 and g.size == (48, 64)
+        assert g.valid is None and g.cam_to_world is None  # every pixel, view 1's frame
+        assert g.means.shape == offsets.shape == g.log_scales.shape == (2, 48, 64, 3)
+        assert g.quats.shape == (2, 48, 64, 4) and g.sh.shape == (2, 48, 64, 1, 3)
+        assert g.opacity_logits.shape == (2, 48, 64)
+        torch.testing.assert_close(g.means, v.pts3d + offsets)
+        torch.testing.assert_close(g.quats.norm(dim=-1), torch.ones(2, 48, 64))
         # Initialisation: offsets "small at init", scales ≈ e^-7, opacity ≈ sigmoid(-2).
-        assert g.offsets.abs().max() < 1e-3
-        assert 1e-4 < g.scales.min() and g.scales.max() < 1e-2
-        assert g.opacities.mean().item() == pytest.approx(1 / (1 + math.exp(2)), abs=0.02)
-        assert ((g.opacities > 0) & (g.opacities < 1)).all()
+        scales, opacities = torch.exp(g.log_scales), torch.sigmoid(g.opacity_logits)
+        assert offsets.abs().max() < 1e-3
+        assert 1e-4 < scales.min() and scales.max() < 1e-2
+        assert opacities.mean().item() == pytest.approx(1 / (1 + math.exp(2)), abs=0.02)
+        assert ((opacities > 0) & (opacities < 1)).all()
     # The DC colour is a residual on the pixel colour: within a small residual of RGB2SH(rgb).
-    dc_rgb = g1.sh[..., 0] * C0 + 0.5
+    dc_rgb = g1.sh[..., 0, :] * C0 + 0.5
     assert (dc_rgb - rgb1.permute(0, 2, 3, 1)).abs().mean() < 0.5
 
 
@@ -304,26 +369,21 @@ def test_gaussian_sh_residual_is_exact_with_zero_sh_weights(net: MASt3RBackbone)
         img1, img2 = _images(1, 32, 32, seed=13)
         v1, v2 = net(img1, img2)
         g1, _ = head(v1, v2, (img1 + 1) / 2, (img2 + 1) / 2)
-    assert g1.sh.shape == (1, 32, 32, 3, 4)
-    torch.testing.assert_close(g1.sh[..., 0], rgb_to_sh0((img1 + 1).permute(0, 2, 3, 1) / 2))
-    assert torch.equal(g1.sh[..., 1:], torch.zeros(1, 32, 32, 3, 3))
-    assert g1.sh_band_major.shape == (1, 32, 32, 4, 3)
+    assert g1.sh.shape == (1, 32, 32, 4, 3)  # band-major
+    torch.testing.assert_close(g1.sh[..., 0, :], rgb_to_sh0((img1 + 1).permute(0, 2, 3, 1) / 2))
+    assert torch.equal(g1.sh[..., 1:, :], torch.zeros(1, 32, 32, 3, 3))
 
 
-def test_gaussian_conventions_match_macsplat(net: MASt3RBackbone, gauss_head: GaussianHead) -> None:
-    img1, img2 = _images(1, 16, 32, seed=14)
-    with torch.no_grad():
-        v1, v2 = net(img1, img2)
-        g1, _ = gauss_head(v1, v2, (img1 + 1) / 2, (img2 + 1) / 2)
-    r_wxyz = quat_to_rotmat(g1.quats_wxyz)
-    cov = r_wxyz @ torch.diag_embed(torch.exp(2 * g1.log_scales)) @ r_wxyz.transpose(-1, -2)
-    torch.testing.assert_close(g1.covariances(), cov, rtol=1e-4, atol=1e-10)
-    torch.testing.assert_close(torch.sigmoid(g1.opacity_logits), g1.opacities[..., 0])
-    # xyzw: a quaternion (x, y, z, w) = (0, 0, sin 45°, cos 45°) is +90° about z.
-    from macsplat_cli.neural import quat_xyzw_to_rotmat
-
+def test_gaussian_quaternions_are_splatt3rs_xyzw_reordered() -> None:
+    """Splatt3R's rotation channels are (x, y, z, w): raw (0, 0, sin 45°, cos 45°) is +90° about z, which
+    the head hands over as the (w, x, y, z) quaternion (cos 45°, 0, 0, sin 45°)."""
+    head = GaussianHead(TINY, GaussianHeadConfig(sh_coeffs=1))
     s = math.sqrt(0.5)
-    r = quat_xyzw_to_rotmat(torch.tensor([0.0, 0.0, s, s]))
+    raw = torch.zeros(1, 1, 1, 14)
+    raw[..., 6:10] = torch.tensor([0.0, 0.0, s, s])
+    maps, _ = head.activate(raw, torch.zeros(1, 1, 1, 3), torch.zeros(1, 1, 1, 3))
+    torch.testing.assert_close(maps.quats[0, 0, 0], torch.tensor([s, 0.0, 0.0, s]))
+    r = quat_to_rotmat(maps.quats[0, 0, 0])
     torch.testing.assert_close(r @ torch.tensor([1.0, 0.0, 0.0]), torch.tensor([0.0, 1.0, 0.0]))
 
 

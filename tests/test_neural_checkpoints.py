@@ -569,7 +569,7 @@ def test_splatt3r_checkpoint_loads(tmp_path: Path) -> None:
         v1, v2 = backbone(img1, img2)
         g1, g2 = head(v1, v2, (img1 + 1) / 2, (img2 + 1) / 2)
     assert v1.desc_conf.min() >= 1.0  # Splatt3R's construction: desc_conf = 1 + exp(x)
-    assert g2.means.shape == (1, 32, 48, 3) and g2.sh.shape == (1, 32, 48, 3, 1)
+    assert g2.means.shape == (1, 32, 48, 3) and g2.sh.shape == (1, 32, 48, 1, 3)
 
 
 def test_splatt3r_checkpoint_infers_sh_size_and_checks_shapes(tmp_path: Path) -> None:

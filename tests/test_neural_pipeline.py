@@ -25,19 +25,19 @@ import torch.nn.functional as F
 from test_dinov3 import random_official_state_dict
 from test_neural_checkpoints import TINY, TINY_ARGS, random_state_dict, save_pth
 
-from macsplat_cli import synthetic as syn
 from macsplat_cli.cameras import load_cameras
 from macsplat_cli.cli import main
+from macsplat_cli.datasets import synthetic as syn
+from macsplat_cli.engine import EngineConfig, Models, build_pipeline, reconstruct
 from macsplat_cli.errors import ReconstructionError
 from macsplat_cli.images import save_image
 from macsplat_cli.neural import BackboneConfig, BackboneView, GaussianHead, MASt3RBackbone
 from macsplat_cli.neural.dinov3 import DINOv3Config
 from macsplat_cli.neural.fusion import FusionConfig, ResidualSemanticFusion, save_fusion
+from macsplat_cli.neural.predictor import PairPredictor, load_pair_predictor
 from macsplat_cli.pipeline.matching import MatchConfig, match_features
 from macsplat_cli.pipeline.neural import (
-    NeuralBackend,
-    NeuralModels,
-    NeuralPipeline,
+    NeuralPair,
     ViewWarp,
     estimate_focal_weiszfeld,
     pose_from_pointmap,
@@ -143,7 +143,7 @@ def test_cli_neural_end_to_end(scene: Scene, ckpts: dict[str, Path], tmp_path: P
     assert b["fusion"].startswith("skipped")
     n = r["neural"]
     assert n["fusion"]["applied"] is False and "skipped" in n["fusion"]["detail"]
-    assert n["forward_calls"] == 1  # one forward pass for descriptors, pose, depth
+    assert b["pair"] == "neural:pair-predictor" and r["times_s"]["network"] > 0  # one pass, the "pair" stage
     assert n["network_size"] == list(SIZE) and n["files"]["weights"] == str(ckpts["mast3r"])
     assert r["keypoints"] == [(SIZE[0] // 4) * (SIZE[1] // 4)] * 2  # the 4-px descriptor grid
     assert r["gaussians_written"] == len(g) == r["gaussians"]
@@ -162,7 +162,7 @@ def test_cli_neural_fusion_gaussian_head_and_refine(scene: Scene, ckpts: dict[st
     fusion = "dinov3-custom-64d-2x2h-mlp128+residual-semantic-fusion"  # the tiny variant, inferred from its shapes
     assert r["backends"]["fusion"] == fusion and r["backends"]["descriptors"] == "neural:mast3r-desc24+" + fusion
     assert r["backends"]["gaussians"] == "neural:splatt3r-gaussian-head"
-    assert r["neural"]["gaussian_head"] is True and r["neural"]["forward_calls"] == 1
+    assert r["neural"]["gaussian_head"] is True
     assert r["refine"]["steps"] >= 1 and r["refine"]["scale"] == 2
     assert load_cameras(tmp_path / "scene.cameras.json").scale == "metric"
     assert len(read_ply(tmp_path / "scene.ply")) == r["gaussians_written"] > 0
@@ -277,44 +277,41 @@ class OracleBackbone(torch.nn.Module):
 def test_pipeline_recovers_metric_pose_focal_and_depth(scene: Scene) -> None:
     """Exact point maps in → the true relative pose in metres, the true focal length, the true depth."""
     oracle = OracleBackbone(scene)
-    backend = NeuralBackend(NeuralModels(oracle, None, None, None, torch.device("cpu")))  # type: ignore[arg-type]
-    rec = NeuralPipeline(backend).run([scene.a, scene.b])
-    assert oracle.calls == backend.forward_calls == 1
-    assert rec.scale == "metric" and rec.cameras().scale == "metric"
+    models = Models(predictor=PairPredictor(oracle))  # type: ignore[arg-type]
+    rec = reconstruct([scene.a, scene.b], EngineConfig(backend="neural"), models=models)
+    assert oracle.calls == 1  # one forward pass for descriptors, pose, depth and Gaussians
+    assert rec.scale == "metric" and rec.cameras().scale == "metric" and rec.report.scale == "metric"
     geo = rec.geometry
     rot_err, t_err = syn.pose_errors(geo.R, geo.t, scene.R, scene.t)
     assert rot_err < 0.05 and t_err < 0.1, (rot_err, t_err)
     assert np.linalg.norm(geo.t) == pytest.approx(np.linalg.norm(scene.t), rel=1e-3)  # metric: no unit baseline
     for K, cam in ((geo.K0, scene.cam0), (geo.K1, scene.cam1)):  # 50° field of view, not the 60° prior
         assert K[0, 0] == pytest.approx(cam.K[0, 0], rel=1e-3)
-    assert [im["intrinsics_source"] for im in rec.report["images"]] == ["estimated", "estimated"]
+    assert [im.intrinsics_source for im in rec.report.images] == ["estimated", "estimated"]
     for d, gt in zip(rec.depths, (scene.depth0, scene.depth1)):
         sel = d.valid & (gt > 0)
         assert sel.mean() > 0.95
         np.testing.assert_allclose(d.depth[sel], gt[sel], rtol=1e-3)
     # matching on the dense descriptor maps, verified against the point maps: correct to a few pixels
     m = geo.inliers
-    assert rec.report["matches"]["verified"] == len(m) > 60
+    assert rec.report.matches["verified"] == len(m) > 60
     X = _backproject(scene.depth0, scene.cam0.K)[(m.xy0[:, 1]).astype(int), (m.xy0[:, 0]).astype(int)]
     uv = (X @ scene.R.T + scene.t) @ scene.cam1.K.T
     err = np.linalg.norm(uv[:, :2] / uv[:, 2:] - m.xy1, axis=1)
     assert np.median(err) < 1.0 and np.mean(err < 2.0) > 0.9  # snapped off the 4-px grid by refine_matches
     # the report is JSON and names the stages
-    r = json.loads(json.dumps(rec.report))
+    r = json.loads(json.dumps(rec.report.to_json()))
     assert r["pose"]["method"] == "pnp-ransac" and r["pose"]["inlier_ratio"] > 0.95
 
 
 def test_pipeline_with_given_intrinsics_keeps_them(scene: Scene, tmp_path: Path) -> None:
     from macsplat_cli.cameras import CameraSet, save_cameras
-    from macsplat_cli.pipeline.neural import neural_reconstruct_config
     from macsplat_cli.pipeline.views import ViewConfig
 
     save_cameras(tmp_path / "cams.json", CameraSet([scene.cam0.rescaled(*SIZE)], scale="metric"))
-    oracle = OracleBackbone(scene)
-    backend = NeuralBackend(NeuralModels(oracle, None, None, None, torch.device("cpu")))  # type: ignore[arg-type]
-    config = neural_reconstruct_config()
-    config.views = ViewConfig(intrinsics=tmp_path / "cams.json")
-    rec = NeuralPipeline(backend, config).run([scene.a, scene.b])
+    config = EngineConfig(backend="neural")
+    config.pipeline.views = ViewConfig(intrinsics=tmp_path / "cams.json")
+    rec = reconstruct([scene.a, scene.b], config, models=Models(predictor=PairPredictor(OracleBackbone(scene))))
     np.testing.assert_allclose(rec.geometry.K0, scene.cam0.K)
     assert rec.geometry.info["focal_estimated"] is False
     assert syn.pose_errors(rec.geometry.R, rec.geometry.t, scene.R, scene.t)[0] < 0.05
@@ -452,29 +449,57 @@ def test_shared_matcher_on_dense_descriptor_maps() -> None:
     assert np.sum((m.xy0[:, 0] - m.xy1[:, 0] == shift) & (m.xy0[:, 1] == m.xy1[:, 1])) == right.sum() // 2
 
 
-def test_descriptor_stage_runs_the_network_once_per_pair(scene: Scene) -> None:
-    """The stage describes both views from one forward pass, and the pair is cached."""
-    from macsplat_cli.pipeline.neural import NeuralDescriptors
-    from macsplat_cli.pipeline.views import load_views
-
+def _tiny_predictor() -> PairPredictor:
     torch.manual_seed(0)
     net = MASt3RBackbone(TINY).eval()
     net.load_state_dict(random_state_dict(TINY))
-    backend = NeuralBackend(NeuralModels(net, None, None, None, torch.device("cpu")))
-    stage = NeuralDescriptors(backend)
-    v0, v1 = load_views([scene.a, scene.b])
-    with pytest.raises(TypeError, match="both views"):
-        stage(v0)
-    assert backend.forward_calls == 0
-    f0, f1 = stage.describe_pair(v0, v1)
-    assert backend.forward_calls == 1 and len(f0) == len(f1) == (SIZE[0] // 4) * (SIZE[1] // 4)
+    return PairPredictor(net).eval()
+
+
+def test_pair_stage_runs_the_network_once_and_the_stages_read_it(scene: Scene) -> None:
+    """The ``pair`` stage runs the predictor once; the descriptor stage only reads its output."""
+    from macsplat_cli.pipeline.neural import NeuralDescriptors
+    from macsplat_cli.pipeline.views import load_views
+
+    predictor = _tiny_predictor()
+    calls = []
+    predictor.register_forward_hook(lambda *args: calls.append(1))
+    views = load_views([scene.a, scene.b])
+    pair = NeuralPair(predictor)(views)
+    assert len(calls) == 1 and pair.net_size == SIZE
+    stage = NeuralDescriptors(predictor)
+    f0, f1 = stage(views, pair)
+    again = stage(views, pair)
+    assert len(calls) == 1 and len(f0) == len(f1) == (SIZE[0] // 4) * (SIZE[1] // 4)
     assert f0.desc.shape == (len(f0), 24) and np.allclose(np.linalg.norm(f0.desc, axis=1), 1.0, atol=1e-5)
     assert (f0.conf >= 0).all()
-    again = stage.describe_pair(v0, v1)
-    assert backend.forward_calls == 1
     np.testing.assert_array_equal(again[0].desc, f0.desc)
-    backend.predict(v1, v0)  # another order is another pair
-    assert backend.forward_calls == 2
+
+
+def test_pair_predictor_is_tensor_in_tensor_out(ckpts: dict[str, Path]) -> None:
+    """``PairPredictor.forward``: images in [0, 1] → the backbone's outputs (views stacked on dim 1, the
+    descriptor confidence's floor removed) and the head's Gaussians, bit-identical to running the modules
+    one by one; ``predict`` names the same tensors."""
+    predictor = load_pair_predictor(weights=ckpts["mast3r"], gaussian_head=ckpts["splatt3r"])
+    torch.manual_seed(3)
+    img0, img1 = torch.rand(2, 3, SIZE[1], SIZE[0]), torch.rand(2, 3, SIZE[1], SIZE[0])
+    with torch.no_grad():
+        outputs = predictor(img0, img1)
+        pred = predictor.predict(img0, img1)
+        o0, o1 = predictor.backbone(img0 * 2 - 1, img1 * 2 - 1)
+        g0, g1 = predictor.gaussian_head(o0, o1, img0, img1)
+    assert all(isinstance(t, torch.Tensor) for t in outputs) and len(outputs) == len(predictor.output_names) == 9
+    torch.testing.assert_close(outputs[0], torch.stack([o0.pts3d, o1.pts3d], 1), rtol=0, atol=0)
+    torch.testing.assert_close(pred.pts3d, outputs[0], rtol=0, atol=0)
+    torch.testing.assert_close(pred.desc[:, 1], o1.desc, rtol=0, atol=0)
+    vmin = predictor.backbone.config.desc_conf_mode[1]
+    torch.testing.assert_close(pred.desc_conf[:, 0], (o0.desc_conf - vmin).clamp_min(0), rtol=0, atol=0)
+    assert pred.gaussians is not None
+    for mine, ref in zip(pred.gaussians, (g0, g1)):
+        for a, b in zip(mine.tensors(), ref.tensors()):
+            torch.testing.assert_close(a, b, rtol=0, atol=0)
+    with pytest.raises(Exception, match="img1"):
+        predictor(img0, img1[:, :, :32])
 
 
 def test_fusion_changes_descriptors_and_head_gaussians_keep_their_frame(
@@ -485,22 +510,21 @@ def test_fusion_changes_descriptors_and_head_gaussians_keep_their_frame(
     world; a second photo of another size is fitted to the network and mapped back to its own pixels."""
     import cv2
 
-    from macsplat_cli.pipeline.neural import load_neural_models
     from macsplat_cli.pipeline.views import load_views
 
     small = tmp_path / "b_small.png"  # 80×64: another aspect ratio than view 0's 96×64
     save_image(small, cv2.resize(cv2.imread(str(scene.b))[..., ::-1], (80, 64)).astype(np.float32) / 255.0)
-    models = load_neural_models(
+    predictor = load_pair_predictor(
         weights=ckpts["mast3r"], gaussian_head=ckpts["splatt3r"], dino=ckpts["dino"], fusion=ckpts["fusion"]
     )
-    backend = NeuralBackend(models)
-    rec = NeuralPipeline(backend).run([scene.a, small])
-    pred = backend.last
-    assert pred is not None and pred.fusion_applied and backend.forward_calls == 1
+    pipeline = build_pipeline(EngineConfig(backend="neural"), Models(predictor=predictor))
+    rec = pipeline.run([scene.a, small])
+    pred = pipeline.pair.last
+    assert pred is not None and predictor.fusion_enabled
     v0, v1 = load_views([scene.a, small])
     img = torch.from_numpy(np.stack([v0.image, pred.warps[1].image(v1.image)])).permute(0, 3, 1, 2) * 2 - 1
     with torch.no_grad():
-        raw1, raw2 = models.backbone(img[:1], img[1:])
+        raw1, raw2 = predictor.backbone(img[:1], img[1:])
     assert not np.allclose(pred.desc, torch.cat([raw1.desc, raw2.desc]).numpy(), atol=1e-3)
     np.testing.assert_allclose(pred.pts3d[1], raw2.pts3d[0].numpy(), rtol=1e-5, atol=1e-6)  # same forward pass
     # view 1: an 80×64 photo, a 96×64 network input: scaled to 96×77, then rows 6–69 kept
@@ -509,25 +533,25 @@ def test_fusion_changes_descriptors_and_head_gaussians_keep_their_frame(
     assert maps[0].size == (64, 96) and maps[1].size == (64, 80) and rec.depths[1].depth.shape == (64, 80)
     assert pred.gaussians is not None
     head0, head1 = pred.gaussians
-    world0 = maps[0].to_world().means
-    np.testing.assert_allclose(world0.numpy(), head0.means[0][maps[0].valid].numpy(), atol=1e-5)
+    world0 = maps[0].to_gaussians().means
+    np.testing.assert_allclose(world0.numpy(), head0.means[0][maps[0].valid[0]].numpy(), atol=1e-5)
     # view 1: back in the world (camera 0) frame, each Gaussian is the head's at the network pixel it came from
-    ys, xs = np.nonzero(maps[1].valid.numpy())
+    ys, xs = np.nonzero(maps[1].valid[0].numpy())
     uv = pred.warps[1].to_net(np.stack([xs + 0.5, ys + 0.5], 1))
     i, j = np.floor(uv[:, 1]).astype(int), np.floor(uv[:, 0]).astype(int)
-    world1 = maps[1].to_world()
+    world1 = maps[1].to_gaussians()
     np.testing.assert_allclose(world1.means.numpy(), head1.means[0][i, j].numpy(), rtol=1e-4, atol=1e-5)
-    q_head = head1.quats_wxyz[0][i, j].double()
+    q_head = head1.quats[0][i, j].double()
     q_world = world1.quats.double() / world1.quats.double().norm(dim=-1, keepdim=True)
     assert torch.allclose((q_world * q_head).sum(-1).abs(), torch.ones(len(q_head), dtype=torch.float64), atol=1e-4)
-    np.testing.assert_allclose(world1.sh[:, 0].numpy(), head1.sh_band_major[0][i, j, 0].numpy(), atol=1e-6)
+    np.testing.assert_allclose(world1.sh[:, 0].numpy(), head1.sh[0][i, j, 0].numpy(), atol=1e-6)
 
 
 def test_eval_with_the_neural_backend(ckpts: dict[str, Path], tmp_path: Path) -> None:
     """``macsplat eval --backend neural`` runs the network on every case (random weights: the poses
     are whatever they are, but every case is measured or counted as failed, none skipped); without
     weights it stops before any case with exit 2."""
-    from macsplat_cli import synthetic as syn
+    from macsplat_cli.datasets import synthetic as syn
 
     data = tmp_path / "data"
     room = syn.make_scene("room", 0)
@@ -565,13 +589,10 @@ def test_bf16_precision_matches_fp32_and_runs_from_the_cli(
     from macsplat_cli.pipeline.neural import NeuralConfig
     from macsplat_cli.pipeline.views import load_views
 
-    torch.manual_seed(0)
-    net = MASt3RBackbone(TINY).eval()
-    net.load_state_dict(random_state_dict(TINY))
-    v0, v1 = load_views([scene.a, scene.b])
-    models = NeuralModels(net, None, None, None, torch.device("cpu"))
-    fp32 = NeuralBackend(models).predict(v0, v1)
-    bf16 = NeuralBackend(models, NeuralConfig(precision="bf16")).predict(v0, v1)
+    predictor = _tiny_predictor()
+    views = load_views([scene.a, scene.b])
+    fp32 = NeuralPair(predictor)(views)
+    bf16 = NeuralPair(predictor, NeuralConfig(precision="bf16"))(views)
     assert bf16.pts3d.dtype == np.float32 and np.isfinite(bf16.pts3d).all() and np.isfinite(bf16.desc).all()
     rel = np.abs(bf16.pts3d - fp32.pts3d) / np.maximum(np.abs(fp32.pts3d), 1e-3)
     assert np.median(rel) < 0.05  # bfloat16 keeps 8 bits of mantissa

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from macsplat_cli import synthetic as S
 from macsplat_cli.cameras import Camera
+from macsplat_cli.datasets import synthetic as S
 from macsplat_cli.errors import ReconstructionError
 from macsplat_cli.pipeline.pose import PoseConfig, estimate_pose, fundamental_from_pose, sampson_distance, triangulate
 from macsplat_cli.pipeline.types import IntrinsicsSource, Matches, View

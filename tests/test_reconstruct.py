@@ -23,13 +23,14 @@ import numpy as np
 import pytest
 import torch
 
-from macsplat_cli import synthetic as syn
 from macsplat_cli.cameras import Camera, CameraSet, load_cameras, save_cameras
 from macsplat_cli.cli import main
+from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.errors import ReconstructionError
 from macsplat_cli.images import save_image
 from macsplat_cli.pipeline.pose import PoseConfig
-from macsplat_cli.pipeline.run import STAGES, EssentialPose, Pipeline, ReconstructConfig, Reconstruction
+from macsplat_cli.pipeline.run import STAGES, Pipeline, ReconstructConfig, Reconstruction
+from macsplat_cli.pipeline.stages import EssentialPose
 from macsplat_cli.pipeline.types import Matches, TwoViewGeometry, View
 from macsplat_cli.pipeline.views import ViewConfig, prior_focal
 from macsplat_cli.ply import read_ply
@@ -172,10 +173,10 @@ def test_pose_and_depth_accuracy_with_known_intrinsics(
             0.0,
             100 * depth_err,
             measured,
-            rec.report["matches"]["verified"],
+            rec.report.matches["verified"],
         )
     )
-    assert [im["intrinsics_source"] for im in rec.report["images"]] == ["file", "file"]
+    assert [im.intrinsics_source for im in rec.report.images] == ["file", "file"]
     np.testing.assert_allclose(rec.geometry.K0, pair.cam0.rescaled(*SIZE).K)  # the file's K is kept as is
     rot_tol, t_tol = POSE_TOL_DEG[angle]
     assert rot_err < rot_tol, f"rotation error {rot_err:.3f}°"
@@ -210,13 +211,13 @@ def test_focal_self_calibration_with_unknown_intrinsics(
     depth_err, measured = _depth_error(rec, pair)
     error_table.append(
         (kind, angle, f"{UNKNOWN_FOV_DEG:g}", "unknown", rot_err, t_err, 100 * max(f_errs), 100 * depth_err, measured,
-         rec.report["matches"]["verified"])
+         rec.report.matches["verified"])
     )  # fmt: skip
     assert abs(prior_focal(*SIZE) / f_true - 1.0) > 0.15  # the prior alone would be far off
-    assert [im["intrinsics_source"] for im in rec.report["images"]] == ["estimated", "estimated"]
+    assert [im.intrinsics_source for im in rec.report.images] == ["estimated", "estimated"]
     rot_tol, f_tol = UNKNOWN_TOL[angle]
     assert max(f_errs) < f_tol, f"focal errors {f_errs}"
-    assert rec.report["images"][0]["focal_px_working"] == pytest.approx(rec.geometry.K0[0, 0])
+    assert rec.report.images[0].focal_px_working == pytest.approx(rec.geometry.K0[0, 0])
     assert rot_err < rot_tol, f"rotation error {rot_err:.3f}°"
     assert t_err < UNKNOWN_TDIR_TOL_DEG, f"translation-direction error {t_err:.3f}°"
 
@@ -575,15 +576,15 @@ def test_library_report_names_every_stage_and_is_json(
 ) -> None:
     """The report names a backend for every stage, times every stage, and is strict JSON."""
     rec, events = library_run
-    backends = rec.report["backends"]
+    backends = rec.report.backends
     assert all(isinstance(backends[s], str) and backends[s] for s in STAGES)
-    assert all(rec.report["times_s"][s] > 0 for s in STAGES)
-    json.dumps(rec.report, allow_nan=False)
+    assert all(rec.report.times_s[s] > 0 for s in STAGES)
+    json.dumps(rec.report.to_json(), allow_nan=False)
     ends = [s for s, e in events if e == "end"]
     assert [s for s in ends if s in STAGES] == list(STAGES)  # each stage once, in order
     starts = [s for s, e in events if e == "start"]
     assert sorted(starts) == sorted(s for s, e in events if e in ("end", "fail"))  # every start is closed
-    assert len(rec.gaussians) == rec.report["gaussians"] > MIN_GAUSSIANS
+    assert len(rec.gaussians) == rec.report.gaussians > MIN_GAUSSIANS
 
 
 def test_library_custom_pose_backend_replaces_the_stage(cli_pair: Pair) -> None:
@@ -596,9 +597,9 @@ def test_library_custom_pose_backend_replaces_the_stage(cli_pair: Pair) -> None:
             self.inner = EssentialPose(PoseConfig())
             self.calls = 0
 
-        def __call__(self, v0: View, v1: View, matches: Matches) -> TwoViewGeometry:
+        def __call__(self, v0: View, v1: View, matches: Matches, pair: object = None) -> TwoViewGeometry:
             self.calls += 1
-            geometry = self.inner(v0, v1, matches)
+            geometry = self.inner(v0, v1, matches, pair)
             geometry.info["recorded"] = True
             return geometry
 
@@ -606,8 +607,8 @@ def test_library_custom_pose_backend_replaces_the_stage(cli_pair: Pair) -> None:
     config = ReconstructConfig(views=ViewConfig(size=256))  # small: only the stage wiring is under test
     rec = Pipeline(config, pose=pose).run([cli_pair.a, cli_pair.b])
     assert pose.calls >= 1
-    assert rec.report["backends"]["pose"] == "test:recording-essential"
-    assert rec.report["pose"]["recorded"] is True  # the reported geometry is the custom backend's
+    assert rec.report.backends["pose"] == "test:recording-essential"
+    assert rec.report.pose["recorded"] is True  # the reported geometry is the custom backend's
     rot_err, _ = _pose_errors(rec, cli_pair)
     assert rot_err < 1.0
 

@@ -1,5 +1,5 @@
-"""Per-view Gaussian maps (world transform, pooling) and the MAC-regularised refinement,
-from the library and from ``macsplat reconstruct --refine``."""
+"""The MAC-regularised refinement of the per-view Gaussian maps, from the library and from
+``macsplat reconstruct --refine``. (The maps themselves, world transform and pooling: test_gaussians.py.)"""
 
 from __future__ import annotations
 
@@ -12,68 +12,16 @@ import numpy as np
 import pytest
 import torch
 
-from macsplat_cli import synthetic as syn
 from macsplat_cli.cameras import CameraSet, save_cameras
 from macsplat_cli.cli import main
-from macsplat_cli.gaussians import quat_to_rotmat
+from macsplat_cli.datasets import synthetic as syn
+from macsplat_cli.errors import InputError
+from macsplat_cli.gaussians import GaussianMaps
 from macsplat_cli.images import save_image
 from macsplat_cli.mac import MACConfig, mac_loss
 from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig, Reconstruction
-from macsplat_cli.pipeline.types import PixelGaussians
 from macsplat_cli.pipeline.views import ViewConfig
-from macsplat_cli.refine import RefineConfig, _mac_maps, refine
-
-D = torch.float64
-
-
-def _random_maps(h: int, w: int, seed: int, valid: torch.Tensor | None = None) -> PixelGaussians:
-    g = torch.Generator().manual_seed(seed)
-    T = torch.eye(4, dtype=D)
-    T[:3, :3] = quat_to_rotmat(torch.randn(4, generator=g, dtype=D))
-    T[:3, 3] = torch.randn(3, generator=g, dtype=D)
-    means = torch.randn(h, w, 3, generator=g, dtype=D)
-    means[..., 2] += 4
-    return PixelGaussians(
-        means=means,
-        log_scales=torch.randn(h, w, 3, generator=g, dtype=D) - 3,
-        quats=torch.randn(h, w, 4, generator=g, dtype=D),
-        opacity_logits=torch.randn(h, w, generator=g, dtype=D),
-        sh=torch.randn(h, w, 1, 3, generator=g, dtype=D),
-        valid=torch.ones(h, w, dtype=torch.bool) if valid is None else valid,
-        cam_to_world=T,
-    )
-
-
-# ------------------------------------------------------------------------------ PixelGaussians
-def test_to_world_moves_means_and_rotations_into_the_world_frame() -> None:
-    valid = torch.tensor([[True, False, True], [True, True, False]])
-    m = _random_maps(2, 3, 0, valid)
-    g = m.to_world()
-    R, t = m.cam_to_world[:3, :3], m.cam_to_world[:3, 3]
-    assert len(g) == int(valid.sum())
-    torch.testing.assert_close(g.means, m.means[valid] @ R.T + t)
-    torch.testing.assert_close(quat_to_rotmat(g.quats), R @ quat_to_rotmat(m.quats[valid]))
-    torch.testing.assert_close(g.log_scales, m.log_scales[valid])  # rotation does not change the scales
-    torch.testing.assert_close(g.opacity_logits, m.opacity_logits[valid])
-
-
-def test_pooled_averages_the_valid_pixels_of_each_block() -> None:
-    valid = torch.ones(4, 4, dtype=torch.bool)
-    valid[0, 1] = False  # block (0, 0) averages 3 pixels
-    valid[2:, 2:] = False  # block (1, 1) is empty
-    m = _random_maps(4, 4, 1, valid)
-    p = m.pooled(2)
-    assert p.size == (2, 2)
-    np.testing.assert_array_equal(p.valid.numpy(), [[True, True], [True, False]])
-    block = m.means[:2, :2][valid[:2, :2]]
-    torch.testing.assert_close(p.means[0, 0], block.mean(0))
-    torch.testing.assert_close(p.log_scales[0, 0], m.log_scales[:2, :2][valid[:2, :2]].mean(0) + np.log(2))
-    torch.testing.assert_close(p.sh[1, 0], m.sh[2:, :2].reshape(4, 1, 3).mean(0))
-    torch.testing.assert_close(torch.linalg.vector_norm(p.quats[0, 0]), torch.tensor(1.0, dtype=D))
-    assert m.pooled(1) is m
-    with pytest.raises(ValueError, match="pooled"):
-        _random_maps(3, 4, 2).pooled(2)
-
+from macsplat_cli.refine import RefineConfig, refine
 
 # ------------------------------------------------------------------------------ refinement
 SIZE = (256, 192)
@@ -97,12 +45,12 @@ def rec(pair: tuple[Path, Path, Path]) -> Reconstruction:
     return Pipeline(cfg).run(pair[:2])
 
 
-def _mac_value(rec: Reconstruction, maps: list[PixelGaussians], scale: int) -> float:
+def _mac_value(rec: Reconstruction, maps: list[GaussianMaps], scale: int) -> float:
     inl = rec.geometry.inliers
     xy0 = torch.tensor(inl.xy0 / scale, dtype=torch.float32)
     xy1 = torch.tensor(inl.xy1 / scale, dtype=torch.float32)
-    c2w = [m.cam_to_world.float()[None] for m in maps]
-    out = mac_loss(*_mac_maps(maps), xy0, xy1, torch.zeros(len(xy0), dtype=torch.long),
+    c2w = [m.cam_to_world.float() for m in maps]
+    out = mac_loss(maps[0], maps[1], xy0, xy1, torch.zeros(len(xy0), dtype=torch.long),
                    torch.tensor(inl.conf, dtype=torch.float32), c2w[0], c2w[1])  # fmt: skip
     return float(out.loss)
 
@@ -114,7 +62,8 @@ def test_refinement_lowers_the_loss_and_leaves_the_input_alone(rec: Reconstructi
     assert out.history[-1]["photo"] < 0.9 * out.history[0]["photo"]
     assert {"photo", "mac", "mac_pos", "mac_shape", "loss"} <= set(out.history[0])
     h, w = rec.maps[0].size
-    assert [m.size for m in out.maps] == [(h // 4, w // 4)] * 2
+    assert [m.size for m in out.maps] == [(h // 4, w // 4)] * 2 and [m.batch for m in out.maps] == [1, 1]
+    assert all(torch.equal(a.cam_to_world, b.cam_to_world) for a, b in zip(out.maps, rec.maps))
     assert not any(t.requires_grad for m in out.maps for t in m.tensors())
     for t0, t1 in zip(before, rec.maps[0].tensors()):
         assert torch.equal(t0, t1)
@@ -136,6 +85,12 @@ def test_refinement_stops_early_on_a_plateau(rec: Reconstruction) -> None:
     cfg = RefineConfig(steps=40, scale=4, min_steps=4, plateau_window=2, plateau_tol=10.0)
     out = refine(rec.views, rec.geometry, rec.maps, cfg)
     assert out.stopped_early and out.steps == 4
+
+
+def test_refinement_takes_one_map_per_view(rec: Reconstruction) -> None:
+    both = GaussianMaps.cat([rec.maps[0], rec.maps[0]])
+    with pytest.raises(InputError, match="B = 1"):
+        refine(rec.views, rec.geometry, [both, rec.maps[1]], RefineConfig(steps=1, scale=4))
 
 
 # ------------------------------------------------------------------------------ CLI

@@ -21,11 +21,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from macsplat_cli.errors import InputError, NonFiniteError, ReconstructionError
-from macsplat_cli.gaussians import Gaussians, quat_to_rotmat
-from macsplat_cli.mac import GaussianMaps, mac_loss
+from macsplat_cli.gaussians import GaussianMaps, Gaussians
+from macsplat_cli.mac import mac_loss
 from macsplat_cli.pipeline.pose import estimate_pose
 from macsplat_cli.pipeline.types import Matches, View
 from macsplat_cli.render import render
+from macsplat_cli.rotations import quat_to_rotmat
 
 from _helpers import pinhole, random_gaussians
 
@@ -55,7 +56,8 @@ def _rigid(draw: st.DrawFn) -> torch.Tensor:
 @st.composite
 def map_pairs(draw: st.DrawFn) -> tuple[dict, dict]:
     """Two 2×2 views of extreme Gaussians: log-uniform scales over 12 decades, isotropic or
-    disc-shaped ones (equal eigenvalues), near-zero quaternions, depths across z = 0."""
+    disc-shaped ones (equal eigenvalues), near-zero quaternions, depths across z = 0, opacity
+    logits up to ±40 (opacities 0 and 1 in float32)."""
     views = []
     for _ in range(2):
         log_s = []
@@ -71,25 +73,27 @@ def map_pairs(draw: st.DrawFn) -> tuple[dict, dict]:
                 means=[[draw(unit), draw(unit), zi] for zi in z],
                 log_scales=log_s,
                 quats=[_quat(draw) for _ in range(4)],
-                opacities=[draw(st.floats(0.0, 1.0)) for _ in range(4)],
+                opacity_logits=[draw(st.floats(-40.0, 40.0)) for _ in range(4)],
                 sh=[[[draw(unit) for _ in range(3)]] for _ in range(4)],
             )
         )
     return views[0], views[1]
 
 
-def _maps(v: dict, dtype: torch.dtype, *, covariances: bool = False) -> GaussianMaps:
+def _maps(v: dict, dtype: torch.dtype) -> GaussianMaps:
     t = {k: torch.tensor(x, dtype=D).reshape(1, 2, 2, *torch.tensor(x).shape[1:]) for k, x in v.items()}
-    if covariances:
-        R = quat_to_rotmat(t["quats"])
-        cov = R @ torch.diag_embed(torch.exp(2 * t["log_scales"])) @ R.transpose(-1, -2)
-        return GaussianMaps(means=t["means"].to(dtype), opacities=t["opacities"].to(dtype), sh=t["sh"].to(dtype),
-                            covariances=cov.to(dtype))  # fmt: skip
     return GaussianMaps(**{k: x.to(dtype) for k, x in t.items()})
 
 
+def _cov(v: dict, dtype: torch.dtype) -> torch.Tensor:
+    """The view's Gaussians as raw camera-frame covariances R S² Rᵀ. [1, 2, 2, 3, 3]"""
+    m = _maps(v, D)
+    R = quat_to_rotmat(m.quats)
+    return (R @ torch.diag_embed(torch.exp(2 * m.log_scales)) @ R.transpose(-1, -2)).to(dtype)
+
+
 def _leaves(m: GaussianMaps) -> list[torch.Tensor]:
-    return [t for t in (m.means, m.opacities, m.sh, m.log_scales, m.quats, m.covariances) if t is not None]
+    return m.tensors()
 
 
 def _match_set(draw: st.DrawFn, m: int) -> tuple[torch.Tensor, ...]:
@@ -124,19 +128,19 @@ def test_mac_covariance_path_is_finite_and_agrees_with_scales(pair: tuple[dict, 
     gradients; where the covariance resolves its eigenvalues (condition number ≤ 1e6) the
     shape term equals the scale path's."""
     sa, sb = _maps(pair[0], D), _maps(pair[1], D)
-    ca, cb = _maps(pair[0], D, covariances=True), _maps(pair[1], D, covariances=True)
+    ca, cb = _cov(pair[0], D), _cov(pair[1], D)
     xy1, xy2, batch, w = _match_set(data.draw, data.draw(st.integers(1, 6)))
     T1, T2 = _rigid(data.draw)[None], _rigid(data.draw)[None]
-    ca.covariances.requires_grad_(True)
-    out = mac_loss(ca, cb, xy1, xy2, batch, w, T1, T2)
-    (g,) = torch.autograd.grad(out.shape, ca.covariances)
+    ca.requires_grad_(True)
+    out = mac_loss(sa, sb, xy1, xy2, batch, w, T1, T2, covariances=(ca, cb))
+    (g,) = torch.autograd.grad(out.shape, ca)
     assert torch.isfinite(out.shape) and torch.isfinite(g).all()
     ls = torch.cat([sa.log_scales, sb.log_scales]).reshape(-1, 3)
     if float((ls.max(-1).values - ls.min(-1).values).max()) <= 0.5 * math.log(1e6):
         # the covariance path samples Σ bilinearly and the scale path log s: compare at pixel centres
         xy1, xy2 = xy1.floor() + 0.5, xy2.floor() + 0.5
         ref = mac_loss(sa, sb, xy1, xy2, batch, w, T1, T2)
-        cov = mac_loss(ca, cb, xy1, xy2, batch, w, T1, T2)
+        cov = mac_loss(sa, sb, xy1, xy2, batch, w, T1, T2, covariances=(ca, cb))
         torch.testing.assert_close(cov.shape, ref.shape, rtol=1e-6, atol=1e-9)
 
 
@@ -151,10 +155,11 @@ def test_mac_float32_agrees_with_float64(seed: int, m: int) -> None:
     def view() -> GaussianMaps:
         means = torch.randn(1, h, w, 3, generator=g, dtype=D)
         means[..., 2] = torch.rand(1, h, w, generator=g, dtype=D) * 19.5 + 0.5
-        return GaussianMaps(means=means, opacities=torch.rand(1, h, w, generator=g, dtype=D),
-                            sh=torch.randn(1, h, w, 4, 3, generator=g, dtype=D),
-                            log_scales=torch.rand(1, h, w, 3, generator=g, dtype=D) * -math.log(1e3),
-                            quats=torch.randn(1, h, w, 4, generator=g, dtype=D))  # fmt: skip
+        opacity_logits = torch.logit(torch.rand(1, h, w, generator=g, dtype=D))
+        sh = torch.randn(1, h, w, 4, 3, generator=g, dtype=D)
+        return GaussianMaps(means=means, log_scales=torch.rand(1, h, w, 3, generator=g, dtype=D) * -math.log(1e3),
+                            quats=torch.randn(1, h, w, 4, generator=g, dtype=D), opacity_logits=opacity_logits,
+                            sh=sh)  # fmt: skip
 
     a, b = view(), view()
     xy1 = torch.rand(m, 2, generator=g, dtype=D) * torch.tensor([w, h], dtype=D)
@@ -165,8 +170,7 @@ def test_mac_float32_agrees_with_float64(seed: int, m: int) -> None:
     T2[0, :3, 3] = torch.randn(3, generator=g, dtype=D)
     want = mac_loss(a, b, xy1, xy2, batch, wt, T1, T2)
     f = torch.float32
-    a32 = GaussianMaps(**{k: getattr(a, k).to(f) for k in ("means", "opacities", "sh", "log_scales", "quats")})
-    b32 = GaussianMaps(**{k: getattr(b, k).to(f) for k in ("means", "opacities", "sh", "log_scales", "quats")})
+    a32, b32 = a.to(dtype=f), b.to(dtype=f)
     got = mac_loss(a32, b32, xy1.to(f), xy2.to(f), batch, wt.to(f), T1.to(f), T2.to(f))
     for term in ("loss", "position", "shape", "appearance"):
         torch.testing.assert_close(getattr(got, term).double(), getattr(want, term), rtol=1e-4, atol=1e-6)
@@ -181,9 +185,11 @@ def test_mac_empty_and_very_large_match_sets() -> None:
     for _ in range(2):
         means = torch.randn(1, h, w, 3, generator=g)
         means[..., 2] += 4.0
-        maps.append(GaussianMaps(means=means.requires_grad_(True), opacities=torch.rand(1, h, w, generator=g),
-                                 sh=torch.randn(1, h, w, 1, 3, generator=g),
-                                 log_scales=torch.randn(1, h, w, 3, generator=g) - 3))  # fmt: skip
+        opacity_logits = torch.logit(torch.rand(1, h, w, generator=g))
+        sh = torch.randn(1, h, w, 1, 3, generator=g)
+        quats = torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(1, h, w, 1)
+        maps.append(GaussianMaps(means=means.requires_grad_(True), log_scales=torch.randn(1, h, w, 3, generator=g) - 3,
+                                 quats=quats, opacity_logits=opacity_logits, sh=sh))  # fmt: skip
     T = torch.eye(4)[None]
     empty = torch.zeros(0, 2)
     out = mac_loss(maps[0], maps[1], empty, empty, torch.zeros(0, dtype=torch.long), torch.zeros(0), T, T)
@@ -203,7 +209,7 @@ def test_mac_empty_and_very_large_match_sets() -> None:
     torch.testing.assert_close(twice.loss, once.loss, rtol=1e-5, atol=0)
 
 
-FIELDS = ["means", "log_scales", "quats", "opacities", "sh", "xy1", "weights", "cam_to_world1"]
+FIELDS = ["means", "log_scales", "quats", "opacity_logits", "sh", "xy1", "weights", "cam_to_world1", "covariances"]
 
 
 @pytest.mark.parametrize("field", FIELDS)
@@ -211,15 +217,17 @@ FIELDS = ["means", "log_scales", "quats", "opacities", "sh", "xy1", "weights", "
 def test_mac_rejects_non_finite_inputs_by_name(field: str, value: float) -> None:
     def view() -> dict[str, torch.Tensor]:
         quats = torch.tensor([1.0, 0, 0, 0]).repeat(1, 2, 2, 1)
-        return dict(means=torch.ones(1, 2, 2, 3), opacities=torch.ones(1, 2, 2), sh=torch.zeros(1, 2, 2, 1, 3),
+        return dict(means=torch.ones(1, 2, 2, 3), opacity_logits=torch.ones(1, 2, 2), sh=torch.zeros(1, 2, 2, 1, 3),
                     log_scales=torch.zeros(1, 2, 2, 3), quats=quats)  # fmt: skip
 
     a, b = view(), view()
-    args = dict(xy1=torch.ones(3, 2), xy2=torch.ones(3, 2), weights=torch.ones(3), cam_to_world1=torch.eye(4)[None])
+    args = dict(xy1=torch.ones(3, 2), xy2=torch.ones(3, 2), weights=torch.ones(3), cam_to_world1=torch.eye(4)[None],
+                covariances=torch.eye(3).repeat(1, 2, 2, 1, 1))  # fmt: skip
     (a if field in a else args)[field].view(-1)[0] = value
     with pytest.raises(NonFiniteError, match=field):
         mac_loss(GaussianMaps(**a), GaussianMaps(**b), args["xy1"], args["xy2"], torch.zeros(3, dtype=torch.long),
-                 args["weights"], args["cam_to_world1"], torch.eye(4)[None])  # fmt: skip
+                 args["weights"], args["cam_to_world1"], torch.eye(4)[None],
+                 covariances=(args["covariances"], None))  # fmt: skip
 
 
 # ---------------------------------------------------------------------------------------- rasterizer

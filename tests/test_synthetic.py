@@ -12,8 +12,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from macsplat_cli import synthetic as S
 from macsplat_cli.cameras import Camera, load_cameras
+from macsplat_cli.datasets import synthetic as S
 from macsplat_cli.errors import InputError
 from macsplat_cli.images import to_uint8
 

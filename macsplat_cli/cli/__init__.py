@@ -1,52 +1,17 @@
-"""The ``macsplat`` command line (Typer app). Commands live one per module."""
+"""The ``macsplat`` command line (Typer app). Commands live one per module, each registering itself on
+the app of :mod:`._app` (imported one way: this package imports the commands, never the reverse)."""
 
 from __future__ import annotations
 
 import sys
-from typing import Annotated
 
 import typer
 
-from .. import __version__
-from ._common import QuietOpt, State, VerboseOpt, err_console
+from . import bench, eval, reconstruct, render  # noqa: F401 - registers the commands
+from ._app import app
+from ._common import err_console
 
 __all__ = ["app", "main", "run"]
-
-app = typer.Typer(
-    name="macsplat",
-    help="Two photos in, a 3D Gaussian splat scene out (MAC-Splat).",
-    rich_markup_mode="rich",
-    context_settings={"help_option_names": ["-h", "--help"]},
-    no_args_is_help=True,
-    add_completion=False,
-    pretty_exceptions_enable=False,
-)
-
-
-def _version(value: bool) -> None:
-    if value:
-        typer.echo(f"macsplat {__version__}")
-        raise typer.Exit()
-
-
-@app.callback()
-def _root(
-    ctx: typer.Context,
-    version: Annotated[
-        bool, typer.Option("--version", callback=_version, is_eager=True, help="Print the version and exit.")
-    ] = False,
-    verbose: VerboseOpt = False,
-    quiet: QuietOpt = False,
-) -> None:
-    """Two photos in, a 3D Gaussian splat scene out (MAC-Splat)."""
-    ctx.obj = State(verbose=verbose, quiet=quiet)
-
-
-def _register() -> None:
-    from . import bench, eval, reconstruct, render  # noqa: F401 - registers the commands
-
-
-_register()
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -4,21 +4,18 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from . import app
+from ._app import app
 from ._common import QuietOpt, VerboseOpt, command_context, err_console, out_console
+from ._options import DeviceOpt, DinoOpt, FusionOpt, GaussianHeadOpt, PrecisionOpt, WeightsOpt, neural_options
 from .eval import (
     AssignmentChoice,
     AssignmentOpt,
     CasesOpt,
     DataOpt,
-    DeviceOpt,
-    DinoOpt,
-    FusionOpt,
-    GaussianHeadOpt,
     IntrinsicsChoice,
     IntrinsicsOpt,
     LayoutChoice,
@@ -32,12 +29,14 @@ from .eval import (
     SplitByChoice,
     SplitByOpt,
     SplitOpt,
-    WeightsOpt,
+    engine_config,
     load_data,
-    neural_options,
     run_with_progress,
     select_cases,
 )
+
+if TYPE_CHECKING:
+    from ..engine import NeuralOptions
 
 logger = logging.getLogger("macsplat_cli.cli.bench")
 
@@ -102,6 +101,7 @@ def bench_command(
     dino: DinoOpt = None,
     fusion: FusionOpt = None,
     device: DeviceOpt = "cpu",
+    precision: PrecisionOpt = "fp32",
     verbose: VerboseOpt = False,
     quiet: QuietOpt = False,
 ) -> None:
@@ -124,7 +124,7 @@ def bench_command(
             scannetpp_split=scannetpp_split, scenes=scenes, cases_file=cases, intrinsics=intrinsics.value,
             max_pairs=max_pairs, max_targets=max_targets, split_by=split_by.value, assignment=assignment.value,
             seed=seed, splatt3r_compatible=splatt3r_compatible, json_out=json_out, quiet=state.quiet,
-            neural=neural_options(backend.split(","), weights, gaussian_head, dino, fusion, device),
+            neural=neural_options(weights, gaussian_head, dino, fusion, device, precision),
         )  # fmt: skip
 
 
@@ -132,7 +132,7 @@ def _bench(
     *, data: Path, out: Path, backends: list[str], sizes: list[int], taus: list[float | None], steps: list[int],
     eval_size: int | None, metric: str, split: str, layout: str, scannetpp_split: str, scenes: str | None,
     cases_file: Path | None, intrinsics: str, max_pairs: int, max_targets: int, split_by: str, assignment: str,
-    seed: int, splatt3r_compatible: bool, json_out: bool, quiet: bool, neural: dict | None = None,
+    seed: int, splatt3r_compatible: bool, json_out: bool, quiet: bool, neural: NeuralOptions,
 ) -> None:  # fmt: skip
     import json
 
@@ -149,6 +149,10 @@ def _bench(
         raise InputError(f"--backend {unknown[0]!r}: available: {', '.join(sorted(BACKENDS))}")
     if any(s < 64 for s in sizes) or any(r < 0 for r in steps) or any(t is not None and t < 0 for t in taus):
         raise InputError("--size must be ≥ 64, --refine ≥ 0 and --conf-threshold ≥ 0")
+    if neural.given and "neural" not in backends:
+        raise InputError(f"{', '.join(neural.given)} only apply to --backend neural")
+    if "neural" in backends:  # usage errors (no weights, --dino without --fusion, ...) before any work
+        engine_config("neural", neural=neural).validate()
     check_writable(out / "bench.md")
     dataset = load_data(data, layout, scannetpp_split, scenes)
     sel = select_cases(
@@ -168,7 +172,8 @@ def _bench(
 
     rows = run_bench(
         dataset, sel.cases, settings, metric=metric, intrinsics=intrinsics, eval_size=eval_size,
-        splatt3r_compatible=splatt3r_compatible, out_dir=out, run_fn=run_fn, neural=neural,
+        splatt3r_compatible=splatt3r_compatible, out_dir=out, run_fn=run_fn,
+        base=engine_config("classical", neural=neural),
     )  # fmt: skip
     if not quiet:
         from rich.markdown import Markdown

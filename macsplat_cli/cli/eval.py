@@ -10,10 +10,12 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from . import app
+from ._app import app
 from ._common import QuietOpt, VerboseOpt, command_context, err_console, out_console
+from ._options import DeviceOpt, DinoOpt, FusionOpt, GaussianHeadOpt, PrecisionOpt, WeightsOpt, neural_options
 
 if TYPE_CHECKING:
+    from ..engine import EngineConfig, NeuralOptions  # noqa: F401
     from ..evaluation import CaseSelection, EvalCase, EvalDataset, EvalRun
 
 logger = logging.getLogger("macsplat_cli.cli.eval")
@@ -50,29 +52,18 @@ DataOpt = Annotated[
         "--data", metavar="DIR", help="Data set folder (generic, ScanNet++, CO3D sample, ICL-NUIM/NYU RGB-D)."
     ),
 ]
-WeightsOpt = Annotated[
-    Path | None, typer.Option("--weights", metavar="PATH", help="neural: MASt3R checkpoint (models/mast3r.md).")
-]
-GaussianHeadOpt = Annotated[
-    Path | None, typer.Option("--gaussian-head", metavar="PATH", help="neural: Splatt3R checkpoint.")
-]
-DinoOpt = Annotated[Path | None, typer.Option("--dino", metavar="PATH", help="neural: DINOv3 weights.")]
-FusionOpt = Annotated[Path | None, typer.Option("--fusion", metavar="PATH", help="neural: fusion weights.")]
-DeviceOpt = Annotated[str, typer.Option("--device", metavar="cpu|cuda", help="neural: where the networks run.")]
 
 
-def neural_options(
-    backends: list[str], weights: Path | None, gaussian_head: Path | None, dino: Path | None, fusion: Path | None,
-    device: str,
-) -> dict[str, Any]:  # fmt: skip
-    """The neural backend's files and device (only those given); an error if given without that backend."""
-    from ..errors import InputError
+def engine_config(
+    backend: str, *, conf_threshold: float | None = None, refine: int = 0, neural: NeuralOptions | None = None
+) -> EngineConfig:
+    """The engine settings of ``eval``/``bench`` (the working size and intrinsics come per case)."""
+    from ..engine import EngineConfig, NeuralOptions, RefineOptions
 
-    files = {"weights": weights, "gaussian_head": gaussian_head, "dino": dino, "fusion": fusion}
-    given = {k: v for k, v in files.items() if v is not None}
-    if given and "neural" not in backends:
-        raise InputError("--weights, --gaussian-head, --dino and --fusion need --backend neural")
-    return {**given, "device": device}
+    return EngineConfig(
+        backend=backend.strip().lower(), conf_threshold=conf_threshold, neural=neural or NeuralOptions(),
+        refine=RefineOptions(steps=refine),
+    )  # fmt: skip
 
 
 SplitOpt = Annotated[str, typer.Option("--split", help="close, medium, wide, very-wide (comma-separated), or all.")]
@@ -299,6 +290,7 @@ def eval_command(
     dino: DinoOpt = None,
     fusion: FusionOpt = None,
     device: DeviceOpt = "cpu",
+    precision: PrecisionOpt = "fp32",
     lpips_weights: Annotated[
         Path | None,
         typer.Option(
@@ -331,7 +323,10 @@ def eval_command(
             refine=refine, max_pairs=max_pairs, max_targets=max_targets, split_by=split_by.value,
             assignment=assignment.value, seed=seed, splatt3r_compatible=splatt3r_compatible,
             baselines=not no_baselines, json_out=json_out, quiet=state.quiet, lpips_weights=lpips_weights,
-            neural=neural_options([backend], weights, gaussian_head, dino, fusion, device),
+            engine=engine_config(
+                backend, conf_threshold=conf_threshold, refine=refine,
+                neural=neural_options(weights, gaussian_head, dino, fusion, device, precision),
+            ),
         )  # fmt: skip
 
 
@@ -340,20 +335,20 @@ def _eval(
     cases_file: Path | None, size: int, eval_size: int | None, intrinsics: str, conf_threshold: float | None,
     refine: int, max_pairs: int,
     max_targets: int, split_by: str, assignment: str, seed: int, splatt3r_compatible: bool, baselines: bool,
-    json_out: bool, quiet: bool, lpips_weights: Path | None = None, neural: dict[str, Any] | None = None,
+    json_out: bool, quiet: bool, engine: EngineConfig, lpips_weights: Path | None = None,
 ) -> None:  # fmt: skip
     import time
 
+    from .._json import to_jsonable
     from ..errors import DatasetError
-    from ..evaluation import BackendOptions, EvalConfig, ReconstructSettings, ResultWriter, make_reconstructor
-    from ..evaluation.protocol import BASELINES, summarize, to_jsonable
+    from ..evaluation import EvalConfig, ReconstructSettings, ResultWriter, make_reconstructor
+    from ..evaluation.protocol import BASELINES, summarize
     from ..evaluation.splits import parse_splits
     from ..lpips import load_lpips
 
     parse_splits(split)  # bad options fail before any work
     lpips = load_lpips(lpips_weights) if lpips_weights is not None else None
-    options = BackendOptions(conf_threshold=conf_threshold, refine_steps=refine, neural=neural or {})
-    reconstructor = make_reconstructor(backend, options)
+    reconstructor = make_reconstructor(engine)
     dataset = load_data(data, layout, scannetpp_split, scenes)
     sel = select_cases(
         dataset, cases_file=cases_file, split=split, split_by=split_by, assignment=assignment,

@@ -4,14 +4,17 @@ from __future__ import annotations
 
 import json
 import logging
-import time
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from . import app
+from ._app import app
 from ._common import QuietOpt, VerboseOpt, command_context, err_console, out_console
+from ._options import DeviceOpt, DinoOpt, FusionOpt, GaussianHeadOpt, PrecisionOpt, WeightsOpt, neural_options
+
+if TYPE_CHECKING:
+    from ..engine import EngineConfig
 
 logger = logging.getLogger("macsplat_cli.cli.reconstruct")
 
@@ -77,27 +80,12 @@ def reconstruct_command(
             help="classical: no learned weights (default); neural: MASt3R point maps and descriptors (--weights).",
         ),
     ] = "classical",
-    weights: Annotated[
-        Path | None,
-        typer.Option("--weights", help="MASt3R checkpoint (.pth or Hugging Face folder) for --backend neural."),
-    ] = None,
-    dino: Annotated[
-        Path | None, typer.Option("--dino", help="DINOv3 weights for semantic fusion of the descriptors (neural).")
-    ] = None,
-    fusion: Annotated[
-        Path | None, typer.Option("--fusion", help="Residual Semantic Fusion weights (with --dino; neural).")
-    ] = None,
-    gaussian_head: Annotated[
-        Path | None,
-        typer.Option(
-            "--gaussian-head",
-            help="Splatt3R checkpoint (.ckpt): Gaussians from its head; alone it also provides the backbone (neural).",
-        ),
-    ] = None,
-    device: Annotated[str, typer.Option("--device", metavar="cpu|cuda", help="Where the neural backend runs.")] = "cpu",
-    precision: Annotated[
-        str, typer.Option("--precision", metavar="fp32|bf16", help="Neural backend arithmetic (bf16: faster).")
-    ] = "fp32",
+    weights: WeightsOpt = None,
+    dino: DinoOpt = None,
+    fusion: FusionOpt = None,
+    gaussian_head: GaussianHeadOpt = None,
+    device: DeviceOpt = "cpu",
+    precision: PrecisionOpt = "fp32",
     verbose: VerboseOpt = False,
     quiet: QuietOpt = False,
 ) -> None:
@@ -115,45 +103,23 @@ def reconstruct_command(
       macsplat reconstruct a.jpg b.jpg -o scene.ply --backend neural --weights mast3r.pth
     """
     with command_context(ctx, verbose, quiet) as state:
+        from ..engine import EngineConfig, RefineOptions
+        from ..pipeline.run import ReconstructConfig
+        from ..pipeline.views import ViewConfig
+
+        config = EngineConfig(
+            backend=backend.strip().lower(),
+            pipeline=ReconstructConfig(views=ViewConfig(size=size, intrinsics=intrinsics, focal=focal)),
+            conf_threshold=conf_threshold,
+            neural=neural_options(weights, gaussian_head, dino, fusion, device, precision),
+            refine=RefineOptions(
+                steps=_refine_steps(refine), scale=refine_scale, use_mac=not no_mac, lpips_weights=lpips_weights
+            ),
+        )
         _reconstruct(
-            images=[image_a, image_b], output=output, cameras=cameras, renders=renders, num_renders=num_renders,
-            video=video, report=report, json_out=json_out, size=size, intrinsics=intrinsics, focal=focal,
-            conf_threshold=conf_threshold, refine_steps=_refine_steps(refine), refine_scale=refine_scale,
-            use_mac=not no_mac, quiet=state.quiet, lpips_weights=lpips_weights,
-            neural=_neural_options(backend, weights, dino, fusion, gaussian_head, device, precision),
+            [image_a, image_b], config, output=output, cameras=cameras, renders=renders, num_renders=num_renders,
+            video=video, report=report, json_out=json_out, quiet=state.quiet,
         )  # fmt: skip
-
-
-def _neural_options(
-    backend: str, weights: Path | None, dino: Path | None, fusion: Path | None, gaussian_head: Path | None,
-    device: str, precision: str = "fp32",
-) -> dict[str, Any] | None:  # fmt: skip
-    """The neural backend's files and device, or None for the classical backend (usage checked here)."""
-    from ..errors import InputError
-
-    name = backend.strip().lower()
-    if name not in ("classical", "neural"):
-        raise InputError(f"--backend {backend!r}: use classical or neural")
-    dev = device.strip().lower()
-    if dev not in ("cpu", "cuda"):
-        raise InputError(f"--device {device!r}: use cpu or cuda")
-    if precision not in ("fp32", "bf16"):
-        raise InputError(f"--precision {precision!r}: use fp32 or bf16")
-    given = {"--weights": weights, "--dino": dino, "--fusion": fusion, "--gaussian-head": gaussian_head}
-    if name == "classical":
-        extra = [opt for opt, v in given.items() if v is not None] + (["--device"] if dev != "cpu" else [])
-        extra += ["--precision"] if precision != "fp32" else []
-        if extra:
-            raise InputError(f"{', '.join(extra)} only apply to --backend neural")
-        return None
-    from ..pipeline.neural import MISSING_WEIGHTS_HELP, check_fusion_files, resolve_device
-
-    if weights is None and gaussian_head is None:
-        raise InputError(MISSING_WEIGHTS_HELP)
-    check_fusion_files(dino, fusion)
-    resolve_device(dev)
-    files = {"weights": weights, "dino": dino, "fusion": fusion, "gaussian_head": gaussian_head, "device": dev}
-    return {**files, "precision": precision}
 
 
 def _refine_steps(text: str) -> int:
@@ -195,109 +161,35 @@ def _check_outputs(output: Path, cameras: Path, renders: Path | None, video: Pat
 
 
 def _reconstruct(
-    *, images: list[Path], output: Path, cameras: Path | None, renders: Path | None, num_renders: int,
-    video: Path | None, report: Path | None, json_out: bool, size: int, intrinsics: Path | None,
-    focal: float | None, conf_threshold: float | None, refine_steps: int, refine_scale: int, use_mac: bool,
-    quiet: bool, neural: dict[str, Any] | None = None, lpips_weights: Path | None = None,
+    images: list[Path], config: EngineConfig, *, output: Path, cameras: Path | None, renders: Path | None,
+    num_renders: int, video: Path | None, report: Path | None, json_out: bool, quiet: bool,
 ) -> None:  # fmt: skip
-    from ..errors import InputError
-    from ..pipeline.run import Pipeline, ReconstructConfig
-    from ..pipeline.views import ViewConfig
+    """Options → engine → files: the outputs are checked, the engine runs, then the files are written."""
+    from ..engine import reconstruct
 
+    config.validate()
     cameras = cameras or output.with_name(output.stem + ".cameras.json")
     _check_outputs(output, cameras, renders, video, report)
-    lpips = None
-    if lpips_weights is not None:
-        if refine_steps == 0:
-            raise InputError("--lpips-weights is used by the refinement: add --refine STEPS or --refine auto")
-        from ..lpips import load_lpips
-
-        lpips = load_lpips(lpips_weights)
-    config = ReconstructConfig(views=ViewConfig(size=size, intrinsics=intrinsics, focal=focal))
-
     with _StageProgress(disabled=quiet) as progress:
-        if neural is not None:
-            from ..pipeline.neural import (
-                NeuralBackend,
-                NeuralConfig,
-                NeuralPipeline,
-                load_neural_models,
-                neural_reconstruct_config,
-            )
-
-            config = neural_reconstruct_config(config)
-            if conf_threshold is not None:
-                config.matching.conf_threshold = conf_threshold
-            progress.event("weights", "start")
-            t0 = time.perf_counter()
-            try:
-                models = load_neural_models(**{k: v for k, v in neural.items() if k != "precision"})
-            except BaseException:
-                progress.event("weights", "fail")
-                raise
-            load_s = time.perf_counter() - t0
-            progress.event("weights", "end")
-            backend = NeuralBackend(models, NeuralConfig(precision=neural["precision"]))
-            pipeline: Pipeline = NeuralPipeline(backend, config)
-        else:
-            if conf_threshold is not None:
-                config.matching.conf_threshold = conf_threshold
-            pipeline = Pipeline(config)
-        result = pipeline.run(images, on_stage=progress.event)
-        if neural is not None:
-            result.report["neural"]["load_s"] = load_s
-        if refine_steps > 0:
-            result = _refine(result, refine_steps, refine_scale, use_mac, progress, lpips)
+        steps = config.refine.steps
+        result = reconstruct(
+            images,
+            config,
+            on_stage=progress.event,
+            on_refine_step=lambda i, terms: progress.refine_step(i, steps, terms),
+        )
         written = _write_outputs(result, output, cameras, renders, num_renders, video, progress)
 
-    result.report["outputs"] = {k: str(v) for k, v in written.items()}
+    result.report.outputs = {k: str(v) for k, v in written.items()}
+    doc = result.report.to_json()
     if report is not None:
         from .._atomic import atomic_write_text
 
-        atomic_write_text(report, json.dumps(result.report, indent=2) + "\n")
+        atomic_write_text(report, json.dumps(doc, indent=2) + "\n")
     if json_out:
-        out_console.print_json(json.dumps(result.report))
+        out_console.print_json(json.dumps(doc))
     if not quiet:
-        _summary(result.report, written)
-
-
-def _refine(result, steps: int, scale: int, use_mac: bool, progress: _StageProgress, lpips=None):  # noqa: ANN001, ANN202
-    import dataclasses
-
-    from ..errors import InputError
-    from ..refine import RefineConfig, refine
-
-    h, w = result.maps[0].size
-    if any(m.size[0] % scale or m.size[1] % scale for m in result.maps):
-        raise InputError(f"--refine-scale {scale}: the working size {w}x{h} is not divisible by it")
-    cfg = RefineConfig(steps=steps, scale=scale, use_mac=use_mac)
-    progress.event("refine", "start")
-    task = progress.progress.add_task("", total=steps, took="")
-
-    def on_step(step: int, terms: dict[str, float]) -> None:
-        mac = f", mac {terms['mac']:.4f}" if "mac" in terms else ""
-        mac += f", lpips {terms['lpips']:.4f}" if "lpips" in terms else ""
-        progress.progress.update(task, completed=step, took=f"step {step}/{steps}: photo {terms['photo']:.4f}{mac}")
-
-    out = refine(result.views, result.geometry, result.maps, cfg, depths=result.depths, lpips=lpips, on_step=on_step)
-    progress.progress.remove_task(task)
-    progress.event("refine", "end")
-    report = dict(result.report)
-    report["refine"] = {
-        "steps": out.steps,
-        "max_steps": steps,
-        "stopped_early": out.stopped_early,
-        "seconds": out.seconds,
-        "scale": scale,
-        "mac": use_mac,
-        "lpips": lpips is not None,
-        "loss_first": out.history[0],
-        "loss_last": out.history[-1],
-    }
-    times = {k: v for k, v in report["times_s"].items() if k != "total"}
-    report["times_s"] = {**times, "refine": out.seconds, "total": report["times_s"]["total"] + out.seconds}
-    report["gaussians"] = int(sum(int(m.valid.sum()) for m in out.maps))
-    return dataclasses.replace(result, maps=out.maps, report=report)
+        _summary(doc, written)
 
 
 def _write_outputs(result, output, cameras, renders, num_renders, video, progress) -> dict[str, Any]:  # noqa: ANN001
@@ -311,8 +203,7 @@ def _write_outputs(result, output, cameras, renders, num_renders, video, progres
 
     written: dict[str, Any] = {}
     progress.event("write", "start")
-    n = write_ply(output, result.gaussians)
-    result.report["gaussians_written"] = n
+    result.report.gaussians_written = write_ply(output, result.gaussians)
     written["scene"] = output
     save_cameras(cameras, result.cameras())
     written["cameras"] = cameras
@@ -360,6 +251,14 @@ class _StageProgress:
                 self.progress.update(task, took="[red]✗ failed[/]")
             self.progress.stop_task(task)
         self.progress.stop()
+
+    def refine_step(self, step: int, steps: int, terms: dict[str, float]) -> None:
+        """A refinement step: its loss terms on the refine line."""
+        mac = f", mac {terms['mac']:.4f}" if "mac" in terms else ""
+        mac += f", lpips {terms['lpips']:.4f}" if "lpips" in terms else ""
+        task = self.tasks.get("refine")
+        if task is not None:
+            self.progress.update(task, took=f"step {step}/{steps}: photo {terms['photo']:.4f}{mac}")
 
     def event(self, stage: str, kind: str) -> None:
         import time

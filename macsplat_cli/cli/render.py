@@ -11,7 +11,7 @@ from typing import Annotated
 
 import typer
 
-from . import app
+from ._app import app
 from ._common import QuietOpt, VerboseOpt, command_context, err_console
 
 logger = logging.getLogger("macsplat_cli.cli.render")

@@ -1,8 +1,8 @@
 """Evaluation of two-view reconstruction: data sets, test splits, the protocol, metrics, baselines, benches.
 
-Layering: :mod:`.datasets` (posed frames from a folder) → :mod:`.coverage` (Splatt3R's
+Layering: :mod:`macsplat_cli.datasets` (posed frames from a folder) → :mod:`.coverage` (Splatt3R's
 visibility mask and pairwise coverage) → :mod:`.splits` (test cases by coverage or view
-angle) → :mod:`.reconstructors` (what reconstructs a case: a pipeline backend, or the
+angle) → :mod:`.reconstructors` (what reconstructs a case: the engine with a backend, or the
 ground truth) → :mod:`.protocol` (measuring a case and a run, writing results) →
 :mod:`.bench` (a grid of settings and its Pareto front). :mod:`.metrics` and
 :mod:`.baselines` hold the measures. The CLI commands ``macsplat eval`` and
@@ -11,16 +11,15 @@ ground truth) → :mod:`.protocol` (measuring a case and a run, writing results)
 
 from __future__ import annotations
 
+from ..datasets import EvalDataset, EvalScene, Frame, detect_layout, load_dataset
 from .baselines import PointsConfig, nearest_context, point_cloud, render_points
 from .bench import BenchRow, BenchSetting, bench_markdown, bench_plot, grid, pareto_front, run_bench
 from .coverage import coverage_matrix, visibility_mask
-from .datasets import EvalDataset, EvalScene, Frame, detect_layout, load_dataset
 from .metrics import depth_metrics, image_metrics, pose_auc, splatt3r_psnr
 from .protocol import CaseResult, EvalConfig, EvalRun, ResultWriter, evaluate, evaluate_case, summarize
 from .reconstructors import (
     BACKENDS,
-    BackendOptions,
-    ClassicalReconstructor,
+    EngineReconstructor,
     OracleReconstructor,
     Reconstructor,
     ReconstructSettings,
@@ -31,12 +30,11 @@ from .splits import SPLITS, CaseSelection, EvalCase, SplitConfig, load_cases, ma
 __all__ = [
     "BACKENDS",
     "SPLITS",
-    "BackendOptions",
     "BenchRow",
     "BenchSetting",
     "CaseResult",
     "CaseSelection",
-    "ClassicalReconstructor",
+    "EngineReconstructor",
     "EvalCase",
     "EvalConfig",
     "EvalDataset",

@@ -23,6 +23,7 @@ against the metric (OpenCV drawing; no plotting library).
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import math
@@ -35,10 +36,12 @@ import cv2
 import numpy as np
 
 from .._atomic import atomic_write_bytes, atomic_write_text
+from ..datasets import EvalDataset
+from ..engine import BACKENDS as ENGINE
+from ..engine import EngineConfig, Models, NeuralOptions, RefineOptions, load_models
 from ..errors import InputError, OutputPathError
-from .datasets import EvalDataset
 from .protocol import EvalConfig, EvalRun, ResultWriter, evaluate, format_cell, summarize, to_jsonable
-from .reconstructors import BACKENDS, BackendOptions, Reconstructor, ReconstructSettings, make_reconstructor
+from .reconstructors import BACKENDS, Reconstructor, ReconstructSettings, make_reconstructor
 from .splits import EvalCase
 
 __all__ = [
@@ -214,7 +217,7 @@ def run_bench(
     out_dir: Path | None = None,
     run_fn: RunFn | None = None,
     on_row: Callable[[list[BenchRow]], None] | None = None,
-    neural: dict[str, Any] | None = None,
+    base: EngineConfig | None = None,
 ) -> list[BenchRow]:
     """Evaluate every setting on the same cases and mark the Pareto front (module docstring).
 
@@ -232,7 +235,8 @@ def run_bench(
         run_fn: runs one setting's evaluation ``(dataset, cases, reconstructor, config,
             writer, setting index)`` (default :func:`~.protocol.evaluate`; the CLI adds progress).
         on_row: called with the rows so far after every setting.
-        neural: the neural backend's files and device (:class:`BackendOptions`).
+        base: the engine settings the grid varies (neural files and device, refinement scale); each
+            setting replaces its backend, τ and refinement steps. The models of each backend load once.
 
     Raises:
         InputError: unknown metric or backend.
@@ -246,11 +250,18 @@ def run_bench(
     eval_size = eval_size or max((s.size for s in settings), default=None)
     runs: list[EvalRun] = []
     rows: list[BenchRow] = []
+    base = base or EngineConfig()
+    models: dict[str, Models] = {}
     for i, s in enumerate(settings):
-        recon = make_reconstructor(
-            s.backend,
-            BackendOptions(conf_threshold=s.conf_threshold, refine_steps=s.refine_steps, neural=dict(neural or {})),
+        config = base.replace(
+            backend=s.backend,
+            conf_threshold=s.conf_threshold,
+            refine=dataclasses.replace(base.refine, steps=s.refine_steps),
+            neural=base.neural if s.backend == "neural" else NeuralOptions(),
         )
+        if s.backend not in models:  # the networks load once per backend
+            models[s.backend] = load_models(config.replace(refine=RefineOptions())) if s.backend in ENGINE else Models()
+        recon = make_reconstructor(config, models[s.backend])
         cfg = EvalConfig(
             settings=ReconstructSettings(size=s.size, intrinsics=intrinsics),  # type: ignore[arg-type]
             eval_size=eval_size,

@@ -57,7 +57,9 @@ import numpy as np
 import torch
 
 from .._atomic import atomic_write_text
+from .._json import to_jsonable
 from ..cameras import Camera
+from ..datasets import EvalDataset, EvalScene, resize_depth_nearest
 from ..errors import InputError, OutputPathError, ReconstructionError
 from ..metrics import rotation_error_deg, translation_direction_error_deg
 from ..pipeline.run import Reconstruction
@@ -65,7 +67,6 @@ from ..pipeline.views import working_size
 from ..render import render_camera
 from .baselines import PointsConfig, nearest_context, point_cloud, render_points
 from .coverage import DEPTH_ATOL, DEPTH_RTOL, visibility_mask
-from .datasets import EvalDataset, EvalScene, resize_depth_nearest
 from .metrics import AUC_THRESHOLDS_DEG, FAILED_POSE_ERROR_DEG, depth_metrics, image_metrics, pose_auc, pose_error_deg
 from .reconstructors import Reconstructor, ReconstructSettings
 from .splits import SPLITS, EvalCase
@@ -212,20 +213,6 @@ class EvalRun:
     @property
     def failures(self) -> list[CaseResult]:
         return [r for r in self.results if r.status == "failed"]
-
-
-def to_jsonable(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {str(k): to_jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [to_jsonable(v) for v in x]
-    if isinstance(x, (np.generic,)):
-        x = x.item()
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    if isinstance(x, Path):
-        return str(x)
-    return x
 
 
 # ------------------------------------------------------------------------------------ one case

@@ -1,10 +1,12 @@
-"""What produces the reconstruction of a test case: a backend of the pipeline, or the ground truth.
+"""What produces the reconstruction of a test case: the engine with a backend, or the ground truth.
 
 A :class:`Reconstructor` is any callable ``(scene, case, settings) → Reconstruction`` with a
 ``name``; it sees the two context frames (and, for the oracle only, their ground truth).
 The evaluation measures whatever it returns, so backends plug in through :data:`BACKENDS`
-(``--backend`` choices): a factory from :class:`BackendOptions` to a reconstructor.
-``classical`` is the weight-free pipeline; ``neural`` the network (user-supplied weights).
+(``--backend`` choices): a factory from an :class:`~macsplat_cli.engine.EngineConfig` to a
+reconstructor. ``classical`` and ``neural`` are :class:`EngineReconstructor`: the engine
+(:func:`macsplat_cli.engine.reconstruct`), the same code as ``macsplat reconstruct``, with the
+models loaded once.
 
 :class:`OracleReconstructor` builds the reconstruction from ground truth — the true
 relative pose and the true depth of both context views fed to the classical Gaussian
@@ -24,21 +26,22 @@ from typing import Literal, Protocol
 
 import numpy as np
 
+from .. import __version__
 from ..cameras import CameraSet, Scale, save_cameras
+from ..datasets import EvalScene
+from ..engine import EngineConfig, Models, load_models, reconstruct
 from ..errors import InputError, ReconstructionError
 from ..pipeline.gaussian_init import GaussianInitConfig, gaussians_from_depth
-from ..pipeline.run import Pipeline, ReconstructConfig, Reconstruction
+from ..pipeline.run import Reconstruction, count_gaussians
 from ..pipeline.types import DepthMap, Matches, TwoViewGeometry
 from ..pipeline.views import ViewConfig, load_views
-from .datasets import EvalScene
+from ..report import RunReport
 from .splits import EvalCase
 
 __all__ = [
     "BACKENDS",
-    "BackendOptions",
-    "ClassicalReconstructor",
+    "EngineReconstructor",
     "IntrinsicsMode",
-    "NeuralReconstructor",
     "OracleReconstructor",
     "ReconstructSettings",
     "Reconstructor",
@@ -73,88 +76,45 @@ class Reconstructor(Protocol):
     def __call__(self, scene: EvalScene, case: EvalCase, settings: ReconstructSettings) -> Reconstruction: ...
 
 
-@dataclass
-class BackendOptions:
-    """Backend settings swept by ``macsplat bench`` (each backend uses those that apply).
-
-    Args:
-        conf_threshold: τ of the filtered matching (None: the default).
-        refine_steps: test-time refinement steps (0: off).
-        refine_scale: refinement resolution divisor.
-        neural: the neural backend's files and device (keyword arguments of
-            :func:`macsplat_cli.pipeline.neural.load_neural_models`).
-    """
-
-    conf_threshold: float | None = None
-    refine_steps: int = 0
-    refine_scale: int = 2
-    neural: dict[str, str | Path | None] = field(default_factory=dict)
-
-
 def _context_paths(scene: EvalScene, case: EvalCase) -> list[Path]:
     return [scene.frames[c].image for c in case.context]
 
 
 @dataclass
-class ClassicalReconstructor:
-    """The weight-free pipeline (:class:`~macsplat_cli.pipeline.run.Pipeline`), optionally refined."""
+class EngineReconstructor:
+    """A backend through the engine. The models load once, at construction, so that a missing or
+    mismatched checkpoint stops the run before any case (pass ``models`` to share them).
 
-    options: BackendOptions = field(default_factory=BackendOptions)
-    name: str = "classical"
+    Args:
+        config: the engine settings (backend, τ, refinement, neural files); the working size and the
+            intrinsics come from each case's :class:`ReconstructSettings`.
+        models: models already loaded for ``config`` (:func:`~macsplat_cli.engine.load_models`).
+    """
 
-    def pipeline(self, config: ReconstructConfig) -> Pipeline:
-        return Pipeline(config)
+    config: EngineConfig = field(default_factory=EngineConfig)
+    models: Models | None = None
 
-    def base_config(self) -> ReconstructConfig:
-        return ReconstructConfig()
+    def __post_init__(self) -> None:
+        if self.models is None:
+            self.models = load_models(self.config)
+        else:
+            self.config.validate(files=False)
+
+    @property
+    def name(self) -> str:
+        return self.config.backend
 
     def __call__(self, scene: EvalScene, case: EvalCase, settings: ReconstructSettings) -> Reconstruction:
-        config = self.base_config()
-        config.views = ViewConfig(size=settings.size)
-        if self.options.conf_threshold is not None:
-            config.matching.conf_threshold = self.options.conf_threshold
+        config = self.config.replace()
+        config.pipeline.views = ViewConfig(size=settings.size)
         paths = _context_paths(scene, case)
         with tempfile.TemporaryDirectory(prefix="macsplat-eval-") as tmp:
             if settings.intrinsics == "given":
                 cams = [scene.frames[c].camera for c in case.context]
                 named = [dataclasses.replace(cam, name=p.name) for cam, p in zip(cams, paths)]
-                config.views.intrinsics = Path(tmp) / "intrinsics.json"
-                save_cameras(config.views.intrinsics, CameraSet(named))
-            rec = self.pipeline(config).run(paths)
-        if self.options.refine_steps > 0:
-            rec = _refined(rec, self.options.refine_steps, self.options.refine_scale)
-        return rec
-
-
-@dataclass
-class NeuralReconstructor(ClassicalReconstructor):
-    """The neural backend (:mod:`macsplat_cli.pipeline.neural`); the networks load once, at construction,
-    so that a missing or mismatched checkpoint stops the run before any case."""
-
-    name: str = "neural"
-
-    def __post_init__(self) -> None:
-        from ..pipeline.neural import NeuralBackend, load_neural_models
-
-        self.backend = NeuralBackend(load_neural_models(**self.options.neural))
-
-    def base_config(self) -> ReconstructConfig:
-        from ..pipeline.neural import neural_reconstruct_config
-
-        return neural_reconstruct_config()
-
-    def pipeline(self, config: ReconstructConfig) -> Pipeline:
-        from ..pipeline.neural import NeuralPipeline
-
-        return NeuralPipeline(self.backend, config)
-
-
-def _refined(rec: Reconstruction, steps: int, scale: int) -> Reconstruction:
-    from ..refine import RefineConfig, refine
-
-    out = refine(rec.views, rec.geometry, rec.maps, RefineConfig(steps=steps, scale=scale))
-    report = {**rec.report, "refine": {"steps": out.steps, "seconds": out.seconds, "scale": scale}}
-    return dataclasses.replace(rec, maps=out.maps, report=report)
+                config.pipeline.views.intrinsics = Path(tmp) / "intrinsics.json"
+                save_cameras(config.pipeline.views.intrinsics, CameraSet(named))
+            return reconstruct(paths, config, models=self.models)
 
 
 @dataclass
@@ -191,25 +151,41 @@ class OracleReconstructor:
         no_matches = Matches(empty, empty, np.zeros(0, np.float32), np.zeros(0, np.int64), np.zeros(0, np.int64))
         geometry = TwoViewGeometry(T[:3, :3].copy(), T[:3, 3] * s, views[0].K, views[1].K, no_matches, {})
         maps = gaussians_from_depth(views, geometry, depths, self.gaussians)
-        report = {"backends": {"all": "oracle (ground truth)"}, "times_s": {}}
+        report = RunReport(
+            macsplat_version=__version__,
+            inputs=[str(v.path) for v in views],
+            backends={"all": "oracle (ground truth)"},
+            times_s={},
+            images=[],
+            keypoints=[0, 0],
+            fallback_used=False,
+            matches={},
+            inlier_ratio=None,
+            pose={},
+            depth_coverage=[float(d.valid.mean()) for d in depths],
+            depth_measured=[None, None],
+            gaussians=count_gaussians(maps),
+            config={},
+            scale=self.scale,
+        )
         return Reconstruction(views, geometry, depths, maps, report, scale=self.scale)
 
 
-BackendFactory = Callable[[BackendOptions], Reconstructor]
+BackendFactory = Callable[[EngineConfig, Models | None], Reconstructor]
 BACKENDS: dict[str, BackendFactory] = {
-    "classical": lambda options: ClassicalReconstructor(options),
-    "neural": lambda options: NeuralReconstructor(options),
+    "classical": EngineReconstructor,
+    "neural": EngineReconstructor,
 }
-"""``--backend`` name → factory."""
+"""``--backend`` name → factory ``(config, models or None) → reconstructor``."""
 
 
-def make_reconstructor(backend: str, options: BackendOptions | None = None) -> Reconstructor:
-    """The reconstructor of a registered backend.
+def make_reconstructor(config: EngineConfig, models: Models | None = None) -> Reconstructor:
+    """The reconstructor of ``config.backend`` (a registered backend), with ``models`` if already loaded.
 
     Raises:
-        InputError: unknown backend name.
+        InputError: unknown backend name; any error of :func:`~macsplat_cli.engine.load_models`.
     """
-    factory = BACKENDS.get(backend)
+    factory = BACKENDS.get(config.backend)
     if factory is None:
-        raise InputError(f"unknown backend {backend!r}; available: {', '.join(sorted(BACKENDS))}")
-    return factory(options or BackendOptions())
+        raise InputError(f"unknown backend {config.backend!r}; available: {', '.join(sorted(BACKENDS))}")
+    return factory(config, models)

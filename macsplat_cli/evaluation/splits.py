@@ -39,10 +39,10 @@ from typing import Any, Literal, get_args
 import numpy as np
 
 from ..cameras import Camera
+from ..datasets import EvalDataset, EvalScene
 from ..errors import DatasetError
-from ..metrics import rotation_error_deg
+from ..metrics import angle_between_deg, rotation_error_deg
 from .coverage import DEPTH_ATOL, DEPTH_RTOL, coverage_matrix
-from .datasets import EvalDataset, EvalScene
 
 __all__ = [
     "ANGLE_BINS_DEG",
@@ -202,9 +202,7 @@ def angle_splits(angle_deg: float, assignment: Assignment = "bin", splits: Seque
 
 def optical_axis_angle_deg(a: Camera, b: Camera) -> float:
     """Angle between the optical axes (camera +z in the world) of two cameras, in degrees."""
-    za, zb = a.cam_to_world[:3, 2], b.cam_to_world[:3, 2]
-    c = float(za @ zb / (np.linalg.norm(za) * np.linalg.norm(zb)))
-    return math.degrees(math.acos(max(-1.0, min(1.0, c))))
+    return float(angle_between_deg(a.cam_to_world[:3, 2], b.cam_to_world[:3, 2]))
 
 
 def between_targets(cameras: Sequence[Camera], pair: tuple[int, int], slack_deg: float = 15.0) -> list[int]:

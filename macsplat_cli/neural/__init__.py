@@ -20,7 +20,7 @@ from .checkpoints import (
     sha256_file,
 )
 from .config import BackboneConfig, GaussianHeadConfig, ModelConfigError, parse_constructor_string
-from .gaussian_head import GaussianHead, GaussianHeadOutput, quat_xyzw_to_rotmat
+from .gaussian_head import GaussianHead
 from .rope import RoPE2D, patch_positions
 
 __all__ = [
@@ -30,7 +30,6 @@ __all__ = [
     "CheckpointNotFoundError",
     "GaussianHead",
     "GaussianHeadConfig",
-    "GaussianHeadOutput",
     "LoadReport",
     "MASt3RBackbone",
     "ModelConfigError",
@@ -42,7 +41,6 @@ __all__ = [
     "load_splatt3r",
     "parse_constructor_string",
     "patch_positions",
-    "quat_xyzw_to_rotmat",
     "read_mast3r_checkpoint",
     "read_splatt3r_checkpoint",
     "sha256_file",

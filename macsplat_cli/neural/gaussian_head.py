@@ -17,6 +17,13 @@ Activations:
 * opacity ``sigmoid(raw)``;
 * means = point map (no gradient, as Splatt3R) + ``Δ``, in view 1's camera frame for both views.
 
+The head returns these Gaussians as :class:`~macsplat_cli.gaussians.GaussianMaps`, macsplat's
+(3DGS) parameterisation, built from the raw channels without an activation round trip:
+``log_scales`` = the raw scale channels, ``opacity_logits`` = the raw opacity channel (exact at any
+magnitude, where ``logit(sigmoid(raw))`` in float32 saturates), ``quats`` = the normalised rotation
+reordered to (w, x, y, z), ``sh`` band-major ``[K, 3]``. So ``exp(log_scales)``,
+``sigmoid(opacity_logits)``, ``quats`` and ``sh`` are exactly Splatt3R's activated values, reordered.
+
 The final 1×1 convolution is initialised per channel group (Xavier-uniform gain, bias): offset
 (0.001, 0.001), scale (3e-5, −7), rotation (1, 0), SH (1, 0), opacity (1, −2); other layers keep
 PyTorch's default initialisation.
@@ -25,7 +32,6 @@ PyTorch's default initialisation.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Literal
 
 import torch
@@ -33,73 +39,14 @@ from torch import nn
 
 from .._checks import check_shape
 from ..errors import ShapeError
+from ..gaussians import GaussianMaps
 from ..sh import rgb_to_sh0
 from .backbone import BackboneView, DPTAdapter
 from .config import BackboneConfig, GaussianHeadConfig
 
-__all__ = ["GaussianDPT", "GaussianHead", "GaussianHeadOutput", "quat_xyzw_to_rotmat"]
+__all__ = ["GaussianDPT", "GaussianHead"]
 
 _OFFSET_SHIFT = 6.0
-
-
-@dataclass
-class GaussianHeadOutput:
-    """One Gaussian per pixel of a view, activated (Splatt3R's output, reference §3.3).
-
-    All positions and orientations are in **view 1's camera frame** (OpenCV axes), for both views.
-
-    Attributes:
-        means: centres. [B, H, W, 3]
-        offsets: means − point map (zero when offsets are off). [B, H, W, 3]
-        scales: standard deviations along the local axes (positive). [B, H, W, 3]
-        rotations: unit quaternions, **(x, y, z, w)**. [B, H, W, 4]
-        sh: SH coefficients, colour-major (Splatt3R's layout), DC includes the input colour. [B, H, W, 3, K]
-        opacities: opacities in (0, 1). [B, H, W, 1]
-    """
-
-    means: torch.Tensor
-    offsets: torch.Tensor
-    scales: torch.Tensor
-    rotations: torch.Tensor
-    sh: torch.Tensor
-    opacities: torch.Tensor
-
-    # -------------------------------------------------- the standard 3DGS parameterisation (macsplat's Gaussians)
-    @property
-    def log_scales(self) -> torch.Tensor:
-        """``log(scales)``. [B, H, W, 3]"""
-        return torch.log(self.scales)
-
-    @property
-    def quats_wxyz(self) -> torch.Tensor:
-        """Rotations reordered to (w, x, y, z), macsplat's and the 3DGS PLY's convention. [B, H, W, 4]"""
-        return torch.cat((self.rotations[..., 3:], self.rotations[..., :3]), dim=-1)
-
-    @property
-    def opacity_logits(self) -> torch.Tensor:
-        """``logit(opacities)`` (clamped to [1e-6, 1 − 1e-6] first). [B, H, W]"""
-        return torch.logit(self.opacities[..., 0], eps=1e-6)
-
-    @property
-    def sh_band_major(self) -> torch.Tensor:
-        """SH as ``[..., K, 3]`` (band-major, macsplat's layout). [B, H, W, K, 3]"""
-        return self.sh.transpose(-1, -2)
-
-    def covariances(self) -> torch.Tensor:
-        """``Σ = R·diag(s²)·Rᵀ``. [B, H, W, 3, 3]"""
-        r = quat_xyzw_to_rotmat(self.rotations)
-        return (r * self.scales[..., None, :] ** 2) @ r.transpose(-1, -2)
-
-
-def quat_xyzw_to_rotmat(q: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices of unit quaternions in (x, y, z, w) order. ``[..., 4]`` → ``[..., 3, 3]``."""
-    x, y, z, w = q.unbind(-1)
-    rows = (
-        (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
-        (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
-        (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)),
-    )
-    return torch.stack([torch.stack(r, dim=-1) for r in rows], dim=-2)
 
 
 class GaussianDPT(nn.Module):
@@ -159,13 +106,17 @@ class GaussianHead(nn.Module):
         self.downstream_head1 = _ViewGaussianHead(self.backbone_config, self.config)
         self.downstream_head2 = _ViewGaussianHead(self.backbone_config, self.config)
 
-    def activate(self, raw: torch.Tensor, pts3d: torch.Tensor, rgb: torch.Tensor) -> GaussianHeadOutput:
+    def activate(self, raw: torch.Tensor, pts3d: torch.Tensor, rgb: torch.Tensor) -> tuple[GaussianMaps, torch.Tensor]:
         """Turn raw channels into Gaussians.
 
         Args:
             raw: pre-activation head output. [B, H, W, 11 + 3K]
             pts3d: the view's point map (in view 1's frame). [B, H, W, 3]
             rgb: the view's input colours in [0, 1], channels last. [B, H, W, 3]
+
+        Returns:
+            The Gaussians (in view 1's camera frame, ``valid`` and ``cam_to_world`` None), and the
+            offsets ``Δ`` = means − point map (zero when offsets are off). [B, H, W, 3]
         """
         k = self.config.sh_coeffs
         offset_raw, scale_raw, rot_raw, sh_raw, opacity_raw = torch.split(raw, (3, 3, 4, 3 * k, 1), dim=-1)
@@ -175,30 +126,34 @@ class GaussianHead(nn.Module):
         else:
             offsets = torch.zeros_like(offset_raw)
         points = pts3d.detach() if self.config.detach_points else pts3d
-        rotations = rot_raw / (torch.linalg.vector_norm(rot_raw, dim=-1, keepdim=True) + 1e-8)
-        sh = sh_raw.reshape(*sh_raw.shape[:-1], 3, k)
+        xyzw = rot_raw / (torch.linalg.vector_norm(rot_raw, dim=-1, keepdim=True) + 1e-8)  # Splatt3R's (x, y, z, w)
+        sh = sh_raw.reshape(*sh_raw.shape[:-1], 3, k)  # colour-major, as Splatt3R
         sh = torch.cat((sh[..., :1] + rgb_to_sh0(rgb)[..., None], sh[..., 1:]), dim=-1)
-        return GaussianHeadOutput(
-            means=points + offsets,
-            offsets=offsets,
-            scales=torch.exp(scale_raw),
-            rotations=rotations,
-            sh=sh,
-            opacities=torch.sigmoid(opacity_raw),
+        fields = (
+            points + offsets,
+            scale_raw,
+            torch.cat((xyzw[..., 3:], xyzw[..., :3]), dim=-1),
+            opacity_raw[..., 0],
+            sh.transpose(-1, -2).contiguous(),
         )
+        # Under autocast some fields come out in a lower precision than others: promote (losslessly) to one dtype.
+        dtype = fields[0].dtype
+        for t in fields[1:]:
+            dtype = torch.promote_types(dtype, t.dtype)
+        return GaussianMaps(*(t.to(dtype) for t in fields)), offsets
 
-    def forward_view(self, view: Literal[1, 2], out: BackboneView, rgb: torch.Tensor) -> GaussianHeadOutput:
+    def forward_view(self, view: Literal[1, 2], out: BackboneView, rgb: torch.Tensor) -> GaussianMaps:
         """Gaussians of view ``view`` (1 or 2). ``rgb``: input colours in [0, 1]. [B, 3, H, W]"""
         check_shape(rgb, (out.pts3d.shape[0], 3, *out.image_size), f"rgb{view}")
         if len(out.tokens) != self.backbone_config.dec_depth + 1:
             raise ShapeError(f"view {view} token list", (len(out.tokens),), f"[{self.backbone_config.dec_depth + 1}]")
         holder = self.downstream_head1 if view == 1 else self.downstream_head2
         raw = holder.gaussian_dpt(out.tokens, out.grid)
-        return self.activate(raw, out.pts3d, rgb.permute(0, 2, 3, 1))
+        return self.activate(raw, out.pts3d, rgb.permute(0, 2, 3, 1))[0]
 
     def forward(
         self, view1: BackboneView, view2: BackboneView, rgb1: torch.Tensor, rgb2: torch.Tensor
-    ) -> tuple[GaussianHeadOutput, GaussianHeadOutput]:
+    ) -> tuple[GaussianMaps, GaussianMaps]:
         """Gaussians of both views (both in view 1's camera frame).
 
         Args:
@@ -208,7 +163,7 @@ class GaussianHead(nn.Module):
             rgb2: view 2's colours in [0, 1]. [B, 3, H, W]
 
         Returns:
-            Two :class:`GaussianHeadOutput`: ``means/offsets/scales [B, H, W, 3]``, ``rotations [B, H, W, 4]`` (xyzw),
-            ``sh [B, H, W, 3, K]``, ``opacities [B, H, W, 1]``.
+            Two :class:`~macsplat_cli.gaussians.GaussianMaps` ``[B, H, W, ·]`` (``valid`` and
+            ``cam_to_world`` None: every pixel, view 1's camera frame).
         """
         return self.forward_view(1, view1, rgb1), self.forward_view(2, view2, rgb2)

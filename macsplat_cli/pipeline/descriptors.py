@@ -35,10 +35,10 @@ logger = logging.getLogger(__name__)
 
 
 class DescriptorBackend(Protocol):
-    """``View → Features``; ``name`` identifies the backend in the report.
+    """A per-view descriptor backend, ``View → Features``; ``name`` identifies the backend in the report.
 
-    A backend that needs both views at once (a two-view network) also defines
-    ``describe_pair(v0, v1) -> [Features, Features]``, which the pipeline then calls instead.
+    The pipeline's ``describe`` slot takes both views (and the ``pair`` stage's output, for a two-view
+    network); a per-view backend goes there wrapped in :class:`~.stages.PerViewDescriptors`.
     """
 
     name: str

@@ -1,6 +1,6 @@
 """Stage 6 (classical backend): one Gaussian per pixel with a trustworthy depth.
 
-The stage returns :class:`~.types.PixelGaussians`, one parameter map per view in that
+The stage returns one :class:`~macsplat_cli.gaussians.GaussianMaps` per view (``B = 1``), in that
 view's camera frame (what a Splatt3R-style head predicts too). For every pixel of each
 view whose depth confidence is positive:
 
@@ -23,10 +23,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..gaussians import Gaussians
-from .types import DepthMap, PixelGaussians, TwoViewGeometry, View
+from ..gaussians import GaussianMaps, Gaussians
+from ..rotations import rotmat_to_quat_np
+from .types import DepthMap, TwoViewGeometry, View
 
-__all__ = ["GaussianInitConfig", "gaussians_from_depth", "rotmat_to_quat_batch"]
+__all__ = ["GaussianInitConfig", "gaussians_from_depth"]
 
 
 @dataclass
@@ -44,44 +45,6 @@ class GaussianInitConfig:
     max_tilt_stretch: float = 4.0
     opacity_min: float = 0.8
     opacity_max: float = 0.97
-
-
-def rotmat_to_quat_batch(R: np.ndarray) -> np.ndarray:
-    """(w, x, y, z) unit quaternions of rotation matrices, ``w ≥ 0``. [N, 3, 3] → [N, 4]
-
-    Each of the four components gives a candidate formula (Shepperd's method); the one
-    built on the largest component is numerically safe and is kept.
-    """
-    m = R
-    sq = np.sqrt(
-        np.maximum(
-            np.stack(
-                [
-                    1 + m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2],
-                    1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2],
-                    1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2],
-                    1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2],
-                ],
-                1,
-            ),
-            0.0,
-        )
-    )  # 2|w|, 2|x|, 2|y|, 2|z|
-    a, b, c = m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]
-    d, e, f = m[:, 1, 0] + m[:, 0, 1], m[:, 0, 2] + m[:, 2, 0], m[:, 2, 1] + m[:, 1, 2]
-    cands = np.stack(
-        [
-            np.stack([sq[:, 0] ** 2, a, b, c], -1),
-            np.stack([a, sq[:, 1] ** 2, d, e], -1),
-            np.stack([b, d, sq[:, 2] ** 2, f], -1),
-            np.stack([c, e, f, sq[:, 3] ** 2], -1),
-        ],
-        1,
-    )  # [N, 4 candidates, 4], candidate k scaled by 2·sq_k
-    best = np.argmax(sq, axis=1)
-    q = cands[np.arange(len(m)), best] / (2.0 * sq[np.arange(len(m)), best])[:, None]
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    return np.where(q[:, :1] < 0, -q, q)
 
 
 def _normals(points: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -107,8 +70,13 @@ def _normals(points: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
 def gaussians_from_depth(
     views: list[View], geometry: TwoViewGeometry, depths: list[DepthMap], config: GaussianInitConfig | None = None
-) -> list[PixelGaussians]:
-    """One Gaussian per pixel of each view, in the view's camera frame (float32)."""
+) -> list[GaussianMaps]:
+    """One Gaussian per pixel of each view, in the view's camera frame (float32).
+
+    Returns:
+        One :class:`~macsplat_cli.gaussians.GaussianMaps` per view, ``B = 1``, with ``valid`` (the
+        pixels with a depth) and ``cam_to_world`` (``geometry.cam_to_world(k)``, float64) set.
+    """
     cfg = config or GaussianInitConfig()
     out = []
     for k, (view, dm) in enumerate(zip(views, depths)):
@@ -133,7 +101,7 @@ def gaussians_from_depth(
         fallback /= np.maximum(np.linalg.norm(fallback, axis=1, keepdims=True), 1e-12)
         t1 = np.where(t1_norm > 1e-6, t1 / np.maximum(t1_norm, 1e-12), fallback)
         t2 = np.cross(n, t1)
-        quats = rotmat_to_quat_batch(np.stack([t1, t2, n], axis=2))  # columns: local x, y, z axes
+        quats = rotmat_to_quat_np(np.stack([t1, t2, n], axis=2))  # columns: local x, y, z axes
         f = 0.5 * (K[0, 0] + K[1, 1])
         base = cfg.footprint * z / f
         scales = np.stack([base / cos, base, base * cfg.thickness], 1)
@@ -142,14 +110,14 @@ def gaussians_from_depth(
         t = lambda a: torch.from_numpy(np.ascontiguousarray(a, np.float32))  # noqa: E731
         g = Gaussians.from_activated(t(Pf), t(scales), t(quats), t(opacity), t(view.image.reshape(-1, 3)))
         out.append(
-            PixelGaussians(
-                means=g.means.reshape(h, w, 3),
-                log_scales=g.log_scales.reshape(h, w, 3),
-                quats=g.quats.reshape(h, w, 4),
-                opacity_logits=g.opacity_logits.reshape(h, w),
-                sh=g.sh.reshape(h, w, -1, 3),
-                valid=torch.from_numpy(np.ascontiguousarray(valid)),
-                cam_to_world=torch.from_numpy(geometry.cam_to_world(k)),
+            GaussianMaps(
+                means=g.means.reshape(1, h, w, 3),
+                log_scales=g.log_scales.reshape(1, h, w, 3),
+                quats=g.quats.reshape(1, h, w, 4),
+                opacity_logits=g.opacity_logits.reshape(1, h, w),
+                sh=g.sh.reshape(1, h, w, -1, 3),
+                valid=torch.from_numpy(np.ascontiguousarray(valid)).reshape(1, h, w),
+                cam_to_world=torch.from_numpy(geometry.cam_to_world(k))[None],
             )
         )
     return out

@@ -33,6 +33,7 @@ import cv2
 import numpy as np
 
 from ..errors import NonFiniteError, ReconstructionError
+from ..metrics import angle_between_deg, rotation_angle_deg
 from .types import Matches, TwoViewGeometry, View
 
 __all__ = ["PoseConfig", "estimate_pose", "sampson_distance"]
@@ -120,14 +121,10 @@ def triangulate(R: np.ndarray, t: np.ndarray, x0: np.ndarray, x1: np.ndarray) ->
 
 def _parallax_deg(R: np.ndarray, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
     """Angle between the two viewing rays of each match once the rotation is removed. [M]"""
-    a = x0 @ R.T
-    a /= np.linalg.norm(a, axis=1, keepdims=True)
-    b = x1 / np.linalg.norm(x1, axis=1, keepdims=True)
-    return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=1), -1.0, 1.0)))
+    return angle_between_deg(x0 @ R.T, x1)
 
 
-def _rotation_angle_deg(R: np.ndarray) -> float:
-    return math.degrees(math.acos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+_rotation_angle_deg = rotation_angle_deg  # the one formula (atan2), in macsplat_cli.metrics
 
 
 # ----------------------------------------------------------------------------------- estimation
@@ -305,7 +302,7 @@ def _planar_check(
             continue
         ti = ti / np.linalg.norm(ti)
         dr = _rotation_angle_deg(Ri @ R.T)
-        dt = math.degrees(math.acos(np.clip(ti @ t, -1, 1)))
+        dt = angle_between_deg(ti, t)
         agreement = min(agreement, max(dr, dt / 3))
         if dr < 1.0 and dt < 5.0:
             continue  # the same pose

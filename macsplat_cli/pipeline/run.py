@@ -16,23 +16,36 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-import numpy as np
 import torch
 
 from .. import __version__
 from ..cameras import CameraSet
 from ..errors import ReconstructionError
-from ..gaussians import Gaussians
+from ..gaussians import GaussianMaps, Gaussians
 from ..metrics import rotation_error_deg, translation_direction_error_deg
-from .depth import DepthConfig, estimate_depths
-from .descriptors import DescriptorBackend, SiftConfig, SiftDescriptors
-from .gaussian_init import GaussianInitConfig, gaussians_from_depth
-from .matching import MatchConfig, guided_matches, match_features
-from .pose import PoseConfig, estimate_pose, fundamental_from_pose
-from .types import DepthMap, Features, Matches, PixelGaussians, TwoViewGeometry, View
+from ..report import ImageReport, RunReport
+from .depth import DepthConfig
+from .descriptors import SiftConfig, SiftDescriptors
+from .gaussian_init import GaussianInitConfig
+from .matching import MatchConfig, guided_matches
+from .pose import PoseConfig, fundamental_from_pose
+from .stages import (
+    DepthGaussians,
+    DepthStage,
+    DescribeStage,
+    EssentialPose,
+    FilteredMatcher,
+    GaussianStage,
+    MatchStage,
+    PairStage,
+    PerViewDescriptors,
+    PlaneSweepDepth,
+    PoseStage,
+)
+from .types import DepthMap, Features, Matches, TwoViewGeometry, View
 from .views import ViewConfig, load_views
 
-__all__ = ["STAGES", "Pipeline", "ReconstructConfig", "Reconstruction"]
+__all__ = ["STAGES", "Pipeline", "ReconstructConfig", "Reconstruction", "count_gaussians"]
 
 logger = logging.getLogger(__name__)
 
@@ -78,46 +91,6 @@ class ReconstructConfig:
     gaussians: GaussianInitConfig = field(default_factory=GaussianInitConfig)
 
 
-class FilteredMatcher:
-    name = "reciprocal-nn+confidence"
-
-    def __init__(self, config: MatchConfig) -> None:
-        self.config = config
-
-    def __call__(self, f0: Features, f1: Features) -> Matches:
-        return match_features(f0, f1, self.config)
-
-
-class EssentialPose:
-    name = "classical:essential-magsac+lm"
-
-    def __init__(self, config: PoseConfig) -> None:
-        self.config = config
-
-    def __call__(self, v0: View, v1: View, matches: Matches) -> TwoViewGeometry:
-        return estimate_pose(v0, v1, matches, self.config)
-
-
-class PlaneSweepDepth:
-    name = "classical:plane-sweep-sgm"
-
-    def __init__(self, config: DepthConfig) -> None:
-        self.config = config
-
-    def __call__(self, views: list[View], geometry: TwoViewGeometry) -> list[DepthMap]:
-        return estimate_depths(views, geometry, self.config)
-
-
-class DepthGaussians:
-    name = "classical:per-pixel-surfels"
-
-    def __init__(self, config: GaussianInitConfig) -> None:
-        self.config = config
-
-    def __call__(self, views: list[View], geometry: TwoViewGeometry, depths: list[DepthMap]) -> list[PixelGaussians]:
-        return gaussians_from_depth(views, geometry, depths, self.config)
-
-
 @dataclass
 class Reconstruction:
     """The result of a run: Gaussians in the camera-0 frame (relative scale: baseline 1)."""
@@ -125,8 +98,8 @@ class Reconstruction:
     views: list[View]
     geometry: TwoViewGeometry
     depths: list[DepthMap]
-    maps: list[PixelGaussians]
-    report: dict[str, Any]
+    maps: list[GaussianMaps]
+    report: RunReport
     scale: Literal["relative", "metric"] = "relative"
 
     @functools.cached_property
@@ -134,7 +107,7 @@ class Reconstruction:
         """All views' Gaussians in the world (camera-0) frame (computed once; a refined
         reconstruction is a new object)."""
         with torch.no_grad():
-            return Gaussians.cat([m.to_world() for m in self.maps])
+            return Gaussians.cat([m.to_gaussians() for m in self.maps])
 
     def cameras(self, *, original_size: bool = True) -> CameraSet:
         """The two cameras; at the photos' original resolution by default."""
@@ -146,66 +119,74 @@ class Reconstruction:
         return CameraSet(cams, scale=self.scale, world="camera_0")
 
 
-def _jsonable(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, Path):
-        return str(x)
-    if isinstance(x, np.generic):
-        return x.item()
-    if isinstance(x, float) and not np.isfinite(x):
-        return None
-    return x
-
-
-def _describe(backend: DescriptorBackend, views: list[View]) -> list[Features]:
-    pair = getattr(backend, "describe_pair", None)
-    return list(pair(views[0], views[1])) if pair is not None else [backend(v) for v in views]
+def count_gaussians(maps: Sequence[GaussianMaps]) -> int:
+    """Gaussians the per-view maps carry (their valid pixels)."""
+    return int(sum(int(m.valid_mask().sum()) for m in maps))
 
 
 class Pipeline:
-    """Chains the stages; each slot accepts any backend with the stage's signature."""
+    """Chains the stages; each slot accepts any backend with the stage's signature (:mod:`.stages`).
+
+    Args:
+        config: the stages' settings.
+        pair: a two-view network's pass, run once before the other stages (its output goes to every later
+            stage); None: no such slot (the classical backend).
+        descriptors: the ``describe`` slot (``(views, pair) → features``); a per-view backend
+            (``View → Features``, e.g. :class:`~.descriptors.SiftDescriptors`) goes in wrapped in
+            :class:`~.stages.PerViewDescriptors`.
+        matcher, pose, depth, gaussians: the other slots (signatures in :mod:`.stages`).
+        fallback_descriptors: the descriptors tried when the first ones verify too few matches.
+        scale: ``"metric"`` when the backend's geometry is in metres, else ``"relative"`` (baseline 1).
+    """
 
     def __init__(
         self,
         config: ReconstructConfig | None = None,
         *,
-        descriptors: DescriptorBackend | None = None,
-        matcher: Callable[[Features, Features], Matches] | None = None,
-        pose: Callable[[View, View, Matches], TwoViewGeometry] | None = None,
-        depth: Callable[[list[View], TwoViewGeometry], list[DepthMap]] | None = None,
-        gaussians: Callable[[list[View], TwoViewGeometry, list[DepthMap]], list[PixelGaussians]] | None = None,
-        fallback_descriptors: DescriptorBackend | None = None,
+        pair: PairStage | None = None,
+        descriptors: DescribeStage | None = None,
+        matcher: MatchStage | None = None,
+        pose: PoseStage | None = None,
+        depth: DepthStage | None = None,
+        gaussians: GaussianStage | None = None,
+        fallback_descriptors: DescribeStage | None = None,
+        scale: Literal["relative", "metric"] = "relative",
     ) -> None:
         self.config = config or ReconstructConfig()
         c = self.config
-        self.descriptors = descriptors or SiftDescriptors(c.descriptors)
+        self.pair = pair
+        self.descriptors = descriptors or PerViewDescriptors(SiftDescriptors(c.descriptors))
         self.fallback_descriptors = fallback_descriptors or (
-            SiftDescriptors(c.fallback_descriptors) if c.fallback_descriptors is not None else None
+            PerViewDescriptors(SiftDescriptors(c.fallback_descriptors)) if c.fallback_descriptors is not None else None
         )
         self.matcher = matcher or FilteredMatcher(c.matching)
         self.pose = pose or EssentialPose(c.pose)
         self.depth = depth or PlaneSweepDepth(c.depth)
         self.gaussians = gaussians or DepthGaussians(c.gaussians)
+        self.scale = scale
 
-    def backends(self) -> dict[str, str]:
-        return {
+    def backends(self) -> dict[str, str | None]:
+        def name(stage: Any) -> str | None:
+            return None if stage is None else getattr(stage, "name", type(stage).__name__)
+
+        names = {
             "images": "opencv+pillow",
-            "descriptors": getattr(self.descriptors, "name", type(self.descriptors).__name__),
-            "descriptors_fallback": getattr(self.fallback_descriptors, "name", None),
-            "matching": getattr(self.matcher, "name", type(self.matcher).__name__),
-            "pose": getattr(self.pose, "name", type(self.pose).__name__),
-            "depth": getattr(self.depth, "name", type(self.depth).__name__),
-            "gaussians": getattr(self.gaussians, "name", type(self.gaussians).__name__),
+            "descriptors": name(self.descriptors),
+            "descriptors_fallback": name(self.fallback_descriptors),
+            "matching": name(self.matcher),
+            "pose": name(self.pose),
+            "depth": name(self.depth),
+            "gaussians": name(self.gaussians),
         }
+        if self.pair is not None:
+            names["pair"] = name(self.pair)
+        return names
 
     def _try_pose(
-        self, views: list[View], matches: Matches, timed: Callable[[str, Callable[[], Any]], Any], stage: str
+        self, views: list[View], matches: Matches, pair: Any, timed: Callable[[str, Callable[[], Any]], Any], stage: str
     ) -> tuple[TwoViewGeometry | None, ReconstructionError | None]:
         try:
-            return timed(stage, lambda: self.pose(views[0], views[1], matches)), None
+            return timed(stage, lambda: self.pose(views[0], views[1], matches, pair)), None
         except ReconstructionError as e:
             return None, e
 
@@ -240,20 +221,20 @@ class Pipeline:
             return out
 
         views: list[View] = timed("images", lambda: load_views(paths, self.config.views))
-        feats: list[Features] = timed("descriptors", lambda: _describe(self.descriptors, views))
+        pair = timed("network", lambda: self.pair(views)) if self.pair is not None else None
+        feats: list[Features] = timed("descriptors", lambda: self.descriptors(views, pair))
         matches: Matches = timed("matching", lambda: self.matcher(feats[0], feats[1]))
-        geometry, failure = self._try_pose(views, matches, timed, "pose")
+        geometry, failure = self._try_pose(views, matches, pair, timed, "pose")
         fallback_used = False
         n_verified = len(geometry.inliers) if geometry is not None else 0
         if self.fallback_descriptors is not None and n_verified < self.config.fallback_min_inliers:
-            logger.debug(
-                "%d verified matches (< %d): retrying with %s",
-                n_verified, self.config.fallback_min_inliers, self.fallback_descriptors.name,
-            )  # fmt: skip
             fb = self.fallback_descriptors
-            feats_fb = timed("descriptors (fallback)", lambda: _describe(fb, views))
+            logger.debug(
+                "%d verified matches (< %d): retrying with %s", n_verified, self.config.fallback_min_inliers, fb.name
+            )
+            feats_fb = timed("descriptors (fallback)", lambda: fb(views, pair))
             matches_fb = timed("matching (fallback)", lambda: self.matcher(feats_fb[0], feats_fb[1]))
-            geometry_fb, failure_fb = self._try_pose(views, matches_fb, timed, "pose (fallback)")
+            geometry_fb, failure_fb = self._try_pose(views, matches_fb, pair, timed, "pose (fallback)")
             if geometry_fb is not None and len(geometry_fb.inliers) > n_verified:
                 geometry, feats, fallback_used = geometry_fb, feats_fb, True
             elif geometry is None:
@@ -262,52 +243,56 @@ class Pipeline:
             assert failure is not None
             raise failure
         if self.config.guided_band_px is not None and len(geometry.inliers) < self.config.guided_below:
-            F = fundamental_from_pose(geometry.R, geometry.t, geometry.K0, geometry.K1)
-            guided = timed(
-                "matching (guided)",
-                lambda: guided_matches(
-                    feats[0], feats[1], F, band_px=self.config.guided_band_px, ratio=self.config.guided_ratio
-                ),
-            )
-            guided.counts = {**geometry.inliers.counts, **guided.counts}
-            guided.counts.pop("verified", None)
-            refined, _ = self._try_pose(views, guided, timed, "pose (guided)")
-            if (
-                refined is not None
-                and len(refined.inliers) > len(geometry.inliers)
-                and rotation_error_deg(refined.R, geometry.R) <= self.config.guided_max_change_deg[0]
-                and translation_direction_error_deg(refined.t, geometry.t) <= self.config.guided_max_change_deg[1]
-            ):
-                geometry = refined
+            geometry = self._guided(views, feats, geometry, pair, timed)
         for k, v in enumerate(views):
             if v.intrinsics_source == "prior" and geometry.info.get("focal_estimated"):
                 v.intrinsics_source = "estimated"
                 v.K = geometry.K0 if k == 0 else geometry.K1
-        depths: list[DepthMap] = timed("depth", lambda: self.depth(views, geometry))
-        maps: list[PixelGaussians] = timed("gaussians", lambda: self.gaussians(views, geometry, depths))
-        report = {
-            "macsplat_version": __version__,
-            "inputs": [str(p) for p in paths],
-            "backends": self.backends(),
-            "times_s": {**times, "total": sum(times.values())},
-            "images": [
-                {
-                    "name": v.name,
-                    "original_size": list(v.original_size),
-                    "working_size": [v.width, v.height],
-                    "intrinsics_source": v.intrinsics_source,
-                    "focal_px_working": float(v.K[0, 0]),
-                }
+        depths: list[DepthMap] = timed("depth", lambda: self.depth(views, geometry, pair))
+        maps: list[GaussianMaps] = timed("gaussians", lambda: self.gaussians(views, geometry, depths, pair))
+        report = RunReport(
+            macsplat_version=__version__,
+            inputs=[str(p) for p in paths],
+            backends=self.backends(),
+            times_s={**times, "total": sum(times.values())},
+            images=[
+                ImageReport(v.name, list(v.original_size), [v.width, v.height], v.intrinsics_source, float(v.K[0, 0]))
                 for v in views
             ],
-            "keypoints": [len(f) for f in feats],
-            "fallback_used": fallback_used,
-            "matches": {**geometry.inliers.counts},
-            "inlier_ratio": geometry.info.get("inlier_ratio"),
-            "pose": {k: v for k, v in geometry.info.items()},
-            "depth_coverage": [float(d.valid.mean()) for d in depths],
-            "depth_measured": [float(d.measured.mean()) if d.measured is not None else None for d in depths],
-            "gaussians": int(sum(int(m.valid.sum()) for m in maps)),
-            "config": asdict(self.config),
-        }
-        return Reconstruction(views, geometry, depths, maps, _jsonable(report))
+            keypoints=[len(f) for f in feats],
+            fallback_used=fallback_used,
+            matches={**geometry.inliers.counts},
+            inlier_ratio=geometry.info.get("inlier_ratio"),
+            pose=dict(geometry.info),
+            depth_coverage=[float(d.valid.mean()) for d in depths],
+            depth_measured=[float(d.measured.mean()) if d.measured is not None else None for d in depths],
+            gaussians=count_gaussians(maps),
+            config=asdict(self.config),
+            scale=self.scale,
+        )
+        return Reconstruction(views, geometry, depths, maps, report, scale=self.scale)
+
+    def _guided(
+        self, views: list[View], feats: list[Features], geometry: TwoViewGeometry, pair: Any,
+        timed: Callable[[str, Callable[[], Any]], Any],
+    ) -> TwoViewGeometry:  # fmt: skip
+        """Epipolar-guided re-matching under the first pose; its pose is kept only if it verifies more
+        matches and stays within ``guided_max_change_deg`` of the first."""
+        c = self.config
+        assert c.guided_band_px is not None
+        F = fundamental_from_pose(geometry.R, geometry.t, geometry.K0, geometry.K1)
+        guided = timed(
+            "matching (guided)",
+            lambda: guided_matches(feats[0], feats[1], F, band_px=c.guided_band_px, ratio=c.guided_ratio),
+        )
+        guided.counts = {**geometry.inliers.counts, **guided.counts}
+        guided.counts.pop("verified", None)
+        refined, _ = self._try_pose(views, guided, pair, timed, "pose (guided)")
+        if (
+            refined is not None
+            and len(refined.inliers) > len(geometry.inliers)
+            and rotation_error_deg(refined.R, geometry.R) <= c.guided_max_change_deg[0]
+            and translation_direction_error_deg(refined.t, geometry.t) <= c.guided_max_change_deg[1]
+        ):
+            return refined
+        return geometry

@@ -10,7 +10,7 @@ descriptors           :class:`View` → :class:`Features`          ``descriptors
 filtered matching     :class:`Features` ×2 → :class:`Matches`    ``matching.py``
 pose                  :class:`Matches` → :class:`TwoViewGeometry`  ``pose.py``
 dense geometry        views + geometry → :class:`DepthMap` ×2    ``depth.py``
-Gaussian prediction   views + geometry + depths → Gaussians      ``gaussian_init.py``
+Gaussian prediction   views + geometry + depths → GaussianMaps   ``gaussian_init.py``
 ====================  =========================================  ======================
 
 All pixel coordinates are continuous, at the working resolution, with pixel centres at
@@ -24,13 +24,10 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-import torch
-import torch.nn.functional as F
 
-from ..cameras import Camera, rotmat_to_quat_np
-from ..gaussians import Gaussians, quat_multiply
+from ..cameras import Camera
 
-__all__ = ["DepthMap", "Features", "IntrinsicsSource", "Matches", "PixelGaussians", "TwoViewGeometry", "View"]
+__all__ = ["DepthMap", "Features", "IntrinsicsSource", "Matches", "TwoViewGeometry", "View"]
 
 IntrinsicsSource = Literal["file", "focal", "exif", "prior", "estimated"]
 """Where a view's K came from: ``--intrinsics`` file, ``--focal``, EXIF 35 mm focal,
@@ -189,89 +186,3 @@ class DepthMap:
     def valid(self) -> np.ndarray:
         """Pixels with a depth. [H, W] bool"""
         return (self.depth > 0) & (self.confidence > 0)
-
-
-@dataclass
-class PixelGaussians:
-    """One Gaussian per pixel of a view, in that view's camera frame (pre-activation values).
-
-    The Gaussian-prediction stage's output: what a Splatt3R-style head predicts, and what
-    the MAC loss samples at match pixels. :meth:`to_world` gives the renderable set.
-
-    Attributes:
-        means: centres in the camera frame. [H, W, 3]
-        log_scales: log standard deviations. [H, W, 3]
-        quats: (w, x, y, z) rotations in the camera frame. [H, W, 4]
-        opacity_logits: opacities before the sigmoid. [H, W]
-        sh: SH coefficients. [H, W, K, 3]
-        valid: pixels that carry a Gaussian. [H, W] bool
-        cam_to_world: the view's camera-to-world transform. [4, 4] float64
-    """
-
-    means: torch.Tensor
-    log_scales: torch.Tensor
-    quats: torch.Tensor
-    opacity_logits: torch.Tensor
-    sh: torch.Tensor
-    valid: torch.Tensor
-    cam_to_world: torch.Tensor
-
-    @property
-    def size(self) -> tuple[int, int]:
-        """(H, W)"""
-        return int(self.means.shape[0]), int(self.means.shape[1])
-
-    def tensors(self) -> list[torch.Tensor]:
-        """The five parameter maps (to optimise)."""
-        return [self.means, self.log_scales, self.quats, self.opacity_logits, self.sh]
-
-    def to_world(self) -> Gaussians:
-        """The valid pixels' Gaussians in the world frame (differentiable w.r.t. the maps)."""
-        dtype = self.means.dtype
-        T = self.cam_to_world.to(dtype)
-        sel = self.valid.reshape(-1).nonzero().squeeze(1)
-        means = self.means.reshape(-1, 3)[sel] @ T[:3, :3].T + T[:3, 3]
-        q_c2w = torch.as_tensor(rotmat_to_quat_np(T[:3, :3].detach().double().numpy()), dtype=dtype)
-        quats = quat_multiply(q_c2w.expand(len(sel), 4), self.quats.reshape(-1, 4)[sel])
-        k = self.sh.shape[2]
-        return Gaussians(
-            means=means,
-            log_scales=self.log_scales.reshape(-1, 3)[sel],
-            quats=quats,
-            opacity_logits=self.opacity_logits.reshape(-1)[sel],
-            sh=self.sh.reshape(-1, k, 3)[sel],
-        )
-
-    def pooled(self, factor: int) -> PixelGaussians:
-        """Merge ``factor × factor`` pixel blocks into one Gaussian each (H, W divisible by it).
-
-        Parameters are averaged over the block's valid pixels; the standard deviations grow
-        by ``factor``, since each Gaussian now covers ``factor²`` pixels.
-        """
-        if factor == 1:
-            return self
-        h, w = self.size
-        if h % factor or w % factor:
-            raise ValueError(f"a {w}x{h} map cannot be pooled by {factor}")
-        v = self.valid.to(self.means.dtype)[None, None]
-        count = F.avg_pool2d(v, factor)[0, 0]
-
-        def pool(x: torch.Tensor) -> torch.Tensor:  # [H, W, C] → [H/f, W/f, C]
-            c = x.reshape(h, w, -1).permute(2, 0, 1)[None]
-            s = F.avg_pool2d(c * v, factor)[0]
-            return (s / count.clamp_min(1e-12)).permute(1, 2, 0)
-
-        k = self.sh.shape[2]
-        quats = pool(self.quats)
-        return PixelGaussians(
-            means=pool(self.means),
-            log_scales=pool(self.log_scales) + float(np.log(factor)),
-            quats=quats / torch.linalg.vector_norm(quats, dim=-1, keepdim=True).clamp_min(1e-12),
-            opacity_logits=pool(self.opacity_logits)[..., 0],
-            sh=pool(self.sh).reshape(h // factor, w // factor, k, 3),
-            valid=count > 0,
-            cam_to_world=self.cam_to_world,
-        )
-
-    def detach(self) -> PixelGaussians:
-        return PixelGaussians(*(t.detach().clone() for t in self.tensors()), self.valid, self.cam_to_world)

@@ -16,10 +16,10 @@ from typing import TYPE_CHECKING
 import torch
 
 from ..errors import InputError
+from ._output import RenderOutput, normalise_depth
 
 if TYPE_CHECKING:
     from ..gaussians import Gaussians
-    from .rasterize import RenderOutput
 
 __all__ = ["available", "render_gsplat"]
 
@@ -47,8 +47,6 @@ def render_gsplat(
     eps2d: float,
 ) -> RenderOutput:
     """Render with ``gsplat.rasterization``; same contract as :func:`~macsplat_cli.render.render`."""
-    from .rasterize import RenderOutput, _normalise_depth
-
     try:
         import gsplat
     except ImportError as e:  # pragma: no cover - depends on the environment
@@ -76,7 +74,7 @@ def render_gsplat(
     )
     alpha = alphas[0, ..., 0]
     rgb = colors[0, ..., :3] + (1.0 - alpha)[..., None] * background
-    depth = _normalise_depth(colors[0, ..., 3], alpha)
+    depth = normalise_depth(colors[0, ..., 3], alpha)
     radii = meta["radii"][0]
     visible_local = (radii > 0).reshape(radii.shape[0], -1).any(-1)
     return RenderOutput(

@@ -10,7 +10,7 @@ Numerical guards, each applied before the operation it protects:
   by index selection *before* any division by ``z`` (a ``torch.where`` would still
   back-propagate the masked branch's inf as NaN).
 * Quaternions are normalised inside the rotation formula; ``|q| → 0`` gives the identity
-  with zero gradient (see :func:`~macsplat_cli.gaussians.quat_to_rotmat`).
+  with zero gradient (see :func:`~macsplat_cli.rotations.quat_to_rotmat`).
 * The Jacobian is evaluated at ``x/z, y/z`` clamped to the image bounds plus 30 % of the
   half field of view, so Gaussians far off-screen do not get huge skewed footprints.
 * Scales are capped so that the projected standard deviation stays below
@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..gaussians import quat_to_rotmat
+from ..rotations import quat_to_rotmat
 from ..sh import eval_sh
 from ._constants import ALPHA_MIN
 

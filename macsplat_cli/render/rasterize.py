@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 from typing import Literal
 
 import torch
@@ -11,6 +10,8 @@ import torch
 from .._checks import check_finite, check_shape
 from ..cameras import Camera
 from ..gaussians import Gaussians
+from . import _gsplat
+from ._output import RenderOutput, normalise_depth
 from .composite import bin_tiles, composite
 from .projection import project_gaussians
 from .reference import composite_reference
@@ -23,27 +24,6 @@ Backend = Literal["auto", "numba", "torch", "gsplat"]
 """``numba``: compiled CPU kernels (default on CPU). ``torch``: the dense plain-PyTorch
 twin, for tests and tiny images. ``gsplat``: CUDA through gsplat, if installed. ``auto``:
 gsplat for CUDA tensors when available, else numba."""
-
-
-@dataclass
-class RenderOutput:
-    """One rendered view.
-
-    Attributes:
-        rgb: colour, background included (not clamped to [0, 1]). [H, W, 3]
-        depth: expected camera-space depth ``Σ w z / Σ w``; 0 where alpha < 1e-6. [H, W]
-        alpha: accumulated opacity ``1 − T_final``. [H, W]
-        visible: indices of the Gaussians that were projected (front to back). [M] int64
-        means2d: their pixel centres (differentiable; for densification statistics). [M, 2]
-        n_intersections: number of (tile, Gaussian) pairs composited.
-    """
-
-    rgb: torch.Tensor
-    depth: torch.Tensor
-    alpha: torch.Tensor
-    visible: torch.Tensor
-    means2d: torch.Tensor
-    n_intersections: int = 0
 
 
 def render(
@@ -92,8 +72,6 @@ def render(
     check_finite(bg, "background")
 
     if backend == "gsplat" or (backend == "auto" and device.type == "cuda"):
-        from . import _gsplat
-
         if backend == "gsplat" or _gsplat.available():
             return _gsplat.render_gsplat(gaussians, viewmat, K, width, height, bg, near=near, far=far, eps2d=eps2d)
 
@@ -125,17 +103,10 @@ def render(
         raise ValueError(f"unknown render backend {backend!r}")
     alpha = 1.0 - trans
     rgb = feat[..., :3] + trans[..., None] * bg
-    depth = _normalise_depth(feat[..., 3], alpha)
+    depth = normalise_depth(feat[..., 3], alpha)
     return RenderOutput(
         rgb=rgb, depth=depth, alpha=alpha, visible=proj.ids, means2d=proj.means2d, n_intersections=n_isect
     )
-
-
-def _normalise_depth(depth_acc: torch.Tensor, alpha: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
-    """``Σ w z / Σ w`` where the weights sum to more than ``eps``, else 0 (double-where safe)."""
-    ok = alpha > eps
-    safe = torch.where(ok, alpha, torch.ones_like(alpha))
-    return torch.where(ok, depth_acc / safe, torch.zeros_like(depth_acc))
 
 
 def render_camera(gaussians: Gaussians, camera: Camera, **kwargs: object) -> RenderOutput:

@@ -1,0 +1,58 @@
+"""Options shared by several commands, declared once: the neural backend's files and device."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from ..engine import NeuralOptions
+
+__all__ = [
+    "DeviceOpt",
+    "DinoOpt",
+    "FusionOpt",
+    "GaussianHeadOpt",
+    "PrecisionOpt",
+    "WeightsOpt",
+    "neural_options",
+]
+
+WeightsOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--weights", metavar="PATH", help="neural: MASt3R checkpoint (.pth or Hugging Face folder; models/mast3r.md)."
+    ),
+]
+GaussianHeadOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--gaussian-head",
+        metavar="PATH",
+        help="neural: Splatt3R checkpoint (.ckpt): Gaussians from its head; alone it also provides the backbone.",
+    ),
+]
+DinoOpt = Annotated[
+    Path | None,
+    typer.Option("--dino", metavar="PATH", help="neural: DINOv3 weights for semantic fusion of the descriptors."),
+]
+FusionOpt = Annotated[
+    Path | None,
+    typer.Option("--fusion", metavar="PATH", help="neural: Residual Semantic Fusion weights (with --dino)."),
+]
+DeviceOpt = Annotated[str, typer.Option("--device", metavar="cpu|cuda", help="neural: where the networks run.")]
+PrecisionOpt = Annotated[
+    str, typer.Option("--precision", metavar="fp32|bf16", help="neural: arithmetic of the networks (bf16: faster).")
+]
+
+
+def neural_options(
+    weights: Path | None, gaussian_head: Path | None, dino: Path | None, fusion: Path | None, device: str,
+    precision: str,
+) -> NeuralOptions:  # fmt: skip
+    """The options as the engine takes them (checked by :meth:`~macsplat_cli.engine.EngineConfig.validate`)."""
+    return NeuralOptions(
+        weights=weights, gaussian_head=gaussian_head, dino=dino, fusion=fusion,
+        device=device.strip().lower(), precision=precision.strip().lower(),
+    )  # fmt: skip

@@ -1,0 +1,135 @@
+"""The stage interfaces of the pipeline, and the classical (weight-free) backend of each.
+
+=========  ===============================================================  =======================
+slot       signature                                                        classical backend
+=========  ===============================================================  =======================
+pair       ``(views) → P``: a two-view network's one pass (or no slot)      — (none)
+describe   ``(views, pair) → [Features, Features]``                         SIFT per view
+matcher    ``(features0, features1) → Matches``                             reciprocal NN + τ gate
+pose       ``(view0, view1, matches, pair) → TwoViewGeometry``              essential matrix
+depth      ``(views, geometry, pair) → [DepthMap, DepthMap]``               plane sweep + SGM
+gaussians  ``(views, geometry, depths, pair) → [GaussianMaps, GaussianMaps]``  per-pixel surfels
+=========  ===============================================================  =======================
+
+``pair`` is the output of the ``pair`` slot (``None`` when the pipeline has none): a backend that
+needs both views at once (a two-view network) computes it once and every later stage receives it
+explicitly. Each backend has a ``name`` (the report names the backend of every stage).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, Protocol
+
+from ..gaussians import GaussianMaps
+from .depth import DepthConfig, estimate_depths
+from .descriptors import DescriptorBackend
+from .gaussian_init import GaussianInitConfig, gaussians_from_depth
+from .matching import MatchConfig, match_features
+from .pose import PoseConfig, estimate_pose
+from .types import DepthMap, Features, Matches, TwoViewGeometry, View
+
+__all__ = [
+    "DepthGaussians",
+    "DepthStage",
+    "DescribeStage",
+    "EssentialPose",
+    "FilteredMatcher",
+    "GaussianStage",
+    "MatchStage",
+    "PairStage",
+    "PerViewDescriptors",
+    "PlaneSweepDepth",
+    "PoseStage",
+]
+
+
+class PairStage(Protocol):
+    name: str
+
+    def __call__(self, views: list[View]) -> Any: ...
+
+
+class DescribeStage(Protocol):
+    name: str
+
+    def __call__(self, views: list[View], pair: Any) -> list[Features]: ...
+
+
+class MatchStage(Protocol):
+    name: str
+
+    def __call__(self, f0: Features, f1: Features) -> Matches: ...
+
+
+class PoseStage(Protocol):
+    name: str
+
+    def __call__(self, v0: View, v1: View, matches: Matches, pair: Any) -> TwoViewGeometry: ...
+
+
+class DepthStage(Protocol):
+    name: str
+
+    def __call__(self, views: list[View], geometry: TwoViewGeometry, pair: Any) -> list[DepthMap]: ...
+
+
+class GaussianStage(Protocol):
+    name: str
+
+    def __call__(
+        self, views: list[View], geometry: TwoViewGeometry, depths: list[DepthMap], pair: Any
+    ) -> list[GaussianMaps]: ...
+
+
+class PerViewDescriptors:
+    """A per-view descriptor backend (``View → Features``, e.g. SIFT) in the ``describe`` slot."""
+
+    def __init__(self, backend: DescriptorBackend) -> None:
+        self.backend = backend
+        self.name = backend.name
+
+    def __call__(self, views: Sequence[View], pair: Any = None) -> list[Features]:
+        return [self.backend(v) for v in views]
+
+
+class FilteredMatcher:
+    name = "reciprocal-nn+confidence"
+
+    def __init__(self, config: MatchConfig) -> None:
+        self.config = config
+
+    def __call__(self, f0: Features, f1: Features) -> Matches:
+        return match_features(f0, f1, self.config)
+
+
+class EssentialPose:
+    name = "classical:essential-magsac+lm"
+
+    def __init__(self, config: PoseConfig) -> None:
+        self.config = config
+
+    def __call__(self, v0: View, v1: View, matches: Matches, pair: Any = None) -> TwoViewGeometry:
+        return estimate_pose(v0, v1, matches, self.config)
+
+
+class PlaneSweepDepth:
+    name = "classical:plane-sweep-sgm"
+
+    def __init__(self, config: DepthConfig) -> None:
+        self.config = config
+
+    def __call__(self, views: list[View], geometry: TwoViewGeometry, pair: Any = None) -> list[DepthMap]:
+        return estimate_depths(views, geometry, self.config)
+
+
+class DepthGaussians:
+    name = "classical:per-pixel-surfels"
+
+    def __init__(self, config: GaussianInitConfig) -> None:
+        self.config = config
+
+    def __call__(
+        self, views: list[View], geometry: TwoViewGeometry, depths: list[DepthMap], pair: Any = None
+    ) -> list[GaussianMaps]:
+        return gaussians_from_depth(views, geometry, depths, self.config)

@@ -1,0 +1,106 @@
+"""The run report of a reconstruction: typed sections, one ``to_json()``.
+
+The pipeline fills :class:`RunReport` (inputs, per-stage backends and times, matches, pose, depth);
+the engine adds the ``neural`` section (the network's pass), ``refine`` (test-time refinement) and,
+after writing, ``gaussians_written`` and ``outputs``. ``to_json()`` gives the JSON document that
+``macsplat reconstruct --report/--json`` writes (sections that do not apply are left out).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from ._json import to_jsonable
+
+__all__ = ["ImageReport", "RefineReport", "RunReport"]
+
+
+@dataclass
+class ImageReport:
+    """One input photo: its sizes and where its intrinsics came from."""
+
+    name: str
+    original_size: list[int]
+    working_size: list[int]
+    intrinsics_source: str
+    focal_px_working: float
+
+
+@dataclass
+class RefineReport:
+    """The test-time refinement (``--refine``)."""
+
+    steps: int
+    max_steps: int
+    stopped_early: bool
+    seconds: float
+    scale: int
+    mac: bool
+    lpips: bool
+    loss_first: dict[str, float]
+    loss_last: dict[str, float]
+
+
+@dataclass
+class RunReport:
+    """What a reconstruction did (``Reconstruction.report``).
+
+    Attributes:
+        macsplat_version: the version that ran.
+        inputs: the two photos.
+        backends: stage → the backend that ran it.
+        times_s: stage → wall seconds, and ``total``.
+        images: the photos' sizes and intrinsics.
+        keypoints: descriptors per view.
+        fallback_used: whether the affine-simulated fallback's matches were kept.
+        matches: matches left after each filter, in order.
+        inlier_ratio: verified / candidate matches.
+        pose: the pose stage's measurements (rotation, parallax, errors, ...).
+        depth_coverage: share of pixels with a depth, per view.
+        depth_measured: share of pixels with a measured (not filled) depth, per view.
+        gaussians: Gaussians in the scene.
+        config: every setting, as a dict.
+        scale: ``"relative"`` (baseline 1) or ``"metric"``.
+        neural: the network's pass (neural backend only).
+        refine: the refinement (``--refine`` only).
+        gaussians_written: Gaussians in the written PLY (after writing).
+        outputs: role → path of each written file (after writing).
+    """
+
+    macsplat_version: str
+    inputs: list[str]
+    backends: dict[str, str | None]
+    times_s: dict[str, float]
+    images: list[ImageReport]
+    keypoints: list[int]
+    fallback_used: bool
+    matches: dict[str, int]
+    inlier_ratio: float | None
+    pose: dict[str, Any]
+    depth_coverage: list[float]
+    depth_measured: list[float | None]
+    gaussians: int
+    config: dict[str, Any]
+    scale: Literal["relative", "metric"] = "relative"
+    neural: dict[str, Any] | None = None
+    refine: RefineReport | None = None
+    gaussians_written: int | None = None
+    outputs: dict[str, str] = field(default_factory=dict)
+
+    def add_time(self, stage: str, seconds: float) -> None:
+        """Record a stage's wall time and keep ``total`` the sum."""
+        times = {k: v for k, v in self.times_s.items() if k != "total"}
+        times[stage] = seconds
+        self.times_s = {**times, "total": sum(times.values())}
+
+    def to_json(self) -> dict[str, Any]:
+        """The report as plain JSON values (sections that do not apply left out; NaN → null)."""
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        for optional in ("neural", "refine", "gaussians_written"):
+            if out[optional] is None:
+                del out[optional]
+        if not out["outputs"]:
+            del out["outputs"]
+        return to_jsonable(out)
