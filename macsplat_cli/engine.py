@@ -25,7 +25,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 from .errors import InputError
 from .pipeline.run import Pipeline, ReconstructConfig, Reconstruction, StageEvent, count_gaussians
@@ -46,7 +46,6 @@ logger = logging.getLogger(__name__)
 
 BACKENDS = ("classical", "neural")
 """The reconstruction backends (``--backend``)."""
-Backend = Literal["classical", "neural"]
 RefineEvent = Callable[[int, dict[str, float]], None]
 
 

@@ -30,8 +30,23 @@ from .sh import MAX_SH_DEGREE, rgb_to_sh0, sh_degree_from_bases
 __all__ = ["GaussianMaps", "Gaussians"]
 
 
+PARAMETERS = ("means", "log_scales", "quats", "opacity_logits", "sh")
+"""The five Gaussian parameters, in field order, shared by :class:`Gaussians` and :class:`GaussianMaps`."""
+
+
+class _Parameters:
+    """What both Gaussian types derive from their five parameter fields."""
+
+    def _named(self) -> list[tuple[str, torch.Tensor]]:
+        return [(name, getattr(self, name)) for name in PARAMETERS]
+
+    def tensors(self) -> list[torch.Tensor]:
+        """The five parameter tensors, in field order (e.g. to hand to an optimiser)."""
+        return [getattr(self, name) for name in PARAMETERS]
+
+
 @dataclass
-class Gaussians:
+class Gaussians(_Parameters):
     """Pre-activation Gaussian parameters, exactly as a standard 3DGS PLY stores them.
 
     Attributes:
@@ -154,18 +169,6 @@ class Gaussians:
         return m @ m.transpose(-1, -2)
 
     # ------------------------------------------------------------------ transforms
-    def _named(self) -> list[tuple[str, torch.Tensor]]:
-        return [
-            ("means", self.means),
-            ("log_scales", self.log_scales),
-            ("quats", self.quats),
-            ("opacity_logits", self.opacity_logits),
-            ("sh", self.sh),
-        ]
-
-    def tensors(self) -> list[torch.Tensor]:
-        """The five parameter tensors, in field order (e.g. to hand to an optimiser)."""
-        return [t for _, t in self._named()]
 
     def _map(self, fn) -> Gaussians:  # noqa: ANN001 - internal
         return Gaussians(*(fn(t) for t in self.tensors()))
@@ -218,7 +221,7 @@ def _check_sh_and_dtypes(named: list[tuple[str, torch.Tensor]], sh_pattern: str)
 
 
 @dataclass
-class GaussianMaps:
+class GaussianMaps(_Parameters):
     """One Gaussian per pixel of ``B`` views, each view's in its own camera frame.
 
     The same pre-activation parameterisation as :class:`Gaussians`, laid out as images. The
@@ -295,18 +298,6 @@ class GaussianMaps:
             return self.valid
         return torch.ones(self.means.shape[:3], dtype=torch.bool, device=self.device)
 
-    def _named(self) -> list[tuple[str, torch.Tensor]]:
-        return [
-            ("means", self.means),
-            ("log_scales", self.log_scales),
-            ("quats", self.quats),
-            ("opacity_logits", self.opacity_logits),
-            ("sh", self.sh),
-        ]
-
-    def tensors(self) -> list[torch.Tensor]:
-        """The five parameter maps, in field order (e.g. to hand to an optimiser)."""
-        return [t for _, t in self._named()]
 
     # ------------------------------------------------------------------ conversion
     def to_gaussians(self) -> Gaussians:

@@ -1,0 +1,139 @@
+"""The engine: one assembly of a reconstruction for the CLI, the evaluation and the library.
+
+* the CLI's scene and the evaluation's reconstruction of the same pair and settings are the same
+  Gaussians (before the engine they were assembled twice, and the evaluation skipped settings);
+* settings are validated once, before any work; models load once for many reconstructions;
+* the typed report serialises to strict JSON.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import io
+import json
+import math
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from macsplat_cli import engine
+from macsplat_cli.cameras import CameraSet, load_cameras, save_cameras
+from macsplat_cli.cli import main
+from macsplat_cli.datasets import synthetic as syn
+from macsplat_cli.engine import EngineConfig, Models, NeuralOptions, RefineOptions, load_models, reconstruct
+from macsplat_cli.errors import InputError
+from macsplat_cli.evaluation import EngineReconstructor, ReconstructSettings
+from macsplat_cli.images import save_image
+from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig
+from macsplat_cli.pipeline.views import ViewConfig
+from macsplat_cli.ply import read_ply
+
+SIZE = (192, 144)
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path]:
+    """A textured room pair 12° apart at 192×144, and its true cameras."""
+    folder = tmp_path_factory.mktemp("engine_pair")
+    scene = syn.make_scene("room", 5)
+    cam0, cam1 = syn.orbit_pair("room", 12.0, width=SIZE[0], height=SIZE[1], fov_deg=60.0)
+    cam0, cam1 = dataclasses.replace(cam0, name="a.png"), dataclasses.replace(cam1, name="b.png")
+    save_image(folder / "a.png", syn.render(scene, cam0).image)
+    save_image(folder / "b.png", syn.render(scene, cam1).image)
+    save_cameras(folder / "cameras.json", CameraSet([cam0, cam1]))
+    return folder / "a.png", folder / "b.png", folder / "cameras.json"
+
+
+def _config(cams: Path, steps: int = 0) -> EngineConfig:
+    return EngineConfig(
+        pipeline=ReconstructConfig(views=ViewConfig(size=SIZE[0], intrinsics=cams)),
+        refine=RefineOptions(steps=steps, scale=4),
+    )
+
+
+def test_engine_without_refinement_is_the_pipeline(pair: tuple[Path, Path, Path]) -> None:
+    rec = reconstruct(pair[:2], _config(pair[2]))
+    ref = Pipeline(_config(pair[2]).pipeline).run(pair[:2])
+    for a, b in zip(rec.gaussians.tensors(), ref.gaussians.tensors()):
+        assert torch.equal(a, b)
+    assert rec.report.refine is None and "refine" not in rec.report.to_json()
+
+
+def test_cli_and_evaluation_build_the_same_refined_scene(pair: tuple[Path, Path, Path], tmp_path: Path) -> None:
+    """``reconstruct --refine`` and ``eval --refine`` run the same code: the same Gaussians, the same report."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main(["reconstruct", str(pair[0]), str(pair[1]), "-o", str(tmp_path / "s.ply"), "--size", str(SIZE[0]),
+                     "--intrinsics", str(pair[2]), "--refine", "3", "--refine-scale", "4", "-q",
+                     "--report", str(tmp_path / "r.json")])  # fmt: skip
+    assert code == 0, err.getvalue()
+    cli_scene = read_ply(tmp_path / "s.ply")
+    cli_report = json.loads((tmp_path / "r.json").read_text())
+
+    # the two context frames as the evaluation hands them over, with their true cameras
+    scene = SimpleNamespace(
+        frames=[SimpleNamespace(image=p, camera=c) for p, c in zip(pair[:2], load_cameras(pair[2]))]
+    )
+    case = SimpleNamespace(context=(0, 1))
+    recon = EngineReconstructor(EngineConfig(refine=RefineOptions(steps=3, scale=4)))
+    rec = recon(scene, case, ReconstructSettings(size=SIZE[0], intrinsics="given"))  # type: ignore[arg-type]
+    assert rec.report.refine is not None and rec.report.refine.steps == cli_report["refine"]["steps"]
+    assert rec.report.refine.scale == cli_report["refine"]["scale"] == 4
+    assert len(rec.gaussians) == len(cli_scene) == cli_report["gaussians"]
+    for a, b in zip(rec.gaussians.tensors(), cli_scene.tensors()):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"conf_threshold": math.nan}, "--conf-threshold nan"),
+        ({"conf_threshold": -1.0}, "--conf-threshold -1.0"),
+        ({"backend": "magic"}, "--backend 'magic'"),
+        ({"neural": NeuralOptions(weights=Path("m.pth"))}, "--weights only apply to --backend neural"),
+        ({"neural": NeuralOptions(precision="fp8")}, "--precision 'fp8'"),
+        ({"backend": "neural"}, "needs the MASt3R checkpoint"),
+        ({"backend": "neural", "neural": NeuralOptions(weights=Path("m.pth"), dino=Path("d.pth"))}, "--dino needs"),
+        ({"refine": RefineOptions(steps=0, lpips_weights=Path("vgg"))}, "--lpips-weights is used by the refinement"),
+        ({"refine": RefineOptions(steps=-1)}, "--refine -1"),
+        ({"refine": RefineOptions(steps=2, scale=5)}, "--refine-scale 5"),
+    ],
+)
+def test_bad_settings_fail_before_any_work(pair: tuple[Path, Path, Path], changes: dict, message: str) -> None:
+    config = EngineConfig(**changes)
+    calls = []
+    with pytest.raises(InputError, match=message.replace("(", r"\(")):
+        reconstruct(pair[:2], config, on_stage=lambda stage, event: calls.append(stage))
+    assert calls == []  # not even the images were read
+
+
+def test_models_load_once_for_many_reconstructions(
+    pair: tuple[Path, Path, Path], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    loads = []
+    real = engine.load_models
+    monkeypatch.setattr(engine, "load_models", lambda config: loads.append(1) or real(config))
+    models = load_models(_config(pair[2]))
+    for _ in range(2):
+        reconstruct(pair[:2], _config(pair[2]), models=models)
+    assert loads == []
+    reconstruct(pair[:2], _config(pair[2]))
+    assert loads == [1]
+    assert isinstance(models, Models) and models.predictor is None
+
+
+def test_report_is_strict_json(pair: tuple[Path, Path, Path]) -> None:
+    rec = reconstruct(pair[:2], _config(pair[2]))
+    rec.report.pose["median_sampson_px"] = float("nan")  # a measurement that could not be made
+    rec.report.pose["scalar"] = np.float32(1.5)
+    doc = json.loads(json.dumps(rec.report.to_json(), allow_nan=False))
+    assert doc["pose"]["median_sampson_px"] is None and doc["pose"]["scalar"] == 1.5
+    assert doc["images"][0]["working_size"] == list(SIZE) and doc["scale"] == "relative"
+    assert doc["times_s"]["total"] == pytest.approx(sum(v for k, v in doc["times_s"].items() if k != "total"))
+    assert "neural" not in doc and "outputs" not in doc
+    rec.report.add_time("extra", 2.0)
+    assert rec.report.times_s["total"] == pytest.approx(doc["times_s"]["total"] + 2.0)
