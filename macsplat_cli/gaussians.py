@@ -298,7 +298,6 @@ class GaussianMaps(_Parameters):
             return self.valid
         return torch.ones(self.means.shape[:3], dtype=torch.bool, device=self.device)
 
-
     # ------------------------------------------------------------------ conversion
     def to_gaussians(self) -> Gaussians:
         """The valid pixels' Gaussians of all ``B`` views, in the world frame (view 0's pixels first, row-major).
