@@ -201,7 +201,7 @@ def test_descriptor_grid_coarser_than_dino_grid() -> None:
 def test_skipped_without_encoder(caplog: pytest.LogCaptureFixture) -> None:
     desc = unit_descriptors(1, 32, 32)
     image = torch.zeros(1, 3, 32, 32)
-    with caplog.at_level(logging.INFO, logger="macsplat_cli.neural.fusion"):
+    with caplog.at_level(logging.DEBUG, logger="macsplat_cli.neural.fusion"):
         result = fuse_descriptors(desc, image, fusion=trained_like(), encoder=None)
     assert result.desc is desc and not result.applied
     assert "skipped" in result.report and "DINOv3" in result.report and "skipped" in caplog.text

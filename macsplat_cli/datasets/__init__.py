@@ -13,14 +13,12 @@ Layouts (``layout="auto"`` picks the first that fits):
   units; 0 = no depth. This is what :func:`macsplat_cli.datasets.synthetic.write_dataset` writes.
   The folder is one scene, or holds one scene per subfolder. ``scale`` of the cameras
   file says whether the scene is metric.
-* ``scannetpp`` — ScanNet++ DSLR data (undistorted), either the official release tree
-  (``<root>/splits/<split>.txt``, ``<root>/data/<scene>/dslr/``) or Splatt3R's
-  ``<root>/raw`` + ``<root>/processed`` tree. Per scene: ``nerfstudio/transforms_undistorted.json``
-  (intrinsics and poses), ``undistorted_images/`` or ``resized_undistorted_images/``,
-  optionally ``undistorted_depths/<stem>.png`` (uint16 mm, 0 = invalid). Frames: the
-  ``train`` list of ``train_test_lists.json`` (else every frame of the transforms file),
-  without the frames marked ``is_bad``. Poses: nerfstudio ``transform_matrix`` converted
-  to OpenCV camera-to-world in the mesh frame (:func:`nerfstudio_to_opencv`).
+* ``scannetpp`` — ScanNet++ (:mod:`.scannetpp`): the official release tree (``<root>/data/<scene>/``,
+  with ``<root>/splits/<split>.txt`` when present) or Splatt3R's ``<root>/raw`` + ``<root>/processed``
+  tree. Per scene the DSLR data — undistorted images with ``transforms_undistorted.json``, or the
+  fisheye ``resized_images/`` with ``transforms.json`` (or ``colmap/``), undistorted once into a cache —
+  else the iPhone frames. Frames marked ``is_bad`` are dropped; poses are nerfstudio
+  ``transform_matrix`` converted to OpenCV camera-to-world in the mesh frame (:func:`nerfstudio_to_opencv`).
 * ``co3d-json`` — ``cameras_opencv.json`` ``{"width", "height", "views": [{"image", "K",
   "c2w"}]}`` (OpenCV axes, principal point in the +0.5 convention), as in the CO3D
   development sample; no depth, arbitrary scale.

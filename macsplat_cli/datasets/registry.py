@@ -30,7 +30,13 @@ def detect_layout(root: str | os.PathLike[str]) -> str:
         raise DatasetError(f"{r}: no such folder")
     if (r / "cameras.json").is_file() or any(p.is_dir() and (p / "cameras.json").is_file() for p in r.iterdir()):
         return "generic"
-    if ((r / "splits").is_dir() and (r / "data").is_dir()) or ((r / "raw").is_dir() and (r / "processed").is_dir()):
+    data = r / "data"
+    scannet_scenes = data.is_dir() and any((p / "dslr").is_dir() or (p / "iphone").is_dir() for p in data.iterdir())
+    if (
+        ((r / "splits").is_dir() and data.is_dir())
+        or scannet_scenes
+        or ((r / "raw").is_dir() and (r / "processed").is_dir())
+    ):
         return "scannetpp"
     if (r / "cameras_opencv.json").is_file():
         return "co3d-json"
@@ -40,8 +46,8 @@ def detect_layout(root: str | os.PathLike[str]) -> str:
             return "nyu-rgbd"
         return "icl-nuim"
     raise DatasetError(
-        f"{r}: not a data set folder: expected cameras.json + images/ (generic), splits/ + data/ or raw/ + processed/ "
-        "(ScanNet++), cameras_opencv.json (CO3D sample) or pose.txt + color/ + depth/ (ICL-NUIM / NYU RGB-D)"
+        f"{r}: not a data set folder: expected cameras.json + images/ (generic), data/<scene>/dslr|iphone or raw/ + "
+        "processed/ (ScanNet++), cameras_opencv.json (CO3D sample) or pose.txt + color/ + depth/ (ICL-NUIM / NYU RGB-D)"
     )
 
 

@@ -209,7 +209,7 @@ def fuse_descriptors(
     if encoder is None or fusion is None:
         missing = "no DINOv3 encoder (weights not given)" if encoder is None else "no fusion weights"
         report = f"semantic fusion skipped: {missing}; descriptors unchanged"
-        logger.info("%s", report)
+        logger.debug("%s", report)
         return FusionResult(desc=desc, applied=False, report=report)
     if encoder.config.embed_dim != fusion.config.dino_dim:
         raise ShapeError(
@@ -224,7 +224,7 @@ def fuse_descriptors(
         f"semantic fusion applied: DINOv3 {encoder.config.name} features {h}×{w}×{c} → "
         f"descriptors {desc.shape[1]}×{desc.shape[2]}×{desc.shape[3]}"
     )
-    logger.info("%s", report)
+    logger.debug("%s", report)
     return FusionResult(desc=out, applied=True, report=report)
 
 

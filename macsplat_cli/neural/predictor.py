@@ -255,7 +255,8 @@ def load_pair_predictor(
 ) -> PairPredictor:
     """The predictor from the user's checkpoints, on the CPU in eval mode (move it with ``.to(device)``).
 
-    * ``weights`` (MASt3R ``.pth`` or Hugging Face folder): the backbone.
+    * ``weights`` (MASt3R ``.pth`` or Hugging Face folder): the backbone; or a macsplat checkpoint
+      (``macsplat train``'s ``.pt``, :mod:`.predictor_io`), which holds the whole predictor.
     * ``gaussian_head`` (Splatt3R ``.ckpt``): the Gaussian head. A Splatt3R checkpoint holds its
       frozen MASt3R too, so it alone is enough; with ``weights`` as well, the backbone comes from
       ``weights`` (its architecture, from its ``args``, also sizes the head) and only the head is taken
@@ -272,6 +273,20 @@ def load_pair_predictor(
     if weights is None and gaussian_head is None:
         raise CheckpointNotFoundError(MISSING_WEIGHTS_HELP)
     check_fusion_files(dino, fusion)
+    from .predictor_io import is_predictor_checkpoint, load_predictor_checkpoint
+
+    if weights is not None and is_predictor_checkpoint(weights):
+        others = [flag for flag, v in (("--gaussian-head", gaussian_head), ("--dino", dino), ("--fusion", fusion)) if v]
+        if others:
+            raise InputError(
+                f"{weights} is a macsplat checkpoint: it carries its own Gaussian head, DINOv3 and fusion weights; "
+                f"drop {', '.join(others)}"
+            )
+        predictor, meta = load_predictor_checkpoint(weights)
+        logger.info(
+            "macsplat checkpoint %s (%s)", weights, ", ".join(f"{k} {v}" for k, v in meta.items() if k == "step")
+        )
+        return predictor
     head: GaussianHead | None = None
     if weights is not None:
         backbone, _ = load_mast3r(weights)

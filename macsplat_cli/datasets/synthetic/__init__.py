@@ -8,7 +8,8 @@ pairs with a known baseline (:func:`orbit_pair`, :func:`forward_pair`,
 :func:`pure_rotation_pair`) and the ground-truth relative pose
 (:func:`relative_pose`, :func:`pose_errors`) make two-view reconstruction
 measurable; :func:`transfer_points` gives exact correspondences and
-:func:`write_dataset` writes a dataset folder.
+:func:`write_dataset` writes a dataset folder,
+:func:`write_scannetpp` a ScanNet++-layout tree.
 
 **World.** OpenCV-style: y points *down* (floors are at larger y than
 ceilings), units are metres.
@@ -44,6 +45,7 @@ from .orbits import (
 )
 from .primitives import Box, Primitive, Quad, Sphere, rotation_about
 from .raycast import RayHits, SyntheticView, cast_rays, render, transfer_points
+from .scannetpp import write_scannetpp
 from .scenes import Lighting, Scene, SceneKind, make_scene, object_scene, room_scene
 from .textures import MAX_TEXTURE_SIZE, Texture
 from .writer import write_dataset
@@ -76,4 +78,5 @@ __all__ = [
     "rotation_about",
     "transfer_points",
     "write_dataset",
+    "write_scannetpp",
 ]

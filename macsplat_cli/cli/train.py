@@ -1,0 +1,235 @@
+"""``macsplat train``: train the MAC-Splat predictor (Gaussian head + Residual Semantic Fusion) on posed images."""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from ._app import app
+from ._common import QuietOpt, VerboseOpt, command_context, err_console
+from ._options import DeviceOpt, DinoOpt, GaussianHeadOpt, WeightsOpt
+
+logger = logging.getLogger("macsplat_cli.cli.train")
+
+
+def _size(text: str) -> tuple[int, int]:
+    from ..errors import InputError
+
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise InputError(f"--size {text!r}: give WIDTHxHEIGHT, e.g. 256x192") from None
+    if w < 32 or h < 32 or w % 16 or h % 16:
+        raise InputError(f"--size {text!r}: both sides must be multiples of 16, at least 32")
+    return w, h
+
+
+def _range(text: str, option: str) -> tuple[float, float]:
+    import math
+
+    from ..errors import InputError
+
+    try:
+        lo, hi = (float(v) for v in text.split(","))
+    except ValueError:
+        raise InputError(f"{option} {text!r}: give LOW,HIGH") from None
+    if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo <= hi):
+        raise InputError(f"{option} {text!r}: give 0 ≤ LOW ≤ HIGH")
+    return lo, hi
+
+
+@app.command("train")
+def train_command(
+    ctx: typer.Context,
+    data: Annotated[
+        Path, typer.Option("--data", metavar="DIR", help="Posed images: ScanNet++ root, generic folder, CO3D, ICL.")
+    ],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Run folder (run.json, metrics.csv, last.pt, best.pt).")],
+    layout: Annotated[str, typer.Option("--layout", help="Data layout (auto: detect it).")] = "auto",
+    scenes: Annotated[str | None, typer.Option("--scenes", help="Only these scenes (comma-separated).")] = None,
+    split: Annotated[
+        str, typer.Option("--split", help="ScanNet++: training split list (validation: nvs_sem_val when present).")
+    ] = "nvs_sem_train",
+    steps: Annotated[int, typer.Option("--steps", min=1, help="Optimiser steps.")] = 1000,
+    batch: Annotated[int, typer.Option("--batch", min=1, help="Pairs per process and step.")] = 2,
+    accumulate: Annotated[int, typer.Option("--accumulate", min=1, help="Gradient accumulation steps.")] = 1,
+    lr: Annotated[float, typer.Option("--lr", help="AdamW learning rate.")] = 1e-5,
+    weight_decay: Annotated[float, typer.Option("--weight-decay", help="AdamW weight decay.")] = 0.05,
+    warmup: Annotated[int, typer.Option("--warmup", min=0, help="Warm-up steps (then cosine).")] = 50,
+    grad_clip: Annotated[float, typer.Option("--grad-clip", help="Gradient-norm clip (0: off).")] = 0.5,
+    precision: Annotated[str, typer.Option("--precision", metavar="fp32|bf16|fp16", help="AMP.")] = "fp32",
+    size: Annotated[str, typer.Option("--size", metavar="WxH", help="Training image size.")] = "256x192",
+    targets: Annotated[int, typer.Option("--targets", min=1, help="Target views per pair.")] = 2,
+    coverage: Annotated[
+        str, typer.Option("--coverage", metavar="LOW,HIGH", help="Covisibility range of the context pairs.")
+    ] = "0.3,1.0",
+    val_every: Annotated[int, typer.Option("--val-every", min=0, help="Validate every K steps (0: at the end).")] = 100,
+    val_pairs: Annotated[int, typer.Option("--val-pairs", min=1, help="Held-out pairs (without a val split).")] = 8,
+    ckpt_every: Annotated[int, typer.Option("--ckpt-every", min=1, help="Write last.pt every K steps.")] = 100,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the data order and the initialisation.")] = 0,
+    workers: Annotated[int, typer.Option("--workers", min=0, help="Data-loader worker processes.")] = 2,
+    model: Annotated[str, typer.Option("--model", metavar="tiny|full", help="Architecture of --init random.")] = "full",
+    init: Annotated[
+        str, typer.Option("--init", metavar="weights|random", help="Start from the checkpoints, or at random.")
+    ] = "weights",
+    weights: WeightsOpt = None,
+    gaussian_head: GaussianHeadOpt = None,
+    dino: DinoOpt = None,
+    no_dino: Annotated[bool, typer.Option("--no-dino", help="No DINOv3 fusion (ablation).")] = False,
+    no_mac: Annotated[bool, typer.Option("--no-mac", help="Photometric loss only (ablation).")] = False,
+    mac_weight: Annotated[float, typer.Option("--mac-weight", help="λ of the MAC loss.")] = 0.25,
+    lpips_weights: Annotated[
+        Path | None, typer.Option("--lpips-weights", metavar="PATH", help="LPIPS VGG weights (else D-SSIM).")
+    ] = None,
+    train_backbone: Annotated[bool, typer.Option("--train-backbone", help="Unfreeze the MASt3R backbone.")] = False,
+    device: DeviceOpt = "cpu",
+    resume: Annotated[bool, typer.Option("--resume", help="Continue the run in --out from its last.pt.")] = False,
+    force: Annotated[bool, typer.Option("--force", help="Start over in an --out that holds another run.")] = False,
+    verbose: VerboseOpt = False,
+    quiet: QuietOpt = False,
+) -> None:
+    """Train the Gaussian head and the Residual Semantic Fusion with the photometric + MAC loss.
+
+    The MASt3R backbone and DINOv3 stay frozen (--train-backbone unfreezes the backbone). On one CPU or
+    GPU as it is; on many through torchrun (DDP; only rank 0 writes). The run folder gets run.json,
+    metrics.csv, last.pt (resumable: --resume) and best.pt (best validation PSNR), which
+    [bold]reconstruct --backend neural --weights[/] takes as it is.
+
+    [bold]Examples[/]
+
+      macsplat train --data scannetpp/ --out runs/x --weights mast3r.pth --gaussian-head splatt3r.ckpt --dino dinov3.pth
+
+      macsplat train --data my_scenes/ --out runs/tiny --model tiny --init random --steps 200
+
+      torchrun --nproc-per-node 4 -m macsplat_cli train --data scannetpp/ --out runs/x --device cuda ...
+    """
+    with command_context(ctx, verbose, quiet) as state:
+        if int(os.environ.get("RANK", "0")) > 0:  # under torchrun only rank 0 reports
+            logging.getLogger("macsplat_cli").setLevel(logging.WARNING)
+        _train(
+            data=data, out=out, layout=layout, scenes=scenes, split=split, steps=steps, batch=batch,
+            accumulate=accumulate, lr=lr, weight_decay=weight_decay, warmup=warmup, grad_clip=grad_clip,
+            precision=precision.strip().lower(), size=_size(size), targets=targets,
+            coverage=_range(coverage, "--coverage"), val_every=val_every, val_pairs=val_pairs, ckpt_every=ckpt_every,
+            seed=seed, workers=workers, model=model.strip().lower(), init=init.strip().lower(), weights=weights,
+            gaussian_head=gaussian_head, dino=dino, no_dino=no_dino, mac_weight=0.0 if no_mac else mac_weight,
+            lpips_weights=lpips_weights, train_backbone=train_backbone, device=device.strip().lower(),
+            resume=resume, force=force, quiet=state.quiet,
+        )  # fmt: skip
+
+
+def _train(
+    *, data: Path, out: Path, layout: str, scenes: str | None, split: str, steps: int, batch: int, accumulate: int,
+    lr: float, weight_decay: float, warmup: int, grad_clip: float, precision: str, size: tuple[int, int],
+    targets: int, coverage: tuple[float, float], val_every: int, val_pairs: int, ckpt_every: int, seed: int,
+    workers: int, model: str, init: str, weights: Path | None, gaussian_head: Path | None, dino: Path | None,
+    no_dino: bool, mac_weight: float, lpips_weights: Path | None, train_backbone: bool, device: str, resume: bool,
+    force: bool, quiet: bool,
+) -> None:  # fmt: skip
+    from ..errors import InputError
+    from ..neural.predictor import resolve_device
+    from ..training.data import PairSamplingConfig
+    from ..training.loss import LossConfig
+    from ..training.model import ModelSpec, build_training_model, freeze_for_training
+    from ..training.setup import load_training_data
+    from ..training.trainer import TrainConfig, Trainer
+
+    if model not in ("tiny", "full"):
+        raise InputError(f"--model {model!r}: use tiny or full")
+    if init not in ("weights", "random"):
+        raise InputError(f"--init {init!r}: use weights or random")
+    if init == "weights" and weights is None and gaussian_head is None:
+        raise InputError(
+            "--init weights needs --weights (MASt3R) or --gaussian-head (Splatt3R); or train from scratch with "
+            "--init random (--model tiny trains in minutes on a CPU)"
+        )
+    if resume and force:
+        raise InputError("--resume and --force contradict each other: give one")
+    if not (mac_weight >= 0 and mac_weight == mac_weight):
+        raise InputError(f"--mac-weight {mac_weight}: give a number ≥ 0")
+    resolve_device(device)
+    config = TrainConfig(
+        out=out, steps=steps, batch=batch, accumulate=accumulate, lr=lr, weight_decay=weight_decay, warmup=warmup,
+        grad_clip=grad_clip, precision=precision, val_every=val_every, ckpt_every=ckpt_every, seed=seed,
+        workers=workers, device=device, loss=LossConfig(mac_weight=mac_weight),
+    )  # fmt: skip
+    config.validate()
+    lpips = None
+    if lpips_weights is not None:
+        from ..lpips import load_lpips
+
+        lpips = load_lpips(lpips_weights)
+    else:
+        logger.info("no --lpips-weights: the photometric loss uses D-SSIM instead of LPIPS")
+    sampling = PairSamplingConfig(coverage=coverage, targets=targets, size=size)
+    names = [s.strip() for s in scenes.split(",") if s.strip()] if scenes else None
+    train_data, val_data, info = load_training_data(
+        data, layout=layout, split=split, scenes=names, sampling=sampling, val_pairs=val_pairs, seed=seed
+    )
+    spec = ModelSpec(
+        model=model, init=init, weights=weights, gaussian_head=gaussian_head, dino=dino, no_dino=no_dino, seed=seed
+    )  # type: ignore[arg-type]
+    predictor = freeze_for_training(build_training_model(spec), train_backbone=train_backbone)
+    n_train = sum(p.numel() for p in predictor.parameters() if p.requires_grad)
+    files = {"weights": weights, "gaussian_head": gaussian_head, "dino": dino}
+    options = {"model": model, "init": init, "no_dino": no_dino, "train_backbone": train_backbone}
+    run_info = {"data": info, "model": {**options, **files, "trainable_parameters": n_train}}
+    with _TrainProgress(steps, disabled=quiet) as progress:
+        trainer = Trainer(predictor, train_data, val_data, config, lpips=lpips, run_info=run_info,
+                          on_step=progress.update)  # fmt: skip
+        progress.disabled = progress.disabled or not trainer.ctx.is_main
+        trainer.prepare_run_folder(resume=resume, force=force)
+        progress.start_at(trainer.step)
+        if not quiet and trainer.ctx.is_main:
+            err_console.print(
+                f"{info['train_pairs']} training pair(s), {info['val_pairs']} validation pair(s) from "
+                f"{info['scenes']} scene(s); {n_train:,} trainable parameters; {trainer.ctx.world_size} process(es)",
+                highlight=False,
+            )
+        result = trainer.fit()
+    if not quiet and trainer.ctx.is_main:
+        best = f"best validation PSNR {result.best_psnr:.2f} dB, " if result.best_psnr is not None else ""
+        err_console.print(
+            f"{result.steps} step(s) in {result.seconds:.1f} s ({result.skipped_steps} skipped); {best}"
+            f"wrote {out / 'best.pt'}, {out / 'last.pt'}, {out / 'metrics.csv'}",
+            highlight=False,
+            soft_wrap=True,
+        )
+
+
+class _TrainProgress:
+    """A Rich progress bar over the optimiser steps with the latest loss terms (rank 0 only)."""
+
+    def __init__(self, steps: int, disabled: bool) -> None:
+        self.steps = steps
+        self.disabled = disabled
+        self.progress: Any = None
+        self.task: Any = None
+
+    def __enter__(self) -> _TrainProgress:
+        return self
+
+    def start_at(self, step: int) -> None:
+        if self.disabled:
+            return
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+        self.progress = Progress(
+            TextColumn("train"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+            TextColumn("{task.fields[last]}"), console=err_console, transient=False,
+        )  # fmt: skip
+        self.task = self.progress.add_task("", total=self.steps, completed=step, last="")
+        self.progress.start()
+
+    def update(self, step: int, row: dict[str, float]) -> None:
+        if self.progress is not None:
+            mac = f", mac {row['mac']:.4f}" if row.get("mac") else ""
+            self.progress.update(self.task, completed=step, last=f"loss {row['loss']:.4f}{mac}")
+
+    def __exit__(self, *exc: object) -> None:
+        if self.progress is not None:
+            self.progress.stop()

@@ -1,0 +1,226 @@
+"""The training objective: ``L = L_photo + λ_MAC · L_MAC`` on a batch of pairs.
+
+* ``L_photo`` (per target view, averaged): ``MSE + λ_lpips · LPIPS`` with LPIPS weights
+  (``--lpips-weights``, Splatt3R's 0.25), else ``MSE + λ_ssim · (1 − SSIM)`` (D-SSIM stands in for the
+  perceptual term when no VGG weights are given; the trainer logs which). Targets are rendered from the
+  predicted Gaussians of both context views with the differentiable rasterizer (gsplat on CUDA when
+  installed), from their ground-truth cameras re-expressed in context 0's frame (metric, as Splatt3R).
+  With a visibility mask (Splatt3R's loss mask, from ground-truth depth) both images are masked first.
+* ``L_MAC`` (:func:`macsplat_cli.mac.mac_loss`, λp = 1, λs = 0.02, λa = 0.1, weight 0.25): matched
+  Gaussians of the two views pulled together in world space (the ground-truth frame of context 0). Matches
+  come from the fused descriptors through the shared filtered matcher (reciprocal nearest neighbours on a
+  ``match_stride`` grid, gated by ``c0·c1 > τ``).
+
+**How the fusion module learns.** Reciprocal matching is discrete, so neither term would reach the fused
+descriptors through the match pixels. Each match's MAC weight is therefore ``w = c0·c1·p``, with ``p`` the
+dual-softmax probability of that match under the fused descriptors (temperature ``match_temperature``).
+MAC normalises by ``Σ w``, so lowering every weight gains nothing: the gradient moves weight from matches
+whose Gaussians disagree to those that agree, which sharpens the descriptors on geometrically consistent
+correspondences. ``p`` is detached when ``descriptor_gradient=False``.
+
+The loss is the mean of per-sample losses, so ``N`` processes with local batch ``b`` (DDP averages their
+gradients) give the gradients of one process with batch ``N·b``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from ..gaussians import GaussianMaps
+from ..mac import MACConfig, mac_loss
+from ..metrics import ssim_map
+from ..neural.predictor import PairPrediction
+from ..pipeline.matching import MatchConfig, match_features
+from ..pipeline.neural.geometry import sample_descriptors
+from ..pipeline.types import Features
+from ..render import render
+
+__all__ = ["LossConfig", "LossTerms", "loss_masks", "render_targets", "sample_matches", "training_loss"]
+
+
+@dataclass
+class LossConfig:
+    """Weights of the objective (module docstring).
+
+    Args:
+        lpips_weight: λ of LPIPS (used when an LPIPS model is given).
+        ssim_weight: λ of D-SSIM (used without LPIPS).
+        mac_weight: λ_MAC; 0 turns MAC off (the "w/o MAC" ablation).
+        mac: the MAC term's own weights (λp, λs, λa) and Huber thresholds.
+        match_stride: descriptor grid step for the matches.
+        conf_threshold: τ of the confidence gate on ``c0·c1``.
+        match_temperature: temperature of the dual softmax giving each match's probability.
+        descriptor_gradient: let the MAC weights' gradient reach the fused descriptors.
+        background: colour behind the Gaussians.
+    """
+
+    lpips_weight: float = 0.25
+    ssim_weight: float = 0.2
+    mac_weight: float = 0.25
+    mac: MACConfig = field(default_factory=MACConfig)
+    match_stride: int = 4
+    conf_threshold: float = 1.0
+    match_temperature: float = 0.1
+    descriptor_gradient: bool = True
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+@dataclass
+class LossTerms:
+    """The loss and its parts (floats, averaged over the batch)."""
+
+    loss: torch.Tensor
+    photo: float
+    mse: float
+    perceptual: float
+    mac: float
+    matches: float
+
+
+def render_targets(
+    maps: tuple[GaussianMaps, GaussianMaps], b: int, target_K: torch.Tensor, target_c2w: torch.Tensor,
+    context_c2w: torch.Tensor, size: tuple[int, int], background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+) -> torch.Tensor:  # fmt: skip
+    """Sample ``b``'s Gaussians (both views, context-0 frame) rendered into its targets. [T, 3, H, W]
+
+    Args:
+        maps: the predictor's Gaussian maps of view 0 and view 1. [B, H, W, ·] each
+        b: the sample.
+        target_K: the targets' intrinsics. [T, 3, 3]
+        target_c2w: the targets' camera-to-world (data set frame). [T, 4, 4]
+        context_c2w: context 0's camera-to-world (data set frame). [4, 4]
+        size: (H, W) of the targets.
+    """
+    gaussians = GaussianMaps.cat([maps[0].view(b), maps[1].view(b)]).to_gaussians()
+    dt, dev = gaussians.dtype, gaussians.device
+    c2w0 = context_c2w.to(device=dev, dtype=torch.float64)
+    out = []
+    for K, c2w in zip(target_K, target_c2w):
+        viewmat = torch.linalg.inv(c2w.to(device=dev, dtype=torch.float64)) @ c2w0  # context 0 → target
+        rgb = render(gaussians, viewmat.to(dt), K.to(device=dev, dtype=dt), size[1], size[0], background=background).rgb
+        out.append(rgb.permute(2, 0, 1))
+    return torch.stack(out)
+
+
+def sample_matches(
+    desc: torch.Tensor, desc_conf: torch.Tensor, config: LossConfig
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Filtered matches between the two views of one sample, with a differentiable weight each.
+
+    Args:
+        desc: the (fused) descriptors of both views. [2, H, W, D]
+        desc_conf: their confidences (≥ 0). [2, H, W]
+
+    Returns:
+        ``xy0 [M, 2]``, ``xy1 [M, 2]`` (pixel centres at +0.5) and ``w [M]`` = ``c0·c1·p`` (module docstring).
+    """
+    h, w = desc.shape[1:3]
+    idx, grid = sample_descriptors(
+        desc_conf[0].detach().float().cpu().numpy(), sampling="grid", stride=config.match_stride
+    )
+    uv = np.stack([idx % w + 0.5, idx // w + 0.5], 1).astype(np.float64)
+    flat = desc.reshape(2, h * w, -1)[:, torch.from_numpy(idx).to(desc.device)]  # [2, N, D]
+    flat = torch.nn.functional.normalize(flat.float(), dim=-1)
+    conf = desc_conf.reshape(2, h * w)[:, torch.from_numpy(idx).to(desc.device)].float()  # [2, N]
+    feats = [Features(uv, flat[k].detach().cpu().numpy(), conf[k].detach().cpu().numpy(), grid=grid) for k in (0, 1)]
+    m = match_features(feats[0], feats[1], MatchConfig(conf_threshold=config.conf_threshold, ratio_confidence=False))
+    i0 = torch.from_numpy(m.idx0).to(desc.device)
+    i1 = torch.from_numpy(m.idx1).to(desc.device)
+    sim = flat[0] @ flat[1].T / config.match_temperature  # [N, N]
+    p = (sim.softmax(0) * sim.softmax(1))[i0, i1]  # dual softmax of each match
+    if not config.descriptor_gradient:
+        p = p.detach()
+    weight = conf[0, i0].detach() * conf[1, i1].detach() * p
+    return torch.from_numpy(m.xy0).float(), torch.from_numpy(m.xy1).float(), weight
+
+
+def loss_masks(batch: dict[str, torch.Tensor]) -> torch.Tensor | None:
+    """Splatt3R's visibility ("loss") mask of every target (pixels with a depth that a context view sees at
+    that depth), from the batch's ground-truth depth; None when a target has no depth at all. [B, T, H, W] bool
+
+    Without it, Gaussians grow to cover what the context views never saw (Splatt3R's "w/o masking" ablation
+    diverged).
+    """
+    from ..cameras import Camera
+    from ..evaluation.coverage import visibility_mask
+
+    tgt_depth, ctx_depth = batch["target_depth"].numpy(), batch["context_depth"].numpy()
+    n, t, h, w = tgt_depth.shape
+    if not all((tgt_depth[b, k] > 0).any() for b in range(n) for k in range(t)):
+        return None
+    masks = np.zeros((n, t, h, w), bool)
+    for b in range(n):
+        ctx = [
+            Camera(f"c{k}", w, h, batch["context_K"][b, k].numpy(), batch["context_c2w"][b, k].numpy()) for k in (0, 1)
+        ]
+        for k in range(t):
+            cam = Camera("t", w, h, batch["target_K"][b, k].numpy(), batch["target_c2w"][b, k].numpy())
+            masks[b, k] = visibility_mask(tgt_depth[b, k], cam, list(ctx_depth[b]), ctx)
+    return torch.from_numpy(masks)
+
+
+def training_loss(
+    pred: PairPrediction, batch: dict[str, torch.Tensor], config: LossConfig, lpips: torch.nn.Module | None = None
+) -> LossTerms:
+    """``L_photo + λ_MAC · L_MAC`` averaged over the samples of ``batch`` (module docstring).
+
+    Args:
+        pred: the predictor's outputs for the batch's context pairs (with Gaussian maps).
+        batch: ``context [B, 2, 3, H, W]``, ``context_c2w [B, 2, 4, 4]``, ``target [B, T, 3, H, W]``,
+            ``target_K [B, T, 3, 3]``, ``target_c2w [B, T, 4, 4]``, optionally ``target_mask [B, T, H, W]``, or
+            ``target_depth [B, T, H, W]`` and ``context_depth [B, 2, H, W]`` (+ ``context_K``) for :func:`loss_masks`.
+        config: the weights.
+        lpips: an LPIPS model (inputs in [0, 1]); None: D-SSIM instead.
+    """
+    if pred.gaussians is None:
+        raise ValueError("training needs the Gaussian head's outputs")
+    target = batch["target"].to(pred.pts3d.device)
+    n, t, _, h, w = target.shape
+    mask = batch.get("target_mask")
+    if mask is None and "target_depth" in batch and "context_depth" in batch:
+        mask = loss_masks(batch)
+    totals = {"photo": 0.0, "mse": 0.0, "perceptual": 0.0, "mac": 0.0, "matches": 0.0}
+    losses = []
+    for b in range(n):
+        rgb = render_targets(
+            pred.gaussians, b, batch["target_K"][b], batch["target_c2w"][b], batch["context_c2w"][b, 0], (h, w),
+            config.background,
+        )  # fmt: skip
+        gt = target[b].to(rgb.dtype)
+        if mask is not None:
+            m = mask[b].to(device=rgb.device, dtype=rgb.dtype)[:, None]
+            rgb, gt = rgb * m, gt * m
+        mse = ((rgb - gt) ** 2).mean()
+        if lpips is not None:
+            perceptual = lpips(rgb, gt).mean()
+            photo = mse + config.lpips_weight * perceptual
+        else:
+            perceptual = (
+                1.0
+                - torch.stack(
+                    [ssim_map(rgb[i].permute(1, 2, 0), gt[i].permute(1, 2, 0)).mean() for i in range(t)]
+                ).mean()
+            )
+            photo = mse + config.ssim_weight * perceptual
+        loss = photo
+        if config.mac_weight > 0:
+            xy0, xy1, weight = sample_matches(pred.desc[b], pred.desc_conf[b], config)
+            if len(xy0):
+                dev, dt = pred.gaussians[0].means.device, pred.gaussians[0].means.dtype
+                c2w0 = batch["context_c2w"][b, 0].to(device=dev, dtype=dt)[None]
+                mac = mac_loss(
+                    pred.gaussians[0].view(b), pred.gaussians[1].view(b), xy0.to(dev), xy1.to(dev),
+                    torch.zeros(len(xy0), dtype=torch.long, device=dev), weight.to(device=dev, dtype=dt),
+                    c2w0, c2w0, config.mac, check_inputs=False,
+                )  # fmt: skip
+                loss = loss + config.mac_weight * mac.loss
+                totals["mac"] += float(mac.loss.detach())
+            totals["matches"] += len(xy0)
+        losses.append(loss)
+        totals["photo"] += float(photo.detach())
+        totals["mse"] += float(mse.detach())
+        totals["perceptual"] += float(perceptual.detach())
+    return LossTerms(loss=torch.stack(losses).mean(), **{k: v / n for k, v in totals.items()})

@@ -1,0 +1,479 @@
+"""The training loop of ``macsplat train``: AdamW with warm-up + cosine, clipping, accumulation, AMP, validation,
+atomic checkpoints, exact resume, and data-parallel training over processes started by ``torchrun``.
+
+Files in the run folder (only rank 0 writes):
+
+* ``run.json``: the run's configuration (a folder holding another run is refused unless resumed or forced);
+* ``metrics.csv``: one row per optimiser step (loss terms, learning rate, seconds) and the validation rows;
+* ``last.pt``: a macsplat predictor checkpoint (:mod:`macsplat_cli.neural.predictor_io`) that also carries the
+  optimiser, scheduler, step, data position and RNG states — written every ``ckpt_every`` steps, at the end and
+  on Ctrl-C, always atomically (the previous one stays intact if writing fails);
+* ``best.pt``: the predictor with the best validation PSNR (what ``reconstruct --backend neural --weights`` takes).
+
+A non-finite loss skips its step (counted in the metrics); ``max_bad_steps`` of them in a row stop the run with
+:class:`TrainingError`, the last good checkpoint intact.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import dataclasses
+import itertools
+import json
+import logging
+import math
+import os
+import random
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.distributed as dist
+
+from .._atomic import atomic_path, check_writable
+from .._json import to_jsonable
+from ..errors import InputError, MacsplatError, OutputPathError
+from ..metrics import psnr, ssim
+from ..neural.predictor import PairPredictor, prediction_from_outputs
+from ..neural.predictor_io import PREDICTOR_FORMAT, predictor_config, save_predictor_checkpoint
+from .loss import LossConfig, render_targets, training_loss
+from .model import trainable_parameters
+
+__all__ = ["TrainConfig", "TrainResult", "TrainingError", "Trainer", "distributed_context"]
+
+logger = logging.getLogger(__name__)
+
+
+class TrainingError(MacsplatError):
+    """Training cannot go on (the loss stayed non-finite); the last good checkpoint is kept."""
+
+    exit_code = 3
+
+
+@dataclass
+class TrainConfig:
+    """Settings of the loop (the model and the data are given separately).
+
+    Args:
+        out: the run folder.
+        steps: optimiser steps in all.
+        batch: pairs per process and micro-step.
+        accumulate: micro-steps per optimiser step.
+        lr: AdamW learning rate (the paper: 1e-5).
+        weight_decay: AdamW weight decay.
+        warmup: linear warm-up steps, then a cosine decay to 0 at ``steps``.
+        grad_clip: gradient-norm clip (0: off).
+        precision: ``"fp32"``, ``"bf16"`` or ``"fp16"`` (autocast; fp16 with a gradient scaler, CUDA only).
+        val_every: validate (and keep ``best.pt``) every this many steps (0: only at the end).
+        ckpt_every: write ``last.pt`` every this many steps.
+        seed: seed of the data order and of everything random in the loop.
+        workers: data-loader worker processes.
+        max_bad_steps: non-finite losses in a row that stop the run.
+        device: ``"cpu"`` or ``"cuda"``.
+        loss: the objective's weights.
+    """
+
+    out: Path
+    steps: int = 1000
+    batch: int = 2
+    accumulate: int = 1
+    lr: float = 1e-5
+    weight_decay: float = 0.05
+    warmup: int = 50
+    grad_clip: float = 0.5
+    precision: str = "fp32"
+    val_every: int = 100
+    ckpt_every: int = 100
+    seed: int = 0
+    workers: int = 0
+    max_bad_steps: int = 10
+    device: str = "cpu"
+    loss: LossConfig = field(default_factory=LossConfig)
+
+    def validate(self) -> None:
+        for name in ("steps", "batch", "accumulate", "max_bad_steps"):
+            if getattr(self, name) < 1:
+                raise InputError(f"--{name.replace('_', '-')} must be at least 1, got {getattr(self, name)}")
+        for name in ("val_every", "ckpt_every", "warmup", "workers"):
+            if getattr(self, name) < 0:
+                raise InputError(f"--{name.replace('_', '-')} must be ≥ 0, got {getattr(self, name)}")
+        for name in ("lr", "weight_decay", "grad_clip"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise InputError(f"--{name.replace('_', '-')} {v}: give a finite number ≥ 0")
+        if self.precision not in ("fp32", "bf16", "fp16"):
+            raise InputError(f"--precision {self.precision!r}: use fp32, bf16 or fp16")
+        if self.precision == "fp16" and self.device != "cuda":
+            raise InputError("--precision fp16 needs --device cuda (use bf16 on the CPU)")
+
+
+@dataclass
+class TrainResult:
+    steps: int
+    best_psnr: float | None
+    skipped_steps: int
+    seconds: float
+    history: list[dict[str, float]]
+
+
+# ============================================================================================= distributed
+@dataclass
+class DistributedContext:
+    rank: int = 0
+    world_size: int = 1
+    local_rank: int = 0
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+
+def distributed_context(device: str) -> DistributedContext:
+    """The process group of a ``torchrun`` launch (``RANK``/``WORLD_SIZE`` set), initialised; a single process
+    otherwise. NCCL on CUDA, gloo on the CPU."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return DistributedContext()
+    rank, local = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
+    if not dist.is_initialized():
+        dist.init_process_group(backend="nccl" if device == "cuda" else "gloo")
+    if device == "cuda":
+        torch.cuda.set_device(local)
+    return DistributedContext(rank, world, local)
+
+
+# ============================================================================================= the loop
+def _lr_factor(step: int, warmup: int, total: int) -> float:
+    if warmup > 0 and step < warmup:
+        return (step + 1) / warmup
+    progress = (step - warmup) / max(1, total - warmup)
+    return 0.5 * (1.0 + math.cos(math.pi * min(1.0, progress)))
+
+
+def _rng_state() -> dict[str, Any]:
+    np_state = np.random.get_state()
+    return {
+        "torch": torch.get_rng_state(),
+        "numpy": torch.from_numpy(np_state[1].astype(np.int64)),
+        "numpy_pos": int(np_state[2]),
+        "python": random.getstate(),
+    }
+
+
+def _set_rng_state(state: dict[str, Any]) -> None:
+    torch.set_rng_state(state["torch"])
+    np.random.set_state(("MT19937", state["numpy"].numpy().astype(np.uint32), state["numpy_pos"], 0, 0.0))
+    version, internal, gauss = state["python"]
+    random.setstate((version, tuple(internal), gauss))
+
+
+class Trainer:
+    """Trains a :class:`PairPredictor` (its trainable parameters) on a :class:`~.data.PairDataset`.
+
+    Args:
+        predictor: the model, frozen where it should be (:func:`~.model.freeze_for_training`).
+        train_data: the training pairs.
+        val_data: held-out pairs for validation (None: no validation, ``best.pt`` is the last model).
+        config: the loop's settings.
+        lpips: LPIPS model for the perceptual term (None: D-SSIM).
+        run_info: what ``run.json`` records besides the loop's settings (data, model).
+        on_step: called on rank 0 after each optimiser step with the step and its metrics.
+    """
+
+    def __init__(
+        self,
+        predictor: PairPredictor,
+        train_data: Any,
+        val_data: Any | None,
+        config: TrainConfig,
+        *,
+        lpips: torch.nn.Module | None = None,
+        run_info: dict[str, Any] | None = None,
+        on_step: Callable[[int, dict[str, float]], None] | None = None,
+    ) -> None:
+        config.validate()
+        self.config = config
+        self.ctx = distributed_context(config.device)
+        self.device = torch.device(config.device, self.ctx.local_rank if config.device == "cuda" else None)
+        self.predictor = predictor.to(self.device)
+        self.train_data, self.val_data = train_data, val_data
+        self.lpips = lpips.to(self.device).eval() if lpips is not None else None
+        self.run_info = run_info or {}
+        self.on_step = on_step
+        params = trainable_parameters(predictor)
+        if not params:
+            raise InputError("nothing to train: every parameter is frozen")
+        self.model: torch.nn.Module = predictor
+        if self.ctx.world_size > 1:
+            self.model = torch.nn.parallel.DistributedDataParallel(  # the DPT's last refinement unit is unused
+                predictor, device_ids=[self.ctx.local_rank] if config.device == "cuda" else None,
+                find_unused_parameters=True,
+            )  # fmt: skip
+        self.optimizer = torch.optim.AdamW(params, lr=config.lr, weight_decay=config.weight_decay)
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(
+            self.optimizer, lambda s: _lr_factor(s, config.warmup, config.steps)
+        )
+        self.scaler = torch.amp.GradScaler("cuda", enabled=config.precision == "fp16")
+        self.step = 0
+        self.epoch = 0
+        self.batch_in_epoch = 0
+        self.best_psnr: float | None = None
+        self.skipped = 0
+        self.history: list[dict[str, float]] = []
+        self.stop_after: int | None = None  # tests: simulate an interruption after this many steps
+
+    # ------------------------------------------------------------------ files
+    @property
+    def out(self) -> Path:
+        return Path(self.config.out)
+
+    def prepare_run_folder(self, *, resume: bool, force: bool) -> None:
+        """Create the run folder; refuse one holding another run unless ``resume`` or ``force``.
+
+        Raises:
+            OutputPathError: the folder holds another run, cannot be written, or ``resume`` finds no checkpoint.
+        """
+        run_json = self.out / "run.json"
+        if resume:
+            if not (self.out / "last.pt").is_file():
+                raise OutputPathError(f"--resume {self.out}: no last.pt to resume from")
+            self.load_checkpoint(self.out / "last.pt")
+            return
+        if self.ctx.is_main and run_json.exists() and not force:
+            raise OutputPathError(
+                f"{self.out} holds another run (run.json): pass --resume {self.out} to continue it, or --force to "
+                "start over in it"
+            )
+        if self.ctx.is_main:
+            check_writable(run_json)
+            self.out.mkdir(parents=True, exist_ok=True)
+            doc = {"config": dataclasses.asdict(self.config), **self.run_info, "world_size": self.ctx.world_size}
+            with atomic_path(run_json) as tmp:
+                tmp.write_text(json.dumps(to_jsonable(doc), indent=2) + "\n")
+            (self.out / "metrics.csv").unlink(missing_ok=True)
+        _barrier(self.ctx)  # the other processes start once rank 0 has accepted the folder
+
+    def _meta(self) -> dict[str, Any]:
+        return {"step": self.step, "best_psnr": self.best_psnr, "config": to_jsonable(dataclasses.asdict(self.config))}
+
+    def save_checkpoint(self, name: str = "last.pt", *, training_state: bool = True) -> Path | None:
+        """Write a predictor checkpoint (with the training state for ``last.pt``) atomically (rank 0)."""
+        if not self.ctx.is_main:
+            return None
+        path = self.out / name
+        try:
+            if not training_state:
+                return save_predictor_checkpoint(path, self.predictor, self._meta())
+            self._save_training_state(path)
+        except OSError as e:
+            raise OutputPathError(
+                f"{path}: the checkpoint could not be written ({e.strerror or e}); the previous one is intact"
+            ) from None
+        return path
+
+    def _save_training_state(self, path: Path) -> None:
+        payload = {
+            "format": PREDICTOR_FORMAT,
+            "version": 1,
+            "config": predictor_config(self.predictor),
+            "state_dict": {k: v.detach().cpu() for k, v in self.predictor.state_dict().items()},
+            "meta": self._meta(),
+            "training": {
+                "optimizer": self.optimizer.state_dict(),
+                "scheduler": self.scheduler.state_dict(),
+                "scaler": self.scaler.state_dict(),
+                "step": self.step,
+                "epoch": self.epoch,
+                "batch_in_epoch": self.batch_in_epoch,
+                "best_psnr": self.best_psnr,
+                "skipped": self.skipped,
+                "rng": _rng_state(),
+            },
+        }
+        with atomic_path(path) as tmp:
+            torch.save(payload, tmp)
+
+    def load_checkpoint(self, path: Path) -> None:
+        """Restore model, optimiser, scheduler, data position and RNG from a ``last.pt``."""
+        obj = torch.load(path, map_location="cpu", weights_only=True)
+        if not isinstance(obj, dict) or "training" not in obj:
+            raise OutputPathError(f"{path}: not a resumable macsplat training checkpoint")
+        if obj["config"] != predictor_config(self.predictor):
+            raise OutputPathError(f"{path}: its model configuration differs from this run's (--model/--init)")
+        self.predictor.load_state_dict(obj["state_dict"])
+        t = obj["training"]
+        self.optimizer.load_state_dict(t["optimizer"])
+        self.scheduler.load_state_dict(t["scheduler"])
+        self.scaler.load_state_dict(t["scaler"])
+        self.step, self.epoch, self.batch_in_epoch = t["step"], t["epoch"], t["batch_in_epoch"]
+        self.best_psnr, self.skipped = t["best_psnr"], t["skipped"]
+        _set_rng_state(t["rng"])
+        logger.info("resumed %s at step %d (epoch %d, batch %d)", path, self.step, self.epoch, self.batch_in_epoch)
+
+    def _log(self, row: dict[str, Any]) -> None:
+        if not self.ctx.is_main:
+            return
+        path = self.out / "metrics.csv"
+        fields = ["step", "kind", "loss", "photo", "mse", "perceptual", "mac", "matches", "lr", "seconds", "skipped",
+                  "psnr", "ssim"]  # fmt: skip
+        new = not path.exists()
+        with path.open("a", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
+            if new:
+                w.writeheader()
+            w.writerow(row)
+
+    # ------------------------------------------------------------------ data
+    def _batches(self) -> Iterator[dict[str, torch.Tensor]]:
+        """Batches from the current data position on, epoch after epoch (resume skips what was done)."""
+        from .data import make_loader
+
+        while True:
+            self.train_data.set_epoch(self.epoch)
+            loader = make_loader(
+                self.train_data, batch_size=self.config.batch, workers=self.config.workers, shuffle=True,
+                seed=self.config.seed, rank=self.ctx.rank, world_size=self.ctx.world_size,
+            )  # fmt: skip
+            if hasattr(loader.sampler, "set_epoch"):
+                loader.sampler.set_epoch(self.epoch)
+            for batch in itertools.islice(loader, self.batch_in_epoch, None):
+                self.batch_in_epoch += 1
+                yield batch
+            self.epoch += 1
+            self.batch_in_epoch = 0
+
+    def _autocast(self) -> Any:
+        dtype = {"bf16": torch.bfloat16, "fp16": torch.float16}.get(self.config.precision)
+        return torch.autocast(device_type=self.device.type, dtype=dtype or torch.float32, enabled=dtype is not None)
+
+    def _forward(self, batch: dict[str, torch.Tensor], model: torch.nn.Module) -> Any:
+        ctx = batch["context"].to(self.device)
+        with self._autocast():
+            outputs = model(ctx[:, 0], ctx[:, 1])
+        pred = prediction_from_outputs([o.float() for o in outputs])
+        return training_loss(pred, batch, self.config.loss, self.lpips)
+
+    # ------------------------------------------------------------------ validation
+    @torch.no_grad()
+    def validate(self) -> dict[str, float]:
+        """PSNR and SSIM of the rendered targets of every validation pair (full images)."""
+        from .data import make_loader
+
+        self.predictor.eval()
+        loader = make_loader(self.val_data, batch_size=1, workers=0, shuffle=False, seed=self.config.seed)
+        psnrs, ssims = [], []
+        for batch in loader:
+            ctx = batch["context"].to(self.device)
+            with self._autocast():
+                outputs = self.predictor(ctx[:, 0], ctx[:, 1])
+            pred = prediction_from_outputs([o.float() for o in outputs])
+            h, w = batch["target"].shape[-2:]
+            rgb = render_targets(pred.gaussians, 0, batch["target_K"][0], batch["target_c2w"][0],
+                                 batch["context_c2w"][0, 0], (h, w), self.config.loss.background)  # fmt: skip
+            for r, g in zip(rgb.clamp(0, 1), batch["target"][0].to(rgb.device)):
+                psnrs.append(float(psnr(r.permute(1, 2, 0), g.permute(1, 2, 0))))
+                ssims.append(float(ssim(r.permute(1, 2, 0), g.permute(1, 2, 0))))
+        return {"psnr": float(np.mean(psnrs)), "ssim": float(np.mean(ssims))}
+
+    # ------------------------------------------------------------------ training
+    def fit(self) -> TrainResult:
+        """Train until ``config.steps``; Ctrl-C writes ``last.pt`` and re-raises."""
+        cfg = self.config
+        t0 = time.perf_counter()
+        batches = self._batches()
+        bad_in_a_row = 0
+        try:
+            while self.step < cfg.steps:
+                if self.stop_after is not None and self.step >= self.stop_after:
+                    raise KeyboardInterrupt
+                self.predictor.train()
+                for module in (self.predictor.dino, self.predictor.backbone):  # frozen modules stay in eval mode
+                    if module is not None and not any(p.requires_grad for p in module.parameters()):
+                        module.eval()
+                self.optimizer.zero_grad(set_to_none=True)
+                terms_sum: dict[str, float] = {}
+                finite = True
+                t_step = time.perf_counter()
+                for micro in range(cfg.accumulate):
+                    batch = next(batches)
+                    logger.debug(
+                        "step %d: samples %s on rank %d", self.step + 1, batch["index"].tolist(), self.ctx.rank
+                    )
+                    sync = micro == cfg.accumulate - 1 or self.ctx.world_size == 1
+                    context = self.model.no_sync() if not sync else contextlib.nullcontext()
+                    with context:
+                        terms = self._forward(batch, self.model)
+                        if not torch.isfinite(terms.loss):
+                            finite = False
+                        self.scaler.scale(terms.loss / cfg.accumulate).backward()
+                    for k in ("photo", "mse", "perceptual", "mac", "matches"):
+                        terms_sum[k] = terms_sum.get(k, 0.0) + getattr(terms, k) / cfg.accumulate
+                    terms_sum["loss"] = terms_sum.get("loss", 0.0) + float(terms.loss.detach()) / cfg.accumulate
+                finite = _all_ranks(finite, self.ctx, self.device)
+                if not finite:
+                    self.skipped += 1
+                    bad_in_a_row += 1
+                    self.optimizer.zero_grad(set_to_none=True)
+                    logger.warning("step %d: non-finite loss, step skipped (%d in a row)", self.step + 1, bad_in_a_row)
+                    if bad_in_a_row >= cfg.max_bad_steps:
+                        raise TrainingError(
+                            f"the loss was non-finite for {bad_in_a_row} steps in a row (step {self.step + 1}); "
+                            f"stopped, the last good checkpoint is {self.out / 'last.pt'} (try a lower --lr)"
+                        )
+                    continue
+                bad_in_a_row = 0
+                if cfg.grad_clip > 0:
+                    self.scaler.unscale_(self.optimizer)
+                    torch.nn.utils.clip_grad_norm_(trainable_parameters(self.predictor), cfg.grad_clip)
+                self.scaler.step(self.optimizer)
+                self.scaler.update()
+                self.scheduler.step()
+                self.step += 1
+                row = {"step": self.step, "kind": "train", **terms_sum, "lr": self.scheduler.get_last_lr()[0],
+                       "seconds": time.perf_counter() - t_step, "skipped": self.skipped}  # fmt: skip
+                self.history.append(row)
+                self._log(row)
+                if self.on_step is not None and self.ctx.is_main:
+                    self.on_step(self.step, row)
+                last = self.step == cfg.steps
+                if self.val_data is not None and ((cfg.val_every and self.step % cfg.val_every == 0) or last):
+                    self._validate_and_keep_best()
+                if (cfg.ckpt_every and self.step % cfg.ckpt_every == 0) or last:
+                    self.save_checkpoint()
+        except KeyboardInterrupt:
+            self.save_checkpoint()
+            raise
+        if self.val_data is None:
+            self.save_checkpoint("best.pt", training_state=False)
+        return TrainResult(self.step, self.best_psnr, self.skipped, time.perf_counter() - t0, self.history)
+
+    def _validate_and_keep_best(self) -> None:
+        if not self.ctx.is_main:
+            _barrier(self.ctx)
+            return
+        metrics = self.validate()
+        self._log({"step": self.step, "kind": "val", **metrics})
+        logger.info("step %d: validation PSNR %.2f dB, SSIM %.3f", self.step, metrics["psnr"], metrics["ssim"])
+        if self.best_psnr is None or metrics["psnr"] > self.best_psnr:
+            self.best_psnr = metrics["psnr"]
+            self.save_checkpoint("best.pt", training_state=False)
+        _barrier(self.ctx)
+
+
+def _all_ranks(flag: bool, ctx: DistributedContext, device: torch.device) -> bool:
+    """``flag`` on every process (a step is skipped everywhere when one process saw a non-finite loss)."""
+    if ctx.world_size == 1:
+        return flag
+    t = torch.tensor([1.0 if flag else 0.0], device=device)
+    dist.all_reduce(t, op=dist.ReduceOp.MIN)
+    return bool(t.item() > 0.5)
+
+
+def _barrier(ctx: DistributedContext) -> None:
+    if ctx.world_size > 1:
+        dist.barrier()
