@@ -226,6 +226,7 @@ class Trainer:
         self.skipped = 0
         self.history: list[dict[str, float]] = []
         self.stop_after: int | None = None  # tests: simulate an interruption after this many steps
+        self._tensorboard: Any = None  # a SummaryWriter when tensorboard is installed, False when not
 
     # ------------------------------------------------------------------ files
     @property
@@ -318,9 +319,15 @@ class Trainer:
     def _log(self, row: dict[str, Any]) -> None:
         if not self.ctx.is_main:
             return
+        if self._tensorboard is None:
+            self._tensorboard = _tensorboard_writer(self.out)
+        if self._tensorboard is not False:
+            for k, v in row.items():
+                if k not in ("step", "kind") and isinstance(v, (int, float)):
+                    self._tensorboard.add_scalar(f"{row['kind']}/{k}", v, row["step"])
         path = self.out / "metrics.csv"
         fields = ["step", "kind", "loss", "photo", "mse", "perceptual", "mac", "matches", "lr", "seconds", "skipped",
-                  "psnr", "ssim"]  # fmt: skip
+                  "psnr", "ssim", "lpips"]  # fmt: skip
         new = not path.exists()
         with path.open("a", newline="") as f:
             w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
@@ -366,7 +373,7 @@ class Trainer:
 
         self.predictor.eval()
         loader = make_loader(self.val_data, batch_size=1, workers=0, shuffle=False, seed=self.config.seed)
-        psnrs, ssims = [], []
+        psnrs, ssims, lpipss = [], [], []
         for batch in loader:
             ctx = batch["context"].to(self.device)
             with self._autocast():
@@ -375,10 +382,14 @@ class Trainer:
             h, w = batch["target"].shape[-2:]
             rgb = render_targets(pred.gaussians, 0, batch["target_K"][0], batch["target_c2w"][0],
                                  batch["context_c2w"][0, 0], (h, w), self.config.loss.background)  # fmt: skip
-            for r, g in zip(rgb.clamp(0, 1), batch["target"][0].to(rgb.device)):
+            gt = batch["target"][0].to(rgb.device)
+            for r, g in zip(rgb.clamp(0, 1), gt):
                 psnrs.append(float(psnr(r.permute(1, 2, 0), g.permute(1, 2, 0))))
                 ssims.append(float(ssim(r.permute(1, 2, 0), g.permute(1, 2, 0))))
-        return {"psnr": float(np.mean(psnrs)), "ssim": float(np.mean(ssims))}
+            if self.lpips is not None:
+                lpipss.extend(float(v) for v in self.lpips(rgb.clamp(0, 1), gt))
+        out = {"psnr": float(np.mean(psnrs)), "ssim": float(np.mean(ssims))}
+        return {**out, "lpips": float(np.mean(lpipss))} if lpipss else out
 
     # ------------------------------------------------------------------ training
     def fit(self) -> TrainResult:
@@ -450,6 +461,8 @@ class Trainer:
             raise
         if self.val_data is None:
             self.save_checkpoint("best.pt", training_state=False)
+        if self._tensorboard:
+            self._tensorboard.flush()
         return TrainResult(self.step, self.best_psnr, self.skipped, time.perf_counter() - t0, self.history)
 
     def _validate_and_keep_best(self) -> None:
@@ -463,6 +476,16 @@ class Trainer:
             self.best_psnr = metrics["psnr"]
             self.save_checkpoint("best.pt", training_state=False)
         _barrier(self.ctx)
+
+
+def _tensorboard_writer(folder: Path) -> Any:
+    """A TensorBoard writer into the run folder when tensorboard is installed (optional), else False."""
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError:
+        logger.debug("tensorboard is not installed: metrics go to metrics.csv only")
+        return False
+    return SummaryWriter(log_dir=str(folder / "tensorboard"))
 
 
 def _all_ranks(flag: bool, ctx: DistributedContext, device: torch.device) -> bool:
