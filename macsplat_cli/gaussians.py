@@ -44,6 +44,14 @@ class _Parameters:
         """The five parameter tensors, in field order (e.g. to hand to an optimiser)."""
         return [getattr(self, name) for name in PARAMETERS]
 
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.means.dtype  # type: ignore[attr-defined]
+
+    @property
+    def device(self) -> torch.device:
+        return self.means.device  # type: ignore[attr-defined]
+
 
 @dataclass
 class Gaussians(_Parameters):
@@ -140,14 +148,6 @@ class Gaussians(_Parameters):
     @property
     def sh_degree(self) -> int:
         return sh_degree_from_bases(self.sh.shape[1])
-
-    @property
-    def dtype(self) -> torch.dtype:
-        return self.means.dtype
-
-    @property
-    def device(self) -> torch.device:
-        return self.means.device
 
     @property
     def scales(self) -> torch.Tensor:
@@ -283,14 +283,6 @@ class GaussianMaps(_Parameters):
     @property
     def sh_degree(self) -> int:
         return sh_degree_from_bases(self.sh.shape[-2])
-
-    @property
-    def dtype(self) -> torch.dtype:
-        return self.means.dtype
-
-    @property
-    def device(self) -> torch.device:
-        return self.means.device
 
     def valid_mask(self) -> torch.Tensor:
         """``valid``, or all True when it is None. [B, H, W] bool"""
