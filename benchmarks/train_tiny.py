@@ -75,9 +75,11 @@ def run(data: Path, layout: str, args: argparse.Namespace, mac_weight: float, ou
     train_ds, val_ds, info = load_training_data(
         data, layout=layout, sampling=sampling, val_pairs=args.val_pairs, seed=0
     )
-    predictor = freeze_for_training(build_training_model(ModelSpec(model="tiny", init="random", seed=0)))
-    cfg = TrainConfig(out=out, steps=args.steps, batch=args.batch, lr=args.lr, warmup=10, val_every=0,
-                      ckpt_every=args.steps, loss=LossConfig(mac_weight=mac_weight))  # fmt: skip
+    model = build_training_model(ModelSpec(model="tiny", init="random", seed=0))
+    predictor = freeze_for_training(model, train_backbone=True)  # as `macsplat train --init random`
+    loss = LossConfig(mac_weight=mac_weight, geometry_weight=1.0)
+    cfg = TrainConfig(out=out, steps=args.steps, batch=args.batch, lr=args.lr, warmup=20, val_every=0,
+                      ckpt_every=args.steps, loss=loss)  # fmt: skip
     trainer = Trainer(predictor, train_ds, val_ds, cfg)
     trainer.prepare_run_folder(resume=False, force=True)
     before = {**trainer.validate(), **disagreement(trainer)}
@@ -106,10 +108,11 @@ def one(data: Path, layout: str, args: argparse.Namespace) -> None:
     """Child of --throughput: a few steps, time of the steps after the first, peak RSS of this process."""
     sampling = PairSamplingConfig(size=tuple(args.size), targets=args.targets)
     train_ds, _, _ = load_training_data(data, layout=layout, sampling=sampling, val_pairs=1, seed=0)
-    predictor = freeze_for_training(build_training_model(ModelSpec(model="tiny", init="random")))
+    predictor = freeze_for_training(build_training_model(ModelSpec(model="tiny", init="random")), train_backbone=True)
     with tempfile.TemporaryDirectory() as tmp:
         times: list[float] = []
-        cfg = TrainConfig(out=Path(tmp), steps=args.steps, batch=args.batch, val_every=0, ckpt_every=10**6)
+        loss = LossConfig(geometry_weight=1.0)
+        cfg = TrainConfig(out=Path(tmp), steps=args.steps, batch=args.batch, val_every=0, ckpt_every=10**6, loss=loss)
         trainer = Trainer(predictor, train_ds, None, cfg, on_step=lambda s, row: times.append(row["seconds"]))
         trainer.prepare_run_folder(resume=False, force=True)
         trainer.fit()
@@ -121,9 +124,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=None, help="training data (default: synthetic scenes)")
     ap.add_argument("--layout", default="auto")
-    ap.add_argument("--steps", type=int, default=150)
+    ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--batch", type=int, default=2)
-    ap.add_argument("--lr", type=float, default=1e-3, help="higher than the paper's 1e-5: a random tiny model")
+    ap.add_argument("--lr", type=float, default=3e-4, help="higher than the paper's 1e-5: a tiny model from scratch")
     ap.add_argument("--size", type=int, nargs=2, default=[128, 96], metavar=("W", "H"))
     ap.add_argument("--targets", type=int, default=2)
     ap.add_argument("--val-pairs", type=int, default=8)

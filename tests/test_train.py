@@ -20,6 +20,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -193,8 +194,10 @@ def test_two_gloo_processes_match_one_process_with_the_same_global_batch(data: P
     init = build_training_model(ModelSpec(model="tiny", init="random")).state_dict()
     changed = [k for k in a if not torch.equal(a[k], init[k])]
     assert changed, "the step changed nothing"
-    for k in a:  # one Adam step moves a weight by ~lr = 1e-3; float32 summation order differs by ~1e-6
-        torch.testing.assert_close(a[k], b[k], rtol=0, atol=1e-5)
+    # One Adam step moves a weight by ~lr = 1e-3 whatever its gradient; where a gradient is near zero, the float32
+    # rounding of the two summation orders (one batch vs the all-reduce of two) shows up: within 5 % of one step.
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=5e-5)
 
 
 def test_trains_on_a_scannetpp_tree_with_its_validation_split(tmp_path: Path) -> None:
@@ -230,3 +233,32 @@ def test_a_failed_checkpoint_write_keeps_the_previous_one(
         resumed.fit()
     assert (tmp_path / "d" / "last.pt").read_bytes() == before
     assert not [p for p in (tmp_path / "d").iterdir() if p.name.startswith(".")]  # no temporary file left
+
+
+def test_point_regression_is_zero_for_the_true_point_maps() -> None:
+    """The from-scratch geometry term: 0 for the ground-truth point maps of both views in view 0's frame."""
+    from macsplat_cli.training.loss import point_regression
+
+    cams = syn.orbit_pair("room", 15.0, width=32, height=24, fov_deg=60.0)
+    room = syn.make_scene("room", 0)
+    depth = torch.stack([torch.from_numpy(syn.render(room, c).depth).float() for c in cams])
+    K = torch.stack([torch.tensor(c.K) for c in cams])
+    c2w = torch.stack([torch.tensor(c.cam_to_world) for c in cams])
+    ys, xs = np.mgrid[0:24, 0:32]
+    pix = np.stack([xs + 0.5, ys + 0.5, np.ones((24, 32))], -1)
+    pts = []
+    for k, c in enumerate(cams):
+        cam = pix @ np.linalg.inv(c.K).T * depth[k].numpy()[..., None]
+        T = np.linalg.inv(cams[0].cam_to_world) @ c.cam_to_world
+        pts.append(cam @ T[:3, :3].T + T[:3, 3])
+    pts3d = torch.from_numpy(np.stack(pts)).float()
+    assert float(point_regression(pts3d, depth, K, c2w)) < 1e-5
+    assert float(point_regression(pts3d * 1.1, depth, K, c2w)) > 0.05
+    assert point_regression(pts3d, torch.zeros_like(depth), K, c2w) is None
+
+
+def test_init_random_trains_the_backbone_with_the_geometry_term(data: Path, tmp_path: Path) -> None:
+    code, _, err = _run(["train", "--data", data, "--out", tmp_path / "r", "--steps", "1", "--val-every", "0", *FAST])
+    assert code == 0, err
+    run = json.loads((tmp_path / "r" / "run.json").read_text())
+    assert run["model"]["train_backbone"] is True and run["config"]["loss"]["geometry_weight"] == 1.0

@@ -94,7 +94,8 @@ def train_command(
 ) -> None:
     """Train the Gaussian head and the Residual Semantic Fusion with the photometric + MAC loss.
 
-    The MASt3R backbone and DINOv3 stay frozen (--train-backbone unfreezes the backbone). On one CPU or
+    The MASt3R backbone and DINOv3 stay frozen (--train-backbone unfreezes the backbone; with --init random
+    the backbone trains too, with a point-map regression on ground-truth depth). On one CPU or
     GPU as it is; on many through torchrun (DDP; only rank 0 writes). The run folder gets run.json,
     metrics.csv, last.pt (resumable: --resume) and best.pt (best validation PSNR), which
     [bold]reconstruct --backend neural --weights[/] takes as it is.
@@ -173,6 +174,10 @@ def _train(
     spec = ModelSpec(
         model=model, init=init, weights=weights, gaussian_head=gaussian_head, dino=dino, no_dino=no_dino, seed=seed
     )  # type: ignore[arg-type]
+    if init == "random":  # a random backbone has no geometry to keep: it learns it, from ground-truth depth
+        train_backbone = True
+        config.loss.geometry_weight = 1.0
+        logger.info("--init random: the backbone trains too, with a point-map regression on ground-truth depth")
     predictor = freeze_for_training(build_training_model(spec), train_backbone=train_backbone)
     n_train = sum(p.numel() for p in predictor.parameters() if p.requires_grad)
     files = {"weights": weights, "gaussian_head": gaussian_head, "dino": dino}

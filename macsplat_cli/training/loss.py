@@ -54,6 +54,8 @@ class LossConfig:
         conf_threshold: τ of the confidence gate on ``c0·c1``.
         match_temperature: temperature of the dual softmax giving each match's probability.
         descriptor_gradient: let the MAC weights' gradient reach the fused descriptors.
+        geometry_weight: weight of a point-map regression term (:func:`point_regression`) for a backbone
+            trained from scratch (``--init random``), whose random point maps give the head nothing to render.
         background: colour behind the Gaussians.
     """
 
@@ -65,6 +67,7 @@ class LossConfig:
     conf_threshold: float = 1.0
     match_temperature: float = 0.1
     descriptor_gradient: bool = True
+    geometry_weight: float = 0.0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
@@ -135,6 +138,37 @@ def sample_matches(
         p = p.detach()
     weight = conf[0, i0].detach() * conf[1, i1].detach() * p
     return torch.from_numpy(m.xy0).float(), torch.from_numpy(m.xy1).float(), weight
+
+
+def point_regression(
+    pts3d: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, c2w: torch.Tensor
+) -> torch.Tensor | None:
+    """Mean L1 between predicted and ground-truth point maps of both views in view 0's frame, over pixels with
+    depth, divided by the mean ground-truth depth; None without depth.
+
+    Args:
+        pts3d: predicted point maps. [2, H, W, 3]
+        depth: ground-truth depth (0 = none). [2, H, W]
+        K: intrinsics. [2, 3, 3]
+        c2w: camera-to-world. [2, 4, 4]
+    """
+    valid = depth > 0
+    if not valid.any():
+        return None
+    h, w = depth.shape[1:]
+    ys, xs = torch.meshgrid(
+        torch.arange(h, dtype=torch.float64) + 0.5, torch.arange(w, dtype=torch.float64) + 0.5, indexing="ij"
+    )
+    pix = torch.stack([xs, ys, torch.ones_like(xs)], -1)  # [H, W, 3]
+    to0 = torch.linalg.inv(c2w[0].double())
+    gts = []
+    for k in (0, 1):
+        cam = pix @ torch.linalg.inv(K[k].double()).T * depth[k].double()[..., None]  # camera k
+        T = to0 @ c2w[k].double()
+        gts.append(cam @ T[:3, :3].T + T[:3, 3])
+    gt = torch.stack(gts).to(pts3d)
+    scale = depth[valid].double().mean().clamp_min(1e-6).item()
+    return (pts3d - gt).abs().sum(-1)[valid.to(pts3d.device)].mean() / scale
 
 
 def loss_masks(batch: dict[str, torch.Tensor]) -> torch.Tensor | None:
@@ -219,6 +253,12 @@ def training_loss(
                 loss = loss + config.mac_weight * mac.loss
                 totals["mac"] += float(mac.loss.detach())
             totals["matches"] += len(xy0)
+        if config.geometry_weight > 0 and "context_depth" in batch:
+            geo = point_regression(
+                pred.pts3d[b], batch["context_depth"][b], batch["context_K"][b], batch["context_c2w"][b]
+            )
+            if geo is not None:
+                loss = loss + config.geometry_weight * geo
         losses.append(loss)
         totals["photo"] += float(photo.detach())
         totals["mse"] += float(mse.detach())
