@@ -178,6 +178,11 @@ def load_models(config: EngineConfig) -> Models:
         LPIPSWeightsError: a missing file, or one that does not fit.
     """
     config.validate()
+    return _load_models(config)
+
+
+def _load_models(config: EngineConfig) -> Models:
+    """:func:`load_models` for a configuration already validated."""
     t0 = time.perf_counter()
     models = Models()
     if config.backend == "neural":
@@ -248,7 +253,7 @@ def reconstruct(
         if needs_loading:
             notify("weights", "start")
         try:
-            models = load_models(config)
+            models = _load_models(config)  # validated above, before any stage event
         except BaseException:
             if needs_loading:
                 notify("weights", "fail")

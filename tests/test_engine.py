@@ -115,9 +115,9 @@ def test_models_load_once_for_many_reconstructions(
     pair: tuple[Path, Path, Path], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     loads = []
-    real = engine.load_models
-    monkeypatch.setattr(engine, "load_models", lambda config: loads.append(1) or real(config))
     models = load_models(_config(pair[2]))
+    real = engine._load_models
+    monkeypatch.setattr(engine, "_load_models", lambda config: loads.append(1) or real(config))
     for _ in range(2):
         reconstruct(pair[:2], _config(pair[2]), models=models)
     assert loads == []
