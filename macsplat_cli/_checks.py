@@ -19,7 +19,7 @@ def check_shape(x: torch.Tensor, expected: Sequence[int | str], name: str) -> No
     ok = x.dim() == len(expected)
     if ok:
         for dim, want in zip(x.shape, expected):
-            if isinstance(want, int):
+            if not isinstance(want, str):  # an int, or a symbolic size while tracing for export
                 ok = dim == want
             elif want != "*":
                 ok = sizes.setdefault(want, dim) == dim

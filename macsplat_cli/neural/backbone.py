@@ -90,7 +90,7 @@ class BackboneView:
     @property
     def image_size(self) -> tuple[int, int]:
         """(H, W)"""
-        return int(self.pts3d.shape[1]), int(self.pts3d.shape[2])
+        return self.pts3d.shape[1], self.pts3d.shape[2]  # no int(): symbolic under torch.export
 
     @property
     def enc_tokens(self) -> torch.Tensor:
@@ -144,7 +144,7 @@ class PatchEmbed(nn.Module):
     def forward(self, img: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, tuple[int, int]]:
         """``img: [B, 3, H, W]`` → tokens ``[B, N, C]``, positions ``[N, 2]`` (y, x), grid ``(h, w)``."""
         x = self.proj(img)
-        grid = (int(x.shape[2]), int(x.shape[3]))
+        grid = (x.shape[2], x.shape[3])  # no int(): sizes stay symbolic under torch.export
         return self.norm(x.flatten(2).transpose(1, 2)), patch_positions(*grid, device=img.device), grid
 
 
@@ -473,7 +473,7 @@ class MASt3RBackbone(nn.Module):
         """
         p = self.config.patch_size
         check_shape(img1, ("B", 3, "H", "W"), "img1")
-        h, w = int(img1.shape[2]), int(img1.shape[3])
+        h, w = img1.shape[2], img1.shape[3]
         if h % p or w % p or h == 0 or w == 0:
             raise ShapeError("img1", img1.shape, f"[B, 3, H, W] with H and W positive multiples of {p}")
         if img2.shape != img1.shape:
