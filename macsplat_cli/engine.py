@@ -54,7 +54,8 @@ class NeuralOptions:
     """The neural backend's files and where/how it runs.
 
     Args:
-        weights: MASt3R checkpoint (``.pth`` or Hugging Face folder).
+        weights: MASt3R checkpoint (``.pth`` or Hugging Face folder), a macsplat checkpoint (``.pt``), or an
+            exported predictor (``.onnx``, run by onnxruntime; it holds the head and the fusion too).
         gaussian_head: Splatt3R checkpoint (``.ckpt``); alone it also provides the backbone.
         dino: DINOv3 weights (semantic fusion; needs ``fusion``).
         fusion: Residual Semantic Fusion weights (needs ``dino``).
@@ -73,6 +74,11 @@ class NeuralOptions:
         """The files given, by role (``weights``, ``gaussian_head``, ``dino``, ``fusion``)."""
         roles = {"weights": self.weights, "gaussian_head": self.gaussian_head, "dino": self.dino, "fusion": self.fusion}
         return {k: Path(v) for k, v in roles.items() if v is not None}
+
+    @property
+    def is_onnx(self) -> bool:
+        """``weights`` is an exported ONNX predictor (by its extension), run by onnxruntime."""
+        return self.weights is not None and Path(self.weights).suffix.lower() == ".onnx"
 
     @property
     def given(self) -> list[str]:
@@ -131,9 +137,20 @@ class EngineConfig:
             raise InputError(f"--precision {n.precision!r}: use fp32 or bf16")
         if name == "classical" and n.given:
             raise InputError(f"{', '.join(n.given)} only apply to --backend neural")
-        if name == "neural":
+        onnx = name == "neural" and self.neural.is_onnx
+        if onnx:
+            others = [flag for flag in n.given if flag in ("--gaussian-head", "--dino", "--fusion", "--precision")]
+            if others:
+                raise InputError(
+                    f"{n.weights} is an ONNX predictor: it holds its own Gaussian head and fusion and computes in the "
+                    f"precision it was exported with (export-onnx --fp16/--quantize); drop {', '.join(others)}"
+                )
+            from .neural.onnx_runtime import ort_providers
+
+            ort_providers(n.device)  # CUDA asked for where onnxruntime has no CUDA provider
+        elif name == "neural":
             resolve_device(n.device)  # CUDA asked for where there is none
-        if name == "neural" and files:
+        if name == "neural" and files and not onnx:
             if n.weights is None and n.gaussian_head is None:
                 raise InputError(MISSING_WEIGHTS_HELP)
             check_fusion_files(n.dino, n.fusion)
@@ -188,9 +205,13 @@ def _load_models(config: EngineConfig) -> Models:
     if config.backend == "neural":
         from .neural.predictor import load_pair_predictor, resolve_device
 
-        device = resolve_device(config.neural.device)
         files = config.neural.files()
-        models.predictor = load_pair_predictor(**files).to(device)
+        if config.neural.is_onnx:
+            from .neural.onnx_runtime import OnnxPairPredictor
+
+            models.predictor = OnnxPairPredictor(files["weights"], device=config.neural.device)
+        else:
+            models.predictor = load_pair_predictor(**files).to(resolve_device(config.neural.device))
         models.files = {k: str(v) for k, v in files.items()}
     if config.refine.lpips_weights is not None:
         from .lpips import load_lpips
@@ -212,7 +233,9 @@ def build_pipeline(config: EngineConfig, models: Models) -> Pipeline:
         if config.conf_threshold is not None:
             pipe_cfg.matching.conf_threshold = config.conf_threshold
         neural = NeuralConfig(precision=config.neural.precision)  # type: ignore[arg-type]
-        stages = neural_stages(models.predictor, pipe_cfg, neural, config.neural.device)
+        # onnxruntime takes and returns CPU arrays whatever its provider; torch runs where it was asked to
+        device = "cpu" if config.neural.is_onnx else config.neural.device
+        stages = neural_stages(models.predictor, pipe_cfg, neural, device)
         return Pipeline(pipe_cfg, scale="metric", **stages)
     if config.conf_threshold is not None:
         pipe_cfg.matching.conf_threshold = config.conf_threshold

@@ -7,7 +7,7 @@ import sys
 
 import typer
 
-from . import bench, eval, reconstruct, render, train  # noqa: F401 - registers the commands
+from . import bench, eval, export_onnx, reconstruct, render, train  # noqa: F401 - registers the commands
 from ._app import app
 from ._common import err_console
 

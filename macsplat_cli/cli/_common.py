@@ -6,7 +6,7 @@ import contextlib
 import logging
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 from rich.console import Console
@@ -14,7 +14,7 @@ from rich.console import Console
 from .._log import remove_logging, setup_logging
 from ..errors import MacsplatError
 
-__all__ = ["QuietOpt", "VerboseOpt", "State", "command_context", "err_console", "out_console"]
+__all__ = ["QuietOpt", "StageProgress", "State", "VerboseOpt", "command_context", "err_console", "out_console"]
 
 logger = logging.getLogger("macsplat_cli.cli")
 
@@ -76,3 +76,51 @@ def command_context(ctx: typer.Context, verbose: bool, quiet: bool) -> Iterator[
         raise typer.Exit(code=1) from None
     finally:
         remove_logging()
+
+
+class StageProgress:
+    """One line per stage: a spinner while it runs, then a tick and its wall time."""
+
+    def __init__(self, disabled: bool) -> None:
+        from rich.progress import Progress, SpinnerColumn, TextColumn
+
+        self.progress = Progress(
+            SpinnerColumn(finished_text="[green]✓[/]"), TextColumn("{task.description:<22}"),
+            TextColumn("{task.fields[took]}"), console=err_console, disable=disabled, transient=False,
+        )  # fmt: skip
+        self.tasks: dict[str, Any] = {}
+        self.started: dict[str, float] = {}
+
+    def __enter__(self) -> StageProgress:
+        self.progress.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for stage, task in self.tasks.items():  # a stage interrupted by an error stops its spinner
+            if stage in self.started:
+                self.progress.update(task, took="[red]✗ failed[/]")
+            self.progress.stop_task(task)
+        self.progress.stop()
+
+    def refine_step(self, step: int, steps: int, terms: dict[str, float]) -> None:
+        """A refinement step: its loss terms on the refine line."""
+        mac = f", mac {terms['mac']:.4f}" if "mac" in terms else ""
+        mac += f", lpips {terms['lpips']:.4f}" if "lpips" in terms else ""
+        task = self.tasks.get("refine")
+        if task is not None:
+            self.progress.update(task, took=f"step {step}/{steps}: photo {terms['photo']:.4f}{mac}")
+
+    def event(self, stage: str, kind: str) -> None:
+        import time
+
+        if kind == "start":
+            self.started[stage] = time.perf_counter()
+            self.tasks[stage] = self.progress.add_task(stage, total=1, took="")
+        elif kind == "fail":
+            self.started.pop(stage, None)
+            self.progress.update(self.tasks[stage], took="[red]✗ failed[/]")
+            self.progress.stop_task(self.tasks[stage])
+        else:
+            took = time.perf_counter() - self.started.pop(stage)
+            self.progress.update(self.tasks[stage], completed=1, took=f"{took:.2f} s")
+            self.progress.stop_task(self.tasks[stage])

@@ -22,7 +22,12 @@ __all__ = [
 WeightsOpt = Annotated[
     Path | None,
     typer.Option(
-        "--weights", metavar="PATH", help="neural: MASt3R checkpoint (.pth or Hugging Face folder; models/mast3r.md)."
+        "--weights",
+        metavar="PATH",
+        help=(
+            "neural: MASt3R checkpoint (.pth or Hugging Face folder; models/mast3r.md), macsplat train's .pt, "
+            "or an exported predictor (.onnx, run by onnxruntime)."
+        ),
     ),
 ]
 GaussianHeadOpt = Annotated[

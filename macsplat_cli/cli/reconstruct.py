@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 
 from ._app import app
-from ._common import QuietOpt, VerboseOpt, command_context, err_console, out_console
+from ._common import QuietOpt, StageProgress, VerboseOpt, command_context, err_console, out_console
 from ._options import DeviceOpt, DinoOpt, FusionOpt, GaussianHeadOpt, PrecisionOpt, WeightsOpt, neural_options
 
 if TYPE_CHECKING:
@@ -170,7 +170,7 @@ def _reconstruct(
     config.validate()
     cameras = cameras or output.with_name(output.stem + ".cameras.json")
     _check_outputs(output, cameras, renders, video, report)
-    with _StageProgress(disabled=quiet) as progress:
+    with StageProgress(disabled=quiet) as progress:
         steps = config.refine.steps
         result = reconstruct(
             images,
@@ -226,54 +226,6 @@ def _write_outputs(result, output, cameras, renders, num_renders, video, progres
             written["video"] = video
         progress.event("renders", "end")
     return written
-
-
-class _StageProgress:
-    """One line per stage: a spinner while it runs, then a tick and its wall time."""
-
-    def __init__(self, disabled: bool) -> None:
-        from rich.progress import Progress, SpinnerColumn, TextColumn
-
-        self.progress = Progress(
-            SpinnerColumn(finished_text="[green]✓[/]"), TextColumn("{task.description:<22}"),
-            TextColumn("{task.fields[took]}"), console=err_console, disable=disabled, transient=False,
-        )  # fmt: skip
-        self.tasks: dict[str, Any] = {}
-        self.started: dict[str, float] = {}
-
-    def __enter__(self) -> _StageProgress:
-        self.progress.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        for stage, task in self.tasks.items():  # a stage interrupted by an error stops its spinner
-            if stage in self.started:
-                self.progress.update(task, took="[red]✗ failed[/]")
-            self.progress.stop_task(task)
-        self.progress.stop()
-
-    def refine_step(self, step: int, steps: int, terms: dict[str, float]) -> None:
-        """A refinement step: its loss terms on the refine line."""
-        mac = f", mac {terms['mac']:.4f}" if "mac" in terms else ""
-        mac += f", lpips {terms['lpips']:.4f}" if "lpips" in terms else ""
-        task = self.tasks.get("refine")
-        if task is not None:
-            self.progress.update(task, took=f"step {step}/{steps}: photo {terms['photo']:.4f}{mac}")
-
-    def event(self, stage: str, kind: str) -> None:
-        import time
-
-        if kind == "start":
-            self.started[stage] = time.perf_counter()
-            self.tasks[stage] = self.progress.add_task(stage, total=1, took="")
-        elif kind == "fail":
-            self.started.pop(stage, None)
-            self.progress.update(self.tasks[stage], took="[red]✗ failed[/]")
-            self.progress.stop_task(self.tasks[stage])
-        else:
-            took = time.perf_counter() - self.started.pop(stage)
-            self.progress.update(self.tasks[stage], completed=1, took=f"{took:.2f} s")
-            self.progress.stop_task(self.tasks[stage])
 
 
 def _summary(report: dict[str, Any], written: dict[str, Any]) -> None:

@@ -141,6 +141,20 @@ class PairPredictor(nn.Module):
         head = tuple(f"gaussians_{n}" for n in GAUSSIAN_OUTPUTS) if self.gaussian_head is not None else ()
         return PREDICTION_OUTPUTS + head
 
+    @property
+    def desc_dim(self) -> int:
+        """Width ``D`` of the matching descriptors."""
+        return int(self.backbone.config.local_feat_dim)
+
+    @property
+    def has_gaussian_head(self) -> bool:
+        return self.gaussian_head is not None
+
+    @property
+    def input_size(self) -> tuple[int, int] | None:
+        """``(W, H)`` the predictor only accepts, or None: any multiple of 16 (a fixed-size ONNX export has one)."""
+        return None
+
     def network_name(self) -> str:
         c = self.backbone.config
         return f"mast3r (enc {c.enc_embed_dim}x{c.enc_depth}, dec {c.dec_embed_dim}x{c.dec_depth})"

@@ -197,8 +197,8 @@ class NeuralPair:
     def __call__(self, views: list[View]) -> NetworkPair:
         v0, v1 = views
         dev = self.device
-        net_size = (v0.width, v0.height)
-        warps = (ViewWarp(net_size, net_size), ViewWarp.fit((v1.width, v1.height), net_size))
+        net_size = self.predictor.input_size or (v0.width, v0.height)  # a fixed-size ONNX file has its own
+        warps = (ViewWarp.fit((v0.width, v0.height), net_size), ViewWarp.fit((v1.width, v1.height), net_size))
         if not warps[1].identity:
             logger.info(
                 "%s is %dx%d, %s %dx%d: resized and centre-cropped to %dx%d for the network",
@@ -245,7 +245,7 @@ class NeuralPair:
                 "applied": p.fusion_enabled,
                 "detail": p.fusion_detail(last.net_size[::-1]) if last is not None else p.fusion_name(),
             },
-            "gaussian_head": p.gaussian_head is not None,
+            "gaussian_head": p.has_gaussian_head,
             "config": dataclasses.asdict(self.config),
         }
 
@@ -255,7 +255,7 @@ def neural_stages(
 ) -> dict[str, Any]:
     """The neural stage callables (keyword arguments of :class:`~..run.Pipeline`)."""
     neural = neural or NeuralConfig()
-    gaussians = NeuralGaussians() if predictor.gaussian_head is not None else DepthGaussians(config.gaussians)
+    gaussians = NeuralGaussians() if predictor.has_gaussian_head else DepthGaussians(config.gaussians)
     return {
         "pair": NeuralPair(predictor, neural, device),
         "descriptors": NeuralDescriptors(predictor, neural),
@@ -310,7 +310,7 @@ class NeuralDescriptors:
     def __init__(self, predictor: PairPredictor, config: NeuralConfig | None = None) -> None:
         self.config = config or NeuralConfig()
         fusion = "+" + predictor.fusion_name() if predictor.fusion_enabled else " (semantic fusion skipped)"
-        self.name = f"neural:mast3r-desc{predictor.backbone.config.local_feat_dim}{fusion}"
+        self.name = f"neural:mast3r-desc{predictor.desc_dim}{fusion}"
 
     def features(self, pair: NetworkPair, k: int) -> Features:
         """View ``k``'s sampled descriptors, pixel coordinates in the view's working grid."""
@@ -351,10 +351,12 @@ class NeuralPose:
         K0, K1 = v0.K.copy(), v1.K.copy()
         estimated = False
         if v0.intrinsics_source == "prior":
-            f0 = estimate_focal_weiszfeld(
-                pred.pts3d[0], (K0[0, 2], K0[1, 2]), mask=ok[0], iters=cfg.weiszfeld_iters,
-                focal_base=float(K0[0, 0]), focal_range=cfg.focal_range,
+            K0n = pred.warps[0].K_net(K0)  # view 0 on the network grid (resized/cropped for a fixed-size network)
+            f0n = estimate_focal_weiszfeld(
+                pred.pts3d[0], (K0n[0, 2], K0n[1, 2]), mask=ok[0], iters=cfg.weiszfeld_iters,
+                focal_base=float(K0n[0, 0]), focal_range=cfg.focal_range,
             )  # fmt: skip
+            f0 = f0n / float(np.mean(pred.warps[0].scale))
             info["focal_prior_px"] = float(K0[0, 0])
             K0[0, 0] = K0[1, 1] = f0
             estimated = True
