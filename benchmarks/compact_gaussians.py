@@ -1,0 +1,228 @@
+"""Scene compaction (``macsplat_cli.compact``): Gaussians, PLY size, render time and held-out PSNR per preset.
+
+    python benchmarks/compact_gaussians.py --data ../shared/data               # dev scenes + synthetic + example
+    python benchmarks/compact_gaussians.py --data ../shared/data --only synthetic --json out.json
+
+Each case is reconstructed once (classical backend, no refinement, 512 px working size; the dev scenes
+with their given intrinsics), then compacted with every preset. Per preset: the Gaussians and the
+reduction, the PLY size, the compaction time, the time to render every held-out target (the minimum over
+``--repeats`` rounds, presets interleaved within each round so that a busy machine slows them alike; also
+as process CPU time, less sensitive to other jobs on the machine) and the renderer's tile work
+(Gaussian–tile intersections: deterministic, a proxy of render time), the
+mean PSNR of the held-out targets against their photos, and the "fidelity": the PSNR of the compacted
+render against the full scene's render of the same camera (how much the picture changed; > 100: identical).
+
+Held-out targets: the dev scenes' views between the two context views, placed as in
+``accuracy_dev.py`` (ground-truth pose in the camera-0 frame, baseline-scaled); the synthetic pairs' a
+ray-traced view half-way between the two cameras; the shipped example has none (its PSNR column is
+empty), its fidelity camera is the midpoint between the two cameras.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import accuracy_dev as dev  # noqa: E402  (the dev scenes' loaders and target placement)
+
+from macsplat_cli.cameras import Camera, CameraSet, save_cameras  # noqa: E402
+from macsplat_cli.compact import PRESETS, CompactConfig, compact_reconstruction  # noqa: E402
+from macsplat_cli.datasets import synthetic as syn  # noqa: E402
+from macsplat_cli.engine import EngineConfig, reconstruct  # noqa: E402
+from macsplat_cli.gaussians import Gaussians  # noqa: E402
+from macsplat_cli.images import save_image  # noqa: E402
+from macsplat_cli.metrics import psnr  # noqa: E402
+from macsplat_cli.pipeline.run import ReconstructConfig, Reconstruction  # noqa: E402
+from macsplat_cli.pipeline.views import ViewConfig, working_size  # noqa: E402
+from macsplat_cli.ply import write_ply  # noqa: E402
+from macsplat_cli.render import render_camera  # noqa: E402
+
+SIZE = 512
+DEV_CASES = [
+    ("co3d", "close 12°", (2, 5)),
+    ("co3d", "medium 27°", (0, 5)),
+    ("icl_livingroom", "(2,5)", (1, 4)),
+    ("nyu_dining", "(1,3)", (0, 2)),
+]
+SYNTHETIC_CASES = [("room", 3, 20.0), ("object", 1, 20.0)]
+
+
+@dataclass
+class Case:
+    name: str
+    rec: Reconstruction
+    targets: list[Camera]
+    photos: list[np.ndarray | None]  # None: no photo (fidelity only)
+
+
+def _config(intrinsics: Path | None) -> EngineConfig:
+    return EngineConfig(pipeline=ReconstructConfig(views=ViewConfig(size=SIZE, intrinsics=intrinsics)))
+
+
+def dev_case(data: Path, scene: str, name: str, pair: tuple[int, int], tmp: Path) -> Case:
+    frames = dev.co3d(data) if scene == "co3d" else dev.icl_like(data, scene)
+    f0, f1 = frames[pair[0]], frames[pair[1]]
+    k = tmp / f"{scene}_{pair[0]}_{pair[1]}.json"
+    save_cameras(k, CameraSet([Camera(f.path.name, f.size[0], f.size[1], f.K, np.eye(4)) for f in (f0, f1)]))
+    rec = reconstruct([f0.path, f1.path], _config(k))
+    T_gt = np.linalg.inv(f1.c2w) @ f0.c2w
+    scale = 1.0 / np.linalg.norm(T_gt[:3, 3])
+    v0, g = rec.views[0], rec.geometry
+    targets, photos = [], []
+    for ti in dev.between(frames, pair):
+        ft = frames[ti]
+        T = np.linalg.inv(ft.c2w) @ f0.c2w
+        T[:3, 3] *= scale
+        w, h = working_size(*ft.size, SIZE)
+        K = g.K0.copy()
+        K[0] *= w / v0.width
+        K[1] *= h / v0.height
+        targets.append(Camera(f"t{ti}", w, h, K, np.linalg.inv(T)))
+        photos.append(dev._load_rgb(ft.path, (w, h)))
+    return Case(f"{scene} {name}", rec, targets, photos)
+
+
+def synthetic_case(kind: str, seed: int, angle: float, tmp: Path) -> Case:
+    scene = syn.make_scene(kind, seed)  # type: ignore[arg-type]
+    a, mid, b = syn.orbit_cameras(kind, [-angle / 2, 0.0, angle / 2], width=SIZE, height=384)  # type: ignore[arg-type]
+    a, b = dataclasses.replace(a, name="a.png"), dataclasses.replace(b, name="b.png")
+    folder = tmp / f"{kind}{seed}"
+    folder.mkdir()
+    for c in (a, b):
+        save_image(folder / c.name, syn.render(scene, c).image)
+    save_cameras(folder / "cams.json", CameraSet([a, b]))
+    rec = reconstruct([folder / "a.png", folder / "b.png"], _config(folder / "cams.json"))
+    T = np.linalg.inv(mid.cam_to_world) @ a.cam_to_world
+    T[:3, 3] /= np.linalg.norm(a.center - b.center)  # the reconstruction's baseline is 1
+    return Case(f"synthetic {kind} {angle:g}°", rec, [dataclasses.replace(mid, cam_to_world=np.linalg.inv(T))],
+                [syn.render(scene, mid).image])  # fmt: skip
+
+
+def example_case(root: Path) -> Case:
+    ex = root / "examples" / "motorcycle"
+    rec = reconstruct([ex / "left.jpg", ex / "right.jpg"], _config(None))
+    c0, c1 = rec.cameras(original_size=False)
+    c2w = c0.cam_to_world.copy()
+    c2w[:3, 3] = 0.5 * (c0.center + c1.center)
+    return Case("example motorcycle", rec, [dataclasses.replace(c0, name="mid", cam_to_world=c2w)], [None])
+
+
+def _render(g: Gaussians, cam: Camera) -> tuple[np.ndarray, float, int, float]:
+    """The image, its wall time, the tile intersections and the process CPU time (all threads)."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    with torch.no_grad():
+        out = render_camera(g, cam)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    return np.clip(out.rgb.numpy(), 0.0, 1.0), wall, out.n_intersections, cpu
+
+
+def measure(case: Case, presets: list[str], repeats: int, budget: int | None, tmp: Path) -> list[dict]:
+    with torch.no_grad():  # every pixel Gaussian (not ``rec.gaussians``, which may be compacted already)
+        full = Gaussians.cat([m.to_gaussians() for m in case.rec.maps])
+    scenes: dict[str, Gaussians] = {"full": full}
+    rows: dict[str, dict] = {"full": {"compact_s": 0.0}}
+    for p in presets:
+        g, report = compact_reconstruction(case.rec, CompactConfig.preset(p, budget=budget))
+        scenes[p] = g
+        rows[p] = {"compact_s": report.seconds, "report": report.to_dict()}
+    for name, g in scenes.items():
+        rows[name]["gaussians"] = len(g)
+        rows[name]["ply_mb"] = _ply_size(g, tmp)
+    times = {name: math.inf for name in scenes}
+    cpu = {name: math.inf for name in scenes}
+    images: dict[str, list[np.ndarray]] = {}
+    for name, g in scenes.items():  # warm-up (Numba) and the images
+        first = [_render(g, c) for c in case.targets]
+        images[name] = [f[0] for f in first]
+        rows[name]["intersections"] = sum(f[2] for f in first)
+    for _ in range(repeats):
+        for name, g in scenes.items():
+            runs = [_render(g, c) for c in case.targets]
+            times[name] = min(times[name], sum(r[1] for r in runs))
+            cpu[name] = min(cpu[name], sum(r[3] for r in runs))
+    out = []
+    ref = rows["full"]
+    for name in scenes:
+        r = rows[name]
+        have = [(im, ph) for im, ph in zip(images[name], case.photos) if ph is not None]
+        r["psnr"] = float(np.mean([psnr(im, ph) for im, ph in have])) if have else math.nan
+        fid = [psnr(im, ref) for im, ref in zip(images[name], images["full"])]
+        r["fidelity_db"] = float(np.mean(fid))
+        r["render_s"] = times[name]
+        r.update(case=case.name, preset=name, targets=len(case.targets))
+        r["ratio"] = ref["gaussians"] / r["gaussians"] if r["gaussians"] else math.inf
+        r["speedup"] = times["full"] / times[name]
+        r["render_cpu_s"] = cpu[name]
+        r["cpu_speedup"] = cpu["full"] / cpu[name]
+        r["work_ratio"] = ref["intersections"] / max(r["intersections"], 1)
+        out.append(r)
+    for r in out:
+        r["d_psnr"] = r["psnr"] - rows["full"]["psnr"]
+    return out
+
+
+def _ply_size(g: Gaussians, tmp: Path) -> float:
+    path = tmp / "scene.ply"
+    write_ply(path, g)
+    size = path.stat().st_size / 1e6
+    path.unlink()
+    return size
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, default=None, help="the shared data folder (../shared/data); none: skip")
+    ap.add_argument("--only", default="", help="run only cases whose name contains this")
+    ap.add_argument("--presets", default=",".join(PRESETS), help="comma-separated presets")
+    ap.add_argument("--budget", type=int, default=None, help="also cap every preset at this many Gaussians")
+    ap.add_argument("--repeats", type=int, default=5, help="render rounds (the minimum is reported)")
+    ap.add_argument("--json", type=Path, help="also write all results as JSON")
+    args = ap.parse_args()
+    presets = [p for p in args.presets.split(",") if p]
+    tmp = Path(tempfile.mkdtemp())
+    builders = []
+    if args.data is not None:
+        builders += [(f"{s} {n}", lambda s=s, n=n, p=p: dev_case(args.data, s, n, p, tmp)) for s, n, p in DEV_CASES]
+    for k, seed, a in SYNTHETIC_CASES:
+        builders.append((f"synthetic {k} {a:g}°", lambda k=k, seed=seed, a=a: synthetic_case(k, seed, a, tmp)))
+    builders += [("example motorcycle", lambda: example_case(Path(__file__).resolve().parents[1]))]
+    header = ["case", "targets", "preset", "Gaussians", "fewer ×", "PLY MB", "compact s", "render ms", "faster ×",
+              "CPU faster ×", "tile work ×", "PSNR", "Δ PSNR", "fidelity dB"]  # fmt: skip
+    print("| " + " | ".join(header) + " |")
+    print("|---|---:|---|" + "---:|" * (len(header) - 3), flush=True)
+    results = []
+    for name, build in builders:
+        if args.only not in name:
+            continue
+        case = build()
+        for r in measure(case, presets, args.repeats, args.budget, tmp):
+            results.append(r)
+            fid = "> 100" if r["fidelity_db"] > 100 else f"{r['fidelity_db']:.1f}"
+            cells = [
+                r["case"], str(r["targets"]), r["preset"], f"{r['gaussians']:,}", f"{r['ratio']:.2f}",
+                f"{r['ply_mb']:.1f}", f"{r['compact_s']:.2f}", f"{1000 * r['render_s']:.0f}", f"{r['speedup']:.2f}",
+                f"{r['cpu_speedup']:.2f}", f"{r['work_ratio']:.2f}",
+                "–" if math.isnan(r["psnr"]) else f"{r['psnr']:.2f}",
+                "–" if math.isnan(r["d_psnr"]) else f"{r['d_psnr']:+.2f}", fid,
+            ]  # fmt: skip
+            print("| " + " | ".join(cells) + " |", flush=True)
+    if args.json:
+        from macsplat_cli._json import to_jsonable
+
+        args.json.write_text(json.dumps(to_jsonable(results), indent=2))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
