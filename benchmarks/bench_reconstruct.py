@@ -2,6 +2,7 @@
 
     python benchmarks/bench_reconstruct.py                         # synthetic 1152x864 pair
     python benchmarks/bench_reconstruct.py --images a.jpg b.jpg    # your photos
+    python benchmarks/bench_reconstruct.py --quality fast          # a --quality preset (default: balanced)
 
 Three measurements:
 
@@ -38,8 +39,9 @@ def _synthetic_pair(folder: Path) -> list[Path]:
     return paths
 
 
-def _cli(images: list[Path], out: Path, env: dict[str, str]) -> float:
+def _cli(images: list[Path], out: Path, env: dict[str, str], extra: list[str]) -> float:
     cmd = [sys.executable, "-m", "macsplat_cli", "reconstruct", *map(str, images), "-o", str(out / "scene.ply"), "-q"]
+    cmd += extra
     t0 = time.perf_counter()
     subprocess.run(cmd, check=True, env=env)
     return time.perf_counter() - t0
@@ -49,7 +51,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--images", nargs=2, type=Path)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--quality", choices=("fast", "balanced", "best"), default=None)
     args = ap.parse_args()
+    extra = ["--quality", args.quality] if args.quality else []
     tmp = Path(tempfile.mkdtemp())
     images = args.images or _synthetic_pair(tmp)
     from PIL import Image
@@ -59,17 +63,23 @@ def main() -> None:
 
     env = dict(os.environ)
     env["NUMBA_CACHE_DIR"] = str(tmp / "numba-cache")  # empty: the first run compiles
-    first = _cli(images, tmp, env)
-    cached = sorted(_cli(images, tmp, env) for _ in range(args.repeat))[args.repeat // 2]
+    first = _cli(images, tmp, env, extra)
+    cached = sorted(_cli(images, tmp, env, extra) for _ in range(args.repeat))[args.repeat // 2]
 
     from macsplat_cli.cameras import save_cameras
     from macsplat_cli.engine import reconstruct
     from macsplat_cli.ply import write_ply
 
-    reconstruct(images)  # warm-up (kernels from the default cache location)
+    config = None
+    if args.quality:  # as the CLI builds it: the preset's working size
+        from macsplat_cli.engine import WORKING_SIZE, EngineConfig
+
+        config = EngineConfig(quality=args.quality)
+        config.pipeline.views.size = WORKING_SIZE[args.quality]
+    reconstruct(images, config)  # warm-up (kernels from the default cache location)
     runs = []
     for _ in range(args.repeat):
-        rec = reconstruct(images)
+        rec = reconstruct(images, config)
         t0 = time.perf_counter()
         write_ply(tmp / "s.ply", rec.gaussians)
         save_cameras(tmp / "c.json", rec.cameras())

@@ -33,6 +33,8 @@ from .report import RefineReport
 
 __all__ = [
     "BACKENDS",
+    "QUALITIES",
+    "WORKING_SIZE",
     "EngineConfig",
     "Models",
     "NeuralOptions",
@@ -46,6 +48,12 @@ logger = logging.getLogger(__name__)
 
 BACKENDS = ("classical", "neural")
 """The reconstruction backends (``--backend``)."""
+QUALITIES = ("fast", "balanced", "best")
+"""The ``--quality`` presets."""
+WORKING_SIZE = {"fast": 384, "balanced": 512, "best": 512}
+"""The working long side each preset uses when the caller does not set one (``--size``)."""
+FAST_SIFT = (640, 8000)
+"""``--quality fast``, classical backend: SIFT's detection size and most keypoints (the defaults: 768, 8000)."""
 RefineEvent = Callable[[int, dict[str, float]], None]
 
 
@@ -105,6 +113,11 @@ class EngineConfig:
 
     Args:
         backend: ``"classical"`` (no learned weights) or ``"neural"``.
+        quality: ``"fast"``, ``"balanced"`` or ``"best"``: how much of the scene's redundancy the
+            compaction removes (:meth:`~macsplat_cli.compact.CompactConfig.preset`); ``"fast"`` also detects
+            SIFT on a smaller image (:data:`FAST_SIFT`). The CLI picks the working size from it when ``--size``
+            is not given (:data:`WORKING_SIZE`).
+        budget: at most this many Gaussians in the scene (None: no limit).
         pipeline: the stages' settings (working size and intrinsics in ``pipeline.views``).
         conf_threshold: τ of the filtered matching; None: the backend's default (0.04 classical, 1 neural).
         neural: the neural backend's files and device.
@@ -116,6 +129,8 @@ class EngineConfig:
     conf_threshold: float | None = None
     neural: NeuralOptions = field(default_factory=NeuralOptions)
     refine: RefineOptions = field(default_factory=RefineOptions)
+    quality: str = "balanced"
+    budget: int | None = None
 
     def validate(self, *, files: bool = True) -> None:
         """Usage errors, before any work (``files=False``: the models are given, no checkpoint is needed).
@@ -156,6 +171,11 @@ class EngineConfig:
             check_fusion_files(n.dino, n.fusion)
         if self.conf_threshold is not None and not (math.isfinite(self.conf_threshold) and self.conf_threshold >= 0):
             raise InputError(f"--conf-threshold {self.conf_threshold}: give a finite number ≥ 0")
+        if self.quality not in QUALITIES:
+            raise InputError(f"--quality {self.quality!r}: use {', '.join(QUALITIES)}")
+        if self.budget is not None and (isinstance(self.budget, bool) or not isinstance(self.budget, int)
+                                        or self.budget < 1):  # fmt: skip
+            raise InputError(f"--budget {self.budget!r}: give a positive number of Gaussians")
         r = self.refine
         if r.steps < 0:
             raise InputError(f"--refine {r.steps}: give a number of steps (0 = off) or 'auto'")
@@ -239,6 +259,11 @@ def build_pipeline(config: EngineConfig, models: Models) -> Pipeline:
         return Pipeline(pipe_cfg, scale="metric", **stages)
     if config.conf_threshold is not None:
         pipe_cfg.matching.conf_threshold = config.conf_threshold
+    if config.quality == "fast":  # SIFT on a smaller image (4,000 keypoints at 512 px cost pose accuracy at 45°)
+        d = pipe_cfg.descriptors
+        pipe_cfg.descriptors = dataclasses.replace(
+            d, detect_size=min(d.detect_size, FAST_SIFT[0]), max_keypoints=min(d.max_keypoints, FAST_SIFT[1])
+        )
     return Pipeline(pipe_cfg)
 
 
@@ -294,7 +319,28 @@ def reconstruct(
         rec.report.neural = {**pipeline.pair.report(), "files": dict(models.files), "load_s": models.load_s}
     if config.refine.steps > 0:
         rec = _refine(rec, config.refine, models, notify, on_refine_step)
-    return rec
+    return _compact(rec, config, notify)
+
+
+def _compact(rec: Reconstruction, config: EngineConfig, notify: StageEvent) -> Reconstruction:
+    """The scene without what it does not need (``quality``, ``budget``), reported step by step."""
+    from .compact import CompactConfig, compact_reconstruction
+
+    notify("compact", "start")
+    try:
+        gaussians, compact_report = compact_reconstruction(
+            rec, CompactConfig.preset(config.quality, budget=config.budget)
+        )
+    except BaseException:
+        notify("compact", "fail")
+        raise
+    notify("compact", "end")
+    report = copy.copy(rec.report)
+    report.compact = compact_report.to_dict()
+    report.gaussians = len(gaussians)
+    report.add_time("compact", compact_report.seconds)
+    logger.info("compaction (%s): %s", config.quality, compact_report.summary())
+    return dataclasses.replace(rec, report=report, compacted=gaussians)
 
 
 def _refine(

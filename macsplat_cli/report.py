@@ -60,11 +60,12 @@ class RunReport:
         pose: the pose stage's measurements (rotation, parallax, errors, ...).
         depth_coverage: share of pixels with a depth, per view.
         depth_measured: share of pixels with a measured (not filled) depth, per view.
-        gaussians: Gaussians in the scene.
+        gaussians: Gaussians in the scene (after the compaction).
         config: every setting, as a dict.
         scale: ``"relative"`` (baseline 1) or ``"metric"``.
         neural: the network's pass (neural backend only).
         refine: the refinement (``--refine`` only).
+        compact: what the compaction (``--quality``, ``--budget``) merged and pruned, step by step, and why.
         gaussians_written: Gaussians in the written PLY (after writing).
         outputs: role → path of each written file (after writing).
     """
@@ -86,6 +87,7 @@ class RunReport:
     scale: Literal["relative", "metric"] = "relative"
     neural: dict[str, Any] | None = None
     refine: RefineReport | None = None
+    compact: dict[str, Any] | None = None
     gaussians_written: int | None = None
     outputs: dict[str, str] = field(default_factory=dict)
 
@@ -98,7 +100,7 @@ class RunReport:
     def to_json(self) -> dict[str, Any]:
         """The report as plain JSON values (sections that do not apply left out; NaN → null)."""
         out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        for optional in ("neural", "refine", "gaussians_written"):
+        for optional in ("neural", "refine", "compact", "gaussians_written"):
             if out[optional] is None:
                 del out[optional]
         if not out["outputs"]:

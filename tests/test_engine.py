@@ -55,12 +55,24 @@ def _config(cams: Path, steps: int = 0) -> EngineConfig:
     )
 
 
-def test_engine_without_refinement_is_the_pipeline(pair: tuple[Path, Path, Path]) -> None:
+def test_engine_without_refinement_is_the_pipeline_then_the_compaction(pair: tuple[Path, Path, Path]) -> None:
+    """The engine's maps are the pipeline's; its scene is their compaction at the configured quality."""
+    from macsplat_cli.compact import CompactConfig, compact_reconstruction
+
     rec = reconstruct(pair[:2], _config(pair[2]))
     ref = Pipeline(_config(pair[2]).pipeline).run(pair[:2])
-    for a, b in zip(rec.gaussians.tensors(), ref.gaussians.tensors()):
+    for m, r in zip(rec.maps, ref.maps):
+        for a, b in zip(m.tensors(), r.tensors()):
+            assert torch.equal(a, b)
+    expected, _ = compact_reconstruction(ref, CompactConfig.preset("balanced"))
+    for a, b in zip(rec.gaussians.tensors(), expected.tensors()):
         assert torch.equal(a, b)
-    assert rec.report.refine is None and "refine" not in rec.report.to_json()
+    assert rec.report.gaussians == len(rec.gaussians) < 0.5 * len(ref.gaussians)
+    doc = rec.report.to_json()
+    assert doc["compact"]["preset"] == "balanced" and doc["compact"]["after"] == len(rec.gaussians)
+    assert "compact" in doc["times_s"] and rec.report.refine is None and "refine" not in doc
+    best = reconstruct(pair[:2], _config(pair[2]).replace(quality="best", budget=1000))
+    assert len(best.gaussians) == 1000 and best.report.compact["steps"][-1]["name"] == "budget"
 
 
 def test_cli_and_evaluation_build_the_same_refined_scene(pair: tuple[Path, Path, Path], tmp_path: Path) -> None:
@@ -101,6 +113,10 @@ def test_cli_and_evaluation_build_the_same_refined_scene(pair: tuple[Path, Path,
         ({"refine": RefineOptions(steps=0, lpips_weights=Path("vgg"))}, "--lpips-weights is used by the refinement"),
         ({"refine": RefineOptions(steps=-1)}, "--refine -1"),
         ({"refine": RefineOptions(steps=2, scale=5)}, "--refine-scale 5"),
+        ({"quality": "ultra"}, "--quality 'ultra': use fast, balanced, best"),
+        ({"budget": 0}, "--budget 0"),
+        ({"budget": -5}, "--budget -5"),
+        ({"budget": 2.5}, "--budget 2.5"),
     ],
 )
 def test_bad_settings_fail_before_any_work(pair: tuple[Path, Path, Path], changes: dict, message: str) -> None:

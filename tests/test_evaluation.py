@@ -541,7 +541,10 @@ def test_pareto_front_and_grid() -> None:
     assert len(g) == 8 and g[0] == BenchSetting("classical", 256, None, 0)
     rows = [BenchRow(BenchSetting(size=256), {"time_s": 1.0, "psnr": 20.0, "failed": 0, "cases": 2}, pareto=True)]
     md = bench_markdown(rows, "psnr")
-    assert "| **classical** | **256** |" in md and "classical size=256 tau=default refine=0: 1.00 s, psnr 20.000" in md
+    assert (
+        "| **classical** | **256** |" in md
+        and "classical size=256 tau=default refine=0 quality=balanced: 1.00 s, psnr 20.000" in md
+    )
 
 
 def test_run_bench_writes_table_plot_and_runs(plane: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -556,7 +559,10 @@ def test_run_bench_writes_table_plot_and_runs(plane: Path, tmp_path: Path, monke
     assert (tmp_path / "bench.md").read_text().count("| oracle |") + (tmp_path / "bench.md").read_text().count(
         "| **oracle** |"
     ) == 2
-    for slug in ("oracle_s64_td_r0", "oracle_s96_td_r0"):  # both compared at the largest working size
+    for slug in (
+        "oracle_s64_td_r0_qbalanced",
+        "oracle_s96_td_r0_qbalanced",
+    ):  # both compared at the largest working size
         doc = json.loads((tmp_path / "runs" / slug / "results.json").read_text())
         assert doc["cases"][0]["targets"][0]["size"] == [96, 64]
 

@@ -238,7 +238,7 @@ def test_the_onnx_path_writes_the_same_scene_as_the_torch_path(pair: tuple[Path,
     path = tmp_path / "exact.onnx"
     result = export_onnx(predictor, path, ExportConfig(size=SIZE, dynamic=False))
     assert result.parity.ok and not result.info.dynamic and read_predictor_info(path).size == SIZE
-    config = EngineConfig(backend="neural")
+    config = EngineConfig(backend="neural", quality="best")  # every pixel's Gaussian, not the compacted scene
     ref = reconstruct(list(pair), config, models=Models(predictor=predictor))
     ort = OnnxPairPredictor(path)
     assert ort.input_size == SIZE

@@ -450,6 +450,10 @@ def bad_files(make_pair: PairFactory, tmp_path_factory: pytest.TempPathFactory) 
             id="intrinsics-wrong-aspect",
         ),
         pytest.param(("a", "b"), ("--focal", "-3"), 2, r"--focal", id="negative-focal"),
+        pytest.param(("a", "b"), ("--budget", "0"), 2, r"--budget", id="budget-zero"),
+        pytest.param(("a", "b"), ("--budget", "-4"), 2, r"--budget", id="budget-negative"),
+        pytest.param(("a", "b"), ("--budget", "many"), 2, r"--budget.*integer", id="budget-not-a-number"),
+        pytest.param(("a", "b"), ("--quality", "ultra"), 2, r"--quality 'ultra'", id="unknown-quality"),
     ],
 )
 def test_bad_input_one_error_line_exit_code_no_files(

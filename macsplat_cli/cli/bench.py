@@ -74,6 +74,9 @@ def bench_command(
         str, typer.Option("--conf-threshold", help="Matching thresholds τ, comma-separated ('default' allowed).")
     ] = "default",
     refine: Annotated[str, typer.Option("--refine", help="Refinement steps, comma-separated.")] = "0",
+    quality: Annotated[
+        str, typer.Option("--quality", help="Compaction presets (fast, balanced, best), comma-separated.")
+    ] = "balanced",
     eval_size: Annotated[
         int | None,
         typer.Option(
@@ -107,7 +110,7 @@ def bench_command(
 ) -> None:
     """Run the evaluation over a grid of settings; report time vs quality and the Pareto front.
 
-    Every combination of --backend, --size, --conf-threshold and --refine is evaluated on the
+    Every combination of --backend, --size, --conf-threshold, --refine and --quality is evaluated on the
     same cases. Writes a Markdown table (bench.md), a plot (bench.png), bench.json, and each
     setting's full results under runs/.
 
@@ -119,7 +122,8 @@ def bench_command(
         _bench(
             data=data, out=out, backends=_list(backend, str, "--backend"), sizes=_list(size, int, "--size"),
             taus=_list(conf_threshold, float, "--conf-threshold", allow_default=True),
-            steps=_list(refine, int, "--refine"), eval_size=eval_size, metric=metric, split=split,
+            steps=_list(refine, int, "--refine"), qualities=_list(quality, str, "--quality"), eval_size=eval_size,
+            metric=metric, split=split,
             layout=layout.value,
             scannetpp_split=scannetpp_split, scenes=scenes, cases_file=cases, intrinsics=intrinsics.value,
             max_pairs=max_pairs, max_targets=max_targets, split_by=split_by.value, assignment=assignment.value,
@@ -130,7 +134,8 @@ def bench_command(
 
 def _bench(
     *, data: Path, out: Path, backends: list[str], sizes: list[int], taus: list[float | None], steps: list[int],
-    eval_size: int | None, metric: str, split: str, layout: str, scannetpp_split: str, scenes: str | None,
+    qualities: list[str], eval_size: int | None, metric: str, split: str, layout: str, scannetpp_split: str,
+    scenes: str | None,
     cases_file: Path | None, intrinsics: str, max_pairs: int, max_targets: int, split_by: str, assignment: str,
     seed: int, splatt3r_compatible: bool, json_out: bool, quiet: bool, neural: NeuralOptions,
 ) -> None:  # fmt: skip
@@ -149,6 +154,12 @@ def _bench(
         raise InputError(f"--backend {unknown[0]!r}: available: {', '.join(sorted(BACKENDS))}")
     if any(s < 64 for s in sizes) or any(r < 0 for r in steps) or any(t is not None and t < 0 for t in taus):
         raise InputError("--size must be ≥ 64, --refine ≥ 0 and --conf-threshold ≥ 0")
+    from ..engine import QUALITIES
+
+    qualities = [q.strip().lower() for q in qualities]
+    bad = [q for q in qualities if q not in QUALITIES]
+    if bad:
+        raise InputError(f"--quality {bad[0]!r}: use {', '.join(QUALITIES)}")
     if neural.given and "neural" not in backends:
         raise InputError(f"{', '.join(neural.given)} only apply to --backend neural")
     if "neural" in backends:  # usage errors (no weights, --dino without --fusion, ...) before any work
@@ -159,7 +170,7 @@ def _bench(
         dataset, cases_file=cases_file, split=split, split_by=split_by, assignment=assignment,
         max_pairs=max_pairs, max_targets=max_targets, seed=seed, quiet=quiet,
     )  # fmt: skip
-    settings = grid(backends, sizes, taus, steps)
+    settings = grid(backends, sizes, taus, steps, qualities)
     if not quiet:
         err_console.print(
             f"{len(settings)} setting(s) × {len(sel.cases)} case(s) from {len(dataset.scenes)} scene(s)",

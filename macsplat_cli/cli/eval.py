@@ -55,14 +55,15 @@ DataOpt = Annotated[
 
 
 def engine_config(
-    backend: str, *, conf_threshold: float | None = None, refine: int = 0, neural: NeuralOptions | None = None
-) -> EngineConfig:
+    backend: str, *, conf_threshold: float | None = None, refine: int = 0, neural: NeuralOptions | None = None,
+    quality: str = "balanced",
+) -> EngineConfig:  # fmt: skip
     """The engine settings of ``eval``/``bench`` (the working size and intrinsics come per case)."""
     from ..engine import EngineConfig, NeuralOptions, RefineOptions
 
     return EngineConfig(
         backend=backend.strip().lower(), conf_threshold=conf_threshold, neural=neural or NeuralOptions(),
-        refine=RefineOptions(steps=refine),
+        refine=RefineOptions(steps=refine), quality=quality.strip().lower(),
     )  # fmt: skip
 
 
@@ -275,6 +276,9 @@ def eval_command(
         float | None, typer.Option("--conf-threshold", help="Matching confidence threshold τ (default 0.04).")
     ] = None,
     refine: Annotated[int, typer.Option("--refine", min=0, metavar="STEPS", help="Refinement steps (0 = off).")] = 0,
+    quality: Annotated[
+        str, typer.Option("--quality", metavar="fast|balanced|best", help="Compaction of the scene (see reconstruct).")
+    ] = "balanced",
     max_pairs: MaxPairsOpt = 5,
     max_targets: MaxTargetsOpt = 3,
     split_by: SplitByOpt = SplitByChoice.auto,
@@ -324,7 +328,7 @@ def eval_command(
             assignment=assignment.value, seed=seed, splatt3r_compatible=splatt3r_compatible,
             baselines=not no_baselines, json_out=json_out, quiet=state.quiet, lpips_weights=lpips_weights,
             engine=engine_config(
-                backend, conf_threshold=conf_threshold, refine=refine,
+                backend, conf_threshold=conf_threshold, refine=refine, quality=quality,
                 neural=neural_options(weights, gaussian_head, dino, fusion, device, precision),
             ),
         )  # fmt: skip

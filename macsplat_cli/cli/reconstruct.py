@@ -37,8 +37,22 @@ def reconstruct_command(
     report: Annotated[Path | None, typer.Option("--report", help="Write the run report (JSON) here.")] = None,
     json_out: Annotated[bool, typer.Option("--json", help="Print the report as JSON on stdout.")] = False,
     size: Annotated[
-        int, typer.Option("--size", min=64, help="Long side of the working images (multiple of 16).")
-    ] = 512,
+        int | None,
+        typer.Option(
+            "--size", min=64, help="Long side of the working images (multiple of 16) [default: 384 fast, else 512]."
+        ),
+    ] = None,
+    quality: Annotated[
+        str,
+        typer.Option(
+            "--quality",
+            metavar="fast|balanced|best",
+            help="How much the scene is compacted (merged, pruned) and how light the stages are; best: lossless.",
+        ),
+    ] = "balanced",
+    budget: Annotated[
+        int | None, typer.Option("--budget", min=1, metavar="N", help="At most N Gaussians in the scene.")
+    ] = None,
     intrinsics: Annotated[
         Path | None, typer.Option("--intrinsics", help="Camera file (cameras schema) with the photos' intrinsics.")
     ] = None,
@@ -103,12 +117,16 @@ def reconstruct_command(
       macsplat reconstruct a.jpg b.jpg -o scene.ply --backend neural --weights mast3r.pth
     """
     with command_context(ctx, verbose, quiet) as state:
-        from ..engine import EngineConfig, RefineOptions
+        from ..engine import WORKING_SIZE, EngineConfig, RefineOptions
         from ..pipeline.run import ReconstructConfig
         from ..pipeline.views import ViewConfig
 
+        quality = quality.strip().lower()
+        size = size if size is not None else WORKING_SIZE.get(quality, 512)
         config = EngineConfig(
             backend=backend.strip().lower(),
+            quality=quality,
+            budget=budget,
             pipeline=ReconstructConfig(views=ViewConfig(size=size, intrinsics=intrinsics, focal=focal)),
             conf_threshold=conf_threshold,
             neural=neural_options(weights, gaussian_head, dino, fusion, device, precision),
@@ -264,7 +282,12 @@ def _summary(report: dict[str, Any], written: dict[str, Any]) -> None:
         t.add_row("backend", f"neural ({n['device']}): forward pass {n['forward_s']:.2f} s")
         t.add_row("fusion", n["fusion"]["detail"])
     t.add_row("depth", " / ".join(f"{100 * c:.0f} %" for c in report["depth_coverage"]) + " of pixels")
-    t.add_row("Gaussians", f"{report.get('gaussians_written', report['gaussians']):,}")
+    line = f"{report.get('gaussians_written', report['gaussians']):,}"
+    if "compact" in report:
+        c = report["compact"]
+        changed = [f"{s['name']} −{s['before'] - s['after']:,}" for s in c["steps"] if s["before"] != s["after"]]
+        line += f" of {c['before']:,} ({c['preset']}: {', '.join(changed) or 'nothing to remove'})"
+    t.add_row("Gaussians", line)
     times = report["times_s"]
     t.add_row("time", ", ".join(f"{k} {v:.2f} s" for k, v in times.items()))
     t.add_row("wrote", "\n".join(str(v) for v in written.values()))

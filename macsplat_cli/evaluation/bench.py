@@ -82,16 +82,17 @@ class BenchSetting:
     size: int = 512
     conf_threshold: float | None = None
     refine_steps: int = 0
+    quality: str = "balanced"
 
     @property
     def label(self) -> str:
         tau = "default" if self.conf_threshold is None else f"{self.conf_threshold:g}"
-        return f"{self.backend} size={self.size} tau={tau} refine={self.refine_steps}"
+        return f"{self.backend} size={self.size} tau={tau} refine={self.refine_steps} quality={self.quality}"
 
     @property
     def slug(self) -> str:
         tau = "d" if self.conf_threshold is None else f"{self.conf_threshold:g}"
-        return f"{self.backend}_s{self.size}_t{tau}_r{self.refine_steps}"
+        return f"{self.backend}_s{self.size}_t{tau}_r{self.refine_steps}_q{self.quality}"
 
 
 @dataclass
@@ -112,11 +113,12 @@ def grid(
     sizes: Sequence[int] = (512,),
     conf_thresholds: Sequence[float | None] = (None,),
     refine_steps: Sequence[int] = (0,),
+    qualities: Sequence[str] = ("balanced",),
 ) -> list[BenchSetting]:
     """Every combination of the axes, in order."""
     return [
-        BenchSetting(b, int(s), c, int(r))
-        for b, s, c, r in itertools.product(backends, sizes, conf_thresholds, refine_steps)
+        BenchSetting(b, int(s), c, int(r), q)
+        for b, s, c, r, q in itertools.product(backends, sizes, conf_thresholds, refine_steps, qualities)
     ]
 
 
@@ -258,6 +260,7 @@ def run_bench(
             conf_threshold=s.conf_threshold,
             refine=dataclasses.replace(base.refine, steps=s.refine_steps),
             neural=base.neural if s.backend == "neural" else NeuralOptions(),
+            quality=s.quality,
         )
         if s.backend not in models:  # the networks load once per backend
             models[s.backend] = load_models(config.replace(refine=RefineOptions())) if s.backend in ENGINE else Models()
@@ -306,8 +309,8 @@ BENCH_COLUMNS = (
 
 def bench_markdown(rows: Sequence[BenchRow], metric: str) -> str:
     """The grid as a Markdown table (Pareto-front settings in bold), then the front in time order."""
-    head = ["backend", "size", "τ", "refine", *(c[1] for c in BENCH_COLUMNS), "failed", "Pareto"]
-    lines = ["| " + " | ".join(head) + " |", "|---|---:|---:|---:|" + "---:|" * len(BENCH_COLUMNS) + "---:|:---:|"]
+    head = ["backend", "size", "τ", "refine", "quality", *(c[1] for c in BENCH_COLUMNS), "failed", "Pareto"]
+    lines = ["| " + " | ".join(head) + " |", "|---|---:|---:|---:|---|" + "---:|" * len(BENCH_COLUMNS) + "---:|:---:|"]
     for r in rows:
         s = r.setting
         cells = [
@@ -315,6 +318,7 @@ def bench_markdown(rows: Sequence[BenchRow], metric: str) -> str:
             str(s.size),
             format_cell(s.conf_threshold, 3) if s.conf_threshold else "default",
             str(s.refine_steps),
+            s.quality,
         ]
         cells += [format_cell(r.summary.get(k), d) for k, _, d in BENCH_COLUMNS]
         cells += [f"{r.summary.get('failed', 0)}/{r.summary.get('cases', 0)}", "✓" if r.pareto else ""]
@@ -374,7 +378,9 @@ def bench_plot(rows: Sequence[BenchRow], metric: str, path: str | Path, *, title
             c = to_px(*p)
             cv2.circle(img, c, 6 if rows[i].pareto else 4, red if rows[i].pareto else blue, -1, cv2.LINE_AA)
             s = rows[i].setting
-            tag = f"{s.size}/{'d' if s.conf_threshold is None else f'{s.conf_threshold:g}'}/{s.refine_steps}"
+            tag = (
+                f"{s.size}/{'d' if s.conf_threshold is None else f'{s.conf_threshold:g}'}/{s.refine_steps}/{s.quality}"
+            )
             fails = int(rows[i].summary.get("failed", 0) or 0)
             tag += f" ({fails} failed)" if fails else ""
             (tw, _), _ = cv2.getTextSize(tag, font, 0.4, 1)
@@ -394,7 +400,7 @@ def bench_plot(rows: Sequence[BenchRow], metric: str, path: str | Path, *, title
         1,
         cv2.LINE_AA,
     )
-    cv2.putText(img, "labels: size/tau/refine steps", (W - R - 260, T - 6), font, 0.45, black, 1, cv2.LINE_AA)
+    cv2.putText(img, "labels: size/tau/refine steps/quality", (W - R - 330, T - 6), font, 0.45, black, 1, cv2.LINE_AA)
     note = "time and quality on the cases every setting reconstructed; red: Pareto front (time, quality, failures)"
     cv2.putText(img, note, (L, H - B + 66), font, 0.4, grey_text, 1, cv2.LINE_AA)
     ok_enc, buf = cv2.imencode(".png", img)  # colours above are BGR

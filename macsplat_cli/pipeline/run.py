@@ -101,11 +101,15 @@ class Reconstruction:
     maps: list[GaussianMaps]
     report: RunReport
     scale: Literal["relative", "metric"] = "relative"
+    compacted: Gaussians | None = None
+    """The scene after the compaction (:mod:`macsplat_cli.compact`), when it ran."""
 
     @functools.cached_property
     def gaussians(self) -> Gaussians:
-        """All views' Gaussians in the world (camera-0) frame (computed once; a refined
-        reconstruction is a new object)."""
+        """The scene in the world (camera-0) frame: the compacted set when the compaction ran, else every
+        view's pixel Gaussians (computed once; a refined or compacted reconstruction is a new object)."""
+        if self.compacted is not None:
+            return self.compacted
         with torch.no_grad():
             return Gaussians.cat([m.to_gaussians() for m in self.maps])
 
