@@ -282,3 +282,18 @@ def test_triangulate_recovers_points() -> None:
     np.testing.assert_allclose(triangulate(R, t, x0 * scale, x1 * scale[::-1]), X, rtol=1e-9, atol=1e-9)
     parallel = triangulate(R, t, x0[:5], x0[:5] @ R.T)  # same direction in both frames: a point at infinity
     assert np.isnan(parallel).all()
+
+
+@pytest.mark.parametrize("size", [64, 100, 512])
+def test_small_working_sizes_scale_the_pixel_thresholds(size: int) -> None:
+    """The shipped stereo pair (rectified: no rotation) at the smallest allowed working size. With the 1 px
+    thresholds of a 512-px image, every match at 64 px fit one plane both ways and the pair was refused as
+    "ambiguous … photograph more of the scene's depth" (a setting blamed on the scene)."""
+    from macsplat_cli.engine import EngineConfig, reconstruct
+
+    root = Path(__file__).resolve().parents[1] / "examples" / "motorcycle"
+    config = EngineConfig(quality="best")
+    config.pipeline.views.size = size
+    rec = reconstruct([root / "left.jpg", root / "right.jpg"], config)
+    assert abs(max(rec.report.images[0].working_size) - size) <= 8  # the working size asked for (multiple of 16)
+    assert rec.geometry.info["rotation_deg"] < 0.5 and rec.report.matches["verified"] > 1000

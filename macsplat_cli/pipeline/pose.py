@@ -25,6 +25,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import logging
 import math
 from dataclasses import dataclass
@@ -75,6 +77,10 @@ class PoseConfig:
     homography_excess: float = 1.2
     planar_fraction: float = 0.8
     planar_ambiguity: float = 0.95
+
+
+REFERENCE_SIDE = 512
+"""Working long side (px) at which :class:`PoseConfig`'s pixel thresholds apply as given; below it they shrink."""
 
 
 # ----------------------------------------------------------------------------------- geometry
@@ -325,6 +331,12 @@ def estimate_pose(v0: View, v1: View, matches: Matches, config: PoseConfig | Non
         ReconstructionError: too few matches or inliers, identical images, or no baseline.
     """
     cfg = config or PoseConfig()
+    side = max(v0.width, v0.height, v1.width, v1.height)
+    if side < REFERENCE_SIDE:
+        # The pixel thresholds are set for a 512-px working image; the keypoints (detected on a larger image)
+        # are as precise relative to the image at any working size, so smaller images get proportionally
+        # tighter thresholds. With 1 px at 64 px, every match fit a plane both ways: "ambiguous" (issue 16).
+        cfg = dataclasses.replace(cfg, threshold_px=cfg.threshold_px * side / REFERENCE_SIDE)
     for name, a in (
         ("matches.xy0", matches.xy0),
         ("matches.xy1", matches.xy1),
