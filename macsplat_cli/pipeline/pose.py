@@ -332,11 +332,13 @@ def estimate_pose(v0: View, v1: View, matches: Matches, config: PoseConfig | Non
     """
     cfg = config or PoseConfig()
     side = max(v0.width, v0.height, v1.width, v1.height)
-    if side < REFERENCE_SIDE:
-        # The pixel thresholds are set for a 512-px working image; the keypoints (detected on a larger image)
-        # are as precise relative to the image at any working size, so smaller images get proportionally
-        # tighter thresholds. With 1 px at 64 px, every match fit a plane both ways: "ambiguous" (issue 16).
-        cfg = dataclasses.replace(cfg, threshold_px=cfg.threshold_px * side / REFERENCE_SIDE)
+    ref = min(REFERENCE_SIDE, max(*v0.original_size, *v1.original_size))
+    if side < ref:
+        # The pixel thresholds are set for a 512-px working image. Keypoints are detected on the photo (up to
+        # 768 px), so a photo shrunk further to a small working size has keypoints proportionally more precise
+        # in its pixels: the thresholds shrink with it. With 1 px at 64 px every match fit a plane both ways and
+        # the pair was refused as ambiguous (issue 16). A small photo used at its own size keeps them.
+        cfg = dataclasses.replace(cfg, threshold_px=cfg.threshold_px * side / ref)
     for name, a in (
         ("matches.xy0", matches.xy0),
         ("matches.xy1", matches.xy1),
