@@ -297,3 +297,50 @@ def test_small_working_sizes_scale_the_pixel_thresholds(size: int) -> None:
     rec = reconstruct([root / "left.jpg", root / "right.jpg"], config)
     assert abs(max(rec.report.images[0].working_size) - size) <= 8  # the working size asked for (multiple of 16)
     assert rec.geometry.info["rotation_deg"] < 0.5 and rec.report.matches["verified"] > 1000
+
+
+def test_flipped_fraction_tells_a_mirror_from_a_view_change() -> None:
+    from macsplat_cli.pipeline.pose import flipped_fraction
+
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 500, (400, 2))
+    noise = rng.normal(0, 0.5, xy.shape)
+    roll = np.array([[np.cos(0.7), -np.sin(0.7)], [np.sin(0.7), np.cos(0.7)]])  # camera roll keeps orientation
+    assert flipped_fraction(xy, xy @ roll.T + 40 + noise) < 0.02
+    mirrored = np.c_[512 - xy[:, 0], xy[:, 1]] + noise
+    assert flipped_fraction(xy, mirrored) > 0.95
+    # an orbit: the object (left half, near) and the background (right half, far) move in opposite directions,
+    # so triangles spanning both flip; the depth test keeps only patches of one surface
+    near = xy[:, 0] < 250
+    moved = xy + np.where(near[:, None], [30.0, 0.0], [-30.0, 0.0]) + noise
+    depth = np.where(near, 1.0, 3.0)
+    assert (
+        flipped_fraction(xy, moved, depth) < flipped_fraction(xy, moved) and flipped_fraction(xy, moved, depth) < 0.02
+    )
+
+
+def test_a_photo_and_its_mirror_image_are_refused(tmp_path: Path) -> None:
+    """Isotropic dots match their mirror images (SIFT of a round blob is nearly mirror-symmetric): 58 verified
+    matches and a 177° "pose" used to be accepted (exit 0)."""
+    from macsplat_cli.cli import main
+    from macsplat_cli.images import save_image
+
+    rng = np.random.default_rng(0)
+    h, w = 384, 512
+    img = np.full((h, w, 3), 0.5, np.float32)
+    yy, xx = np.mgrid[0:h, 0:w]
+    for _ in range(400):
+        cx, cy, r = rng.uniform(0, w), rng.uniform(0, h), rng.uniform(2, 9)
+        blob = np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * r * r))[..., None]
+        img = img * (1 - blob) + rng.uniform(0, 1, 3) * blob
+    save_image(tmp_path / "a.png", img.astype(np.float32))
+    save_image(tmp_path / "mirror.png", np.ascontiguousarray(img[:, ::-1]).astype(np.float32))
+    code = main(
+        ["reconstruct", str(tmp_path / "a.png"), str(tmp_path / "mirror.png"), "-o", str(tmp_path / "s.ply"), "-q"]
+    )
+    assert code == 3 and not (tmp_path / "s.ply").exists()
+    from macsplat_cli.engine import reconstruct
+    from macsplat_cli.errors import ReconstructionError
+
+    with pytest.raises(ReconstructionError, match="mirror images of each other"):
+        reconstruct([tmp_path / "a.png", tmp_path / "mirror.png"])

@@ -26,7 +26,6 @@
 from __future__ import annotations
 
 import dataclasses
-
 import logging
 import math
 from dataclasses import dataclass
@@ -38,7 +37,7 @@ from ..errors import NonFiniteError, ReconstructionError
 from ..metrics import angle_between_deg, rotation_angle_deg
 from .types import Matches, TwoViewGeometry, View
 
-__all__ = ["PoseConfig", "estimate_pose", "sampson_distance"]
+__all__ = ["PoseConfig", "estimate_pose", "flipped_fraction", "sampson_distance"]
 
 logger = logging.getLogger(__name__)
 
@@ -62,6 +61,8 @@ class PoseConfig:
     planar_ambiguity: when a homography explains at least ``planar_fraction`` of the
         inliers, the pose is rejected if another relative pose from the homography's
         decomposition explains this fraction of them too (a plane has two).
+    max_flipped: the pair is refused as mirror images when more than this share of the small triangles
+        between neighbouring verified matches flips orientation (:func:`flipped_fraction`).
     """
 
     threshold_px: float = 1.0
@@ -77,6 +78,7 @@ class PoseConfig:
     homography_excess: float = 1.2
     planar_fraction: float = 0.8
     planar_ambiguity: float = 0.95
+    max_flipped: float = 0.5
 
 
 REFERENCE_SIDE = 512
@@ -278,6 +280,47 @@ def _refine(
     return R, t, s, std_s
 
 
+def flipped_fraction(
+    xy0: np.ndarray, xy1: np.ndarray, depth: np.ndarray | None = None, *, neighbours: int = 2,
+    max_points: int = 2000, min_px: float = 4.0, max_depth_ratio: float = 1.2,
+) -> float:  # fmt: skip
+    """Share of the triangles (a match and its two nearest neighbours in photo 0) whose orientation flips in
+    photo 1. Two views of a scene keep the orientation of nearby points (only depth discontinuities flip a
+    few); a mirror image flips nearly all. ``xy0, xy1``: matched pixels [N, 2]; neighbours closer than
+    ``min_px`` are skipped. ``depth`` [N] (triangulated, any scale): only triangles whose corners lie within
+    ``max_depth_ratio`` of each other count — a patch of one surface; a triangle spanning an object and the
+    background behind it flips legitimately when the camera orbits the object (when fewer than a quarter of
+    the triangles are such patches, the depths are not trusted and all count). 0 for fewer than 3 matches."""
+    n = len(xy0)
+    if n < neighbours + 1:
+        return 0.0
+    if n > max_points:
+        sel = np.linspace(0, n - 1, max_points).astype(np.int64)
+        xy0, xy1, n = xy0[sel], xy1[sel], max_points
+        depth = depth[sel] if depth is not None else None
+    d = np.linalg.norm(xy0[:, None] - xy0[None], axis=-1)
+    d[d < min_px] = np.inf  # itself, and near-duplicate keypoints (affine-simulated SIFT): their triangles are noise
+    nn = np.argsort(d, axis=1)[:, :neighbours]  # [N, 2]
+    i = np.flatnonzero(np.isfinite(np.take_along_axis(d, nn, axis=1)).all(1))
+    j, k = nn[i, 0], nn[i, 1]
+    a0, b0 = xy0[j] - xy0[i], xy0[k] - xy0[i]
+    a1, b1 = xy1[j] - xy1[i], xy1[k] - xy1[i]
+    s0 = a0[:, 0] * b0[:, 1] - a0[:, 1] * b0[:, 0]
+    s1 = a1[:, 0] * b1[:, 1] - a1[:, 1] * b1[:, 0]
+    # ignore degenerate (nearly collinear) triangles: their sign is noise
+    ok = (np.abs(s0) > 0.05 * (np.linalg.norm(a0, axis=1) * np.linalg.norm(b0, axis=1) + 1e-12)) & (
+        np.abs(s1) > 0.05 * (np.linalg.norm(a1, axis=1) * np.linalg.norm(b1, axis=1) + 1e-12)
+    )
+    if depth is not None:
+        z = np.stack([depth[i], depth[j], depth[k]], 1)
+        surface = ok & (z.min(1) > 0) & (z.max(1) <= max_depth_ratio * z.min(1))
+        if surface.sum() >= max(10, 0.25 * ok.sum()):  # else the depths are noise (a wrong pose): all triangles
+            ok = surface
+    if not ok.any():
+        return 0.0
+    return float(np.mean(np.sign(s0[ok]) != np.sign(s1[ok])))
+
+
 def _planar_check(
     R: np.ndarray, t: np.ndarray, K0: np.ndarray, K1: np.ndarray, xy0: np.ndarray, xy1: np.ndarray, cfg: PoseConfig
 ) -> tuple[int, int, float]:
@@ -443,6 +486,14 @@ def estimate_pose(v0: View, v1: View, matches: Matches, config: PoseConfig | Non
         raise ReconstructionError(
             f"pose is unreliable: only {n_final} of {n} matches ({100 * n_final / n:.0f} %) agree with the best "
             f"relative pose, need {100 * cfg.min_inlier_ratio:.0f} % (too little overlap or texture?)"
+        )
+    flipped = flipped_fraction(xy0[final], xy1[final], X[final, 2])
+    info["flipped_triangles"] = flipped
+    if flipped > cfg.max_flipped:
+        raise ReconstructionError(
+            f"the photos are mirror images of each other: {100 * flipped:.0f} % of the small triangles between "
+            f"neighbouring verified matches are flipped in the second photo, which no camera motion does "
+            "(a mirrored or flipped copy?)"
         )
     H, hmask = cv2.findHomography(xy0, xy1, cv2.USAC_MAGSAC, 1.5 * cfg.threshold_px, maxIters=cfg.max_iters)
     n_h = int(hmask.sum()) if H is not None and hmask is not None else 0
