@@ -1,36 +1,96 @@
 """The ``macsplat`` command line (Typer app). Commands live one per module, each registering itself on
-the app of :mod:`._app` (imported one way: this package imports the commands, never the reverse)."""
+the app of :mod:`._app` (imported one way: this package imports the commands, never the reverse).
+
+Exit codes: 0 success, 1 internal error, 2 bad input or usage, 3 not reconstructable, 130 interrupted
+(Ctrl-C, SIGINT) and 143 terminated (SIGTERM: ``kill``, ``timeout``, a container stop). SIGTERM is handled
+like Ctrl-C: the command stops, the partial files of an interrupted write are removed, and the files it
+had finished stay.
+"""
 
 from __future__ import annotations
 
+import contextlib
+import signal
 import sys
+import threading
+from collections.abc import Iterator
+from types import FrameType
 
 import typer
 
 from . import bench, eval, export_onnx, reconstruct, render, train  # noqa: F401 - registers the commands
 from ._app import app
-from ._common import err_console
+from ._common import err_console, escape
 
-__all__ = ["app", "main", "run"]
+__all__ = ["EXIT_INTERRUPTED", "EXIT_TERMINATED", "app", "main", "run"]
+
+EXIT_INTERRUPTED = 130
+"""Exit code after Ctrl-C (SIGINT): 128 + 2."""
+EXIT_TERMINATED = 143
+"""Exit code after SIGTERM: 128 + 15."""
+
+
+class _Terminated:
+    """Set by the SIGTERM handler so that the interruption it caused exits with 143, not 130."""
+
+    received = False
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt() -> Iterator[type[_Terminated]]:
+    """While inside: SIGTERM raises KeyboardInterrupt (so ``finally`` blocks and atomic writes clean up).
+
+    Only the main thread can install signal handlers; elsewhere (a CLI call from a worker thread)
+    SIGTERM keeps its previous handling. The previous handler is restored on the way out.
+    """
+    _Terminated.received = False
+    if threading.current_thread() is not threading.main_thread():
+        yield _Terminated
+        return
+
+    def handler(signum: int, frame: FrameType | None) -> None:
+        _Terminated.received = True
+        raise KeyboardInterrupt
+
+    try:
+        previous = signal.signal(signal.SIGTERM, handler)
+    except (ValueError, OSError):  # no signals here (an embedded interpreter)
+        yield _Terminated
+        return
+    try:
+        yield _Terminated
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point. Usage errors become one line on stderr and exit code 2."""
+    """Entry point. Usage errors become one line on stderr and exit code 2; SIGINT exits 130, SIGTERM 143."""
     args = sys.argv[1:] if argv is None else list(argv)
     if not args:
         args = ["--help"]
+    with _sigterm_as_interrupt() as terminated:
+        code = _main(args)
+        if terminated.received and code == EXIT_INTERRUPTED:
+            code = EXIT_TERMINATED
+    return code
+
+
+def _main(args: list[str]) -> int:
     try:
         rv = app(args=args, prog_name="macsplat", standalone_mode=False)
     except typer.Exit as e:
         return int(e.exit_code)
     except typer.Abort:
         err_console.print("aborted", style="yellow")
-        return 130
+        return EXIT_INTERRUPTED
+    except KeyboardInterrupt:  # outside a command (while parsing the options)
+        err_console.print("interrupted", style="yellow")
+        return EXIT_INTERRUPTED
     except typer.TyperException as e:  # usage errors: unknown option, bad value, missing argument
         ctx = getattr(e, "ctx", None)
         hint = f" (see '{ctx.command_path} --help')" if ctx is not None else ""
-        message = " ".join(e.format_message().split())
-        err_console.print(f"[bold red]error:[/] {message}{hint}", markup=True, highlight=False, soft_wrap=True)
+        message = " ".join(f"{e.format_message()}{hint}".split())
+        err_console.print(f"[bold red]error:[/] {escape(message)}", markup=True, highlight=False, soft_wrap=True)
         return int(e.exit_code)
     return rv if isinstance(rv, int) else 0
 

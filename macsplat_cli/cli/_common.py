@@ -4,17 +4,30 @@ from __future__ import annotations
 
 import contextlib
 import logging
-from collections.abc import Iterator
+import os
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Annotated, Any
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 
 from .._log import remove_logging, setup_logging
 from ..errors import MacsplatError
 
-__all__ = ["QuietOpt", "StageProgress", "State", "VerboseOpt", "command_context", "err_console", "out_console"]
+__all__ = [
+    "QuietOpt",
+    "StageProgress",
+    "State",
+    "VerboseOpt",
+    "check_no_clobber",
+    "command_context",
+    "err_console",
+    "escape",
+    "out_console",
+]
 
 logger = logging.getLogger("macsplat_cli.cli")
 
@@ -36,7 +49,54 @@ class State:
 
 
 def _one_line(msg: str) -> str:
-    return " ".join(str(msg).split())
+    """The message on one line, escaped for Rich markup (paths and values may hold ``[...]``)."""
+    return escape(" ".join(str(msg).split()))
+
+
+def _identity(path: Path) -> tuple[str, tuple[int, int] | None]:
+    """The resolved path and, when it exists, the (device, inode) of the file it names (links followed)."""
+    try:
+        st = os.stat(path)
+        inode: tuple[int, int] | None = (st.st_dev, st.st_ino)
+    except (OSError, ValueError):
+        inode = None
+    return os.path.realpath(path), inode
+
+
+def check_no_clobber(
+    outputs: Iterable[tuple[str, Path | None]], inputs: Iterable[tuple[str, Path | None]] = ()
+) -> None:
+    """Refuse outputs that would overwrite an input file or another output, before any work.
+
+    Two paths are the same file when they resolve to the same path (symbolic links followed)
+    or, when both exist, name the same (device, inode): hard links count too.
+
+    Args:
+        outputs: ``(label, path)`` of every file the command will write (None: not written).
+        inputs: ``(label, path)`` of every file it reads (None: not given).
+
+    Raises:
+        InputError: an output is an input, or two outputs are one file.
+    """
+    from ..errors import InputError
+
+    ins = [(label, p, _identity(p)) for label, p in inputs if p is not None]
+    seen: list[tuple[str, Path, tuple[str, tuple[int, int] | None]]] = []
+    for label, p in outputs:
+        if p is None:
+            continue
+        ident = _identity(p)
+
+        def same(other: tuple[str, tuple[int, int] | None], ident: tuple = ident) -> bool:
+            return ident[0] == other[0] or (ident[1] is not None and ident[1] == other[1])
+
+        for in_label, q, q_ident in ins:
+            if same(q_ident):
+                raise InputError(f"{label} {p} is also the input {in_label} ({q}): refusing to overwrite an input")
+        for out_label, q, q_ident in seen:
+            if same(q_ident):
+                raise InputError(f"two outputs point at the same file: {out_label} {q} and {label} {p}")
+        seen.append((label, p, ident))
 
 
 @contextlib.contextmanager
@@ -67,7 +127,7 @@ def command_context(ctx: typer.Context, verbose: bool, quiet: bool) -> Iterator[
         if state.verbose:
             err_console.print_exception()
         err_console.print(
-            f"[bold red]internal error:[/] {type(e).__name__}: {_one_line(str(e))} "
+            f"[bold red]internal error:[/] {escape(type(e).__name__)}: {_one_line(str(e))} "
             "(run with --verbose for the traceback)",
             markup=True,
             highlight=False,

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 
 from ._app import app
-from ._common import QuietOpt, VerboseOpt, command_context, err_console, out_console
+from ._common import QuietOpt, VerboseOpt, command_context, err_console, escape, out_console
 from ._options import DeviceOpt, DinoOpt, FusionOpt, GaussianHeadOpt, PrecisionOpt, WeightsOpt, neural_options
 from .eval import (
     AssignmentChoice,
@@ -190,6 +190,8 @@ def _bench(
         from rich.markdown import Markdown
 
         err_console.print(Markdown(bench_markdown(rows, metric)))
-        err_console.print(f"wrote {out / 'bench.md'}, {out / 'bench.png'}, {out / 'bench.json'}", highlight=False)
+        err_console.print(
+            escape(f"wrote {out / 'bench.md'}, {out / 'bench.png'}, {out / 'bench.json'}"), highlight=False
+        )
     if json_out:
         out_console.print_json(json.dumps(bench_json(rows, metric)))

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 
 from ._app import app
-from ._common import QuietOpt, VerboseOpt, command_context, err_console, out_console
+from ._common import QuietOpt, VerboseOpt, command_context, err_console, escape, out_console
 from ._options import DeviceOpt, DinoOpt, FusionOpt, GaussianHeadOpt, PrecisionOpt, WeightsOpt, neural_options
 
 if TYPE_CHECKING:
@@ -140,7 +140,7 @@ def select_cases(
             seed=seed,
         )
         progress = Progress(
-            TextColumn("coverage {task.description}"),
+            TextColumn("coverage {task.description}", markup=False),  # scene names are not markup
             BarColumn(),
             MofNCompleteColumn(),
             console=err_console,
@@ -179,11 +179,11 @@ def run_with_progress(
     from ..evaluation import evaluate
 
     progress = Progress(
-        TextColumn(label + "{task.description:<32}"),
+        TextColumn(label + "{task.description:<32}", markup=False),  # case keys are not markup
         BarColumn(),
         MofNCompleteColumn(),
         TimeElapsedColumn(),
-        TextColumn("{task.fields[last]}"),
+        TextColumn("{task.fields[last]}", markup=False),
         console=err_console,
         disable=quiet,
         transient=True,
@@ -202,7 +202,9 @@ def run_with_progress(
             return evaluate(dataset, cases, reconstructor, config, writer=writer, on_case=on_case)
     except KeyboardInterrupt:
         if writer is not None:
-            err_console.print(f"interrupted: the cases finished so far are in {writer.folder}", style="yellow")
+            err_console.print(
+                f"interrupted: the cases finished so far are in {escape(str(writer.folder))}", style="yellow"
+            )
         raise
 
 
@@ -237,7 +239,7 @@ def summary_tables(rows: list[dict[str, Any]], title: str) -> list[Any]:
     for cols, subset, sub in ((views, rows, "novel views"), (geometry, backend_rows, "pose, depth, time")):
         method = f" ({backend_rows[0]['method']})" if sub != "novel views" and backend_rows else ""
         table = Table(
-            title=f"{title}: {sub}{method}",
+            title=escape(f"{title}: {sub}{method}"),
             title_justify="left",
             box=box.SIMPLE_HEAD,
             pad_edge=False,
@@ -246,7 +248,7 @@ def summary_tables(rows: list[dict[str, Any]], title: str) -> list[Any]:
         for key, head, _ in cols:
             table.add_column(head, justify="left" if key in ("split", "method") else "right", no_wrap=True)
         for row in subset:
-            table.add_row(*[format_cell(row.get(key), digits or 0) for key, _, digits in cols])
+            table.add_row(*[escape(format_cell(row.get(key), digits or 0)) for key, _, digits in cols])
         tables.append(table)
     return tables
 
@@ -377,8 +379,11 @@ def _eval(
     writer.write_coverage(sel.coverage, {s.name: [f.name for f in s.frames] for s in dataset.scenes})
     if not quiet:
         err_console.print(
-            f"{len(sel.cases)} case(s) from {len(dataset.scenes)} scene(s) ({dataset.layout}), "
-            f"{sum(len(c.targets) for c in sel.cases)} target view(s); backend {reconstructor.name}"
+            escape(
+                f"{len(sel.cases)} case(s) from {len(dataset.scenes)} scene(s) ({dataset.layout}), "
+                f"{sum(len(c.targets) for c in sel.cases)} target view(s); backend {reconstructor.name}"
+            ),
+            highlight=False,
         )
     t0 = time.perf_counter()
     run = run_with_progress(dataset, sel.cases, reconstructor, config, writer, quiet)
@@ -388,10 +393,13 @@ def _eval(
         for table in summary_tables(rows, f"macsplat eval ({mode})"):
             err_console.print(table)
         for r in run.failures:
-            err_console.print(f"[yellow]failed[/] {r.case.key}: {r.error}", highlight=False, soft_wrap=True)
+            failed = escape(f"{r.case.key}: {r.error}")
+            err_console.print(f"[yellow]failed[/] {failed}", highlight=False, soft_wrap=True)
         err_console.print(
-            f"{len(run.results)} case(s) in {time.perf_counter() - t0:.1f} s; wrote {writer.json_path}, "
-            f"{writer.csv_path}, {writer.jsonl}",
+            escape(
+                f"{len(run.results)} case(s) in {time.perf_counter() - t0:.1f} s; wrote {writer.json_path}, "
+                f"{writer.csv_path}, {writer.jsonl}"
+            ),
             highlight=False,
             soft_wrap=True,
         )

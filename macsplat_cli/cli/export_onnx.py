@@ -10,7 +10,16 @@ from typing import Annotated, Any
 import typer
 
 from ._app import app
-from ._common import QuietOpt, StageProgress, VerboseOpt, command_context, err_console, out_console
+from ._common import (
+    QuietOpt,
+    StageProgress,
+    VerboseOpt,
+    check_no_clobber,
+    command_context,
+    err_console,
+    escape,
+    out_console,
+)
 from ._options import DinoOpt, FusionOpt, GaussianHeadOpt, WeightsOpt
 
 logger = logging.getLogger("macsplat_cli.cli.export_onnx")
@@ -22,6 +31,8 @@ _STEPS = {
     "quantize": "int8 quantisation",
     "parity": "parity vs torch",
 }
+
+_OPTION_OF = {"weights": "--weights", "gaussian_head": "--gaussian-head", "dino": "--dino", "fusion": "--fusion"}
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -112,6 +123,11 @@ def export_onnx_command(
         check_writable(output)  # before loading gigabytes
         if output.suffix.lower() != ".onnx":
             raise InputError(f"-o {output}: the output must end in .onnx")
+        check_no_clobber(
+            [("-o", output), ("-o", output.with_name(output.name + ".data")),
+             ("-o", output.with_name(output.stem + ".parity.json"))],
+            [(_OPTION_OF[k] if k != "weights" or checkpoint is None else "--checkpoint", v) for k, v in files.items()],
+        )  # fmt: skip
         with StageProgress(disabled=state.quiet) as progress:
             progress.event(_STEPS["load"], "start")
             try:
@@ -150,7 +166,6 @@ def export_onnx_command(
 
 
 def _summary(result: Any) -> None:
-    from rich.markup import escape
     from rich.table import Table
 
     info = result.info
@@ -164,9 +179,9 @@ def _summary(result: Any) -> None:
     if result.fixed_size_reason:
         sizes += f" — the dynamic export failed: {escape(result.fixed_size_reason[:120])}"
     t.add_row("input size", sizes)
-    t.add_row("precision", f"{info.precision}, opset {info.opset}")
+    t.add_row("precision", escape(f"{info.precision}, opset {info.opset}"))
     t.add_row("files", "\n".join(f"{escape(str(p))} ({p.stat().st_size / 1e6:,.1f} MB)" for p in result.files))
-    t.add_row("time", ", ".join(f"{k} {v:.1f} s" for k, v in result.seconds.items()))
+    t.add_row("time", escape(", ".join(f"{k} {v:.1f} s" for k, v in result.seconds.items())))
     err_console.print(t)
     err_console.print(_parity_table(result.parity))
 
@@ -184,5 +199,5 @@ def _parity_table(p: Any) -> Any:
     pt.add_column("")
     for r in p.rows:
         mark = "[green]ok[/]" if r["ok"] else "[red]✗[/]"
-        pt.add_row(r["output"], f"{r['max_abs']:.2e}", f"{r['max_rel']:.2e}", mark)
+        pt.add_row(escape(str(r["output"])), f"{r['max_abs']:.2e}", f"{r['max_rel']:.2e}", mark)
     return pt

@@ -4,13 +4,23 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
 from ._app import app
-from ._common import QuietOpt, StageProgress, VerboseOpt, command_context, err_console, out_console
+from ._common import (
+    QuietOpt,
+    StageProgress,
+    VerboseOpt,
+    check_no_clobber,
+    command_context,
+    err_console,
+    escape,
+    out_console,
+)
 from ._options import DeviceOpt, DinoOpt, FusionOpt, GaussianHeadOpt, PrecisionOpt, WeightsOpt, neural_options
 
 if TYPE_CHECKING:
@@ -155,7 +165,16 @@ def _refine_steps(text: str) -> int:
     return steps
 
 
-def _check_outputs(output: Path, cameras: Path, renders: Path | None, video: Path | None, report: Path | None) -> None:
+def _check_outputs(
+    output: Path,
+    cameras: Path,
+    renders: Path | None,
+    num_renders: int,
+    video: Path | None,
+    report: Path | None,
+    inputs: Sequence[tuple[str, Path | None]] = (),
+) -> None:
+    """Every output writable, none an input or another output: checked before the first stage."""
     from .._atomic import check_writable
     from ..errors import InputError
     from ..images import VIDEO_FORMATS
@@ -167,15 +186,19 @@ def _check_outputs(output: Path, cameras: Path, renders: Path | None, video: Pat
             check_writable(p)
     if video is not None and video.suffix.lower() not in VIDEO_FORMATS:
         raise InputError(f"{video}: unsupported video format; use one of {', '.join(VIDEO_FORMATS)}")
+    views = _render_names(renders, num_renders)
     if renders is not None:
         if renders.exists() and not renders.is_dir():
             raise InputError(f"{renders}: exists and is not a folder")
-        if not renders.exists():
-            check_writable(renders)
-    if len({p.resolve() for p in (output, cameras, video, report) if p is not None}) < sum(
-        p is not None for p in (output, cameras, video, report)
-    ):
-        raise InputError("two outputs point at the same file")
+        for p in views:  # an existing folder must be writable too, and hold no folder where a view goes
+            check_writable(p)
+    outputs = [("-o", output), ("--cameras", cameras), ("--video", video), ("--report", report)]
+    check_no_clobber([*outputs, *(("--renders", p) for p in views)], inputs)
+
+
+def _render_names(renders: Path | None, num_renders: int) -> list[Path]:
+    """The files written into --renders."""
+    return [] if renders is None else [renders / f"view_{i:03d}.png" for i in range(num_renders)]
 
 
 def _reconstruct(
@@ -187,7 +210,11 @@ def _reconstruct(
 
     config.validate()
     cameras = cameras or output.with_name(output.stem + ".cameras.json")
-    _check_outputs(output, cameras, renders, video, report)
+    n = config.neural
+    inputs = [("A", images[0]), ("B", images[1]), ("--intrinsics", config.pipeline.views.intrinsics),
+              ("--weights", n.weights), ("--gaussian-head", n.gaussian_head), ("--dino", n.dino),
+              ("--fusion", n.fusion), ("--lpips-weights", config.refine.lpips_weights)]  # fmt: skip
+    _check_outputs(output, cameras, renders, num_renders, video, report, inputs)
     with StageProgress(disabled=quiet) as progress:
         steps = config.refine.steps
         result = reconstruct(
@@ -236,8 +263,8 @@ def _write_outputs(result, output, cameras, renders, num_renders, video, progres
                 frames.append(to_uint8(render_camera(result.gaussians, cam).rgb))
         if renders is not None:
             renders.mkdir(parents=True, exist_ok=True)
-            for i, f in enumerate(frames):
-                save_image(renders / f"view_{i:03d}.png", f)
+            for name, f in zip(_render_names(renders, len(frames)), frames):
+                save_image(name, f)
             written["renders"] = renders
         if video is not None:
             write_video(video, frames)
@@ -256,14 +283,14 @@ def _summary(report: dict[str, Any], written: dict[str, Any]) -> None:
     t.add_row(
         "images",
         "\n".join(
-            f"{Path(p).name}: {i['original_size'][0]}x{i['original_size'][1]} → {i['working_size'][0]}x"
-            f"{i['working_size'][1]}, focal {i['focal_px_working']:.0f} px ({i['intrinsics_source']})"
+            f"{escape(Path(p).name)}: {i['original_size'][0]}x{i['original_size'][1]} → {i['working_size'][0]}x"
+            f"{i['working_size'][1]}, focal {i['focal_px_working']:.0f} px ({escape(str(i['intrinsics_source']))})"
             for p, i in zip(report["inputs"], imgs)
         ),
     )
     m = report["matches"]
     t.add_row("keypoints", " / ".join(str(k) for k in report["keypoints"]))
-    t.add_row("matches", " → ".join(f"{v} {k}" for k, v in m.items()))
+    t.add_row("matches", escape(" → ".join(f"{v} {k}" for k, v in m.items())))
     pose = report["pose"]
 
     def num(key: str, fmt: str) -> str:
@@ -276,19 +303,19 @@ def _summary(report: dict[str, Any], written: dict[str, Any]) -> None:
     )
     if "translation_norm" in pose:
         line += f", baseline {num('translation_norm', '.3f')} m"
-    t.add_row("pose", line)
+    t.add_row("pose", escape(line))
     if "neural" in report:
         n = report["neural"]
-        t.add_row("backend", f"neural ({n['device']}): forward pass {n['forward_s']:.2f} s")
-        t.add_row("fusion", n["fusion"]["detail"])
+        t.add_row("backend", escape(f"neural ({n['device']}): forward pass {n['forward_s']:.2f} s"))
+        t.add_row("fusion", escape(str(n["fusion"]["detail"])))
     t.add_row("depth", " / ".join(f"{100 * c:.0f} %" for c in report["depth_coverage"]) + " of pixels")
     line = f"{report.get('gaussians_written', report['gaussians']):,}"
     if "compact" in report:
         c = report["compact"]
         changed = [f"{s['name']} −{s['before'] - s['after']:,}" for s in c["steps"] if s["before"] != s["after"]]
         line += f" of {c['before']:,} ({c['preset']}: {', '.join(changed) or 'nothing to remove'})"
-    t.add_row("Gaussians", line)
+    t.add_row("Gaussians", escape(line))
     times = report["times_s"]
-    t.add_row("time", ", ".join(f"{k} {v:.2f} s" for k, v in times.items()))
-    t.add_row("wrote", "\n".join(str(v) for v in written.values()))
+    t.add_row("time", escape(", ".join(f"{k} {v:.2f} s" for k, v in times.items())))
+    t.add_row("wrote", "\n".join(escape(str(v)) for v in written.values()))
     err_console.print(t)

@@ -12,7 +12,7 @@ from typing import Annotated
 import typer
 
 from ._app import app
-from ._common import QuietOpt, VerboseOpt, command_context, err_console
+from ._common import QuietOpt, VerboseOpt, check_no_clobber, command_context, err_console, escape
 
 logger = logging.getLogger("macsplat_cli.cli.render")
 
@@ -180,6 +180,11 @@ def _render(
             if video.suffix.lower() not in VIDEO_FORMATS:
                 raise InputError(f"{video}: unsupported video format; use one of {', '.join(VIDEO_FORMATS)}")
             check_writable(video)
+    frame_files = [] if path is None or output is None else [output / f"frame_{i:04d}.png" for i in range(path)]
+    for f in frame_files:  # an existing folder must be writable too
+        check_writable(f)
+    single = [("-o", output), ("--depth", depth)] if path is None else [("--video", video)]
+    check_no_clobber([*single, *(("-o", f) for f in frame_files)], [("SCENE.ply", scene), ("--pose", camera_file)])
     if device == "cuda" and not torch.cuda.is_available():
         raise InputError("--device cuda: this PyTorch has no CUDA device")
     if backend == "gsplat" and device != "cuda":
@@ -218,8 +223,8 @@ def _render(
         images = [to_uint8(f.rgb) for f in frames]
         if output is not None:
             output.mkdir(parents=True, exist_ok=True)
-            for i, img in enumerate(images):
-                written.append(save_image(output / f"frame_{i:04d}.png", img))
+            for name, img in zip(frame_files, images):
+                written.append(save_image(name, img))
         if video is not None:
             written.append(write_video(video, images, fps=fps))
 
@@ -267,11 +272,11 @@ def _summary(scene, n_gauss, targets, n_visible, t_load, t_render, written, back
     table = Table(title="macsplat render", show_header=False, title_justify="left")
     table.add_column(style="bold")
     table.add_column()
-    table.add_row("scene", f"{scene} ({n_gauss:,} Gaussians)")
+    table.add_row("scene", f"{escape(str(scene))} ({n_gauss:,} Gaussians)")
     table.add_row("views", f"{len(targets)} at {targets[0].width}x{targets[0].height}")
     table.add_row("visible", f"{min(n_visible):,}–{max(n_visible):,}" if len(n_visible) > 1 else f"{n_visible[0]:,}")
-    table.add_row("backend", backend)
+    table.add_row("backend", escape(backend))
     table.add_row("time", f"load {t_load:.2f} s, render {t_render:.2f} s ({1e3 * t_render / len(targets):.0f} ms/view)")
     shown = written if len(written) <= 4 else [*written[:2], f"... ({len(written) - 3} more)", written[-1]]
-    table.add_row("wrote", "\n".join(str(p) for p in shown))
+    table.add_row("wrote", "\n".join(escape(str(p)) for p in shown))
     err_console.print(table)

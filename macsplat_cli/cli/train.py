@@ -10,7 +10,7 @@ from typing import Annotated, Any
 import typer
 
 from ._app import app
-from ._common import QuietOpt, VerboseOpt, command_context, err_console
+from ._common import QuietOpt, VerboseOpt, command_context, err_console, escape
 from ._options import DeviceOpt, DinoOpt, GaussianHeadOpt, WeightsOpt
 
 logger = logging.getLogger("macsplat_cli.cli.train")
@@ -191,16 +191,21 @@ def _train(
         progress.start_at(trainer.step)
         if not quiet and trainer.ctx.is_main:
             err_console.print(
-                f"{info['train_pairs']} training pair(s), {info['val_pairs']} validation pair(s) from "
-                f"{info['scenes']} scene(s); {n_train:,} trainable parameters; {trainer.ctx.world_size} process(es)",
+                escape(
+                    f"{info['train_pairs']} training pair(s), {info['val_pairs']} validation pair(s) from "
+                    f"{info['scenes']} scene(s); {n_train:,} trainable parameters; {trainer.ctx.world_size} "
+                    "process(es)"
+                ),
                 highlight=False,
             )
         result = trainer.fit()
     if not quiet and trainer.ctx.is_main:
         best = f"best validation PSNR {result.best_psnr:.2f} dB, " if result.best_psnr is not None else ""
         err_console.print(
-            f"{result.steps} step(s) in {result.seconds:.1f} s ({result.skipped_steps} skipped); {best}"
-            f"wrote {out / 'best.pt'}, {out / 'last.pt'}, {out / 'metrics.csv'}",
+            escape(
+                f"{result.steps} step(s) in {result.seconds:.1f} s ({result.skipped_steps} skipped); {best}"
+                f"wrote {out / 'best.pt'}, {out / 'last.pt'}, {out / 'metrics.csv'}"
+            ),
             highlight=False,
             soft_wrap=True,
         )
@@ -225,7 +230,7 @@ class _TrainProgress:
 
         self.progress = Progress(
             TextColumn("train"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-            TextColumn("{task.fields[last]}"), console=err_console, transient=False,
+            TextColumn("{task.fields[last]}", markup=False), console=err_console, transient=False,
         )  # fmt: skip
         self.task = self.progress.add_task("", total=self.steps, completed=step, last="")
         self.progress.start()
