@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from ._limits import read_text_file
 from .cameras import (
     _GL_FROM_CV,
     Camera,
@@ -116,12 +117,7 @@ def write_colmap_text(camera_set: CameraSet, folder: str | os.PathLike[str]) -> 
 
 
 def _read_lines(path: Path) -> list[str]:
-    try:
-        return path.read_text(encoding="utf-8").splitlines()
-    except FileNotFoundError:
-        raise CameraFileError(f"{path}: no such file") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise CameraFileError(f"{path}: cannot read ({getattr(e, 'strerror', None) or e})") from None
+    return read_text_file(path, CameraFileError, "a COLMAP text file").splitlines()
 
 
 def _parse_colmap_cameras(path: Path) -> dict[int, tuple[int, int, np.ndarray]]:

@@ -43,6 +43,7 @@ from typing import Any, ClassVar, Literal, get_args
 import numpy as np
 
 from ._atomic import atomic_write_text
+from ._limits import read_json_file
 from .errors import CameraFileError, OutputPathError
 from .rotations import quat_to_rotmat_np, rotmat_to_quat_np  # re-exported: the camera formats' converters
 
@@ -374,20 +375,8 @@ class CameraSet:
 
 # ------------------------------------------------------------------------------------ JSON files
 def _read_json(path: Path) -> Any:
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise CameraFileError(f"{path}: no such file") from None
-    except IsADirectoryError:
-        raise CameraFileError(f"{path}: is a directory, not a camera file") from None
-    except UnicodeDecodeError as e:
-        raise CameraFileError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
-    except OSError as e:
-        raise CameraFileError(f"{path}: cannot read ({e.strerror or e})") from None
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as e:
-        raise CameraFileError(f"{path}: invalid JSON at line {e.lineno}, column {e.colno}: {e.msg}") from None
+    """Parse a camera file: a regular file of at most 32 MiB, nested at most 64 levels (:mod:`._limits`)."""
+    return read_json_file(path, CameraFileError, "a camera file")
 
 
 def _write_text(path: str | os.PathLike[str], text: str) -> None:

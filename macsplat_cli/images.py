@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from ._atomic import atomic_path, atomic_write_bytes
+from ._limits import MAX_IMAGE_FILE_BYTES, MAX_MEGAPIXELS_ENV, check_regular_file, max_image_pixels
 from .errors import ImageReadError, InputError, OutputPathError
 
 __all__ = [
@@ -114,26 +115,64 @@ def _apply_orientation(img: np.ndarray, orientation: int) -> np.ndarray:
     return np.ascontiguousarray(out)
 
 
+def _header_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from the image header (Pillow's lazy open decodes no pixels); None if Pillow cannot tell."""
+    from PIL import Image
+
+    saved = Image.MAX_IMAGE_PIXELS
+    Image.MAX_IMAGE_PIXELS = None  # macsplat applies its own cap; Pillow's would raise before giving the size
+    try:
+        with Image.open(io.BytesIO(data)) as im:
+            return int(im.size[0]), int(im.size[1])
+    except Exception:  # noqa: BLE001 - not something Pillow reads: OpenCV decides (under its own 1 GP cap)
+        return None
+    finally:
+        Image.MAX_IMAGE_PIXELS = saved
+
+
+def _check_pixel_count(p: Path, data: bytes) -> None:
+    """Refuse an image whose header declares more pixels than ``MACSPLAT_MAX_MEGAPIXELS``."""
+    size = _header_size(data)
+    if size is None:
+        return
+    w, h = size
+    limit = max_image_pixels()
+    if w * h > limit:
+        raise ImageReadError(
+            f"{p}: {w}x{h} is {w * h / 1e6:.1f} megapixels, above the limit of {limit / 1e6:g} megapixels "
+            f"(raise it with the environment variable {MAX_MEGAPIXELS_ENV}, or downscale the photo)"
+        )
+
+
 def load_image(path: str | os.PathLike[str]) -> LoadedImage:
     """Read a JPEG/PNG/WebP/TIFF/BMP photo: EXIF orientation applied, any bit depth.
 
     Grey and grey+alpha images become RGB; 16-bit and float images keep their
     precision (scaled to [0, 1]); an alpha channel is returned separately.
 
+    The image's size is read from its header before it is decoded: images above
+    ``MACSPLAT_MAX_MEGAPIXELS`` megapixels (default 100) are refused, so a small file that
+    decodes to gigabytes (a "decompression bomb") fails fast.
+
     Raises:
-        ImageReadError: the file is missing, unreadable or not a decodable image.
+        ImageReadError: the file is missing, not a regular file, unreadable, not a decodable
+            image, or larger than the megapixel cap.
+        InputError: ``MACSPLAT_MAX_MEGAPIXELS`` is not a positive number.
     """
     p = Path(path)
+    size = check_regular_file(p, ImageReadError, "an image")
+    if size > MAX_IMAGE_FILE_BYTES:
+        raise ImageReadError(f"{p}: {size:,} bytes is too large for an image (at most {MAX_IMAGE_FILE_BYTES:,} bytes)")
     try:
-        data = p.read_bytes()
-    except FileNotFoundError:
-        raise ImageReadError(f"{p}: no such file") from None
-    except IsADirectoryError:
-        raise ImageReadError(f"{p}: is a directory, not an image") from None
+        with open(p, "rb") as f:
+            data = f.read(MAX_IMAGE_FILE_BYTES + 1)
     except OSError as e:
         raise ImageReadError(f"{p}: cannot read ({e.strerror or e})") from None
     if not data:
         raise ImageReadError(f"{p}: the file is empty")
+    if len(data) > MAX_IMAGE_FILE_BYTES:
+        raise ImageReadError(f"{p}: too large for an image (at most {MAX_IMAGE_FILE_BYTES:,} bytes)")
+    _check_pixel_count(p, data)
     try:
         raw = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION)
     except cv2.error:  # some truncated files make OpenCV raise instead of returning None

@@ -51,6 +51,7 @@ import plyfile
 import torch
 
 from ._atomic import atomic_path
+from ._limits import check_regular_file
 from .errors import OutputPathError, PlyFormatError
 from .gaussians import Gaussians
 from .sh import MAX_SH_DEGREE, num_sh_bases
@@ -275,20 +276,79 @@ def _read_plyfile(path: Path) -> _StructuredColumns:
     return _StructuredColumns(vertex)
 
 
+# Bytes per value of each PLY scalar type (all the names plyfile accepts).
+_PLY_TYPE_BYTES = {
+    **dict.fromkeys(("char", "int8", "i1", "uchar", "uint8", "u1"), 1),
+    **dict.fromkeys(("short", "int16", "i2", "ushort", "uint16", "u2"), 2),
+    **dict.fromkeys(("int", "int32", "i4", "uint", "uint32", "u4", "float", "float32", "f4"), 4),
+    **dict.fromkeys(("double", "float64", "f8"), 8),
+}
+
+
+def _check_declared_sizes(path: Path, size: int, head: bytes) -> None:
+    """Refuse a header whose element counts need more bytes than the file has, before anything is allocated.
+
+    Binary records need at least the sum of their scalar sizes (a list property at least its length
+    field); ASCII records at least two bytes (a digit and a separator) per value. Headers this check
+    does not understand are left to plyfile, which reports them.
+
+    Raises:
+        PlyFormatError: the header declares more data than the file holds, or has no ``end_header``
+            within its first 64 KiB.
+    """
+    end = head.find(b"end_header")
+    if end < 0:
+        if size > len(head):
+            raise PlyFormatError(f"{path}: no 'end_header' within the first {_HEADER_PROBE_BYTES // 1024} KiB")
+        return  # plyfile reports the missing end_header
+    nl = head.find(b"\n", end)
+    header_len = nl + 1 if nl >= 0 else len(head)
+    fmt = ""
+    elements: list[list] = []  # [name, count, bytes per binary record, values per record]
+    for raw in head[:end].decode("ascii", errors="replace").splitlines():
+        words = raw.split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        if words[0] == "format" and len(words) >= 2:
+            fmt = words[1]
+        elif words[0] == "element" and len(words) == 3 and words[2].isdigit():
+            elements.append([words[1], int(words[2]), 0, 0])
+        elif words[0] == "property" and elements and len(words) == 5 and words[1] == "list":
+            if words[2] not in _PLY_TYPE_BYTES:
+                return
+            elements[-1][2] += _PLY_TYPE_BYTES[words[2]]
+            elements[-1][3] += 1
+        elif words[0] == "property" and elements and len(words) == 3 and words[1] in _PLY_TYPE_BYTES:
+            elements[-1][2] += _PLY_TYPE_BYTES[words[1]]
+            elements[-1][3] += 1
+        elif words[0] not in ("ply", "format"):
+            return  # malformed: plyfile says how
+    if fmt == "ascii":
+        need = sum(count * max(1, 2 * n_values) for _, count, _, n_values in elements) - 1
+    elif fmt.startswith("binary"):
+        need = sum(count * max(1, n_bytes) for _, count, n_bytes, _ in elements)
+    else:
+        return
+    available = size - header_len
+    if need > available:
+        declared = ", ".join(f"{count} '{name}'" for name, count, _, _ in elements)
+        raise PlyFormatError(
+            f"{path}: the header declares {declared} elements, which need at least {need} bytes of {fmt} data, "
+            f"but only {max(available, 0)} bytes follow the header (truncated or corrupt file)"
+        )
+
+
 def _open_columns(path: Path) -> _Columns:
     """Open ``path`` and return the ``vertex`` columns (fast path first, then plyfile)."""
+    size = check_regular_file(path, PlyFormatError, "a PLY file")
     try:
-        size = path.stat().st_size
-        if path.is_dir():
-            raise PlyFormatError(f"{path}: is a directory, not a PLY file")
         with open(path, "rb") as f:
             head = f.read(_HEADER_PROBE_BYTES)
-    except FileNotFoundError:
-        raise PlyFormatError(f"{path}: no such file") from None
     except OSError as e:
         raise PlyFormatError(f"{path}: cannot read ({e.strerror or e})") from e
     if not (head.startswith(b"ply\n") or head.startswith(b"ply\r\n")):
         raise PlyFormatError(f"{path}: not a PLY file (it does not start with 'ply')")
+    _check_declared_sizes(path, size, head)
     try:
         fast = _read_fast(path, size, head)
     except OSError as e:

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import functools
-import json
 import logging
 import pickle
 import struct
@@ -41,6 +40,7 @@ from typing import Any, Literal
 import torch
 from torch import nn
 
+from .._limits import read_json_file
 from ._safetensors import read_safetensors
 from ._state_dict import StateDictError, check_state_dict_keys, log_sha256, sha256_file
 from .backbone import MASt3RBackbone
@@ -372,10 +372,7 @@ def _read_safetensors(path: Path) -> dict[str, torch.Tensor]:
 
 
 def _config_from_json(path: Path) -> BackboneConfig:
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise CheckpointError(f"{path} is not valid JSON: {e}", path=path) from None
+    data = read_json_file(path, lambda message: CheckpointError(message, path=path), "a model config")
     if not isinstance(data, dict):
         raise CheckpointError(f"{path}: expected a JSON object of model keyword arguments", path=path)
     try:

@@ -44,6 +44,17 @@ ActivationMode = tuple[str, float, float]
 """``(mode, vmin, vmax)`` exactly as upstream writes it, e.g. ``("exp", 1.0, inf)``."""
 
 _PATCH_SIZE = 16
+# Bounds on model sizes read from untrusted files (every released MASt3R/DUSt3R/CroCo network is well inside).
+MAX_DEPTH = 64
+"""Most transformer blocks in the encoder or in each decoder."""
+MAX_WIDTH = 8192
+"""Widest token or DPT feature width."""
+MAX_HEADS = 256
+"""Most attention heads per block."""
+MAX_DESC_DIM = 1024
+"""Largest matching-descriptor dimension ``D``."""
+MAX_MLP_RATIO = 16.0
+"""Largest MLP hidden-width ratio."""
 _OUTPUT_MODE = re.compile(r"^pts3d(\+gaussian)?\+desc(\d+)$")
 _ROPE = re.compile(r"^RoPE(\d+(?:\.\d+)?)$")
 _PATCH_EMBEDS = ("PatchEmbedDust3R", "ManyAR_PatchEmbed")
@@ -120,6 +131,24 @@ class BackboneConfig:
     def __post_init__(self) -> None:
         if self.patch_size != _PATCH_SIZE:
             raise ModelConfigError(f"patch_size={self.patch_size} is not supported (only {_PATCH_SIZE})")
+        # Bounds first: a config file is untrusted, and building a million blocks (even on ``meta``) takes minutes.
+        _check_bound("enc_depth", self.enc_depth, MAX_DEPTH)
+        _check_bound("dec_depth", self.dec_depth, MAX_DEPTH)
+        _check_bound("enc_embed_dim", self.enc_embed_dim, MAX_WIDTH)
+        _check_bound("dec_embed_dim", self.dec_embed_dim, MAX_WIDTH)
+        _check_bound("enc_num_heads", self.enc_num_heads, MAX_HEADS)
+        _check_bound("dec_num_heads", self.dec_num_heads, MAX_HEADS)
+        _check_bound("local_feat_dim", self.local_feat_dim, MAX_DESC_DIM)
+        _check_bound("dpt_feature_dim", self.dpt_feature_dim, MAX_WIDTH)
+        _check_bound("dpt_last_dim", self.dpt_last_dim, MAX_WIDTH)
+        for i, dim in enumerate(self.dpt_layer_dims):
+            _check_bound(f"dpt_layer_dims[{i}]", dim, MAX_WIDTH)
+        for name in ("mlp_ratio", "local_mlp_ratio"):
+            ratio = getattr(self, name)
+            if not (isinstance(ratio, (int, float)) and math.isfinite(ratio) and 0 < ratio <= MAX_MLP_RATIO):
+                raise ModelConfigError(f"{name}={ratio} must be a number in (0, {MAX_MLP_RATIO:g}]")
+        if not (isinstance(self.rope_freq, (int, float)) and math.isfinite(self.rope_freq) and self.rope_freq > 0):
+            raise ModelConfigError(f"rope_freq={self.rope_freq} must be a positive finite number")
         for name in ("enc", "dec"):
             dim, heads = getattr(self, f"{name}_embed_dim"), getattr(self, f"{name}_num_heads")
             if dim <= 0 or heads <= 0 or dim % heads or (dim // heads) % 4:
@@ -364,10 +393,16 @@ def parse_constructor_string(s: str) -> tuple[str, dict[str, Any]]:
     """
     if not isinstance(s, str):
         raise ModelConfigError(f"the model constructor string must be a str, got {type(s).__name__}")
+    if len(s) > _MAX_CONSTRUCTOR_CHARS:
+        raise ModelConfigError(f"the model constructor string is too long ({len(s)} characters)")
     try:
         tree = ast.parse(s.strip(), mode="eval")
     except SyntaxError as e:
-        raise ModelConfigError(f"the model constructor string is not valid Python syntax: {e.msg} in {s!r}") from None
+        raise ModelConfigError(
+            f"the model constructor string is not valid Python syntax: {e.msg} in {s!r:.200}"
+        ) from None
+    except (ValueError, RecursionError, MemoryError) as e:  # null bytes; nesting too deep for the parser
+        raise ModelConfigError(f"the model constructor string cannot be parsed ({type(e).__name__}: {e})") from None
     call = tree.body
     if not isinstance(call, ast.Call) or not isinstance(call.func, ast.Name):
         raise ModelConfigError(f"expected 'ModelName(key=value, ...)', got {s!r}")
@@ -379,8 +414,14 @@ def parse_constructor_string(s: str) -> tuple[str, dict[str, Any]]:
             raise ModelConfigError(f"{call.func.id}(...) uses **kwargs; only key=value is supported")
         if kw.arg in kwargs:
             raise ModelConfigError(f"keyword {kw.arg!r} is given twice")
-        kwargs[kw.arg] = _literal(kw.value, kw.arg)
+        try:
+            kwargs[kw.arg] = _literal(kw.value, kw.arg)
+        except RecursionError:
+            raise ModelConfigError(f"the value of {kw.arg!r} is nested too deeply") from None
     return call.func.id, kwargs
+
+
+_MAX_CONSTRUCTOR_CHARS = 100_000  # upstream's strings are ~600 characters
 
 
 _SPECIAL_FLOATS = {"inf": math.inf, "nan": math.nan}
@@ -450,6 +491,12 @@ def _activation_mode(key: str, value: Any) -> ActivationMode:
     ):
         raise ModelConfigError(f"{key}={value!r} must be (mode, vmin, vmax)")
     return (value[0], float(value[1]), float(value[2]))
+
+
+def _check_bound(key: str, value: Any, most: int) -> None:
+    """Raise :class:`ModelConfigError` unless ``value`` is an int in ``[1, most]``."""
+    if not _is_int(value) or not 1 <= value <= most:
+        raise ModelConfigError(f"{key}={value!r} is out of range (a whole number from 1 to {most})")
 
 
 def _check_mode(key: str, mode: ActivationMode, allowed: tuple[str, ...]) -> None:

@@ -69,6 +69,10 @@ logger = logging.getLogger(__name__)
 
 FUSION_FORMAT = "macsplat.residual_semantic_fusion"
 _FUSION_VERSION = 1
+MAX_FUSION_WIDTH = 8192
+"""Widest descriptor, DINOv3 or hidden width a fusion config may have."""
+MAX_FUSION_DEPTH = 64
+"""Most linear layers in the fusion MLP."""
 
 
 class FusionCheckpointError(StateDictError):
@@ -95,10 +99,18 @@ class FusionConfig:
     renormalize: bool = True
 
     def __post_init__(self) -> None:
+        sizes = {k: getattr(self, k) for k in ("desc_dim", "dino_dim", "hidden_dim", "depth")}
+        if not all(isinstance(v, int) and not isinstance(v, bool) for v in sizes.values()):
+            raise ValueError(f"FusionConfig sizes must be whole numbers: {self}")
         if min(self.desc_dim, self.dino_dim, self.hidden_dim) <= 0:
             raise ValueError(f"FusionConfig sizes must be positive: {self}")
         if self.depth < 2:
             raise ValueError(f"FusionConfig.depth must be at least 2 (input and output layers), got {self.depth}")
+        # Bounds: the config of a fusion file is untrusted and sizes the module before its weights are checked.
+        for key, most in (("desc_dim", MAX_FUSION_WIDTH), ("dino_dim", MAX_FUSION_WIDTH),
+                          ("hidden_dim", MAX_FUSION_WIDTH), ("depth", MAX_FUSION_DEPTH)):  # fmt: skip
+            if sizes[key] > most:
+                raise ValueError(f"FusionConfig.{key}={sizes[key]} is out of range (at most {most})")
 
 
 class ResidualSemanticFusion(nn.Module):
@@ -267,8 +279,10 @@ def load_fusion(path: str | os.PathLike[str], *, device: torch.device | str = "c
     state = obj.get("state_dict")
     if not isinstance(state, Mapping):
         raise FusionCheckpointError(f"{p}: no state_dict")
-    module = ResidualSemanticFusion(cfg)
+    with torch.device("meta"):  # sized by the file's config: check the weights before allocating anything
+        module = ResidualSemanticFusion(cfg)
     expected = {k: v.shape for k, v in module.state_dict().items()}
     check_state_dict_keys(expected, state, FusionCheckpointError, source=str(p), model="the fusion module")
+    module.to_empty(device="cpu")
     module.load_state_dict(state, strict=True)
     return module.to(device)

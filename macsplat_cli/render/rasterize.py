@@ -8,6 +8,7 @@ from typing import Literal
 import torch
 
 from .._checks import check_finite, check_shape
+from .._limits import check_render_size
 from ..cameras import Camera
 from ..gaussians import Gaussians
 from . import _gsplat
@@ -113,7 +114,13 @@ def render_camera(gaussians: Gaussians, camera: Camera, **kwargs: object) -> Ren
     """Render into a :class:`~macsplat_cli.cameras.Camera` (its size, K and pose).
 
     Keyword arguments are those of :func:`render`.
+
+    Raises:
+        InputError: the camera's image is larger than :data:`~macsplat_cli._limits.MAX_RENDER_SIDE` pixels
+            on a side or :data:`~macsplat_cli._limits.MAX_RENDER_PIXELS` in all (checked before any
+            framebuffer is allocated).
     """
+    check_render_size(camera.width, camera.height)
     dev, dt = gaussians.device, gaussians.dtype
     viewmat = torch.tensor(camera.world_to_cam, dtype=dt, device=dev)
     K = torch.tensor(camera.K, dtype=dt, device=dev)

@@ -7,7 +7,6 @@ See :func:`load_dinov3`; the key mapping is :func:`hf_to_official`, the variant 
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import math
 import os
@@ -17,8 +16,10 @@ from pathlib import Path
 
 import torch
 
+from ..._limits import read_json_file
 from .._safetensors import read_safetensors as _read_safetensors
 from .._state_dict import StateDictError, check_state_dict_keys, log_sha256
+from ..config import ModelConfigError
 from .config import DINOV3_PRESETS, SAT493M_MEAN, SAT493M_STD, DINOv3Config
 from .model import DINOv3Encoder, rope_periods
 
@@ -268,6 +269,8 @@ def infer_dinov3_config(state_dict: Mapping[str, torch.Tensor], *, num_heads: in
         heads = c // head_dim if c % head_dim == 0 else 0
         rope_base = rope_base_from_periods(periods)
     elif num_heads:
+        if not isinstance(num_heads, int) or isinstance(num_heads, bool):
+            raise DINOv3CheckpointError(f"num_attention_heads={num_heads!r} is not a whole number", key=None)
         heads = num_heads
     else:
         heads = _HEADS_BY_WIDTH.get(c, c // 64)
@@ -275,21 +278,24 @@ def infer_dinov3_config(state_dict: Mapping[str, torch.Tensor], *, num_heads: in
     if heads <= 0 or c % heads != 0 or (c // heads) % 4 != 0:
         raise DINOv3CheckpointError(f"cannot infer the DINOv3 head count for width {c}", key="rope_embed.periods")
     untie = "local_cls_norm.weight" in state_dict
-    base = DINOv3Config(
-        name="custom",
-        embed_dim=c,
-        depth=depth,
-        num_heads=heads,
-        ffn="swiglu" if swiglu else "mlp",
-        ffn_hidden_dim=hidden,
-        patch_size=patch,
-        n_storage_tokens=n_storage,
-        qkv_bias="blocks.0.attn.qkv.bias" in state_dict,
-        proj_bias="blocks.0.attn.proj.bias" in state_dict,
-        ffn_bias=f"{first_ffn}.bias" in state_dict,
-        rope_base=rope_base,
-        untie_global_and_local_cls_norm=untie,
-    )
+    try:
+        base = DINOv3Config(
+            name="custom",
+            embed_dim=c,
+            depth=depth,
+            num_heads=heads,
+            ffn="swiglu" if swiglu else "mlp",
+            ffn_hidden_dim=hidden,
+            patch_size=patch,
+            n_storage_tokens=n_storage,
+            qkv_bias="blocks.0.attn.qkv.bias" in state_dict,
+            proj_bias="blocks.0.attn.proj.bias" in state_dict,
+            ffn_bias=f"{first_ffn}.bias" in state_dict,
+            rope_base=rope_base,
+            untie_global_and_local_cls_norm=untie,
+        )
+    except ModelConfigError as e:
+        raise DINOv3CheckpointError(f"the weights describe an unsupported DINOv3 variant: {e}", key=None) from None
     for name, preset in DINOV3_PRESETS.items():
         if name == "tiny":
             continue
@@ -322,10 +328,10 @@ def _read_hf_folder(folder: Path) -> tuple[dict[str, torch.Tensor], dict]:
     if single.is_file():
         files = [single]
     elif index.is_file():
-        try:
-            weight_map = json.loads(index.read_text(encoding="utf-8"))["weight_map"]
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as e:
-            raise DINOv3CheckpointError(f"{index}: unreadable safetensors index: {e}") from None
+        data = read_json_file(index, DINOv3CheckpointError, "a safetensors index")
+        weight_map = data.get("weight_map") if isinstance(data, dict) else None
+        if not isinstance(weight_map, dict) or not all(isinstance(v, str) for v in weight_map.values()):
+            raise DINOv3CheckpointError(f"{index}: unreadable safetensors index: no 'weight_map' of file names")
         files = [folder / name for name in dict.fromkeys(weight_map.values())]
     else:
         raise _not_found(single, f" (the folder {folder} has no model.safetensors)")
@@ -338,10 +344,9 @@ def _read_hf_folder(folder: Path) -> tuple[dict[str, torch.Tensor], dict]:
     hf_config: dict = {}
     cfg_path = folder / "config.json"
     if cfg_path.is_file():
-        try:
-            hf_config = json.loads(cfg_path.read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-            raise DINOv3CheckpointError(f"{cfg_path}: unreadable config.json: {e}") from None
+        hf_config = read_json_file(cfg_path, DINOv3CheckpointError, "a config.json")
+        if not isinstance(hf_config, dict):
+            raise DINOv3CheckpointError(f"{cfg_path}: unreadable config.json: not a JSON object")
     else:
         logger.warning("%s has no config.json: assuming the released head count for the width", folder)
     return sd, hf_config
@@ -427,11 +432,14 @@ def load_dinov3(
                 f"{p}: config.json hidden_act {hf_config['hidden_act']!r} is not supported "
                 f"(DINOv3 uses {act!r} with a {cfg.ffn} FFN)"
             )
-        cfg = dataclasses.replace(
-            cfg,
-            norm_eps=float(hf_config.get("layer_norm_eps", cfg.norm_eps)),
-            rope_base=float(hf_config.get("rope_theta", cfg.rope_base)),
-        )
+        try:
+            cfg = dataclasses.replace(
+                cfg,
+                norm_eps=float(hf_config.get("layer_norm_eps", cfg.norm_eps)),
+                rope_base=float(hf_config.get("rope_theta", cfg.rope_base)),
+            )
+        except (TypeError, ValueError) as e:  # ModelConfigError is a ValueError
+            raise DINOv3CheckpointError(f"{p}: config.json: unsupported layer_norm_eps or rope_theta: {e}") from None
     if layout == "huggingface" and "rope_embed.periods" not in sd:
         sd["rope_embed.periods"] = rope_periods(cfg.head_dim, cfg.rope_base)
 

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
+
+from ..config import ModelConfigError
 
 __all__ = [
     "DINOV3_PRESETS",
@@ -17,6 +20,16 @@ __all__ = [
 
 FfnType = Literal["mlp", "swiglu"]
 
+# (field, least, most) of the sizes a config may have.
+_BOUNDS = (
+    ("embed_dim", 1, 8192),
+    ("depth", 1, 64),
+    ("num_heads", 1, 256),
+    ("ffn_hidden_dim", 1, 32768),
+    ("patch_size", 8, 64),
+    ("n_storage_tokens", 0, 64),
+)
+
 # Image normalisation of the LVD-1689M weights (ImageNet) and of the SAT-493M (satellite) weights.
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -27,6 +40,10 @@ SAT493M_STD = (0.213, 0.156, 0.143)
 @dataclass(frozen=True)
 class DINOv3Config:
     """Hyper-parameters of a DINOv3 ViT.
+
+    Sizes are bounded (depth ≤ 64, width ≤ 8192, ≤ 256 heads, FFN ≤ 32768, patch 8–64, ≤ 64 registers):
+    invalid or out-of-range values raise :class:`~macsplat_cli.neural.config.ModelConfigError`
+    (an ``InputError`` and a ``ValueError``).
 
     Args:
         name: preset name (``vits16``, ``vits16plus``, ``vitb16``, ``vitl16``, ``tiny``) or a description.
@@ -68,15 +85,29 @@ class DINOv3Config:
     image_std: tuple[float, float, float] = IMAGENET_STD
 
     def __post_init__(self) -> None:
+        sizes = [getattr(self, key) for key, _, _ in _BOUNDS]
+        if not all(isinstance(v, int) and not isinstance(v, bool) for v in sizes):
+            raise ModelConfigError(f"DINOv3Config {self.name!r}: sizes must be whole numbers")
         if self.embed_dim <= 0 or self.depth <= 0 or self.num_heads <= 0 or self.ffn_hidden_dim <= 0:
-            raise ValueError(f"DINOv3Config {self.name!r}: sizes must be positive")
+            raise ModelConfigError(f"DINOv3Config {self.name!r}: sizes must be positive")
+        # Bounds: configurations come from untrusted files (shapes, config.json); ViT-7B is well inside.
+        for key, lo, hi in _BOUNDS:
+            value = getattr(self, key)
+            if not lo <= value <= hi:
+                raise ModelConfigError(
+                    f"DINOv3Config {self.name!r}: {key}={value} is out of range (a whole number from {lo} to {hi})"
+                )
         if self.embed_dim % self.num_heads != 0 or (self.embed_dim // self.num_heads) % 4 != 0:
-            raise ValueError(
+            raise ModelConfigError(
                 f"DINOv3Config {self.name!r}: head dim embed_dim/num_heads = {self.embed_dim}/{self.num_heads} "
                 "must be a whole multiple of 4"
             )
         if self.ffn not in ("mlp", "swiglu"):
-            raise ValueError(f"DINOv3Config {self.name!r}: ffn must be 'mlp' or 'swiglu', got {self.ffn!r}")
+            raise ModelConfigError(f"DINOv3Config {self.name!r}: ffn must be 'mlp' or 'swiglu', got {self.ffn!r}")
+        for key in ("rope_base", "norm_eps"):
+            value = getattr(self, key)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ModelConfigError(f"DINOv3Config {self.name!r}: {key}={value!r} must be a positive finite number")
 
     @property
     def head_dim(self) -> int:
