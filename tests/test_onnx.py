@@ -262,12 +262,19 @@ def test_a_failed_parity_check_keeps_no_file(tmp_path: Path) -> None:
 
 
 # ------------------------------------------------------------------------------ fp16 and int8
-def test_fp16_export_from_the_cli(ckpts: dict[str, Path], pair: tuple[Path, Path], tmp_path: Path) -> None:
+def test_fp16_export_of_a_training_checkpoint_from_the_cli(
+    ckpts: dict[str, Path], pair: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """``--checkpoint runs/x/best.pt`` (macsplat's own format) with ``--fp16``."""
+    from macsplat_cli.neural.predictor_io import save_predictor_checkpoint
+
+    best = save_predictor_checkpoint(tmp_path / "best.pt", load_pair_predictor(weights=ckpts["mast3r"]), {"step": 7})
     out = tmp_path / "p16.onnx"
-    code, _, err = _run(["export-onnx", "--weights", ckpts["mast3r"], "-o", out, "--size", "96x64", "--fp16", "-q"])
+    code, _, err = _run(["export-onnx", "--checkpoint", best, "-o", out, "--size", "96x64", "--fp16", "-q"])
     assert code == 0, err
     info = read_predictor_info(out)
     assert info.precision == "fp16" and info.parity["ok"]
+    assert info.sources == {"checkpoint": {"path": str(best), "sha256": sha256_file(best)}}
     worst = max(r["max_rel"] for r in info.parity["outputs"])
     assert 1e-5 < worst < 3e-2  # half precision: visibly coarser than fp32, within its bound
     fp16_weights = [t for t in onnx.load(str(out)).graph.initializer if t.data_type == onnx.TensorProto.FLOAT16]

@@ -145,7 +145,10 @@ def export_onnx_command(
                 current.append(name)
 
             try:
-                result = export_onnx(predictor, output, config, sources=files, on_step=on_step)
+                sources = {
+                    ("checkpoint" if k == "weights" and checkpoint is not None else k): v for k, v in files.items()
+                }
+                result = export_onnx(predictor, output, config, sources=sources, on_step=on_step)
             except BaseException as e:
                 if current:
                     progress.event(_STEPS[current.pop()], "fail")
