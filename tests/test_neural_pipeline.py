@@ -88,8 +88,12 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> Scene:
 
 @pytest.fixture(scope="module")
 def ckpts(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    """Tiny random-weight checkpoints in the official layouts."""
-    root = tmp_path_factory.mktemp("ckpt")
+    return write_tiny_checkpoints(tmp_path_factory.mktemp("ckpt"))
+
+
+def write_tiny_checkpoints(root: Path) -> dict[str, Path]:
+    """Tiny random-weight checkpoints in the official layouts, in ``root``: MASt3R ``.pth`` (``mast3r``),
+    DINOv3 (``dino``), fusion (``fusion``), Splatt3R ``.ckpt`` (``splatt3r``), and a mismatched MASt3R (``bad``)."""
     files = {"mast3r": save_pth(root / "mast3r_tiny.pth", random_state_dict(TINY))}
     torch.save(random_official_state_dict(DINO_TINY, seed=1), root / "dinov3_tiny.pth")
     files["dino"] = root / "dinov3_tiny.pth"

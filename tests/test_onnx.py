@@ -17,25 +17,21 @@ import contextlib
 import dataclasses
 import io
 import json
-import math
 from pathlib import Path
 
 import numpy as np
 import onnx
 import pytest
 import torch
-from test_dinov3 import random_official_state_dict
-from test_neural_checkpoints import TINY, random_state_dict, save_pth
+from test_neural_pipeline import write_tiny_checkpoints
 
 from macsplat_cli.cli import main
 from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.engine import EngineConfig, Models, NeuralOptions, reconstruct
 from macsplat_cli.images import save_image
-from macsplat_cli.neural import BackboneView, GaussianHead
+from macsplat_cli.neural import BackboneView
 from macsplat_cli.neural._state_dict import sha256_file
 from macsplat_cli.neural.config import BackboneConfig
-from macsplat_cli.neural.dinov3 import DINOv3Config
-from macsplat_cli.neural.fusion import FusionConfig, ResidualSemanticFusion, save_fusion
 from macsplat_cli.neural.onnx_export import ExportConfig, export_onnx
 from macsplat_cli.neural.onnx_format import METADATA_KEY, ParityError
 from macsplat_cli.neural.onnx_runtime import OnnxPairPredictor, read_predictor_info
@@ -43,7 +39,6 @@ from macsplat_cli.neural.predictor import PairPredictor, load_pair_predictor
 from macsplat_cli.ply import read_ply
 
 SIZE = (96, 64)
-DINO_TINY = DINOv3Config.preset("tiny")
 
 
 def _run(args: list[str | Path]) -> tuple[int, str, str]:
@@ -61,21 +56,7 @@ def _error_line(err: str) -> str:
 
 @pytest.fixture(scope="module")
 def ckpts(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    root = tmp_path_factory.mktemp("ckpt")
-    files = {"mast3r": save_pth(root / "mast3r_tiny.pth", random_state_dict(TINY))}
-    torch.save(random_official_state_dict(DINO_TINY, seed=1), root / "dinov3_tiny.pth")
-    files["dino"] = root / "dinov3_tiny.pth"
-    torch.manual_seed(0)
-    fusion = ResidualSemanticFusion(FusionConfig(desc_dim=24, dino_dim=DINO_TINY.embed_dim, hidden_dim=16))
-    with torch.no_grad():
-        fusion.layers[-1].weight.normal_(0.0, 0.5)
-    files["fusion"] = save_fusion(fusion, root / "fusion.pth")
-    cfg = TINY.replace(head_type="gaussian_head", desc_conf_mode=("exp", 1.0, math.inf))
-    torch.manual_seed(1)
-    state = {"encoder." + k: v for k, v in {**random_state_dict(cfg), **GaussianHead(cfg).state_dict()}.items()}
-    torch.save({"state_dict": state, "epoch": 19, "global_step": 1200}, root / "splatt3r_tiny.ckpt")
-    files["splatt3r"] = root / "splatt3r_tiny.ckpt"
-    return files
+    return write_tiny_checkpoints(tmp_path_factory.mktemp("ckpt"))
 
 
 @pytest.fixture(scope="module")
