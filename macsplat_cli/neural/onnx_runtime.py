@@ -189,13 +189,6 @@ class OnnxPairPredictor:
     def fusion_detail(self, size: tuple[int, int]) -> str:
         return self.info.fusion_detail(size)
 
-    # torch-module-like no-ops, so the engine can treat both predictors alike
-    def to(self, *args: Any, **kwargs: Any) -> OnnxPairPredictor:
-        return self
-
-    def eval(self) -> OnnxPairPredictor:
-        return self
-
     # ------------------------------------------------------------------ computation
     def _check(self, img0: torch.Tensor, img1: torch.Tensor) -> None:
         if img0.dim() != 4 or img0.shape[1] != 3:
