@@ -610,3 +610,32 @@ def test_bf16_precision_matches_fp32_and_runs_from_the_cli(
     assert code == 2 and "--precision" in err
     code, _, err = _run(_neural_args(scene, tmp_path, "--weights", ckpts["mast3r"], "--precision", "fp8"))
     assert code == 2 and "fp8" in err
+
+
+def test_network_input_keeps_the_photo_aspect(tmp_path: Path) -> None:
+    """MASt3R's loader keeps the photo's aspect and centre-crops to multiples of 16; the working image
+    (both sides rounded to multiples of 16) is stretched, so view 0 is warped back to the true aspect."""
+    from macsplat_cli.pipeline.views import ViewConfig, load_views
+
+    rng = np.random.default_rng(0)
+    photo = cv2_blur(rng.uniform(0, 1, (140, 200, 3)).astype(np.float32))
+    for name in ("a.png", "b.png"):
+        save_image(tmp_path / name, photo)
+    views = load_views([tmp_path / "a.png", tmp_path / "b.png"], ViewConfig(size=96))
+    assert (views[0].width, views[0].height) == (96, 64)  # 96 x 67.2 rounded: a 4.8 % stretch
+    pair = NeuralPair(_tiny_predictor())(views)
+    w0 = pair.warps[0]
+    assert w0.net_size == (96, 64) and w0.scale == (1.0, 67 / 64) and w0.offset == (0, 1)
+    K_work, K_net = views[0].K, w0.K_net(views[0].K)
+    assert abs(K_work[1, 1] / K_work[0, 0] - 1) > 0.04 and abs(K_net[1, 1] / K_net[0, 0] - 1) < 0.005
+    # the 224 checkpoints: a centre square crop of side 224
+    square = ViewWarp.mast3r((512, 336), (1024, 680), square=224)
+    assert square.net_size == (224, 224) and square.offset == ((round(1024 * 224 / 680) - 224) // 2, 0)
+    # a square photo is cut to 4:3 (the 512 checkpoints never saw squares)
+    assert ViewWarp.mast3r((512, 512), (800, 800)).net_size == (512, 384)
+
+
+def cv2_blur(img: np.ndarray) -> np.ndarray:
+    import cv2
+
+    return cv2.GaussianBlur(img, (0, 0), 2.0)

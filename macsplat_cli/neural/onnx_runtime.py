@@ -180,6 +180,12 @@ class OnnxPairPredictor:
         """``(W, H)`` the file only accepts, or None for any multiple of 16."""
         return None if self.info.dynamic else self.info.size
 
+    @property
+    def square_input(self) -> int | None:
+        """As :attr:`PairPredictor.square_input`, from the configuration in the metadata."""
+        img_size = (self.info.config.get("backbone") or {}).get("img_size")
+        return 224 if img_size is not None and tuple(img_size) == (224, 224) else None
+
     def network_name(self) -> str:
         return f"onnx {self.path.name} ({self.info.network}, {self.info.precision}, {self.providers[0]})"
 

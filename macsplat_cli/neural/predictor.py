@@ -155,6 +155,11 @@ class PairPredictor(nn.Module):
         """``(W, H)`` the predictor only accepts, or None: any multiple of 16 (a fixed-size ONNX export has one)."""
         return None
 
+    @property
+    def square_input(self) -> int | None:
+        """The side of the square crops the network was trained on (MASt3R's 224 checkpoints), else None."""
+        return 224 if tuple(self.backbone.config.img_size) == (224, 224) else None
+
     def network_name(self) -> str:
         c = self.backbone.config
         return f"mast3r (enc {c.enc_embed_dim}x{c.enc_depth}, dec {c.dec_embed_dim}x{c.dec_depth})"

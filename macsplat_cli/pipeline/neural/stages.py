@@ -197,8 +197,12 @@ class NeuralPair:
     def __call__(self, views: list[View]) -> NetworkPair:
         v0, v1 = views
         dev = self.device
-        net_size = self.predictor.input_size or (v0.width, v0.height)  # a fixed-size ONNX file has its own
-        warps = (ViewWarp.fit((v0.width, v0.height), net_size), ViewWarp.fit((v1.width, v1.height), net_size))
+        if self.predictor.input_size is not None:  # a fixed-size ONNX file
+            warp0 = ViewWarp.fit((v0.width, v0.height), self.predictor.input_size)
+        else:  # as the network was trained: aspect kept, centre crop to multiples of 16
+            warp0 = ViewWarp.mast3r((v0.width, v0.height), v0.original_size, self.predictor.square_input)
+        net_size = warp0.net_size
+        warps = (warp0, ViewWarp.fit((v1.width, v1.height), net_size))
         if not warps[1].identity:
             logger.info(
                 "%s is %dx%d, %s %dx%d: resized and centre-cropped to %dx%d for the network",

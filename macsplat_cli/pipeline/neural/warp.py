@@ -1,8 +1,9 @@
 """View ↔ network grid: where a view's working pixels land on the network's input.
 
-Both views must reach the network at one size: view 0 goes in as loaded; a view 1 of another size
-is scaled to cover view 0's size and centre-cropped (:meth:`ViewWarp.fit`, intrinsics transformed
-accordingly); its outputs are sampled back onto its own pixels, and pixels cropped away get no depth.
+Both views must reach the network at one size: view 0 as MASt3R's loader prepares a photo (aspect kept,
+centre crop to multiples of 16: :meth:`ViewWarp.mast3r`), or at a fixed-size network's size; view 1 is
+scaled to cover that size and centre-cropped (:meth:`ViewWarp.fit`); intrinsics are transformed
+accordingly, outputs are sampled back onto each view's own pixels, and pixels cropped away get no depth.
 """
 
 from __future__ import annotations
@@ -42,6 +43,30 @@ class ViewWarp:
         s = max(wn / w, hn / h)
         wr, hr = max(wn, round(w * s)), max(hn, round(h * s))
         return cls(view_size, net_size, (wr / w, hr / h), ((wr - wn) // 2, (hr - hn) // 2))
+
+    @classmethod
+    def mast3r(cls, view_size: tuple[int, int], original_size: tuple[int, int], square: int | None = None) -> ViewWarp:
+        """MASt3R's own input preprocessing for view 0: the photo resized with its aspect kept (the long side
+        to the view's long side) and centre-cropped to multiples of 16 — a square result is cut to 4:3, as the
+        512 checkpoints never saw squares; ``square``: the short side to ``square`` and a centre square crop
+        (the 224 checkpoints). The working image is stretched by up to a few per cent to make both its sides
+        multiples of 16; this warp undoes that stretch, so the network sees the photo's true aspect."""
+        (w, h), (wo, ho) = view_size, original_size
+        if square:
+            s = square / min(wo, ho)
+            ws, hs = max(square, round(wo * s)), max(square, round(ho * s))
+            wn = hn = square
+        else:
+            s = max(w, h) / max(wo, ho)
+            ws, hs = round(wo * s), round(ho * s)
+            wn, hn = ws // 16 * 16, hs // 16 * 16
+            if wn == hn:
+                hn = wn * 3 // 4 // 16 * 16
+        if min(wn, hn) < 16:  # a sliver: nothing to crop to; the working image as it is
+            return cls(view_size, view_size)
+        if (ws, hs) == (w, h) and (wn, hn) == (w, h):
+            return cls(view_size, view_size)
+        return cls(view_size, (wn, hn), (ws / w, hs / h), ((ws - wn) // 2, (hs - hn) // 2))
 
     @property
     def identity(self) -> bool:
