@@ -183,7 +183,7 @@ def check_opset(opset: int) -> None:
 
         raise InputError(
             f"--opset {opset}: the installed exporter (torch {torch.__version__}) and onnxruntime "
-            f"{ort.__version__} cannot produce and run it ({problem}); use 18 to 20"
+            f"{ort.__version__} cannot produce and run it ({problem}); 18 and 20 (the default) are the safe choices"
         )
 
 

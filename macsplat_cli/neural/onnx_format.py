@@ -22,7 +22,6 @@ import dataclasses
 import json
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -246,10 +245,3 @@ def compare_outputs(
         rows.append({"output": name, "max_abs": err, "max_rel": rel, "ok": bool(rel <= tolerance)})
     return rows
 
-
-def read_metadata_file(path: Path) -> dict[str, str]:  # pragma: no cover - thin wrapper, used by tests and tools
-    """The ``metadata_props`` of an ONNX file (weights not loaded)."""
-    import onnx
-
-    model = onnx.load(str(path), load_external_data=False)
-    return {p.key: p.value for p in model.metadata_props}
