@@ -244,4 +244,3 @@ def compare_outputs(
         rel = err / max(scale, 1e-12) if math.isfinite(err) else math.inf
         rows.append({"output": name, "max_abs": err, "max_rel": rel, "ok": bool(rel <= tolerance)})
     return rows
-
