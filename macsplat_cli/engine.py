@@ -252,7 +252,9 @@ def build_pipeline(config: EngineConfig, models: Models) -> Pipeline:
         pipe_cfg = neural_reconstruct_config(pipe_cfg)
         if config.conf_threshold is not None:
             pipe_cfg.matching.conf_threshold = config.conf_threshold
-        neural = NeuralConfig(precision=config.neural.precision)  # type: ignore[arg-type]
+        # --quality fast: DINOv3 and the fusion run only when the backbone's descriptors verify too few matches
+        fusion = "auto" if config.quality == "fast" else "always"
+        neural = NeuralConfig(precision=config.neural.precision, fusion=fusion)  # type: ignore[arg-type]
         # onnxruntime takes and returns CPU arrays whatever its provider; torch runs where it was asked to
         device = "cpu" if config.neural.is_onnx else config.neural.device
         stages = neural_stages(models.predictor, pipe_cfg, neural, device)
@@ -317,6 +319,9 @@ def reconstruct(
         rec.report.backends["network"] = f"{predictor.network_name()} on {config.neural.device}"
         rec.report.backends["fusion"] = predictor.fusion_name()
         rec.report.neural = {**pipeline.pair.report(), "files": dict(models.files), "load_s": models.load_s}
+        fusion = rec.report.neural["fusion"]
+        if fusion.get("policy") == "auto" and fusion["applied"]:  # it ran on demand: were its matches better?
+            fusion["matches_kept"] = "fused" if rec.report.fallback_used else "unfused (the fused ones verified fewer)"
     if config.refine.steps > 0:
         rec = _refine(rec, config.refine, models, notify, on_refine_step)
     return _compact(rec, config, notify)

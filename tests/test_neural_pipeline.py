@@ -639,3 +639,67 @@ def cv2_blur(img: np.ndarray) -> np.ndarray:
     import cv2
 
     return cv2.GaussianBlur(img, (0, 0), 2.0)
+
+
+def test_fusion_auto_skips_dinov3_while_matches_verify_and_runs_it_on_demand(
+    scene: Scene, ckpts: dict[str, Path], tmp_path: Path
+) -> None:
+    """``--quality fast`` (fusion "auto"): ``forward_unfused`` + ``fuse_descriptors`` is ``forward`` exactly;
+    with enough verified matches DINOv3 never runs and the report says why; with too few, the fusion runs on
+    demand as the descriptor fallback and its descriptors are the ones "always" gives."""
+    predictor = load_pair_predictor(weights=ckpts["mast3r"], dino=ckpts["dino"], fusion=ckpts["fusion"])
+    img = torch.rand(2, 3, 64, 96, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        full = predictor(img[:1], img[1:])
+        raw = predictor.forward_unfused(img[:1], img[1:])
+        fused = predictor.fuse_descriptors(raw[2], img[:1], img[1:])
+    for k, (a, b) in enumerate(zip(full, raw)):
+        if k != 2:
+            assert torch.equal(a, b)
+    assert torch.equal(fused, full[2]) and not torch.allclose(raw[2], full[2], atol=1e-3)
+
+    calls = []
+    hook = predictor.dino.register_forward_hook(lambda *_: calls.append(1))
+    try:
+        always = build_pipeline(EngineConfig(backend="neural"), Models(predictor=predictor))
+        always.run([scene.a, scene.b])
+        assert len(calls) == 1
+        fast = EngineConfig(backend="neural", quality="fast")
+        fast.pipeline.fallback_min_inliers = 0  # every pair verifies "enough": the fusion is never needed
+        skip = build_pipeline(fast, Models(predictor=predictor))
+        rec_skip = skip.run([scene.a, scene.b])
+        assert len(calls) == 1  # DINOv3 did not run
+        assert skip.pair.last.fusion == "deferred" and not rec_skip.report.fallback_used
+        rep = skip.pair.report()["fusion"]
+        assert rep["applied"] is False and rep["policy"] == "auto" and "skipped" in rep["detail"]
+        # the unfused pass gives the same geometry (the fusion only changes the descriptors)
+        np.testing.assert_array_equal(skip.pair.last.pts3d, always.pair.last.pts3d)
+        fast.pipeline.fallback_min_inliers = 10**9  # never enough: the fusion runs once, on demand
+        demand = build_pipeline(fast, Models(predictor=predictor))
+        demand.run([scene.a, scene.b])
+        assert len(calls) == 2
+        last = demand.pair.last
+        assert last.fusion == "applied" and last.fusion_seconds > 0
+        np.testing.assert_allclose(last.desc, always.pair.last.desc, atol=1e-6)
+        rep = demand.pair.report()["fusion"]
+        assert rep["applied"] is True and "on demand" in rep["detail"]
+        assert demand.backends()["descriptors_fallback"].endswith("(on demand)")
+        # through the CLI: the report says what ran
+        code, out, err = _run(
+            [
+                *_neural_args(
+                    scene, tmp_path, "--weights", ckpts["mast3r"], "--dino", ckpts["dino"], "--fusion", ckpts["fusion"]
+                ),
+                "--quality",
+                "fast",
+                "--json",
+                "-q",
+            ]
+        )
+        assert code == 0, err
+        fusion = json.loads(out)["neural"]["fusion"]
+        assert fusion["policy"] == "auto"
+        assert ("skipped" in fusion["detail"]) != fusion["applied"]
+        assert not fusion["applied"] or "matches_kept" in fusion
+    finally:
+        hook.remove()

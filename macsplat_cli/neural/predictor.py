@@ -23,6 +23,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from .._checks import check_shape
 from ..errors import InputError, ShapeError
 from ..gaussians import GaussianMaps
 from .backbone import MASt3RBackbone
@@ -196,13 +197,39 @@ class PairPredictor(nn.Module):
             ``quats [B, 2, H, W, 4]`` (wxyz), ``opacity_logits [B, 2, H, W]``, ``sh [B, 2, H, W, K, 3]``.
             The names are :attr:`output_names`.
         """
+        return self._run(img0, img1, fuse=True)
+
+    def forward_unfused(self, img0: torch.Tensor, img1: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """:meth:`forward` without the semantic fusion: ``desc`` is the backbone's own (DINOv3 does not run).
+        :meth:`fuse_descriptors` on its ``desc`` gives :meth:`forward`'s exactly. Same arguments and outputs."""
+        return self._run(img0, img1, fuse=False)
+
+    def fuse_descriptors(self, desc: torch.Tensor, img0: torch.Tensor, img1: torch.Tensor) -> torch.Tensor:
+        """The semantic fusion of :meth:`forward_unfused`'s descriptors (unchanged without DINOv3/fusion weights).
+
+        Args:
+            desc: both views' unfused descriptors. [B, 2, H, W, D]
+            img0, img1: the views they come from, RGB in [0, 1]. [B, 3, H, W]
+
+        Returns:
+            The fused descriptors. [B, 2, H, W, D]
+        """
+        b = desc.shape[0]
+        check_shape(desc, (b, 2, "H", "W", "D"), "desc")
+        flat = torch.cat([desc[:, 0], desc[:, 1]])  # [2B, H, W, D], in forward's order
+        x = torch.cat([img0, img1]) * 2.0 - 1.0
+        fused = fuse_descriptors(flat, x, fusion=self.fusion, encoder=self.dino).desc
+        return torch.stack([fused[:b], fused[b:]], 1)
+
+    def _run(self, img0: torch.Tensor, img1: torch.Tensor, *, fuse: bool) -> tuple[torch.Tensor, ...]:
         if img0.shape != img1.shape:
             raise ShapeError("img1", tuple(img1.shape), f"the shape of img0 {list(img0.shape)}")
         x0, x1 = img0 * 2.0 - 1.0, img1 * 2.0 - 1.0  # the backbone's [-1, 1]
         out0, out1 = self.backbone(x0, x1)
         b = img0.shape[0]
         desc = torch.cat([out0.desc, out1.desc])  # [2B, H, W, D]: the fusion sees each view's own image
-        desc = fuse_descriptors(desc, torch.cat([x0, x1]), fusion=self.fusion, encoder=self.dino).desc
+        if fuse:
+            desc = fuse_descriptors(desc, torch.cat([x0, x1]), fusion=self.fusion, encoder=self.dino).desc
         vmin = float(self.backbone.config.desc_conf_mode[1])
         outputs = (
             torch.stack([out0.pts3d, out1.pts3d], 1),

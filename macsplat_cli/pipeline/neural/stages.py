@@ -52,7 +52,7 @@ import torch
 from ...errors import InputError, ReconstructionError
 from ...gaussians import GaussianMaps
 from ...metrics import angle_between_deg, rotation_angle_deg
-from ...neural.predictor import PairPredictor, resolve_device
+from ...neural.predictor import PairPredictor, prediction_from_outputs, resolve_device
 from ...rotations import quat_multiply, rotmat_to_quat_np
 from ..matching import MatchConfig
 from ..pose import fundamental_from_pose, sampson_distance
@@ -105,6 +105,11 @@ class NeuralConfig:
         precision: ``"fp32"``, or ``"bf16"`` (autocast: matrix products in bfloat16, 1.8× faster on
             a CPU with AVX512-BF16 in ``benchmarks/bench_neural.py``; accuracy with the official
             weights unmeasured).
+        fusion: ``"always"``: the semantic fusion (DINOv3 + fusion MLP) runs with the network pass;
+            ``"auto"``: it is skipped while the backbone's own descriptors verify enough matches
+            (:attr:`~..run.ReconstructConfig.fallback_min_inliers`), and runs on demand otherwise, as the
+            descriptor fallback. Only with DINOv3/fusion weights and a torch predictor (an ONNX file has the
+            fusion inside its graph).
     """
 
     sampling: Literal["grid", "topk"] = "grid"
@@ -120,10 +125,13 @@ class NeuralConfig:
     verify_px: float = 5.0
     warn_inlier_ratio: float = 0.2
     precision: Literal["fp32", "bf16"] = "fp32"
+    fusion: Literal["always", "auto"] = "always"
 
     def __post_init__(self) -> None:
         if self.precision not in ("fp32", "bf16"):
             raise InputError(f"precision must be 'fp32' or 'bf16', got {self.precision!r}")
+        if self.fusion not in ("always", "auto"):
+            raise InputError(f"fusion must be 'always' or 'auto', got {self.fusion!r}")
         if self.sampling not in ("grid", "topk"):
             raise InputError(f"descriptor sampling must be 'grid' or 'topk', got {self.sampling!r}")
         if self.stride < 1 or self.top_k < 1:
@@ -160,6 +168,9 @@ class NetworkPair:
         warps: view ↔ network grid of each view (identity for view 0).
         gaussians: the head's Gaussians of both views (camera-0 frame, B = 1 each), or None.
         seconds: wall time of the forward pass.
+        fusion: ``"applied"`` (``desc`` is fused), ``"deferred"`` (``desc`` is the backbone's; the fusion can
+            still run: :meth:`NeuralPair.apply_fusion`) or ``"none"`` (no DINOv3/fusion weights).
+        fusion_seconds: wall time of a deferred fusion that ran.
     """
 
     net_size: tuple[int, int]
@@ -171,6 +182,8 @@ class NetworkPair:
     warps: tuple[ViewWarp, ViewWarp]
     gaussians: tuple[GaussianMaps, GaussianMaps] | None
     seconds: float
+    fusion: Literal["applied", "deferred", "none"] = "none"
+    fusion_seconds: float = 0.0
 
 
 class NeuralPair:
@@ -193,6 +206,15 @@ class NeuralPair:
         self.config = config or NeuralConfig()
         self.device = resolve_device(device)
         self.last: NetworkPair | None = None
+        self._images: torch.Tensor | None = None  # [2, 3, H, W] on the device, kept for a deferred fusion
+
+    @property
+    def defers_fusion(self) -> bool:
+        """Whether the fusion waits until the backbone's descriptors prove too few (``fusion="auto"``)."""
+        p = self.predictor
+        return (
+            self.config.fusion == "auto" and bool(getattr(p, "fusion_enabled", False)) and hasattr(p, "forward_unfused")
+        )
 
     def __call__(self, views: list[View]) -> NetworkPair:
         v0, v1 = views
@@ -212,12 +234,17 @@ class NeuralPair:
         mask = np.stack([w.image(v.mask) for w, v in zip(warps, (v0, v1))])
         img = torch.from_numpy(np.ascontiguousarray(rgb, np.float32)).permute(0, 3, 1, 2).to(dev)
         bf16 = self.config.precision == "bf16"
+        defer = self.defers_fusion
         t0 = time.perf_counter()
         with torch.no_grad(), torch.autocast(device_type=dev.type, dtype=torch.bfloat16, enabled=bf16):
-            pred = self.predictor.predict(img[:1], img[1:])
+            if defer:
+                pred = prediction_from_outputs(self.predictor.forward_unfused(img[:1], img[1:]))
+            else:
+                pred = self.predictor.predict(img[:1], img[1:])
         if dev.type == "cuda":
             torch.cuda.synchronize(dev)
         seconds = time.perf_counter() - t0
+        self._images = img if defer else None
         logger.info("network forward pass on %s at %dx%d: %.2f s", dev, *net_size, seconds)
         pred = pred.to("cpu", torch.float32)
         gaussians = None
@@ -233,8 +260,25 @@ class NeuralPair:
             warps=warps,
             gaussians=gaussians,
             seconds=seconds,
+            fusion="deferred" if defer else ("applied" if getattr(self.predictor, "fusion_enabled", False) else "none"),
         )
         return self.last
+
+    def apply_fusion(self, pair: NetworkPair) -> None:
+        """Run a deferred semantic fusion on ``pair``'s descriptors (in place); nothing when it is not deferred."""
+        if pair.fusion != "deferred":
+            return
+        assert self._images is not None and pair is self.last, "apply_fusion needs this stage's last pair"
+        dev, img = self.device, self._images
+        bf16 = self.config.precision == "bf16"
+        t0 = time.perf_counter()
+        with torch.no_grad(), torch.autocast(device_type=dev.type, dtype=torch.bfloat16, enabled=bf16):
+            desc = torch.from_numpy(pair.desc)[None].to(dev)
+            fused = self.predictor.fuse_descriptors(desc, img[:1], img[1:])
+        pair.desc = fused[0].to("cpu", torch.float32).numpy()
+        pair.fusion, pair.fusion_seconds = "applied", time.perf_counter() - t0
+        self._images = None
+        logger.info("semantic fusion run on demand: %.2f s", pair.fusion_seconds)
 
     def report(self) -> dict[str, Any]:
         """The ``neural`` section of the run report (after a run)."""
@@ -245,13 +289,27 @@ class NeuralPair:
             "network": p.network_name(),
             "network_size": list(last.net_size) if last is not None else None,
             "forward_s": last.seconds if last is not None else None,
-            "fusion": {
-                "applied": p.fusion_enabled,
-                "detail": p.fusion_detail(last.net_size[::-1]) if last is not None else p.fusion_name(),
-            },
+            "fusion": self._fusion_report(),
             "gaussian_head": p.has_gaussian_head,
             "config": dataclasses.asdict(self.config),
         }
+
+    def _fusion_report(self) -> dict[str, Any]:
+        p, last = self.predictor, self.last
+        if last is None:
+            return {"applied": False, "detail": p.fusion_name()}
+        if last.fusion == "deferred":
+            return {
+                "applied": False,
+                "policy": "auto",
+                "detail": "semantic fusion skipped: the backbone's descriptors verified enough matches without it "
+                "(--quality fast)",
+            }
+        out: dict[str, Any] = {"applied": last.fusion == "applied", "detail": p.fusion_detail(last.net_size[::-1])}
+        if self.config.fusion == "auto" and last.fusion == "applied":
+            out.update(policy="auto", on_demand_s=last.fusion_seconds)
+            out["detail"] += " (on demand: too few matches verified without it)"
+        return out
 
 
 def neural_stages(
@@ -260,14 +318,18 @@ def neural_stages(
     """The neural stage callables (keyword arguments of :class:`~..run.Pipeline`)."""
     neural = neural or NeuralConfig()
     gaussians = NeuralGaussians() if predictor.has_gaussian_head else DepthGaussians(config.gaussians)
-    return {
-        "pair": NeuralPair(predictor, neural, device),
+    pair = NeuralPair(predictor, neural, device)
+    stages: dict[str, Any] = {
+        "pair": pair,
         "descriptors": NeuralDescriptors(predictor, neural),
         "matcher": FilteredMatcher(config.matching),
         "pose": NeuralPose(neural),
         "depth": NeuralDepth(neural),
         "gaussians": gaussians,
     }
+    if pair.defers_fusion:  # the fusion is the fallback of the backbone's own descriptors
+        stages["fallback_descriptors"] = NeuralDescriptors(predictor, neural, fuse_with=pair)
+    return stages
 
 
 def refine_matches(pred: NetworkPair, matches: Matches, radius: int) -> Matches:
@@ -311,9 +373,19 @@ def _scale_of_512(w: int, h: int) -> float:
 class NeuralDescriptors:
     """Descriptor stage: the network's (fused) dense descriptors, subsampled, with their confidence."""
 
-    def __init__(self, predictor: PairPredictor, config: NeuralConfig | None = None) -> None:
+    def __init__(
+        self, predictor: PairPredictor, config: NeuralConfig | None = None, *, fuse_with: NeuralPair | None = None
+    ) -> None:
         self.config = config or NeuralConfig()
-        fusion = "+" + predictor.fusion_name() if predictor.fusion_enabled else " (semantic fusion skipped)"
+        self.fuse_with = fuse_with
+        if fuse_with is not None:
+            fusion = f"+{predictor.fusion_name()} (on demand)"
+        elif predictor.fusion_enabled and (config is None or config.fusion == "always"):
+            fusion = "+" + predictor.fusion_name()
+        elif predictor.fusion_enabled:
+            fusion = " (semantic fusion when too few matches verify)"
+        else:
+            fusion = " (semantic fusion skipped)"
         self.name = f"neural:mast3r-desc{predictor.desc_dim}{fusion}"
 
     def features(self, pair: NetworkPair, k: int) -> Features:
@@ -334,6 +406,8 @@ class NeuralDescriptors:
         )
 
     def __call__(self, views: list[View], pair: NetworkPair) -> list[Features]:
+        if self.fuse_with is not None:
+            self.fuse_with.apply_fusion(pair)
         return [self.features(pair, 0), self.features(pair, 1)]
 
 
