@@ -157,6 +157,27 @@ def test_render_refuses_to_overwrite_an_input(
     assert _snapshot(tmp_path) == before
 
 
+@pytest.mark.parametrize(
+    ("extra", "needle"),
+    [
+        (["--path", "10001", "-o", "frames"], "less than or equal to 10000"),  # more views than any path needs
+        (["--path", "2000", "--width", "8000", "--height", "6000", "--video", "v.mp4"], "GiB in memory"),
+    ],
+)
+def test_render_path_is_bounded_before_any_work(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, scene_files: tuple[Path, Path], extra: list[str], needle: str
+) -> None:
+    """``render --path N``: N is capped, and a video whose frames would not fit in memory is refused before the
+    first frame (exit 2, nothing written)."""
+    args = ["render", str(scene_files[0]), "--pose", str(scene_files[1]), "-q"]
+    args += [str(tmp_path / a) if a in ("frames", "v.mp4") else a for a in extra]
+    before = _snapshot(tmp_path)
+    got = main(args)
+    line = _one_error_line(capsys.readouterr().err)
+    assert got == 2 and needle in line, line
+    assert _snapshot(tmp_path) == before
+
+
 def test_export_onnx_refuses_to_overwrite_a_checkpoint(
     capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:

@@ -155,7 +155,10 @@ def test_bad_input_names_the_file(trees: dict[str, Path], tmp_path: Path) -> Non
     dslr = root / "data" / "room" / "dslr"
     ts = dslr / "nerfstudio" / "transforms.json"
     ts.write_text("{ not json", encoding="utf-8")
-    with pytest.raises(DatasetError, match=r"transforms\.json: not a readable JSON"):
+    with pytest.raises(DatasetError, match=r"transforms\.json: invalid JSON at line 1"):
+        load_scannetpp(root, "nvs_sem_train", None)
+    ts.write_text("[" * 200_000 + "]" * 200_000, encoding="utf-8")  # hostile nesting: a clear error, no RecursionError
+    with pytest.raises(DatasetError, match=r"transforms\.json: .*nest"):
         load_scannetpp(root, "nvs_sem_train", None)
     ts.unlink()
     shutil.rmtree(dslr / "colmap")

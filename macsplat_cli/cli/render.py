@@ -16,6 +16,11 @@ from ._common import QuietOpt, VerboseOpt, check_no_clobber, command_context, er
 
 logger = logging.getLogger("macsplat_cli.cli.render")
 
+MAX_PATH_FRAMES = 10_000
+"""Most views of ``--path`` (7 minutes at 24 fps)."""
+MAX_VIDEO_BYTES = 4 * 2**30
+"""Most memory the frames of a ``--video`` may hold before encoding (8-bit RGB)."""
+
 _NAMED_COLOURS = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0), "gray": (0.5, 0.5, 0.5), "grey": (0.5, 0.5, 0.5)}
 
 
@@ -70,7 +75,11 @@ def render_command(
     path: Annotated[
         int | None,
         typer.Option(
-            "--path", min=1, metavar="N", help="Render N views along the path through all cameras of the file."
+            "--path",
+            min=1,
+            max=MAX_PATH_FRAMES,
+            metavar="N",
+            help=f"Render N views (at most {MAX_PATH_FRAMES:,}) along the path through all cameras of the file.",
         ),
     ] = None,
     width: Annotated[int | None, typer.Option("--width", min=1, help="Output width (K is rescaled).")] = None,
@@ -204,29 +213,37 @@ def _render(
     t_load = time.perf_counter() - t0
     logger.debug("loaded %d Gaussians (SH degree %d) and %d camera(s)", len(gaussians), gaussians.sh_degree, len(cams))
 
-    frames, n_visible = [], []
+    if video is not None:  # the video's frames are held in memory until it is encoded
+        need = sum(c.width * c.height * 3 for c in targets)
+        if need > MAX_VIDEO_BYTES:
+            raise InputError(
+                f"--video: {len(targets)} frames of {targets[0].width}x{targets[0].height} would hold "
+                f"{need / 2**30:.1f} GiB in memory (at most {MAX_VIDEO_BYTES / 2**30:.0f} GiB): "
+                "use fewer --path views or a smaller --width/--height"
+            )
+    # Frames are written as they are rendered (each file atomically); only a video keeps them, as 8-bit images.
+    written, images, n_visible = [], [], []
+    if path is not None and output is not None:
+        output.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     with _progress(len(targets), quiet or len(targets) == 1) as advance, torch.no_grad():
-        for cam in targets:
+        for k, cam in enumerate(targets):
             out = render_camera(gaussians, cam, background=background, backend=backend)
-            frames.append(out)
             n_visible.append(int(out.visible.numel()))
+            if path is None:
+                written.append(save_image(output, out.rgb))  # type: ignore[arg-type]
+                if depth is not None:
+                    written.append(save_depth(depth, out.depth))
+            else:
+                img = to_uint8(out.rgb)
+                if output is not None:
+                    written.append(save_image(frame_files[k], img))
+                if video is not None:
+                    images.append(img)
             advance()
+    if video is not None:
+        written.append(write_video(video, images, fps=fps))
     t_render = time.perf_counter() - t0
-
-    written = []
-    if path is None:
-        written.append(save_image(output, frames[0].rgb))  # type: ignore[arg-type]
-        if depth is not None:
-            written.append(save_depth(depth, frames[0].depth))
-    else:
-        images = [to_uint8(f.rgb) for f in frames]
-        if output is not None:
-            output.mkdir(parents=True, exist_ok=True)
-            for name, img in zip(frame_files, images):
-                written.append(save_image(name, img))
-        if video is not None:
-            written.append(write_video(video, images, fps=fps))
 
     if not quiet:
         _summary(scene, len(gaussians), targets, n_visible, t_load, t_render, written, backend)
@@ -276,7 +293,8 @@ def _summary(scene, n_gauss, targets, n_visible, t_load, t_render, written, back
     table.add_row("views", f"{len(targets)} at {targets[0].width}x{targets[0].height}")
     table.add_row("visible", f"{min(n_visible):,}–{max(n_visible):,}" if len(n_visible) > 1 else f"{n_visible[0]:,}")
     table.add_row("backend", escape(backend))
-    table.add_row("time", f"load {t_load:.2f} s, render {t_render:.2f} s ({1e3 * t_render / len(targets):.0f} ms/view)")
+    per_view = f"{1e3 * t_render / len(targets):.0f} ms/view"
+    table.add_row("time", f"load {t_load:.2f} s, render + write {t_render:.2f} s ({per_view})")
     shown = written if len(written) <= 4 else [*written[:2], f"... ({len(written) - 3} more)", written[-1]]
     table.add_row("wrote", "\n".join(escape(str(p)) for p in shown))
     err_console.print(table)

@@ -8,7 +8,6 @@ the file.
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,6 +16,7 @@ from typing import Any, Literal, get_args
 import cv2
 import numpy as np
 
+from .._limits import read_json_file
 from ..cameras import Camera, Scale
 from ..errors import DatasetError, ImageReadError
 from ..images import load_image
@@ -186,13 +186,11 @@ def _depth_size(path: Path) -> tuple[int, int]:
 
 
 def read_json(path: Path) -> Any:
-    """A JSON document. Raises DatasetError naming the file when it is missing or malformed."""
+    """A JSON document. Raises DatasetError naming the file when it is missing, malformed, too large (32 MiB) or
+    nested too deeply (:func:`~macsplat_cli._limits.read_json_file`)."""
     if not path.is_file():
         raise DatasetError(f"{path}: file not found")
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise DatasetError(f"{path}: not a readable JSON file ({e})") from None
+    return read_json_file(path, DatasetError)
 
 
 def validate_scene(scene: EvalScene, where: Path) -> EvalScene:

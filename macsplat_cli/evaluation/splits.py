@@ -26,7 +26,6 @@ generator, so a run is reproducible.
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
@@ -38,6 +37,7 @@ from typing import Any, Literal, get_args
 
 import numpy as np
 
+from .._limits import read_json_file
 from ..cameras import Camera
 from ..datasets import EvalDataset, EvalScene
 from ..errors import DatasetError
@@ -342,10 +342,7 @@ def load_cases(path: str | os.PathLike[str], dataset: EvalDataset) -> CaseSelect
         DatasetError: unreadable file, unknown scene, index out of range.
     """
     p = Path(path)
-    try:
-        doc = json.loads(p.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise DatasetError(f"{p}: not a readable JSON cases file ({e})") from None
+    doc = read_json_file(p, DatasetError, "a JSON cases file")
     rows = doc.get("cases") if isinstance(doc, dict) else doc
     if not isinstance(rows, list) or not rows:
         raise DatasetError(f"{p}: expected a non-empty list of cases")
