@@ -1,11 +1,30 @@
 """Pose estimation on degenerate synthetic motions: planar scenes and forward motion under noise.
 
-    python benchmarks/pose_stress.py
+    python benchmarks/pose_stress.py              # this checkout's pose stage
+    python benchmarks/pose_stress.py --rev HEAD   # ... and a git revision's pose.py side by side
 
-Planar: 60 random motions (axis random, rotation 0–20°, unit-direction translation of 0.5)
-over a tilted plane 6 units away, 200 correspondences with 0.3 px noise, 320×240 px, focal
-300 px; the pose is "right" within 2° / 10°, else "wrong", or refused (ReconstructionError) —
-with the planar-ambiguity check (``PoseConfig.planar_fraction``) on and off.
+Planar (issue 14), 320×240 px, focal 300 px (known); the pose is "right" within 2° / 10°, else "wrong", or
+refused (ReconstructionError). Two motions, 60 seeds each:
+
+* ``random``: axis random, rotation 0–20°, translation 0.5 in a random direction, over a plane tilted by up
+  to ±0.5 and 6 units away (about 5° between the views: the original benchmark).
+* ``table``: a table (6 × 4 units) photographed from 6 units away, 30–60° above it, the second photo 10–30°
+  further round the table (the users' table-top pairs, issue 14).
+
+Families:
+
+* ``pure plane``: 200 exact correspondences on the plane, 0.3 px noise, nothing else (the only evidence
+  that separates the plane's two poses is cheirality: the wrong one may put part of the plane behind a
+  camera).
+* ``plane + p % off``: a table-top: 300 true correspondences, ``p`` % of them on objects standing on the
+  table (0.1–1 units tall, ±3 units of table); the off-plane ones pass the confidence gate with probability
+  0.5, the rest are in ``Matches.below_gate``; 200 go to the gated matches (plus 5 % random outliers, 0.3 px
+  noise), the others below the gate (0.6 px noise) with 300 random outliers.
+
+Focal observability (issue 16, ``--focal``, ~5 min): ray-traced 640×480 orbit pairs (room and object, 10–75°,
+fields of view 40/50/75°, seeds 0–1), SIFT + the confidence gate as ``reconstruct`` runs them, no intrinsics
+(the 60° prior): per pair the focal error of the self-calibration, the rotation error, and whether the pose stage
+flagged the focal as not observable (``info["focal_observable"]``, a doubt in ``info["doubts"]``).
 
 Forward motion: 30 draws of 53 points 4–10 units away, translation (0, 0, 0.5), 1 px noise:
 verified matches and the translation-direction error (the 1 px inlier threshold against 1 px
@@ -14,31 +33,40 @@ noise).
 
 from __future__ import annotations
 
+import argparse
+import importlib.util
 import math
+import subprocess
+import sys
+import tempfile
 from pathlib import Path
+from types import ModuleType
 
 import cv2
 import numpy as np
 
 from macsplat_cli.errors import ReconstructionError
 from macsplat_cli.metrics import rotation_error_deg, translation_direction_error_deg
-from macsplat_cli.pipeline.pose import PoseConfig, estimate_pose
+from macsplat_cli.pipeline import pose as pose_module
 from macsplat_cli.pipeline.types import Matches, View
 
 W, H = 320, 240
 K = np.array([[300.0, 0, W / 2], [0, 300.0, H / 2], [0, 0, 1]])
+ROOT = Path(__file__).resolve().parents[1]
+FAMILIES = {"pure plane": None, "plane + 0 % off": 0.0, "plane + 3 % off": 0.03, "plane + 5 % off": 0.05,
+            "plane + 10 % off": 0.10, "plane + 20 % off": 0.20}  # fmt: skip
 
 
 def _view() -> View:
     return View("v", Path("v.png"), np.zeros((H, W, 3), np.float32), np.ones((H, W), bool), K, (W, H), "file")
 
 
-def _project(X: np.ndarray, R: np.ndarray, t: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+def _project(X: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     X1 = X @ R.T + t
     p0, p1 = X @ K.T, X1 @ K.T
     xy0, xy1 = p0[:, :2] / p0[:, 2:], p1[:, :2] / p1[:, 2:]
     ok = (X1[:, 2] > 0.1) & np.all((xy0 >= 0) & (xy0 < (W, H)) & (xy1 >= 0) & (xy1 < (W, H)), axis=1)
-    return xy0[ok][:n], xy1[ok][:n]
+    return xy0, xy1, ok
 
 
 def _errors(R_est: np.ndarray, t_est: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[float, float]:
@@ -50,23 +78,102 @@ def _matches(xy0: np.ndarray, xy1: np.ndarray) -> Matches:
     return Matches(xy0, xy1, np.ones(m, np.float32), np.arange(m), np.arange(m))
 
 
-def planar(check: bool) -> tuple[int, int, int]:
-    cfg = PoseConfig(planar_fraction=0.8 if check else math.inf)
-    right = wrong = refused = 0
-    for seed in range(60):
-        rng = np.random.default_rng(seed)
-        cv2.setRNGSeed(seed)
-        a = rng.normal(size=3)
-        R = cv2.Rodrigues(a / np.linalg.norm(a) * math.radians(rng.uniform(0, 20)))[0]
-        t = rng.normal(size=3)
-        t = t / np.linalg.norm(t) * 0.5
-        tilt = rng.uniform(-0.5, 0.5, 2)
-        P = np.c_[rng.uniform(-3, 3, (1200, 2)), np.zeros(1200)]
-        P[:, 2] = 6 - P[:, :2] @ tilt
-        xy0, xy1 = _project(P, R, t, 200)
+def _motion(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    a = rng.normal(size=3)
+    R = cv2.Rodrigues(a / np.linalg.norm(a) * math.radians(rng.uniform(0, 20)))[0]
+    t = rng.normal(size=3)
+    return R, t / np.linalg.norm(t) * 0.5, rng.uniform(-0.5, 0.5, 2)
+
+
+def _look_at(eye: np.ndarray, target: np.ndarray, roll_deg: float) -> np.ndarray:
+    """World-to-camera rotation of a camera at ``eye`` looking at ``target`` (world y up, camera y down). [3, 3]"""
+    z = target - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    Rc = np.stack([x, y, z])
+    return cv2.Rodrigues(np.array([0.0, 0.0, math.radians(roll_deg)]))[0] @ Rc
+
+
+def _table_top(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A table (6 × 4 units, the plane y = 0) photographed twice from 6 units away, 30–60° above it, the second
+    photo 10–30° further round (both aimed near the table's centre, ±0.3 units, roll ±3°).
+
+    Returns:
+        ``(R, t, to_cam0, table, up)``: the relative pose, the world → camera-0 map ``(Rc0, C0)`` as a function,
+        random table points [1200, 3] (world) and the table's normal (world).
+    """
+    el0 = rng.uniform(30, 60)
+    az0 = rng.uniform(0, 360)
+    step = rng.uniform(10, 30) * rng.choice([-1, 1])
+    el1 = el0 + rng.uniform(-5, 5)
+
+    def eye(az: float, el: float) -> np.ndarray:
+        a, e = math.radians(az), math.radians(el)
+        return 6.0 * np.array([math.cos(e) * math.sin(a), math.sin(e), math.cos(e) * math.cos(a)])
+
+    C0, C1 = eye(az0, el0), eye(az0 + step, el1)
+    Rc0 = _look_at(C0, rng.uniform(-0.3, 0.3, 3) * (1, 0, 1), rng.uniform(-3, 3))
+    Rc1 = _look_at(C1, rng.uniform(-0.3, 0.3, 3) * (1, 0, 1), rng.uniform(-3, 3))
+    R = Rc1 @ Rc0.T
+    t = Rc1 @ (C0 - C1)
+    table = np.c_[rng.uniform(-3, 3, 1200), np.zeros(1200), rng.uniform(-2, 2, 1200)]
+    return R, t, (Rc0, C0), table, np.array([0.0, 1.0, 0.0])
+
+
+def planar_case(seed: int, off: float | None, motion: str = "random") -> tuple[Matches, np.ndarray, np.ndarray]:
+    """One planar case: (matches, possibly with ``below_gate``; true R; true t).
+
+    ``motion``: ``"random"`` (the original: axis random, rotation 0–20°, translation 0.5 in a random direction,
+    a tilted plane 6 units ahead; about 5° between the views) or ``"table"`` (:func:`_table_top`, 10–30°).
+    """
+    rng = np.random.default_rng(seed)
+    if motion == "random":
+        R, t, tilt = _motion(rng)
+        X = np.c_[rng.uniform(-3, 3, (1200, 2)), np.zeros(1200)]
+        X[:, 2] = 6 - X[:, :2] @ tilt
+        normal = np.array([tilt[0], tilt[1], 1.0])
+        normal /= -np.linalg.norm(normal)  # towards camera 0
+    else:
+        R, t, (Rc0, C0), table, up = _table_top(rng)
+        X = (table - C0) @ Rc0.T
+        normal = Rc0 @ up
+    if off is None:  # the original family: 200 exact plane points and nothing else
+        xy0, xy1, ok = _project(X, R, t)
+        xy0, xy1 = xy0[ok][:200], xy1[ok][:200]
         xy0, xy1 = xy0 + rng.normal(0, 0.3, xy0.shape), xy1 + rng.normal(0, 0.3, xy1.shape)
+        return _matches(xy0, xy1), R, t
+    is_off = rng.uniform(size=len(X)) < off
+    height = rng.uniform(0.1, 1.0, len(X))  # objects on the table (1 unit ≈ 20 cm on a 1.2 m table)
+    X = np.where(is_off[:, None], X + height[:, None] * normal, X)
+    xy0, xy1, ok = _project(X, R, t)
+    xy0, xy1, is_off = xy0[ok][:300], xy1[ok][:300], is_off[ok][:300]
+    gated = np.zeros(len(xy0), bool)
+    cand = np.flatnonzero(~is_off | (rng.uniform(size=len(xy0)) < 0.5))  # half the off-plane ones fail the gate
+    gated[cand[:200]] = True
+    g0 = xy0[gated] + rng.normal(0, 0.3, (gated.sum(), 2))
+    g1 = xy1[gated] + rng.normal(0, 0.3, (gated.sum(), 2))
+    n_out = len(g0) // 20
+    g0 = np.concatenate([g0, rng.uniform((0, 0), (W, H), (n_out, 2))])
+    g1 = np.concatenate([g1, rng.uniform((0, 0), (W, H), (n_out, 2))])
+    b0 = np.concatenate([xy0[~gated] + rng.normal(0, 0.6, ((~gated).sum(), 2)), rng.uniform((0, 0), (W, H), (300, 2))])
+    b1 = np.concatenate([xy1[~gated] + rng.normal(0, 0.6, ((~gated).sum(), 2)), rng.uniform((0, 0), (W, H), (300, 2))])
+    m = _matches(g0, g1)
+    m.below_gate = _matches(b0, b1)
+    return m, R, t
+
+
+def planar(
+    module: ModuleType, off: float | None, motion: str = "random", seeds: int = 60, **config: float
+) -> tuple[int, int, int]:
+    cfg = module.PoseConfig(**config)
+    right = wrong = refused = 0
+    for seed in range(seeds):
+        m, R, t = planar_case(seed, off, motion)
+        cv2.setRNGSeed(seed)
         try:
-            g = estimate_pose(_view(), _view(), _matches(xy0, xy1), cfg)
+            g = module.estimate_pose(_view(), _view(), m, cfg)
         except ReconstructionError:
             refused += 1
             continue
@@ -75,17 +182,18 @@ def planar(check: bool) -> tuple[int, int, int]:
     return right, wrong, refused
 
 
-def forward() -> tuple[float, float, int]:
+def forward(module: ModuleType) -> tuple[float, float, int]:
     inliers, errs, refused = [], [], 0
     R, t = np.eye(3), np.array([0.0, 0.0, 0.5])
     for seed in range(30):
         rng = np.random.default_rng(seed)
         cv2.setRNGSeed(seed)
         X = np.c_[rng.uniform(-3, 3, (318, 2)), rng.uniform(4, 10, 318)]
-        xy0, xy1 = _project(X, R, t, 53)
+        xy0, xy1, ok = _project(X, R, t)
+        xy0, xy1 = xy0[ok][:53], xy1[ok][:53]
         xy0, xy1 = xy0 + rng.normal(0, 1, xy0.shape), xy1 + rng.normal(0, 1, xy1.shape)
         try:
-            g = estimate_pose(_view(), _view(), _matches(xy0, xy1))
+            g = module.estimate_pose(_view(), _view(), _matches(xy0, xy1))
         except ReconstructionError:
             refused += 1
             continue
@@ -94,11 +202,91 @@ def forward() -> tuple[float, float, int]:
     return float(np.median(inliers)), float(np.median(errs)), refused
 
 
+def focal_table(out: Path) -> None:
+    """Render the orbit pairs, estimate the pose without intrinsics, print one row per pair and a summary."""
+    from macsplat_cli.datasets import synthetic as syn
+    from macsplat_cli.images import save_image
+    from macsplat_cli.pipeline.descriptors import SiftDescriptors
+    from macsplat_cli.pipeline.matching import match_features
+    from macsplat_cli.pipeline.run import ReconstructConfig
+    from macsplat_cli.pipeline.views import load_views
+
+    cfg = ReconstructConfig()
+    sift = SiftDescriptors(cfg.descriptors)
+    print("| pair | fitted focal error | focal used | rotation error ° | rotation uncertainty ° | flagged |")
+    print("|---|---:|---:|---:|---:|---|")
+    summary: dict[tuple[str, bool], list[int]] = {}
+    for kind in ("object", "room"):
+        for angle in (10, 15, 20, 30, 45, 60, 75):
+            for fov in (40, 50, 75):
+                for seed in (0, 1):
+                    scene = syn.make_scene(kind, seed)
+                    c0, c1 = syn.orbit_pair(kind, angle, width=640, height=480, fov_deg=fov, seed=seed)
+                    paths = [out / f"{kind}_{angle}_{fov}_{seed}_{k}.png" for k in (0, 1)]
+                    for p, c in zip(paths, (c0, c1)):
+                        save_image(p, syn.render(scene, c).image)
+                    views = load_views(paths, cfg.views)
+                    m = match_features(sift(views[0]), sift(views[1]), cfg.matching)
+                    truth = syn.relative_pose(c0, c1)
+                    f_true = c0.K[0, 0] * views[0].width / c0.width
+                    name = f"{kind} {angle}° fov {fov} s{seed}"
+                    cv2.setRNGSeed(0)
+                    try:
+                        g = pose_module.estimate_pose(views[0], views[1], m)
+                    except ReconstructionError as e:
+                        print(f"| {name} | refused: {str(e)[:50]} | | | | |")
+                        continue
+                    i = g.info
+                    fit = i["focal_scale_fitted"] * views[0].K[0, 0] / f_true - 1
+                    used = g.K0[0, 0] / f_true - 1
+                    rot = syn.pose_errors(g.R, g.t, *truth)[0]
+                    flagged = bool(i.get("doubts"))
+                    unc = i["focal_rotation_uncertainty_deg"]
+                    cells = f"{100 * fit:+.1f} % | {100 * used:+.1f} % | {rot:.2f} | {unc:.3f}"
+                    print(f"| {name} | {cells} | {'yes' if flagged else ''} |", flush=True)
+                    bad = abs(fit) > 0.05
+                    summary.setdefault(("bad" if bad else "good", flagged), []).append(angle)
+    print("\n| fitted focal | flagged | not flagged |\n|---|---:|---:|")
+    for q in ("bad", "good"):
+        label = "off by > 5 %" if q == "bad" else "within 5 %"
+        print(f"| {label} | {len(summary.get((q, True), []))} | {len(summary.get((q, False), []))} |")
+
+
+def _module_at(rev: str) -> ModuleType:
+    """``macsplat_cli/pipeline/pose.py`` as of git revision ``rev``, imported beside this checkout's."""
+    src = subprocess.run(
+        ["git", "show", f"{rev}:macsplat_cli/pipeline/pose.py"], cwd=ROOT, check=True, capture_output=True, text=True
+    ).stdout
+    path = Path(tempfile.mkdtemp()) / "pose_rev.py"
+    path.write_text(src)
+    spec = importlib.util.spec_from_file_location("macsplat_cli.pipeline._pose_rev", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
 def main() -> None:
-    print("| planar check | right | wrong | refused |\n|---|---:|---:|---:|")
-    for check in (True, False):
-        print("| {} | {} | {} | {} |".format("on" if check else "off", *planar(check)))
-    inl, err, refused = forward()
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--rev", help="also run the pose stage of this git revision (e.g. HEAD), for before/after")
+    ap.add_argument("--seeds", type=int, default=60)
+    ap.add_argument("--focal", action="store_true", help="only the focal-observability table (renders, ~5 min)")
+    args = ap.parse_args()
+    if args.focal:
+        focal_table(Path(tempfile.mkdtemp()))
+        return
+    modules = [("this checkout", pose_module)] + ([(args.rev, _module_at(args.rev))] if args.rev else [])
+    print("| motion | family | pose stage | right | wrong | refused |\n|---|---|---|---:|---:|---:|")
+    for motion in ("random", "table"):
+        for family, off in FAMILIES.items():
+            for name, module in modules:
+                counts = planar(module, off, motion, args.seeds)
+                print(f"| {motion} | {family} | {name} | " + " | ".join(map(str, counts)) + " |", flush=True)
+    for name, module in modules:
+        counts = planar(module, None, "random", args.seeds, planar_fraction=math.inf)
+        print(f"| random | pure plane, planar check off | {name} | " + " | ".join(map(str, counts)) + " |")
+    inl, err, refused = forward(pose_module)
     print("\n| forward motion, 53 points, 1 px noise | value |\n|---|---:|")
     print(f"| verified fraction of the true matches (median) | {inl:.2f} |")
     print(f"| translation-direction error ° (median) | {err:.1f} |")

@@ -168,6 +168,23 @@ def test_match_features_counts_and_ratio_weights() -> None:
     assert all(c0[i] * c1[j] <= 0.04 + 1e-6 for i, j in dropped)  # only the gate removed them
 
 
+def test_match_features_keeps_the_matches_below_the_gate_apart() -> None:
+    """``below_gate`` holds exactly the reciprocal pairs the gate dropped (for the pose stage's planar check); it
+    is not counted and a subset does not carry it."""
+    f0, f1, _ = _ambiguous_pair()
+    m = match_features(f0, f1, MatchConfig(conf_threshold=0.04))
+    pairs, _, _ = _brute_force(f0.desc, f1.desc)
+    below = m.below_gate
+    assert below is not None and len(below) > 0
+    kept = set(zip(m.idx0.tolist(), m.idx1.tolist()))
+    dropped = set(zip(below.idx0.tolist(), below.idx1.tolist()))
+    assert kept | dropped == pairs and not kept & dropped
+    assert (below.conf <= 0.04).all()
+    np.testing.assert_array_equal(below.xy0, f0.xy[below.idx0])
+    assert m.counts == {"reciprocal": len(pairs), "confident": len(m)}
+    assert m.subset(np.ones(len(m), bool), "verified").below_gate is None
+
+
 def test_match_features_keeps_true_matches() -> None:
     """The confident matches are (almost all) the true correspondences."""
     f0, f1, truth = _ambiguous_pair(1)

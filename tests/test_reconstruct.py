@@ -186,14 +186,17 @@ def test_pose_and_depth_accuracy_with_known_intrinsics(
         assert depth_err < DEPTH_TOL[angle], f"median relative depth error {100 * depth_err:.2f} %"
 
 
-def test_near_planar_wide_pair_is_refused_not_wrong(make_pair: PairFactory) -> None:
+def test_near_planar_wide_pair_is_resolved_not_wrong(make_pair: PairFactory) -> None:
     """Room, 75° orbit, 50° field of view: the confident matches lie almost all on one wall, seen
     at a grazing angle. The essential matrix then picked a pose 11.8° / 10° off, which guided
     matching went on to 'verify' with 208 matches (67 correct). Two poses from the wall's
-    homography explain the matches (39 and 40 of 40): the pair is now refused as ambiguous."""
+    homography explain the matches (39 and 40 of 40): the pair was refused as ambiguous. Issue 14:
+    the wall's second pose puts part of the matches behind a camera, so the pair is resolved
+    (measured 1.33° / 0.75°) — never a wrong pose."""
     pair = make_pair("room", 75, fov=UNKNOWN_FOV_DEG)
-    with pytest.raises(ReconstructionError, match="one plane"):
-        _run_pipeline(pair, intrinsics=True)
+    rec = _run_pipeline(pair, intrinsics=True)
+    rot_err, t_err = _pose_errors(rec, pair)
+    assert rot_err < POSE_TOL_DEG[75][0] and t_err < POSE_TOL_DEG[75][1]
 
 
 @pytest.mark.parametrize("angle", sorted(UNKNOWN_TOL))

@@ -131,7 +131,8 @@ def match_features(f0: Features, f1: Features, config: MatchConfig | None = None
     """Reciprocal nearest neighbours, then the joint-confidence gate ``c0·c1 > τ``.
 
     Returns:
-        :class:`Matches` with ``counts`` holding ``reciprocal`` and ``confident``.
+        :class:`Matches` with ``counts`` holding ``reciprocal`` and ``confident``; its ``below_gate`` holds the
+        reciprocal matches that failed the gate (for the pose stage's planar disambiguation, not counted).
     """
     cfg = config or MatchConfig()
     nn = reciprocal_nearest_neighbours(f0.desc, f1.desc, max_block_elems=cfg.max_block_elems)
@@ -141,7 +142,9 @@ def match_features(f0: Features, f1: Features, config: MatchConfig | None = None
         c1 = c1 * ratio_distinctiveness(nn.top2_1)
     w = (c0[nn.idx0] * c1[nn.idx1]).astype(np.float32)
     m = Matches(f0.xy[nn.idx0], f1.xy[nn.idx1], w, nn.idx0, nn.idx1, counts={"reciprocal": len(nn.idx0)})
-    out = m.subset(w > cfg.conf_threshold, "confident")
+    keep = w > cfg.conf_threshold
+    out = m.subset(keep, "confident")
+    out.below_gate = m.subset(~keep)
     logger.debug("matching: %d reciprocal, %d with c0*c1 > %g", len(m), len(out), cfg.conf_threshold)
     return out
 

@@ -115,6 +115,10 @@ class Matches:
         idx0: index of each match in view 0's features. [M] int64
         idx1: index in view 1's features. [M] int64
         counts: number of matches after each filter, in order (for the report).
+        below_gate: the reciprocal matches that failed the confidence gate (set by
+            :func:`~.matching.match_features`), or None. Weak evidence, mostly wrong matches, that the pose stage
+            may consult (e.g. to tell a plane's two poses apart by the matches off the plane); never counted,
+            reported or carried by :meth:`subset`.
     """
 
     xy0: np.ndarray
@@ -123,12 +127,14 @@ class Matches:
     idx0: np.ndarray
     idx1: np.ndarray
     counts: dict[str, int] = field(default_factory=dict)
+    below_gate: Matches | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
         return int(self.xy0.shape[0])
 
     def subset(self, keep: np.ndarray, stage: str | None = None) -> Matches:
-        """The matches selected by a boolean mask or index array; records ``stage``'s count."""
+        """The matches selected by a boolean mask or index array; records ``stage``'s count.
+        ``below_gate`` is not carried (a subset is a selection of these matches only)."""
         counts = dict(self.counts)
         out = Matches(self.xy0[keep], self.xy1[keep], self.conf[keep], self.idx0[keep], self.idx1[keep], counts)
         if stage is not None:
