@@ -2,6 +2,8 @@
 
     python benchmarks/accuracy_dev.py --data ../shared/data            # both intrinsics modes
     python benchmarks/accuracy_dev.py --data ../shared/data --intrinsics given --json out.json
+    python benchmarks/accuracy_dev.py --data ../shared/data --intrinsics given --before   # settings before issue 15
+    python benchmarks/accuracy_dev.py --data ../shared/data --only co3d --refine 50 --save renders/
 
 For every context pair: the relative pose error against ground truth (rotation and
 translation direction), the focal error when it was estimated, and for each held-out
@@ -31,9 +33,12 @@ import numpy as np
 import torch
 
 from macsplat_cli.cameras import Camera, CameraSet, save_cameras
-from macsplat_cli.engine import EngineConfig, reconstruct
+from macsplat_cli.engine import EngineConfig, RefineOptions, reconstruct
 from macsplat_cli.errors import MacsplatError
 from macsplat_cli.metrics import psnr, rotation_error_deg, ssim, translation_direction_error_deg
+from macsplat_cli.pipeline.background import BackgroundConfig
+from macsplat_cli.pipeline.depth import DepthConfig
+from macsplat_cli.pipeline.gaussian_init import GaussianInitConfig
 from macsplat_cli.pipeline.run import ReconstructConfig
 from macsplat_cli.pipeline.views import ViewConfig, working_size
 from macsplat_cli.render import render_camera
@@ -130,9 +135,16 @@ def _load_rgb(path: Path, size: tuple[int, int]) -> np.ndarray:
     return cv2.resize(img, size, interpolation=cv2.INTER_AREA)
 
 
-def run_case(frames: list[Frame], pair: tuple[int, int], targets: tuple[int, ...], given: bool, size: int) -> dict:
+def run_case(
+    frames: list[Frame], pair: tuple[int, int], targets: tuple[int, ...], given: bool, size: int,
+    refine: int = 0, save: Path | None = None, before: bool = False,
+) -> dict:  # fmt: skip
     f0, f1 = frames[pair[0]], frames[pair[1]]
     cfg = ReconstructConfig(views=ViewConfig(size=size))
+    if before:  # the settings before issue 15
+        cfg.depth = DepthConfig(fill_lambda=400.0, snap_edges=False, fuse=False)
+        cfg.gaussians = GaussianInitConfig(edge_ratio=math.inf)
+    cfg.background = BackgroundConfig(enabled=not before)
     if given:
         tmp = Path(tempfile.mkdtemp()) / "k.json"
         cams = [Camera(f.path.name, f.size[0], f.size[1], f.K, np.eye(4)) for f in (f0, f1)]
@@ -140,19 +152,23 @@ def run_case(frames: list[Frame], pair: tuple[int, int], targets: tuple[int, ...
         cfg.views.intrinsics = tmp
     t0 = time.perf_counter()
     try:
-        rec = reconstruct([f0.path, f1.path], EngineConfig(pipeline=cfg))
+        rec = reconstruct([f0.path, f1.path], EngineConfig(pipeline=cfg, refine=RefineOptions(steps=refine)))
     except MacsplatError as e:
         return {"failed": str(e), "time_s": time.perf_counter() - t0}
     dt = time.perf_counter() - t0
     T_gt = np.linalg.inv(f1.c2w) @ f0.c2w  # camera 0 → camera 1
     R_gt, t_gt = T_gt[:3, :3], T_gt[:3, 3]
     g = rec.geometry
+    scene = rec.gaussians  # with the far layer (rec.background) unless --before
+    layer = rec.background
     out = {
         "rotation_error_deg": rotation_error_deg(g.R, R_gt),
         "translation_error_deg": translation_direction_error_deg(g.t, t_gt),
         "intrinsics": rec.report.images[0].intrinsics_source,
         "inliers": len(g.inliers),
         "fallback": rec.report.fallback_used,
+        "fill": [getattr(d, "fill_counts", None) for d in rec.depths],
+        "background": layer.counts if layer is not None else None,
         "time_s": dt,
         "targets": [],
     }
@@ -169,7 +185,7 @@ def run_case(frames: list[Frame], pair: tuple[int, int], targets: tuple[int, ...
         K[0] *= w / v0.width
         K[1] *= h / v0.height
         with torch.no_grad():
-            r = render_camera(rec.gaussians, Camera(f"t{ti}", w, h, K, c2w))
+            r = render_camera(scene, Camera(f"t{ti}", w, h, K, c2w))
         pred = np.clip(r.rgb.numpy(), 0, 1)
         target = _load_rgb(ft.path, (w, h))
         mask = r.alpha.numpy() > 0.5
@@ -177,6 +193,10 @@ def run_case(frames: list[Frame], pair: tuple[int, int], targets: tuple[int, ...
         d1 = np.linalg.norm(ft.c2w[:3, 3] - f1.c2w[:3, 3])
         near = f0 if d0 <= d1 else f1
         copy = _load_rgb(near.path, (w, h))
+        if save is not None:
+            save.mkdir(parents=True, exist_ok=True)
+            stem = f"{pair[0]}-{pair[1]}_t{ti}_{'given' if given else 'est'}"
+            cv2.imwrite(str(save / f"{stem}.png"), np.uint8(np.concatenate([pred, target, copy], 1)[..., ::-1] * 255))
         out["targets"].append(
             {
                 "index": ti,
@@ -198,6 +218,14 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=512)
     ap.add_argument("--only", default="", help="run only cases whose scene name contains this")
     ap.add_argument("--json", type=Path, help="also write all results as JSON")
+    ap.add_argument("--refine", type=int, default=0, help="refinement steps (0: none; 50 = --refine auto)")
+    ap.add_argument("--pair", default="", help="run only cases whose pair name contains this")
+    ap.add_argument("--save", type=Path, help="write render | target | copy images here")
+    ap.add_argument(
+        "--before",
+        action="store_true",
+        help="the settings before issue 15 (no far layer, fusion, edge snapping; fill λ 400)",
+    )
     args = ap.parse_args()
     loaders = {
         "co3d": lambda: co3d(args.data),
@@ -215,12 +243,12 @@ def main() -> None:
     print("|---|---|---|---|" + "---:|" * (len(header) - 4))
     metric_keys = ("psnr", "ssim", "psnr_masked", "coverage", "copy_psnr", "copy_ssim")
     for scene, name, pair in CASES:
-        if args.only not in scene:
+        if args.only not in scene or args.pair not in name:
             continue
         frames = cache.setdefault(scene, loaders[scene]())
         targets = tuple(between(frames, pair))
         for mode in modes:
-            r = run_case(frames, pair, targets, mode == "given", args.size)
+            r = run_case(frames, pair, targets, mode == "given", args.size, args.refine, args.save, args.before)
             r.update(scene=scene, pair=name, mode=mode)
             results.append(r)
             if "failed" in r:

@@ -43,6 +43,7 @@ from typing import Any, ClassVar, Literal, get_args
 import numpy as np
 
 from ._atomic import atomic_write_text
+from ._json import to_jsonable
 from ._limits import read_json_file
 from .errors import CameraFileError, OutputPathError
 from .rotations import quat_to_rotmat_np, rotmat_to_quat_np  # re-exported: the camera formats' converters
@@ -295,11 +296,16 @@ class CameraSet:
         world: name of the world frame (``"camera_0"``: the first camera's frame;
             ``"colmap"``/``"nerfstudio"`` for worlds imported from those tools).
         convention: always ``"opencv"`` (class constant).
+        pose_confidence: how far the estimated relative pose can be trusted, for the cameras a reconstruction
+            wrote (``score`` in [0, 1] or None, ``checks``, ``doubts``, ``accepted_low_confidence``;
+            :func:`macsplat_cli.pipeline.run.pose_confidence`); None otherwise. Written as the file's
+            ``"pose_confidence"`` entry when set, read back as it is (a JSON object).
     """
 
     cameras: list[Camera]
     scale: Scale = "relative"
     world: str = "camera_0"
+    pose_confidence: dict[str, Any] | None = None
     convention: ClassVar[str] = "opencv"
 
     def __post_init__(self) -> None:
@@ -318,6 +324,8 @@ class CameraSet:
             raise CameraFileError(f"scale must be 'relative' or 'metric', got {self.scale!r}")
         if not isinstance(self.world, str):
             raise CameraFileError(f"world must be a string, got {type(self.world).__name__}")
+        if self.pose_confidence is not None and not isinstance(self.pose_confidence, Mapping):
+            raise CameraFileError(f"pose_confidence must be an object, got {_json_type(self.pose_confidence)}")
 
     def __len__(self) -> int:
         return len(self.cameras)
@@ -330,12 +338,15 @@ class CameraSet:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict in the file format of the module docstring."""
-        return {
+        out: dict[str, Any] = {
             "convention": self.convention,
             "world": self.world,
             "scale": self.scale,
             "cameras": [cam.to_dict() for cam in self.cameras],
         }
+        if self.pose_confidence is not None:
+            out["pose_confidence"] = to_jsonable(dict(self.pose_confidence))
+        return out
 
     @classmethod
     def from_dict(cls, d: object, where: str = "cameras") -> CameraSet:
@@ -367,8 +378,12 @@ class CameraSet:
         if not isinstance(cams, list) or not cams:
             raise CameraFileError(f"{where}: cameras must be a non-empty list of camera objects")
         cameras = [Camera.from_dict(c, f"{where}: cameras[{i}]") for i, c in enumerate(cams)]
+        confidence = d.get("pose_confidence")
+        if confidence is not None and not isinstance(confidence, Mapping):
+            raise CameraFileError(f"{where}: pose_confidence must be an object, got {_json_type(confidence)}")
         try:
-            return cls(cameras=cameras, scale=scale, world=world)
+            return cls(cameras=cameras, scale=scale, world=world,
+                       pose_confidence=dict(confidence) if confidence is not None else None)  # fmt: skip
         except CameraFileError as e:
             raise CameraFileError(f"{where}: {e}") from None
 

@@ -327,25 +327,37 @@ def reconstruct(
     return _compact(rec, config, notify)
 
 
+def _layer_size(rec: Reconstruction) -> int:
+    """Gaussians of the far background layer (:mod:`.pipeline.background`), 0 without one."""
+    layer = rec.background.gaussians if rec.background is not None else None
+    return len(layer) if layer is not None else 0
+
+
 def _compact(rec: Reconstruction, config: EngineConfig, notify: StageEvent) -> Reconstruction:
     """The scene without what it does not need (``quality``, ``budget``), reported step by step."""
     from .compact import CompactConfig, compact_reconstruction
 
+    n_layer = _layer_size(rec)
+    budget, background = config.budget, rec.background
+    if budget is not None and n_layer:
+        if n_layer * 2 > budget:  # the far layer would take most of a small budget: the scene needs it more
+            logger.info("--budget %d: the far background layer (%d Gaussians) is left out", budget, n_layer)
+            background, n_layer = None, 0
+        else:  # --budget bounds what is written: the layer counts
+            budget -= n_layer
     notify("compact", "start")
     try:
-        gaussians, compact_report = compact_reconstruction(
-            rec, CompactConfig.preset(config.quality, budget=config.budget)
-        )
+        gaussians, compact_report = compact_reconstruction(rec, CompactConfig.preset(config.quality, budget=budget))
     except BaseException:
         notify("compact", "fail")
         raise
     notify("compact", "end")
     report = copy.copy(rec.report)
     report.compact = compact_report.to_dict()
-    report.gaussians = len(gaussians)
+    report.gaussians = len(gaussians) + n_layer
     report.add_time("compact", compact_report.seconds)
     logger.info("compaction (%s): %s", config.quality, compact_report.summary())
-    return dataclasses.replace(rec, report=report, compacted=gaussians)
+    return dataclasses.replace(rec, report=report, compacted=gaussians, background=background)
 
 
 def _refine(
@@ -378,5 +390,5 @@ def _refine(
         loss_last=out.history[-1],
     )
     report.add_time("refine", out.seconds)
-    report.gaussians = count_gaussians(out.maps)
+    report.gaussians = count_gaussians(out.maps) + _layer_size(rec)
     return dataclasses.replace(rec, maps=out.maps, report=report)

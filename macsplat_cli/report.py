@@ -66,6 +66,10 @@ class RunReport:
         neural: the network's pass (neural backend only).
         refine: the refinement (``--refine`` only).
         compact: what the compaction (``--quality``, ``--budget``) merged and pruned, step by step, and why.
+        fill: how many pixels / Gaussians each fill rule gave a depth or placed: ``depth`` (per view, the
+            depth stage's rules: measured, filled_edge_aware, filled_push_pull, none, snapped_edge,
+            dropped_free_space, from_other_view) and ``background`` (the far layer's Gaussians past each view's
+            border and behind its interior, and the cells the other photo covers).
         gaussians_written: Gaussians in the written PLY (after writing).
         outputs: role → path of each written file (after writing).
     """
@@ -88,6 +92,7 @@ class RunReport:
     neural: dict[str, Any] | None = None
     refine: RefineReport | None = None
     compact: dict[str, Any] | None = None
+    fill: dict[str, Any] | None = None
     gaussians_written: int | None = None
     outputs: dict[str, str] = field(default_factory=dict)
 
@@ -100,7 +105,7 @@ class RunReport:
     def to_json(self) -> dict[str, Any]:
         """The report as plain JSON values (sections that do not apply left out; NaN → null)."""
         out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        for optional in ("neural", "refine", "compact", "gaussians_written"):
+        for optional in ("neural", "refine", "compact", "fill", "gaussians_written"):
             if out[optional] is None:
                 del out[optional]
         if not out["outputs"]:

@@ -168,7 +168,10 @@ def test_plane_sweep_minimum_at_the_true_plane() -> None:
 def _check_coverage(depths: list[DepthMap], views: list[View]) -> None:
     for dm, v in zip(depths, views):
         assert dm.depth.shape == (v.height, v.width) and dm.depth.dtype == np.float32
-        assert (dm.depth[v.mask] > 0).all() and (dm.confidence[v.mask] > 0).all()
+        # every pixel inside the mask has a depth, unless both-view fusion proved it a wrong second layer
+        holes = v.mask & (dm.depth == 0)
+        assert int(holes.sum()) == dm.fill_counts["dropped_free_space"] < 0.1 * v.mask.sum()
+        assert (dm.confidence[v.mask & ~holes] > 0).all() and (dm.confidence[holes] == 0).all()
         assert (dm.depth[~v.mask] == 0).all() and (dm.confidence[~v.mask] == 0).all()
         assert dm.measured is not None and not (dm.measured & ~v.mask).any()
         assert (dm.depth[dm.measured] > 0).all()
@@ -265,7 +268,8 @@ def test_estimate_depths_middlebury_motorcycle(tmp_path: Path) -> None:
     est = depths[0].depth[has_gt]
     ref = gt[has_gt]
     rel = np.abs(est - ref) / ref
-    ratio = np.maximum(est / ref, ref / est)
+    with np.errstate(divide="ignore"):  # pixels dropped by the fusion (est = 0) count as failures
+        ratio = np.maximum(est / ref, ref / est)
     assert np.median(rel) < 0.02
     assert np.mean(ratio < 1.25) > 0.9
     meas = depths[0].measured[has_gt]

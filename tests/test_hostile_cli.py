@@ -260,7 +260,7 @@ def test_reconstruct_with_markup_in_every_name_succeeds_and_prints_them(
     out = tmp_path / "[/]" / "scene [copy].ply"
     report = tmp_path / "[red]r[/].json"
     got = main(["reconstruct", str(pair[0]), str(pair[1]), "-o", str(out), "--report", str(report),
-                "--size", str(SIZE[0])])  # fmt: skip
+                "--size", str(SIZE[0]), "--focal", "111"])  # fmt: skip
     err = capsys.readouterr().err
     assert got == 0, err
     assert out.is_file() and out.with_name("scene [copy].cameras.json").is_file() and report.is_file()

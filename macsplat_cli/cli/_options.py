@@ -10,6 +10,7 @@ import typer
 from ..engine import NeuralOptions
 
 __all__ = [
+    "AcceptLowConfidenceOpt",
     "DeviceOpt",
     "DinoOpt",
     "FusionOpt",
@@ -47,6 +48,16 @@ FusionOpt = Annotated[
     typer.Option("--fusion", metavar="PATH", help="neural: Residual Semantic Fusion weights (with --dino)."),
 ]
 DeviceOpt = Annotated[str, typer.Option("--device", metavar="cpu|cuda", help="neural: where the networks run.")]
+AcceptLowConfidenceOpt = Annotated[
+    bool,
+    typer.Option(
+        "--accept-low-confidence",
+        help=(
+            "Write the scene even when the pose is doubtful (low pose confidence; otherwise exit 3 with the reason); "
+            "it is flagged in the summary, the report and the cameras file."
+        ),
+    ),
+]
 PrecisionOpt = Annotated[
     str, typer.Option("--precision", metavar="fp32|bf16", help="neural: arithmetic of the networks (bf16: faster).")
 ]

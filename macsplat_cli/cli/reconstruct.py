@@ -21,7 +21,16 @@ from ._common import (
     escape,
     out_console,
 )
-from ._options import DeviceOpt, DinoOpt, FusionOpt, GaussianHeadOpt, PrecisionOpt, WeightsOpt, neural_options
+from ._options import (
+    AcceptLowConfidenceOpt,
+    DeviceOpt,
+    DinoOpt,
+    FusionOpt,
+    GaussianHeadOpt,
+    PrecisionOpt,
+    WeightsOpt,
+    neural_options,
+)
 
 if TYPE_CHECKING:
     from ..engine import EngineConfig
@@ -76,6 +85,15 @@ def reconstruct_command(
             help="τ: keep matches whose joint confidence c0·c1 exceeds it [default: 0.04; 1 with --backend neural].",
         ),
     ] = None,
+    accept_low_confidence: AcceptLowConfidenceOpt = False,
+    far_layer: Annotated[
+        bool,
+        typer.Option(
+            "--far-layer/--no-far-layer",
+            help="Surround the scene with a far background layer extended from the photos' borders, so views past "
+            "both photos show no empty band; --no-far-layer leaves those pixels to the renderer's --background.",
+        ),
+    ] = True,
     refine: Annotated[
         str,
         typer.Option(
@@ -128,6 +146,7 @@ def reconstruct_command(
     """
     with command_context(ctx, verbose, quiet) as state:
         from ..engine import WORKING_SIZE, EngineConfig, RefineOptions
+        from ..pipeline.background import BackgroundConfig
         from ..pipeline.run import ReconstructConfig
         from ..pipeline.views import ViewConfig
 
@@ -137,7 +156,11 @@ def reconstruct_command(
             backend=backend.strip().lower(),
             quality=quality,
             budget=budget,
-            pipeline=ReconstructConfig(views=ViewConfig(size=size, intrinsics=intrinsics, focal=focal)),
+            pipeline=ReconstructConfig(
+                views=ViewConfig(size=size, intrinsics=intrinsics, focal=focal),
+                accept_low_confidence=accept_low_confidence,
+                background=BackgroundConfig(enabled=far_layer),
+            ),
             conf_threshold=conf_threshold,
             neural=neural_options(weights, gaussian_head, dino, fusion, device, precision),
             refine=RefineOptions(
@@ -304,6 +327,17 @@ def _summary(report: dict[str, Any], written: dict[str, Any]) -> None:
     if "translation_norm" in pose:
         line += f", baseline {num('translation_norm', '.3f')} m"
     t.add_row("pose", escape(line))
+    if pose.get("confidence") is not None or pose.get("doubts"):
+        line = f"confidence {num('confidence', '.2f')}"
+        if pose.get("accepted_low_confidence"):
+            line = (
+                "[yellow]warning: the pose may be wrong (written with --accept-low-confidence): "
+                + escape("; ".join(str(d) for d in pose.get("doubts", [])))
+                + "[/]"
+            )
+        else:
+            line = escape(line)
+        t.add_row("pose check", line)
     if "neural" in report:
         n = report["neural"]
         t.add_row("backend", escape(f"neural ({n['device']}): forward pass {n['forward_s']:.2f} s"))

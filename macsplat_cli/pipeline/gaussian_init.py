@@ -14,6 +14,10 @@ view whose depth confidence is positive:
 * colour: the pixel's colour as the SH DC term (degree 0);
 * opacity: ``opacity_min + (opacity_max − opacity_min) · confidence``.
 
+At a depth step (the two neighbours along x or y differ by more than ``edge_ratio − 1`` of the depth) the
+gradient measures the jump, not a surface: such a pixel gets a disc facing the camera, unstretched, so no
+Gaussian reaches across the gap between an object and its background.
+
 """
 
 from __future__ import annotations
@@ -38,6 +42,8 @@ class GaussianInitConfig:
     max_tilt_stretch: cap of the 1/cos θ stretch along the tilt direction.
     opacity_min: opacity at confidence 0+.
     opacity_max: opacity at confidence 1.
+    edge_ratio: a pixel whose neighbours' depths differ by more than ``edge_ratio − 1`` of its own depth is on a
+        depth step: camera-facing, unstretched disc.
     """
 
     footprint: float = 0.7
@@ -45,10 +51,12 @@ class GaussianInitConfig:
     max_tilt_stretch: float = 4.0
     opacity_min: float = 0.8
     opacity_max: float = 0.97
+    edge_ratio: float = 1.1
 
 
-def _normals(points: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Camera-frame normals from a point map by central differences, facing the camera. [H, W, 3]"""
+def _normals(points: np.ndarray, valid: np.ndarray, edge_ratio: float = np.inf) -> np.ndarray:
+    """Camera-frame normals from a point map by central differences, facing the camera; the viewing ray where a
+    neighbour is missing or the neighbours' depths differ by more than ``edge_ratio − 1`` of the depth. [H, W, 3]"""
     P = points
     dx = np.zeros_like(P)
     dy = np.zeros_like(P)
@@ -58,6 +66,10 @@ def _normals(points: np.ndarray, valid: np.ndarray) -> np.ndarray:
     ok_y = np.zeros_like(valid)
     ok_x[:, 1:-1] = valid[:, 2:] & valid[:, :-2]
     ok_y[1:-1] = valid[2:] & valid[:-2]
+    if np.isfinite(edge_ratio):
+        tol = (edge_ratio - 1.0) * np.abs(P[..., 2])
+        ok_x &= np.abs(dx[..., 2]) <= tol
+        ok_y &= np.abs(dy[..., 2]) <= tol
     n = np.cross(dx, dy)
     norm = np.linalg.norm(n, axis=-1, keepdims=True)
     ray = -P / np.maximum(np.linalg.norm(P, axis=-1, keepdims=True), 1e-12)
@@ -87,7 +99,7 @@ def gaussians_from_depth(
         rays = pix @ np.linalg.inv(K).T  # z = 1
         P = rays * dm.depth[..., None]
         valid = dm.valid
-        n = _normals(P, valid).reshape(-1, 3)
+        n = _normals(P, valid, cfg.edge_ratio).reshape(-1, 3)
         Pf = P.reshape(-1, 3)
         z = np.maximum(Pf[:, 2], 1e-12)
         view_dir = -Pf / np.maximum(np.linalg.norm(Pf, axis=1, keepdims=True), 1e-12)

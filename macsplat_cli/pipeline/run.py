@@ -24,11 +24,13 @@ from ..errors import ReconstructionError
 from ..gaussians import GaussianMaps, Gaussians
 from ..metrics import rotation_error_deg, translation_direction_error_deg
 from ..report import ImageReport, RunReport
+from .background import BackgroundConfig, BackgroundLayer, background_gaussians
 from .depth import DepthConfig
 from .descriptors import SiftConfig, SiftDescriptors
 from .gaussian_init import GaussianInitConfig
 from .matching import MatchConfig, guided_matches
 from .pose import PoseConfig, fundamental_from_pose
+from .pose_confidence import ConfidenceConfig, PoseConfidence, assess_pose
 from .stages import (
     DepthGaussians,
     DepthStage,
@@ -45,7 +47,15 @@ from .stages import (
 from .types import DepthMap, Features, Matches, TwoViewGeometry, View
 from .views import ViewConfig, load_views
 
-__all__ = ["STAGES", "Pipeline", "ReconstructConfig", "Reconstruction", "count_gaussians"]
+__all__ = [
+    "LOW_CONFIDENCE_HINT",
+    "STAGES",
+    "Pipeline",
+    "ReconstructConfig",
+    "Reconstruction",
+    "count_gaussians",
+    "pose_confidence",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -73,6 +83,13 @@ class ReconstructConfig:
     than ``guided_max_change_deg`` (rotation, translation direction) from the first one:
     it refines a pose, it must not jump to another solution (measured: a 2.4° pose
     "refined" into a 50° wrong one on a 90° object pair). ``None`` disables it.
+
+    ``confidence``: the checks of the final pose that are independent of the RANSAC
+    (:func:`~.pose_confidence.assess_pose`; relative-scale backends only, ``None`` disables them). Their
+    reasons join the pose stage's doubts (``geometry.info["doubts"]``); a pose with any doubt is refused
+    (:class:`~macsplat_cli.errors.ReconstructionError`, naming the first) unless ``accept_low_confidence``,
+    which writes the scene and logs a warning. The report's ``pose`` section and the cameras file carry the
+    confidence either way.
     """
 
     views: ViewConfig = field(default_factory=ViewConfig)
@@ -89,6 +106,13 @@ class ReconstructConfig:
     pose: PoseConfig = field(default_factory=PoseConfig)
     depth: DepthConfig = field(default_factory=DepthConfig)
     gaussians: GaussianInitConfig = field(default_factory=GaussianInitConfig)
+    background: BackgroundConfig = field(default_factory=BackgroundConfig)
+    confidence: ConfidenceConfig | None = field(default_factory=ConfidenceConfig)
+    accept_low_confidence: bool = False
+
+
+LOW_CONFIDENCE_HINT = "use --accept-low-confidence to write the scene anyway"
+"""Appended to a refusal for low pose confidence."""
 
 
 @dataclass
@@ -103,15 +127,20 @@ class Reconstruction:
     scale: Literal["relative", "metric"] = "relative"
     compacted: Gaussians | None = None
     """The scene after the compaction (:mod:`macsplat_cli.compact`), when it ran."""
+    background: BackgroundLayer | None = None
+    """The far layer around both photos (:mod:`.background`), when it was built; not refined or compacted."""
 
     @functools.cached_property
     def gaussians(self) -> Gaussians:
         """The scene in the world (camera-0) frame: the compacted set when the compaction ran, else every
         view's pixel Gaussians (computed once; a refined or compacted reconstruction is a new object)."""
+        layer = self.background.gaussians if self.background is not None else None
         if self.compacted is not None:
-            return self.compacted
-        with torch.no_grad():
-            return Gaussians.cat([m.to_gaussians() for m in self.maps])
+            scene = self.compacted
+        else:
+            with torch.no_grad():
+                scene = Gaussians.cat([m.to_gaussians() for m in self.maps])
+        return scene if layer is None else Gaussians.cat([scene, layer])
 
     def cameras(self, *, original_size: bool = True) -> CameraSet:
         """The two cameras; at the photos' original resolution by default."""
@@ -120,7 +149,22 @@ class Reconstruction:
         for k, v in enumerate(self.views):
             cam = View(v.name, v.path, v.image, v.mask, K[k], v.original_size, v.intrinsics_source)
             cams.append(cam.camera(self.geometry.cam_to_world(k), original_size=original_size))
-        return CameraSet(cams, scale=self.scale, world="camera_0")
+        return CameraSet(cams, scale=self.scale, world="camera_0", pose_confidence=pose_confidence(self.geometry))
+
+
+def pose_confidence(geometry: TwoViewGeometry) -> dict[str, Any] | None:
+    """The pose's confidence as the cameras file records it (None when it was not assessed and has no doubts):
+    ``score`` (None when not assessed), ``checks``, ``doubts`` and ``accepted_low_confidence``."""
+    info = geometry.info
+    doubts = list(info.get("doubts", []))  # type: ignore[call-overload]
+    if "confidence" not in info and not doubts:
+        return None
+    return {
+        "score": info.get("confidence"),
+        "checks": dict(info.get("confidence_checks", {})),  # type: ignore[call-overload]
+        "doubts": doubts,
+        "accepted_low_confidence": bool(info.get("accepted_low_confidence", False)),
+    }
 
 
 def count_gaussians(maps: Sequence[GaussianMaps]) -> int:
@@ -240,7 +284,7 @@ class Pipeline:
             matches_fb = timed("matching (fallback)", lambda: self.matcher(feats_fb[0], feats_fb[1]))
             geometry_fb, failure_fb = self._try_pose(views, matches_fb, pair, timed, "pose (fallback)")
             if geometry_fb is not None and len(geometry_fb.inliers) > n_verified:
-                geometry, feats, fallback_used = geometry_fb, feats_fb, True
+                geometry, feats, matches, fallback_used = geometry_fb, feats_fb, matches_fb, True
             elif geometry is None:
                 failure = failure_fb or failure
         if geometry is None:
@@ -248,12 +292,22 @@ class Pipeline:
             raise failure
         if self.config.guided_band_px is not None and len(geometry.inliers) < self.config.guided_below:
             geometry = self._guided(views, feats, geometry, pair, timed)
+        self._check_confidence(views, geometry, matches, timed)
         for k, v in enumerate(views):
             if v.intrinsics_source == "prior" and geometry.info.get("focal_estimated"):
                 v.intrinsics_source = "estimated"
                 v.K = geometry.K0 if k == 0 else geometry.K1
         depths: list[DepthMap] = timed("depth", lambda: self.depth(views, geometry, pair))
-        maps: list[GaussianMaps] = timed("gaussians", lambda: self.gaussians(views, geometry, depths, pair))
+        bg_cfg = self.config.background
+
+        def gaussian_stage() -> tuple[list[GaussianMaps], BackgroundLayer | None]:
+            maps = self.gaussians(views, geometry, depths, pair)
+            layer = background_gaussians(views, geometry, depths, bg_cfg) if bg_cfg.enabled else None
+            return maps, layer
+
+        # the far layer around both photos is timed with the Gaussians (a few thousand, ~0.05 s)
+        maps, background = timed("gaussians", gaussian_stage)
+        n_layer = len(background.gaussians) if background is not None and background.gaussians is not None else 0
         report = RunReport(
             macsplat_version=__version__,
             inputs=[str(p) for p in paths],
@@ -270,11 +324,46 @@ class Pipeline:
             pose=dict(geometry.info),
             depth_coverage=[float(d.valid.mean()) for d in depths],
             depth_measured=[float(d.measured.mean()) if d.measured is not None else None for d in depths],
-            gaussians=count_gaussians(maps),
+            gaussians=count_gaussians(maps) + n_layer,
             config=asdict(self.config),
             scale=self.scale,
+            fill={
+                "depth": [getattr(d, "fill_counts", None) for d in depths],
+                "background": background.counts if background is not None else None,
+            },
         )
-        return Reconstruction(views, geometry, depths, maps, report, scale=self.scale)
+        return Reconstruction(views, geometry, depths, maps, report, scale=self.scale, background=background)
+
+    def _check_confidence(
+        self, views: list[View], geometry: TwoViewGeometry, evidence: Matches,
+        timed: Callable[[str, Callable[[], Any]], Any],
+    ) -> None:  # fmt: skip
+        """Assess the final pose (before the views are marked as self-calibrated: a view with the prior's focal
+        has an unknown focal length) against ``evidence``, the filtered matches its first estimate came from (not
+        the guided ones, which the pose itself selected), record it in ``geometry.info`` and refuse a doubtful
+        pose unless ``accept_low_confidence``.
+
+        Raises:
+            ReconstructionError: the pose stage or the confidence checks doubt the pose.
+        """
+        c = self.config
+        info = geometry.info
+        raw = info.get("doubts", [])
+        doubts = [str(d) for d in raw] if isinstance(raw, (list, tuple)) else [str(raw)]
+        if c.confidence is not None and self.scale == "relative":
+            conf: PoseConfidence = timed(
+                "pose confidence", lambda: assess_pose(views[0], views[1], geometry, c.confidence, evidence=evidence)
+            )
+            info["confidence"] = conf.score
+            info["confidence_checks"] = conf.checks  # type: ignore[assignment]
+            doubts += [r for r in conf.reasons if r not in doubts]
+        info["doubts"] = doubts  # type: ignore[assignment]
+        if not doubts:
+            return
+        if not c.accept_low_confidence:
+            raise ReconstructionError(f"{doubts[0]} ({LOW_CONFIDENCE_HINT})")
+        info["accepted_low_confidence"] = True
+        logger.warning("the pose may be wrong, the scene is written anyway (--accept-low-confidence): %s", doubts[0])
 
     def _guided(
         self, views: list[View], feats: list[Features], geometry: TwoViewGeometry, pair: Any,
@@ -284,6 +373,10 @@ class Pipeline:
         matches and stays within ``guided_max_change_deg`` of the first."""
         c = self.config
         assert c.guided_band_px is not None
+        if geometry.info.get("doubts"):
+            # matches picked within the band of a doubtful pose (e.g. one built on the prior's focal) agree with
+            # it: they cannot confirm it, and a refit would drop the pose stage's doubt
+            return geometry
         F = fundamental_from_pose(geometry.R, geometry.t, geometry.K0, geometry.K1)
         guided = timed(
             "matching (guided)",
