@@ -4,6 +4,8 @@
     PYTHONPATH=/tmp/head python benchmarks/pose_confidence.py --json before.json   # another checkout (before)
     python benchmarks/pose_confidence.py --table before.json after.json        # the tables
     python benchmarks/pose_confidence.py --signals after.json                  # every case's checks
+    python benchmarks/pose_confidence.py --angles 45 60 75 90 --min-angle 35 --no-wide --json nowide.json
+        # the wide-baseline cases without the second fallback tier (issue 14 item 3); drop --no-wide for with
 
 Cases: ray-traced orbit pairs (``macsplat_cli.datasets.synthetic``, room and object, 10–90°, true field of view
 50° and 75°, intrinsics given or not, seeds 0 and 1) and CO3D apple pairs (``--data``, SfM ground truth, 8–105°
@@ -224,6 +226,8 @@ def main() -> None:
     ap.add_argument("--angles", type=float, nargs="+", default=[10, 20, 30, 45, 60, 75, 90])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     ap.add_argument("--only", choices=["synthetic", "co3d"], help="run one set only")
+    ap.add_argument("--min-angle", type=float, default=0.0, help="run only the cases at least this wide (CO3D: °)")
+    ap.add_argument("--no-wide", action="store_true", help="without the second fallback tier (the chain before it)")
     ap.add_argument("--json", type=Path, help="run the cases and write the results here")
     ap.add_argument("--table", type=Path, nargs=2, metavar=("BEFORE", "AFTER"), help="print the comparison")
     ap.add_argument("--signals", type=Path, metavar="AFTER", help="print every case's checks")
@@ -245,6 +249,11 @@ def main() -> None:
     results = []
     for case in cases:
         paths, cfg, R, t = prepare(case, args.data, tmp)
+        if case["angle"] < args.min_angle:
+            continue
+        if args.no_wide:
+            cfg.wide_descriptors = None  # type: ignore[attr-defined]
+            cfg.plane_tiebreak_margin = None  # type: ignore[attr-defined]
         res = run_case(paths, cfg, R, t)
         results.append({"case": case, "result": res})
         msg = res.get("failed", "")[:70] or f"rot {res['rot']:.2f}° doubts {len(res['doubts'])}"

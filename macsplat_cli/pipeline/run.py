@@ -16,6 +16,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+import cv2
+import numpy as np
 import torch
 
 from .. import __version__
@@ -29,7 +31,7 @@ from .depth import DepthConfig
 from .descriptors import SiftConfig, SiftDescriptors
 from .gaussian_init import GaussianInitConfig
 from .matching import MatchConfig, guided_matches
-from .pose import PoseConfig, fundamental_from_pose
+from .pose import PoseConfig, _epipolar_fit, fundamental_from_pose
 from .pose_confidence import ConfidenceConfig, PoseConfidence, assess_pose
 from .stages import (
     DepthGaussians,
@@ -90,6 +92,18 @@ class ReconstructConfig:
     (:class:`~macsplat_cli.errors.ReconstructionError`, naming the first) unless ``accept_low_confidence``,
     which writes the scene and logs a warning. The report's ``pose`` section and the cameras file carry the
     confidence either way.
+
+    ``wide_descriptors``: a second fallback tier for wide baselines, run only when the primary descriptors and
+    the first fallback both gave no pose (every other pair keeps its time): affine-simulated SIFT with more tilts
+    at a finer detection size (CO3D apple 39–62°, tabletop pairs: 36–223 correct confident matches where the first
+    fallback had 10–69). Its pose is kept when it verifies at least ``wide_min_inliers`` matches. When its pose
+    fails (on CO3D: "ambiguous, the matches lie on one plane", a tabletop), ``plane_tiebreak_margin`` ranks the
+    plane's physical poses (the homography's decompositions with the plane in front) by dense consistency: the
+    primary keypoints matched within ``guided_band_px`` of each pose's epipolar lines that it explains in front of
+    both cameras. The best is re-estimated by the pose stage from its guided matches when it explains
+    ``plane_tiebreak_margin`` times the next one's and at least ``plane_tiebreak_min`` (the pose confidence still
+    checks it); only with known intrinsics, and when at least ``plane_tiebreak_plane`` and half of the matches lie
+    on the plane. ``None`` disables either.
     """
 
     views: ViewConfig = field(default_factory=ViewConfig)
@@ -98,6 +112,13 @@ class ReconstructConfig:
         default_factory=lambda: SiftConfig(affine=True, detect_size=512, max_keypoints=4000)
     )
     fallback_min_inliers: int = 100
+    wide_descriptors: SiftConfig | None = field(
+        default_factory=lambda: SiftConfig(affine=True, detect_size=640, max_keypoints=8000, max_tilt=4.0)
+    )
+    wide_min_inliers: int = 30
+    plane_tiebreak_margin: float | None = 1.3
+    plane_tiebreak_min: int = 100
+    plane_tiebreak_plane: int = 30
     guided_band_px: float | None = 2.0
     guided_ratio: float = 0.95
     guided_below: int = 1000
@@ -184,6 +205,8 @@ class Pipeline:
             :class:`~.stages.PerViewDescriptors`.
         matcher, pose, depth, gaussians: the other slots (signatures in :mod:`.stages`).
         fallback_descriptors: the descriptors tried when the first ones verify too few matches.
+        wide_descriptors: the second fallback tier, tried when neither the descriptors nor the fallback give a
+            pose (default: ``config.wide_descriptors`` when both of those are the classical ones).
         scale: ``"metric"`` when the backend's geometry is in metres, else ``"relative"`` (baseline 1).
     """
 
@@ -198,6 +221,7 @@ class Pipeline:
         depth: DepthStage | None = None,
         gaussians: GaussianStage | None = None,
         fallback_descriptors: DescribeStage | None = None,
+        wide_descriptors: DescribeStage | None = None,
         scale: Literal["relative", "metric"] = "relative",
     ) -> None:
         self.config = config or ReconstructConfig()
@@ -206,6 +230,14 @@ class Pipeline:
         self.descriptors = descriptors or PerViewDescriptors(SiftDescriptors(c.descriptors))
         self.fallback_descriptors = fallback_descriptors or (
             PerViewDescriptors(SiftDescriptors(c.fallback_descriptors)) if c.fallback_descriptors is not None else None
+        )
+        # the default tier follows the classical chain only (a backend with its own descriptors, or none to fall
+        # back to, e.g. the neural one, gets no SIFT tier unless given one)
+        classical = descriptors is None and c.fallback_descriptors is not None
+        self.wide_descriptors = wide_descriptors or (
+            PerViewDescriptors(SiftDescriptors(c.wide_descriptors))
+            if c.wide_descriptors is not None and classical
+            else None
         )
         self.matcher = matcher or FilteredMatcher(c.matching)
         self.pose = pose or EssentialPose(c.pose)
@@ -221,6 +253,7 @@ class Pipeline:
             "images": "opencv+pillow",
             "descriptors": name(self.descriptors),
             "descriptors_fallback": name(self.fallback_descriptors),
+            "descriptors_wide": name(self.wide_descriptors),
             "matching": name(self.matcher),
             "pose": name(self.pose),
             "depth": name(self.depth),
@@ -271,6 +304,7 @@ class Pipeline:
         views: list[View] = timed("images", lambda: load_views(paths, self.config.views))
         pair = timed("network", lambda: self.pair(views)) if self.pair is not None else None
         feats: list[Features] = timed("descriptors", lambda: self.descriptors(views, pair))
+        feats_primary = feats
         matches: Matches = timed("matching", lambda: self.matcher(feats[0], feats[1]))
         geometry, failure = self._try_pose(views, matches, pair, timed, "pose")
         fallback_used = False
@@ -287,6 +321,12 @@ class Pipeline:
                 geometry, feats, matches, fallback_used = geometry_fb, feats_fb, matches_fb, True
             elif geometry is None:
                 failure = failure_fb or failure
+        if self.wide_descriptors is not None and geometry is None:
+            geometry_w, feats_w, matches_w, failure_w = self._wide(views, feats_primary, pair, timed)
+            if geometry_w is not None:  # else the chain's own failure stands (the tier's is logged)
+                geometry, feats, matches, fallback_used = geometry_w, feats_w, matches_w, True
+            else:
+                logger.debug("wide-baseline tier: %s", failure_w)
         if geometry is None:
             assert failure is not None
             raise failure
@@ -364,6 +404,103 @@ class Pipeline:
             raise ReconstructionError(f"{doubts[0]} ({LOW_CONFIDENCE_HINT})")
         info["accepted_low_confidence"] = True
         logger.warning("the pose may be wrong, the scene is written anyway (--accept-low-confidence): %s", doubts[0])
+
+    def _wide(
+        self, views: list[View], feats_primary: list[Features], pair: Any,
+        timed: Callable[[str, Callable[[], Any]], Any],
+    ) -> tuple[TwoViewGeometry | None, list[Features], Matches, ReconstructionError | None]:  # fmt: skip
+        """The second fallback tier: wide-baseline descriptors, matching and pose; when that pose fails, the
+        plane's poses ranked by dense consistency (:meth:`_plane_tiebreak`). Returns (geometry or None, the
+        features its matches index, the tier's filtered matches, the failure)."""
+        wide = self.wide_descriptors
+        assert wide is not None
+        logger.debug("still too few verified matches: retrying with %s", wide.name)
+        feats_w = timed("descriptors (wide)", lambda: wide(views, pair))
+        matches_w: Matches = timed("matching (wide)", lambda: self.matcher(feats_w[0], feats_w[1]))
+        geometry_w, failure_w = self._try_pose(views, matches_w, pair, timed, "pose (wide)")
+        if geometry_w is not None and len(geometry_w.inliers) < self.config.wide_min_inliers:
+            # a handful of matches at a wide baseline is a guess that guided matching would then "confirm"
+            # (CO3D 74°: 17 of 34 verified, grown to 437 guided matches 11° off, passed the confidence)
+            failure_w = ReconstructionError(
+                f"pose could not be estimated: {len(geometry_w.inliers)} verified matches, need at least "
+                f"{self.config.wide_min_inliers} at a wide baseline"
+            )
+            geometry_w = None
+        if geometry_w is not None:
+            geometry_w.info["descriptors_tier"] = "wide"  # type: ignore[assignment]
+            return geometry_w, feats_w, matches_w, None
+        if self.config.plane_tiebreak_margin is None:
+            return None, feats_w, matches_w, failure_w
+        tied = timed("pose (plane tie-break)", lambda: self._plane_tiebreak(views, feats_primary, matches_w, pair))
+        if tied is None:
+            return None, feats_w, matches_w, failure_w
+        tied.info["descriptors_tier"] = "wide+plane-tiebreak"  # type: ignore[assignment]
+        return tied, feats_primary, matches_w, None
+
+    def _plane_tiebreak(
+        self, views: list[View], feats: list[Features], matches: Matches, pair: Any
+    ) -> TwoViewGeometry | None:
+        """Rank the physical poses of the matches' dominant plane by dense consistency and re-estimate the best.
+
+        A plane seen from two views has two relative poses that explain its matches equally well; the true one
+        also explains the scene off the plane. Each decomposition of the homography (``matches``, MAGSAC++) that
+        puts the plane's matches in front of both cameras is scored by the keypoints of ``feats`` matched within
+        ``guided_band_px`` of its epipolar lines that it explains (Sampson distance below the pose threshold) in
+        front of both cameras. The best must score ``plane_tiebreak_margin`` times every distinct rival and at
+        least ``plane_tiebreak_min``; the pose stage then re-estimates the pose from its guided matches (all its
+        checks apply), and the result must stay within ``guided_max_change_deg`` of the candidate.
+
+        Returns:
+            the geometry (``info["plane_tiebreak"]``: the candidates' scores, best first), or None.
+        """
+        c = self.config
+        assert c.plane_tiebreak_margin is not None
+        thr = c.pose.threshold_px
+        if len(matches) < c.pose.min_inliers or c.guided_band_px is None:
+            return None
+        if any(v.intrinsics_source == "prior" for v in views):
+            return None  # the decomposition needs the intrinsics (CO3D 62°, prior focal: a pose 7° off passed)
+        H, hmask = cv2.findHomography(matches.xy0, matches.xy1, cv2.USAC_MAGSAC, 1.5 * thr, maxIters=c.pose.max_iters)
+        if H is None or hmask is None or int(hmask.sum()) < max(c.plane_tiebreak_plane, len(matches) / 2):
+            return None  # no dominant plane (CO3D 74°, 17 of 39 on a "plane": a pose 11° off passed)
+        K0, K1 = views[0].K, views[1].K
+        on_plane = hmask.ravel() > 0
+        _, Rs, ts, _ = cv2.decomposeHomographyMat(np.linalg.inv(K1) @ H @ K0, np.eye(3))
+        scored: list[tuple[int, np.ndarray, np.ndarray, Matches]] = []
+        for R, t in zip(Rs, ts):
+            t = t.ravel()
+            if np.linalg.norm(t) < 1e-9:
+                continue
+            t = t / np.linalg.norm(t)
+            _, front = _epipolar_fit(R, t, K0, K1, matches.xy0[on_plane], matches.xy1[on_plane])
+            if front.mean() < 0.5 or any(
+                rotation_error_deg(R, r) < 1.0 and translation_direction_error_deg(t, u) < 5.0 for _, r, u, _ in scored
+            ):
+                continue  # the plane behind a camera, or the same pose again
+            F = fundamental_from_pose(R, t, K0, K1)
+            g = guided_matches(feats[0], feats[1], F, band_px=c.guided_band_px, ratio=c.guided_ratio)
+            d, front_g = _epipolar_fit(R, t, K0, K1, g.xy0, g.xy1)
+            scored.append((int((front_g & (d < thr)).sum()), R, t, g))
+        scored.sort(key=lambda s: -s[0])
+        scores = [s[0] for s in scored]
+        logger.debug("plane tie-break: candidates explain %s guided matches", scores)
+        if not scored or scores[0] < c.plane_tiebreak_min:
+            return None
+        if len(scores) > 1 and scores[0] < c.plane_tiebreak_margin * scores[1]:
+            return None
+        _, R_best, t_best, guided = scored[0]
+        guided.counts = {**matches.counts, **guided.counts}
+        try:
+            geometry = self.pose(views[0], views[1], guided, pair)
+        except ReconstructionError:
+            return None
+        if (
+            rotation_error_deg(geometry.R, R_best) > c.guided_max_change_deg[0]
+            or translation_direction_error_deg(geometry.t, t_best) > c.guided_max_change_deg[1]
+        ):
+            return None
+        geometry.info["plane_tiebreak"] = scores  # type: ignore[assignment]
+        return geometry
 
     def _guided(
         self, views: list[View], feats: list[Features], geometry: TwoViewGeometry, pair: Any,

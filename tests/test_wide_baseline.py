@@ -1,0 +1,105 @@
+"""The second fallback tier (issue 14, wide-baseline recall): the plane tie-break by dense consistency.
+
+A plane's matches alone admit two relative poses; the pose stage refuses them as ambiguous. The tie-break scores
+each of the homography's physical decompositions by the keypoints matched along its epipolar lines that it
+explains in front of both cameras: only the true pose explains the scene off the plane.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from macsplat_cli.cameras import CameraSet, save_cameras
+from macsplat_cli.datasets import synthetic as S
+from macsplat_cli.errors import ReconstructionError
+from macsplat_cli.images import save_image
+from macsplat_cli.metrics import rotation_error_deg
+from macsplat_cli.pipeline.descriptors import SiftConfig, SiftDescriptors
+from macsplat_cli.pipeline.matching import match_features
+from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig
+from macsplat_cli.pipeline.views import ViewConfig, load_views
+
+W, H = 512, 384
+
+
+@pytest.fixture(scope="module")
+def table_pair(tmp_path_factory: pytest.TempPathFactory):
+    """A 30° object orbit (given intrinsics): the views, their SIFT features, the matches that lie on the table
+    top (by the ground truth) and the true relative pose."""
+    tmp: Path = tmp_path_factory.mktemp("wide")
+    scene = S.make_scene("object", seed=0)
+    c0, c1 = S.orbit_pair(scene, 30.0, seed=0, fov_deg=60.0, width=W, height=H)
+    r0 = S.render(scene, c0)
+    paths = []
+    for cam in (c0, c1):
+        p = tmp / f"{cam.name}.png"
+        save_image(p, S.render(scene, cam).image)
+        paths.append(p)
+    save_cameras(tmp / "cameras.json", CameraSet([c0, c1]))
+    cfg = ReconstructConfig(views=ViewConfig(intrinsics=tmp / "cameras.json"))
+    views = load_views(paths, cfg.views)
+    assert views[0].width == W and views[0].height == H
+    feats = [SiftDescriptors(SiftConfig())(v) for v in views]
+    m = match_features(feats[0], feats[1])
+    # world point of each view-0 match from the true depth: keep the table top (y = 0, normal along y)
+    px = np.clip(np.floor(m.xy0).astype(int), 0, [W - 1, H - 1])
+    z = r0.depth[px[:, 1], px[:, 0]]
+    rays = np.c_[m.xy0, np.ones(len(m))] @ np.linalg.inv(c0.K).T
+    X = (np.c_[rays * z[:, None], np.ones(len(m))] @ c0.cam_to_world.T)[:, :3]
+    n_y = np.abs(r0.normals[px[:, 1], px[:, 0], 1])
+    on_table = (z > 0) & (np.abs(X[:, 1]) < 0.01) & (n_y > 0.9)
+    R, t = S.relative_pose(c0, c1)
+    return cfg, views, feats, m.subset(on_table), R, t
+
+
+def test_plane_matches_alone_are_ambiguous_and_the_tiebreak_finds_the_true_pose(table_pair) -> None:
+    cfg, views, feats, plane, R, _ = table_pair
+    assert len(plane) >= 40
+    pipe = Pipeline(cfg)
+    # the old chain's pose stage on these matches: refused (one plane, two poses) or off; never the answer here
+    try:
+        g_old = pipe.pose(views[0], views[1], plane, None)
+        old_ok = rotation_error_deg(g_old.R, R) < 5.0 and not g_old.info.get("doubts")
+    except ReconstructionError:
+        old_ok = False
+    g = pipe._plane_tiebreak(views, feats, plane, None)
+    assert g is not None
+    assert rotation_error_deg(g.R, R) < 2.0
+    scores = g.info["plane_tiebreak"]
+    assert scores[0] >= cfg.plane_tiebreak_min
+    assert len(scores) == 1 or scores[0] >= cfg.plane_tiebreak_margin * scores[1]
+    assert not old_ok or len(g.inliers) > len(plane)  # the tie-break adds the scene off the plane
+
+
+def test_tiebreak_refuses_without_a_clear_winner(table_pair) -> None:
+    cfg, views, feats, plane, _, _ = table_pair
+    g = Pipeline(cfg)._plane_tiebreak(views, feats, plane, None)
+    assert g is not None and len(g.info["plane_tiebreak"]) == 2  # the plane's two physical poses were scored
+    for strict in (
+        ReconstructConfig(views=cfg.views, plane_tiebreak_margin=1e6),  # no winner by that margin
+        ReconstructConfig(views=cfg.views, plane_tiebreak_min=10**6),  # too little support
+    ):
+        assert Pipeline(strict)._plane_tiebreak(views, feats, plane, None) is None
+
+
+def test_wide_tier_only_runs_when_the_chain_gives_no_pose(table_pair, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An easy pair never reaches the second tier (its cost is for hard pairs only)."""
+    cfg, views, _, _, _, _ = table_pair
+    pipe = Pipeline(ReconstructConfig(views=cfg.views))
+    calls = []
+    assert pipe.wide_descriptors is not None
+    monkeypatch.setattr(pipe, "_wide", lambda *a, **k: calls.append(1) or (None, [], None, None))
+
+    class Stop(Exception):
+        pass
+
+    def stop(*a, **k):
+        raise Stop
+
+    pipe.depth = stop  # type: ignore[assignment]
+    with pytest.raises(Stop):
+        pipe.run([v.path for v in views])
+    assert calls == []
