@@ -49,7 +49,7 @@ from ..errors import NonFiniteError, ReconstructionError
 from ..metrics import angle_between_deg, rotation_angle_deg
 from .types import Matches, TwoViewGeometry, View
 
-__all__ = ["PoseConfig", "estimate_pose", "flipped_fraction", "sampson_distance"]
+__all__ = ["PoseConfig", "epipolar_fit", "estimate_pose", "flipped_fraction", "sampson_distance"]
 
 logger = logging.getLogger(__name__)
 
@@ -364,7 +364,7 @@ def flipped_fraction(
     return float(np.mean(np.sign(s0[ok]) != np.sign(s1[ok])))
 
 
-def _epipolar_fit(
+def epipolar_fit(
     R: np.ndarray, t: np.ndarray, K0: np.ndarray, K1: np.ndarray, xy0: np.ndarray, xy1: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Sampson distance (px) of each match to a relative pose, and whether it triangulates in front of both
@@ -383,7 +383,7 @@ def _support(
 ) -> np.ndarray:
     """Matches a relative pose explains: Sampson distance below ``threshold`` px and triangulated in front of
     both cameras. [M] bool"""
-    d, front = _epipolar_fit(R, t, K0, K1, xy0, xy1)
+    d, front = epipolar_fit(R, t, K0, K1, xy0, xy1)
     return (d < threshold) & front
 
 
@@ -515,7 +515,7 @@ def _resolve_planar(
     Returns:
         the verdict; ``exclusive`` is (evidence, counter-evidence) of the closest duel.
     """
-    fits = [_epipolar_fit(R, t, K0, K1, xy0, xy1) for R, t in candidates]
+    fits = [epipolar_fit(R, t, K0, K1, xy0, xy1) for R, t in candidates]
     explained = [(d < cfg.threshold_px) & front for d, front in fits]
     refuted = [(d > cfg.planar_refute_factor * cfg.threshold_px) | ~front for d, front in fits]
     support = [int(m.sum()) for m in explained]

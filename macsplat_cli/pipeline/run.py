@@ -31,7 +31,7 @@ from .depth import DepthConfig
 from .descriptors import SiftConfig, SiftDescriptors
 from .gaussian_init import GaussianInitConfig
 from .matching import MatchConfig, guided_matches
-from .pose import PoseConfig, _epipolar_fit, fundamental_from_pose
+from .pose import PoseConfig, epipolar_fit, fundamental_from_pose
 from .pose_confidence import ConfidenceConfig, PoseConfidence, assess_pose
 from .stages import (
     DepthGaussians,
@@ -472,14 +472,14 @@ class Pipeline:
             if np.linalg.norm(t) < 1e-9:
                 continue
             t = t / np.linalg.norm(t)
-            _, front = _epipolar_fit(R, t, K0, K1, matches.xy0[on_plane], matches.xy1[on_plane])
+            _, front = epipolar_fit(R, t, K0, K1, matches.xy0[on_plane], matches.xy1[on_plane])
             if front.mean() < 0.5 or any(
                 rotation_error_deg(R, r) < 1.0 and translation_direction_error_deg(t, u) < 5.0 for _, r, u, _ in scored
             ):
                 continue  # the plane behind a camera, or the same pose again
             F = fundamental_from_pose(R, t, K0, K1)
             g = guided_matches(feats[0], feats[1], F, band_px=c.guided_band_px, ratio=c.guided_ratio)
-            d, front_g = _epipolar_fit(R, t, K0, K1, g.xy0, g.xy1)
+            d, front_g = epipolar_fit(R, t, K0, K1, g.xy0, g.xy1)
             scored.append((int((front_g & (d < thr)).sum()), R, t, g))
         scored.sort(key=lambda s: -s[0])
         scores = [s[0] for s in scored]
