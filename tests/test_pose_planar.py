@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 import pytest
 
+from macsplat_cli.datasets.synthetic.planar import planar_case
 from macsplat_cli.errors import ReconstructionError
 from macsplat_cli.metrics import rotation_error_deg, translation_direction_error_deg
 from macsplat_cli.pipeline.pose import PoseConfig, estimate_pose
@@ -60,35 +61,7 @@ def _random_plane_case(seed: int, off: float | None) -> tuple[Matches, np.ndarra
     """benchmarks/pose_stress.py's ``random`` motion (rotation 0–20°, translation 0.5 over a plane 6 units away):
     200 plane matches (``off`` None), or a table-top with ``off`` of the points on objects, half of those below
     the confidence gate, plus outliers."""
-    rng = np.random.default_rng(seed)
-    a = rng.normal(size=3)
-    R = cv2.Rodrigues(a / np.linalg.norm(a) * math.radians(rng.uniform(0, 20)))[0]
-    t = rng.normal(size=3)
-    t = t / np.linalg.norm(t) * 0.5
-    tilt = rng.uniform(-0.5, 0.5, 2)
-    X = np.c_[rng.uniform(-3, 3, (1200, 2)), np.zeros(1200)]
-    X[:, 2] = 6 - X[:, :2] @ tilt
-    if off is None:
-        xy0, xy1, ok = _project(X, R, t)
-        xy0, xy1 = xy0[ok][:200], xy1[ok][:200]
-        return _matches(xy0 + rng.normal(0, 0.3, xy0.shape), xy1 + rng.normal(0, 0.3, xy1.shape)), R, t
-    normal = -np.array([tilt[0], tilt[1], 1.0]) / np.linalg.norm([tilt[0], tilt[1], 1.0])
-    is_off = rng.uniform(size=1200) < off
-    X = np.where(is_off[:, None], X + rng.uniform(0.1, 1.0, 1200)[:, None] * normal, X)
-    xy0, xy1, ok = _project(X, R, t)
-    xy0, xy1, is_off = xy0[ok][:300], xy1[ok][:300], is_off[ok][:300]
-    gated = np.zeros(len(xy0), bool)
-    gated[np.flatnonzero(~is_off | (rng.uniform(size=len(xy0)) < 0.5))[:200]] = True
-    g0 = xy0[gated] + rng.normal(0, 0.3, (gated.sum(), 2))
-    g1 = xy1[gated] + rng.normal(0, 0.3, (gated.sum(), 2))
-    n_out = len(g0) // 20
-    g0 = np.concatenate([g0, rng.uniform((0, 0), (W, H), (n_out, 2))])
-    g1 = np.concatenate([g1, rng.uniform((0, 0), (W, H), (n_out, 2))])
-    b0 = np.concatenate([xy0[~gated] + rng.normal(0, 0.6, ((~gated).sum(), 2)), rng.uniform((0, 0), (W, H), (300, 2))])
-    b1 = np.concatenate([xy1[~gated] + rng.normal(0, 0.6, ((~gated).sum(), 2)), rng.uniform((0, 0), (W, H), (300, 2))])
-    m = _matches(g0, g1)
-    m.below_gate = _matches(b0, b1)
-    return m, R, t
+    return planar_case(seed, off, "random")
 
 
 def _table_pure_plane(seed: int) -> tuple[Matches, np.ndarray, np.ndarray]:
