@@ -340,7 +340,7 @@ def flipped_fraction(
         xy0, xy1, n = xy0[sel], xy1[sel], max_points
         depth = depth[sel] if depth is not None else None
     p = torch.from_numpy(np.ascontiguousarray(xy0, np.float64))
-    d = torch.cdist(p, p)  # [N, N]; torch: 20× faster than a broadcast norm and a full argsort at 2,000 points
+    d = torch.cdist(p, p)  # [N, N]; far faster than a broadcast norm and a full argsort
     d[d < min_px] = math.inf  # itself, and near-duplicate keypoints (affine-simulated SIFT): their triangles are noise
     dist, nn_t = d.topk(neighbours, dim=1, largest=False)  # the nearest first
     nn = nn_t.numpy()  # [N, 2]
