@@ -25,7 +25,7 @@ be switched off in :class:`CompactConfig`):
    (out-of-plane deviation below ``plane_tol`` pixel footprints) becomes one Gaussian (moment-matched
    mean and covariance, in-plane extent widened by ``coverage``, colour averaged, opacity
    ``1 − (1 − ō)^opacity_boost``: it stands for several overlapping Gaussians whose alphas accumulate).
-   Blocks touching a depth edge (a neighbour ``edge_depth_tol`` nearer or farther) are never merged.
+   Blocks on the near side of a depth step (a neighbour ``edge_depth_tol`` farther) are never merged.
    Edges and texture keep one Gaussian per pixel.
 7. **sh**: the SH degree drops to the lowest one whose colours differ from the full degree's by less
    than ``sh_tol`` (95th percentile over the Gaussians, seen from every camera and the midpoints
@@ -93,8 +93,8 @@ class CompactConfig:
         max_block: largest block side (2, 4, 8 or 16); blocks are 2, 4, … up to it.
         color_tol: largest colour standard deviation (per channel, colours in [0, 1]) of a merged block.
         plane_tol: largest out-of-plane standard deviation of a merged block, in pixel footprints.
-        edge_depth_tol: pixels with a neighbour this much nearer or farther (relative depth), or without one,
-            are depth edges and are never merged.
+        edge_depth_tol: pixels with a neighbour this much farther (relative depth: the near side of a depth step)
+            are never merged.
         coverage: the merged Gaussian's in-plane standard deviations relative to the block's moment-matched
             ones (> 1 closes the seams between neighbouring blocks).
         opacity_boost: a merged Gaussian's opacity is ``1 − (1 − ō)^opacity_boost`` (ō: its pixels' mean): one
@@ -119,7 +119,7 @@ class CompactConfig:
     adaptive: bool = True
     max_block: int = 8
     color_tol: float = 0.06
-    plane_tol: float = 0.3
+    plane_tol: float = 0.5
     edge_depth_tol: float = 0.15
     coverage: float = 1.7
     opacity_boost: float = 2.0
@@ -391,14 +391,21 @@ def _prune_subpixel(views: list[_View], cfg: CompactConfig) -> str:
 
 
 def _depth_edges(v: _View, tol: float) -> torch.Tensor:
-    """Pixels next to a depth discontinuity or a pixel without a Gaussian in the map's own mask. [H, W] bool"""
+    """Pixels on the near side of a depth step: a neighbour more than ``tol`` (relative) farther. [H, W] bool
+
+    Only the near side: a merged block there, widened by ``coverage``, would hang in front of the background (a
+    fattened silhouette in every other view). A far-side block's overhang lies behind the nearer surface, hidden
+    where the photos saw it and the background's own continuation where a novel view sees past the step. Pixels
+    without a Gaussian (outside the mask, or dropped by the depth fusion as a wrong layer) are no edge either:
+    the block's overhang into them stays on the block's own surface.
+    """
     h, w = v.size
     z = torch.where(v.valid, v.means[..., 2], torch.zeros_like(v.logits))
     zp = F.pad(z[None, None], (1, 1, 1, 1), mode="replicate")[0, 0]  # the image border is no edge
     edge = torch.zeros(h, w, dtype=torch.bool)
     for dy, dx in _NEIGHBOURS:
         zn = zp[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
-        edge |= (zn <= 0) | ((zn - z).abs() > tol * z.abs())
+        edge |= (zn > 0) & (zn - z > tol * z.abs())
     return edge & v.valid
 
 
