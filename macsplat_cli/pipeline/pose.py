@@ -136,12 +136,13 @@ def fundamental_from_pose(R: np.ndarray, t: np.ndarray, K0: np.ndarray, K1: np.n
 
 
 def sampson_distance(F: np.ndarray, xy0: np.ndarray, xy1: np.ndarray) -> np.ndarray:
-    """Signed first-order geometric distance of each match to ``F``, in pixels. [M]"""
+    """Signed first-order geometric distance of each match to ``F`` [3, 3] (or to each of a stack of them,
+    ``F: [P, 3, 3]`` → ``[P, M]``: one call for all of a finite-difference Jacobian's poses), in pixels. [M]"""
     p0, p1 = _homog(xy0), _homog(xy1)
-    Fp0 = p0 @ F.T
+    Fp0 = p0 @ np.swapaxes(F, -1, -2)  # [(P,) M, 3]
     Ftp1 = p1 @ F
-    e = np.sum(p1 * Fp0, axis=1)
-    denom = Fp0[:, 0] ** 2 + Fp0[:, 1] ** 2 + Ftp1[:, 0] ** 2 + Ftp1[:, 1] ** 2
+    e = np.sum(p1 * Fp0, axis=-1)
+    denom = Fp0[..., 0] ** 2 + Fp0[..., 1] ** 2 + Ftp1[..., 0] ** 2 + Ftp1[..., 1] ** 2
     return e / np.sqrt(np.maximum(denom, 1e-30))
 
 
@@ -268,12 +269,13 @@ def _refine(
 
     def jacobian(R_: np.ndarray, t_: np.ndarray, s_: float) -> np.ndarray:
         h = 1e-6
-        cols = []
-        for k in range(n_par):
-            d = np.zeros(n_par)
-            d[k] = h
-            cols.append((residuals(*apply(d, R_, t_, s_)) - residuals(*apply(-d, R_, t_, s_))) / (2 * h))
-        return np.stack(cols, axis=1)
+        steps = np.concatenate([np.eye(n_par), -np.eye(n_par)]) * h
+        poses = [apply(d, R_, t_, s_) for d in steps]
+        Fs = [
+            fundamental_from_pose(a, b, _scaled_K(K0, c, unknown[0]), _scaled_K(K1, c, unknown[1])) for a, b, c in poses
+        ]
+        r = sampson_distance(np.stack(Fs), xy0, xy1)  # [2·n_par, M], central differences
+        return ((r[:n_par] - r[n_par:]) / (2 * h)).T
 
     def cost(r: np.ndarray, s_: float) -> float:
         c = float(np.sum(np.log1p((r / scale) ** 2)))

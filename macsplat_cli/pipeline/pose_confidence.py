@@ -162,7 +162,9 @@ def refit_pose(
     h = 1e-6
     eye = np.eye(5) * h
     for _ in range(iters):
-        J = np.stack([residuals(*apply(e, R, t)) - residuals(*apply(-e, R, t)) for e in eye], 1) / (2 * h)
+        Fs = [fundamental_from_pose(*apply(e, R, t), K0, K1) for e in np.concatenate([eye, -eye])]
+        rs = sampson_distance(np.stack(Fs), xy0, xy1)  # [10, M], central differences
+        J = ((rs[:5] - rs[5:]) / (2 * h)).T
         w = 1.0 / (1.0 + (r / scale_px) ** 2)
         H = (J * w[:, None]).T @ J
         g = (J * w[:, None]).T @ r
