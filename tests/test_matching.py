@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+import torch
 
 from macsplat_cli.datasets.synthetic import rotation_about
 from macsplat_cli.pipeline.matching import (
@@ -358,3 +359,28 @@ def test_guided_matches_empty(n0: int, n1: int) -> None:
     m = guided_matches(f0, f1, F)
     assert len(m) == 0 and m.counts == {"guided": 0}
     assert m.xy0.shape == (0, 2) and m.xy1.shape == (0, 2) and m.idx0.shape == (0,)
+
+
+@pytest.mark.parametrize("shape", [(1, 5), (7, 300), (64, 1031), (513, 257)])
+@pytest.mark.parametrize("levels", [0, 3])
+def test_column_top2_kernel_matches_reference(shape: tuple[int, int], levels: int) -> None:
+    """The Numba column top-2 fold equals its PyTorch twin over several blocks, ties included (``levels``:
+    values rounded to so few levels that most columns tie)."""
+    from macsplat_cli.pipeline import _match_kernels
+
+    rng = np.random.default_rng(shape[0] * 7 + levels)
+    rows, cols = shape
+    full = rng.uniform(-1, 1, (3 * rows, cols)).astype(np.float32)
+    if levels:
+        full = np.round(full * levels) / levels
+    top_k, arg_k = np.full((2, cols), -1.0, np.float32), np.zeros(cols, np.int64)
+    top_r, arg_r = torch.full((2, cols), -1.0), torch.zeros(cols, dtype=torch.int64)
+    for start in range(0, 3 * rows, rows):
+        block = full[start : start + rows]
+        _match_kernels.column_top2_update(np.ascontiguousarray(block), start, top_k, arg_k)
+        _match_kernels.column_top2_update_reference(torch.from_numpy(block), start, top_r, arg_r)
+    np.testing.assert_array_equal(top_k, top_r.numpy())
+    np.testing.assert_array_equal(arg_k, arg_r.numpy())
+    # and both are the global answer: the first row of the column maximum, the second-largest entry
+    np.testing.assert_array_equal(arg_k, full.argmax(0))
+    np.testing.assert_array_equal(top_k, -np.sort(-full, axis=0)[:2])

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from . import _match_kernels
 from .types import Features, Matches
 
 __all__ = [
@@ -101,13 +102,8 @@ def reciprocal_nearest_neighbours(
         v, j = sim.topk(k, dim=1)
         row_top[start : start + rows, :k] = v
         row_arg[start : start + rows] = j[:, 0]
-        kb = min(2, sim.shape[0])
-        cv, ci = sim.topk(kb, dim=0)  # [kb, M1]
-        merged = torch.cat([col_top, cv], 0)
-        order = merged.argsort(dim=0, descending=True, stable=True)[:2]
-        new_best_is_block = order[0] >= 2  # strict: earlier rows win ties, like a global argmax
-        col_arg = torch.where(new_best_is_block, ci[(order[0] - 2).clamp(0, kb - 1), torch.arange(m1)] + start, col_arg)
-        col_top = merged.gather(0, order)
+        # strict: earlier rows win ties, like a global argmax
+        _match_kernels.column_top2_update(sim.numpy(), start, col_top.numpy(), col_arg.numpy())
     i = torch.arange(m0)
     mutual = col_arg[row_arg] == i
     return NearestNeighbours(
@@ -196,13 +192,7 @@ def guided_matches(
         v, j = sim.topk(k, dim=1)
         row_top[start : start + rows, :k] = v
         row_arg[start : start + rows] = j[:, 0]
-        kb = min(2, sim.shape[0])
-        cv, ci = sim.topk(kb, dim=0)
-        merged = torch.cat([col_top, cv], 0)
-        order = merged.argsort(dim=0, descending=True, stable=True)[:2]
-        from_block = order[0] >= 2
-        col_arg = torch.where(from_block, ci[(order[0] - 2).clamp(0, kb - 1), torch.arange(n1)] + start, col_arg)
-        col_top = merged.gather(0, order)
+        _match_kernels.column_top2_update(sim.numpy(), start, col_top.numpy(), col_arg.numpy())
     i = torch.arange(n0)
     ok = (col_arg[row_arg] == i) & (row_top[:, 0] > neg)
     idx0 = i[ok].numpy()
