@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -12,6 +13,7 @@ import pytest
 
 from macsplat_cli.cameras import Camera, CameraSet, save_cameras
 from macsplat_cli.cli import main
+from macsplat_cli.images import load_image
 from macsplat_cli.ply import read_ply, write_ply
 from macsplat_cli.render import render_camera
 
@@ -283,3 +285,53 @@ def test_console_script_runs(tmp_path: Path, scene) -> None:  # noqa: ANN001
         text=True,
     )
     assert bad.returncode == 2 and bad.stderr.strip().startswith("error:") and "\n" not in bad.stderr.strip()
+
+
+def test_console_script_exits_without_teardown_and_loses_nothing(tmp_path: Path, scene) -> None:  # noqa: ANN001
+    """``run()`` ends the process with ``os._exit`` after a command: piped output complete, files whole, exit codes
+    kept — and with ``MACSPLAT_CLEAN_EXIT=1`` (the normal teardown) the same."""
+    ply, cams = scene
+    exe = [sys.executable, "-m", "macsplat_cli"]
+    outs = {}
+    for clean in ("0", "1"):
+        env = {**os.environ, "MACSPLAT_CLEAN_EXIT": clean, "COLUMNS": "100"}
+        helped = subprocess.run([*exe, "--help"], capture_output=True, text=True, env=env)
+        assert helped.returncode == 0 and helped.stdout.rstrip().endswith("╯"), helped.stdout[-200:]
+        png = tmp_path / f"s{clean}.png"
+        ok = subprocess.run([*exe, "render", str(ply), "--pose", str(cams), "-o", str(png)], capture_output=True,
+                            text=True, env=env)  # fmt: skip
+        # the summary table (stderr) is whole: its last line is the table's bottom border
+        assert ok.returncode == 0 and png.name in ok.stderr and ok.stderr.rstrip().endswith("┘"), ok.stderr
+        bad = subprocess.run([*exe, "render", str(ply), "--pose", str(tmp_path / "no.json"), "-o", str(png)],
+                             capture_output=True, text=True, env=env)  # fmt: skip
+        assert bad.returncode == 2 and bad.stderr.startswith("error:"), bad.stderr
+        outs[clean] = (helped.stdout, load_image(png).rgb)
+    assert outs["0"][0] == outs["1"][0]
+    np.testing.assert_array_equal(outs["0"][1], outs["1"][1])
+
+
+def test_teardown_is_kept_when_something_may_need_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A thread still running, the environment switch or a tracer keep the normal exit."""
+    import threading
+
+    from macsplat_cli.cli import _needs_teardown
+
+    monkeypatch.delenv("MACSPLAT_CLEAN_EXIT", raising=False)
+    monkeypatch.setattr(sys, "gettrace", lambda: None)
+    monkeypatch.setattr(sys, "getprofile", lambda: None)
+    monkeypatch.delitem(sys.modules, "coverage", raising=False)
+    assert not _needs_teardown()
+    monkeypatch.setenv("MACSPLAT_CLEAN_EXIT", "1")
+    assert _needs_teardown()
+    monkeypatch.setenv("MACSPLAT_CLEAN_EXIT", "0")
+    stop = threading.Event()
+    worker = threading.Thread(target=stop.wait)
+    worker.start()
+    try:
+        assert _needs_teardown()
+    finally:
+        stop.set()
+        worker.join()
+    assert not _needs_teardown()
+    monkeypatch.setattr(sys, "gettrace", lambda: print)
+    assert _needs_teardown()
