@@ -384,3 +384,44 @@ def test_column_top2_kernel_matches_reference(shape: tuple[int, int], levels: in
     # and both are the global answer: the first row of the column maximum, the second-largest entry
     np.testing.assert_array_equal(arg_k, full.argmax(0))
     np.testing.assert_array_equal(top_k, -np.sort(-full, axis=0)[:2])
+
+
+def test_sift_describes_both_views_in_threads_with_the_same_output(tmp_path) -> None:  # noqa: ANN001
+    """SIFT is thread-safe: the describe slot runs the two views in parallel threads, and gets exactly what one
+    view at a time gets; a backend that does not declare itself thread-safe stays on the calling thread."""
+    import os
+    import threading
+
+    from macsplat_cli.datasets import synthetic as syn
+    from macsplat_cli.images import save_image
+    from macsplat_cli.pipeline.descriptors import SiftDescriptors
+    from macsplat_cli.pipeline.stages import PerViewDescriptors
+    from macsplat_cli.pipeline.views import load_views
+
+    scene = syn.make_scene("room", seed=2)
+    paths = []
+    for cam in syn.orbit_pair(scene, 15.0, width=320, height=240, seed=2):
+        paths.append(save_image(tmp_path / f"{cam.name}.png", syn.render(scene, cam).image))
+    views = load_views(paths)
+    sift = SiftDescriptors()
+    threads: list[str] = []
+
+    class Spy:
+        name, thread_safe = "spy", True
+
+        def __call__(self, view):  # noqa: ANN001, ANN204
+            threads.append(threading.current_thread().name)
+            return sift(view)
+
+    both = PerViewDescriptors(Spy())(views)
+    one_by_one = [sift(v) for v in views]
+    for a, b in zip(both, one_by_one):
+        assert len(a) > 100
+        np.testing.assert_array_equal(a.xy, b.xy)
+        np.testing.assert_array_equal(a.desc, b.desc)
+    if (os.cpu_count() or 1) > 1:
+        assert all(t.startswith("describe") for t in threads), threads
+    threads.clear()
+    Spy.thread_safe = False
+    PerViewDescriptors(Spy())(views)
+    assert threads == [threading.current_thread().name] * 2

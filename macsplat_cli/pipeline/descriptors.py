@@ -38,7 +38,8 @@ class DescriptorBackend(Protocol):
     """A per-view descriptor backend, ``View → Features``; ``name`` identifies the backend in the report.
 
     The pipeline's ``describe`` slot takes both views (and the ``pair`` stage's output, for a two-view
-    network); a per-view backend goes there wrapped in :class:`~.stages.PerViewDescriptors`.
+    network); a per-view backend goes there wrapped in :class:`~.stages.PerViewDescriptors`, which describes the
+    views in parallel threads when the backend sets ``thread_safe = True``.
     """
 
     name: str
@@ -67,7 +68,12 @@ class SiftConfig:
 
 
 class SiftDescriptors:
-    """Classical descriptors: SIFT keypoints with RootSIFT descriptors (confidence 1)."""
+    """Classical descriptors: SIFT keypoints with RootSIFT descriptors (confidence 1).
+
+    Thread-safe (a detector per call): :class:`~.stages.PerViewDescriptors` describes both views at once.
+    """
+
+    thread_safe = True
 
     def __init__(self, config: SiftConfig | None = None) -> None:
         self.config = config or SiftConfig()

@@ -18,7 +18,9 @@ explicitly. Each backend has a ``name`` (the report names the backend of every s
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Protocol
 
 from ..gaussians import GaussianMaps
@@ -83,14 +85,22 @@ class GaussianStage(Protocol):
 
 
 class PerViewDescriptors:
-    """A per-view descriptor backend (``View → Features``, e.g. SIFT) in the ``describe`` slot."""
+    """A per-view descriptor backend (``View → Features``, e.g. SIFT) in the ``describe`` slot.
+
+    A backend that declares ``thread_safe = True`` describes the views in parallel threads (OpenCV's SIFT runs
+    on one core and releases the GIL: the stage takes about half the time on two cores, same output).
+    """
 
     def __init__(self, backend: DescriptorBackend) -> None:
         self.backend = backend
         self.name = backend.name
 
     def __call__(self, views: Sequence[View], pair: Any = None) -> list[Features]:
-        return [self.backend(v) for v in views]
+        workers = min(len(views), os.cpu_count() or 1)
+        if workers < 2 or not getattr(self.backend, "thread_safe", False):
+            return [self.backend(v) for v in views]
+        with ThreadPoolExecutor(workers, thread_name_prefix="describe") as pool:
+            return list(pool.map(self.backend, views))
 
 
 class FilteredMatcher:
