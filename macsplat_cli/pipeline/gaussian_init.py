@@ -22,6 +22,8 @@ Gaussian reaches across the gap between an object and its background.
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -90,46 +92,54 @@ def gaussians_from_depth(
         pixels with a depth) and ``cam_to_world`` (``geometry.cam_to_world(k)``, float64) set.
     """
     cfg = config or GaussianInitConfig()
-    out = []
-    for k, (view, dm) in enumerate(zip(views, depths)):
-        K = geometry.K0 if k == 0 else geometry.K1
-        h, w = dm.depth.shape
-        ys, xs = np.mgrid[0:h, 0:w]
-        pix = np.stack([xs + 0.5, ys + 0.5, np.ones((h, w))], -1)
-        rays = pix @ np.linalg.inv(K).T  # z = 1
-        P = rays * dm.depth[..., None]
-        valid = dm.valid
-        n = _normals(P, valid, cfg.edge_ratio).reshape(-1, 3)
-        Pf = P.reshape(-1, 3)
-        z = np.maximum(Pf[:, 2], 1e-12)
-        view_dir = -Pf / np.maximum(np.linalg.norm(Pf, axis=1, keepdims=True), 1e-12)
-        cos = np.clip(np.sum(n * view_dir, axis=1), 1.0 / cfg.max_tilt_stretch, 1.0)
-        # tilt axis: the viewing direction projected onto the tangent plane
-        t1 = view_dir - np.sum(view_dir * n, axis=1, keepdims=True) * n
-        t1_norm = np.linalg.norm(t1, axis=1, keepdims=True)
-        fallback = np.cross(n, np.array([1.0, 0.0, 0.0]))
-        fallback_alt = np.cross(n, np.array([0.0, 1.0, 0.0]))
-        fallback = np.where(np.linalg.norm(fallback, axis=1, keepdims=True) > 1e-6, fallback, fallback_alt)
-        fallback /= np.maximum(np.linalg.norm(fallback, axis=1, keepdims=True), 1e-12)
-        t1 = np.where(t1_norm > 1e-6, t1 / np.maximum(t1_norm, 1e-12), fallback)
-        t2 = np.cross(n, t1)
-        quats = rotmat_to_quat_np(np.stack([t1, t2, n], axis=2))  # columns: local x, y, z axes
-        f = 0.5 * (K[0, 0] + K[1, 1])
-        base = cfg.footprint * z / f
-        scales = np.stack([base / cos, base, base * cfg.thickness], 1)
-        conf = dm.confidence.reshape(-1)
-        opacity = cfg.opacity_min + (cfg.opacity_max - cfg.opacity_min) * np.clip(conf, 0.0, 1.0)
-        t = lambda a: torch.from_numpy(np.ascontiguousarray(a, np.float32))  # noqa: E731
-        g = Gaussians.from_activated(t(Pf), t(scales), t(quats), t(opacity), t(view.image.reshape(-1, 3)))
-        out.append(
-            GaussianMaps(
-                means=g.means.reshape(1, h, w, 3),
-                log_scales=g.log_scales.reshape(1, h, w, 3),
-                quats=g.quats.reshape(1, h, w, 4),
-                opacity_logits=g.opacity_logits.reshape(1, h, w),
-                sh=g.sh.reshape(1, h, w, -1, 3),
-                valid=torch.from_numpy(np.ascontiguousarray(valid)).reshape(1, h, w),
-                cam_to_world=torch.from_numpy(geometry.cam_to_world(k))[None],
-            )
-        )
-    return out
+    jobs = [(view, dm, geometry.K0 if k == 0 else geometry.K1, geometry.cam_to_world(k))
+            for k, (view, dm) in enumerate(zip(views, depths))]  # fmt: skip
+    workers = min(len(jobs), os.cpu_count() or 1)
+    if workers < 2:
+        return [_view_gaussians(*job, cfg) for job in jobs]
+    # NumPy releases the GIL in its array loops: the views are built side by side
+    with ThreadPoolExecutor(workers, thread_name_prefix="gaussians") as pool:
+        return list(pool.map(lambda job: _view_gaussians(*job, cfg), jobs))
+
+
+def _view_gaussians(
+    view: View, dm: DepthMap, K: np.ndarray, cam_to_world: np.ndarray, cfg: GaussianInitConfig
+) -> GaussianMaps:
+    """One view's Gaussians (:func:`gaussians_from_depth`); ``K`` [3, 3], ``cam_to_world`` [4, 4]."""
+    h, w = dm.depth.shape
+    ys, xs = np.mgrid[0:h, 0:w]
+    pix = np.stack([xs + 0.5, ys + 0.5, np.ones((h, w))], -1)
+    rays = pix @ np.linalg.inv(K).T  # z = 1
+    P = rays * dm.depth[..., None]
+    valid = dm.valid
+    n = _normals(P, valid, cfg.edge_ratio).reshape(-1, 3)
+    Pf = P.reshape(-1, 3)
+    z = np.maximum(Pf[:, 2], 1e-12)
+    view_dir = -Pf / np.maximum(np.linalg.norm(Pf, axis=1, keepdims=True), 1e-12)
+    cos = np.clip(np.sum(n * view_dir, axis=1), 1.0 / cfg.max_tilt_stretch, 1.0)
+    # tilt axis: the viewing direction projected onto the tangent plane
+    t1 = view_dir - np.sum(view_dir * n, axis=1, keepdims=True) * n
+    t1_norm = np.linalg.norm(t1, axis=1, keepdims=True)
+    fallback = np.cross(n, np.array([1.0, 0.0, 0.0]))
+    fallback_alt = np.cross(n, np.array([0.0, 1.0, 0.0]))
+    fallback = np.where(np.linalg.norm(fallback, axis=1, keepdims=True) > 1e-6, fallback, fallback_alt)
+    fallback /= np.maximum(np.linalg.norm(fallback, axis=1, keepdims=True), 1e-12)
+    t1 = np.where(t1_norm > 1e-6, t1 / np.maximum(t1_norm, 1e-12), fallback)
+    t2 = np.cross(n, t1)
+    quats = rotmat_to_quat_np(np.stack([t1, t2, n], axis=2))  # columns: local x, y, z axes
+    f = 0.5 * (K[0, 0] + K[1, 1])
+    base = cfg.footprint * z / f
+    scales = np.stack([base / cos, base, base * cfg.thickness], 1)
+    conf = dm.confidence.reshape(-1)
+    opacity = cfg.opacity_min + (cfg.opacity_max - cfg.opacity_min) * np.clip(conf, 0.0, 1.0)
+    t = lambda a: torch.from_numpy(np.ascontiguousarray(a, np.float32))  # noqa: E731
+    g = Gaussians.from_activated(t(Pf), t(scales), t(quats), t(opacity), t(view.image.reshape(-1, 3)))
+    return GaussianMaps(
+        means=g.means.reshape(1, h, w, 3),
+        log_scales=g.log_scales.reshape(1, h, w, 3),
+        quats=g.quats.reshape(1, h, w, 4),
+        opacity_logits=g.opacity_logits.reshape(1, h, w),
+        sh=g.sh.reshape(1, h, w, -1, 3),
+        valid=torch.from_numpy(np.ascontiguousarray(valid)).reshape(1, h, w),
+        cam_to_world=torch.from_numpy(cam_to_world)[None],
+    )
