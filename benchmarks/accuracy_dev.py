@@ -4,6 +4,7 @@
     python benchmarks/accuracy_dev.py --data ../shared/data --intrinsics given --json out.json
     python benchmarks/accuracy_dev.py --data ../shared/data --intrinsics given --before   # settings before issue 15
     python benchmarks/accuracy_dev.py --data ../shared/data --only co3d --refine 50 --save renders/
+    python benchmarks/accuracy_dev.py --data ../shared/data --intrinsics given --no-slanted --no-colour-check
 
 For every context pair: the relative pose error against ground truth (rotation and
 translation direction), the focal error when it was estimated, and for each held-out
@@ -137,14 +138,18 @@ def _load_rgb(path: Path, size: tuple[int, int]) -> np.ndarray:
 
 def run_case(
     frames: list[Frame], pair: tuple[int, int], targets: tuple[int, ...], given: bool, size: int,
-    refine: int = 0, save: Path | None = None, before: bool = False,
+    refine: int = 0, save: Path | None = None, before: bool = False, slanted: bool = True, colour: bool = True,
 ) -> dict:  # fmt: skip
     f0, f1 = frames[pair[0]], frames[pair[1]]
     cfg = ReconstructConfig(views=ViewConfig(size=size))
     if before:  # the settings before issue 15
-        cfg.depth = DepthConfig(fill_lambda=400.0, snap_edges=False, fuse=False)
+        cfg.depth = DepthConfig(fill_lambda=400.0, snap_edges=False, fuse=False, slanted_iters=0, colour_tol=0.0)
         cfg.gaussians = GaussianInitConfig(edge_ratio=math.inf)
     cfg.background = BackgroundConfig(enabled=not before)
+    if not slanted:  # the depth without the slanted-plane refinement (issue 15, second step)
+        cfg.depth.slanted_iters = 0
+    if not colour:  # ... and without the colour check of the measured pixels
+        cfg.depth.colour_tol = 0.0
     if given:
         tmp = Path(tempfile.mkdtemp()) / "k.json"
         cams = [Camera(f.path.name, f.size[0], f.size[1], f.K, np.eye(4)) for f in (f0, f1)]
@@ -168,6 +173,7 @@ def run_case(
         "inliers": len(g.inliers),
         "fallback": rec.report.fallback_used,
         "fill": [getattr(d, "fill_counts", None) for d in rec.depths],
+        "measured_pct": 100.0 * float(np.mean([d.measured.mean() for d in rec.depths if d.measured is not None])),
         "background": layer.counts if layer is not None else None,
         "time_s": dt,
         "targets": [],
@@ -226,6 +232,8 @@ def main() -> None:
         action="store_true",
         help="the settings before issue 15 (no far layer, fusion, edge snapping; fill λ 400)",
     )
+    ap.add_argument("--no-slanted", action="store_true", help="depth without the slanted-plane refinement")
+    ap.add_argument("--no-colour-check", action="store_true", help="depth without the colour check of measured pixels")
     args = ap.parse_args()
     loaders = {
         "co3d": lambda: co3d(args.data),
@@ -237,7 +245,7 @@ def main() -> None:
     cache: dict[str, list[Frame]] = {}
     header = [
         "scene", "pair", "targets", "intrinsics", "rot err °", "t err °", "focal err %", "inliers",
-        "PSNR", "SSIM", "masked PSNR", "coverage", "copy PSNR", "copy SSIM", "time s",
+        "PSNR", "SSIM", "masked PSNR", "coverage", "copy PSNR", "copy SSIM", "measured %", "time s",
     ]  # fmt: skip
     print("| " + " | ".join(header) + " |")
     print("|---|---|---|---|" + "---:|" * (len(header) - 4))
@@ -248,11 +256,14 @@ def main() -> None:
         frames = cache.setdefault(scene, loaders[scene]())
         targets = tuple(between(frames, pair))
         for mode in modes:
-            r = run_case(frames, pair, targets, mode == "given", args.size, args.refine, args.save, args.before)
+            r = run_case(
+                frames, pair, targets, mode == "given", args.size, args.refine, args.save, args.before,
+                not args.no_slanted, not args.no_colour_check,
+            )  # fmt: skip
             r.update(scene=scene, pair=name, mode=mode)
             results.append(r)
             if "failed" in r:
-                cells = [scene, name, str(len(targets)), mode, "failed: " + r["failed"][:70]] + [""] * 9
+                cells = [scene, name, str(len(targets)), mode, "failed: " + r["failed"][:70]] + [""] * 10
                 print("| " + " | ".join(cells) + f" {r['time_s']:.1f} |")
                 continue
             m = {k: float(np.mean([t[k] for t in r["targets"]])) if r["targets"] else math.nan for k in metric_keys}
@@ -261,7 +272,7 @@ def main() -> None:
                 scene, name, str(len(targets)), mode + (" +fb" if r["fallback"] else ""),
                 f"{r['rotation_error_deg']:.2f}", f"{r['translation_error_deg']:.2f}", fe, str(r["inliers"]),
                 f"{m['psnr']:.2f}", f"{m['ssim']:.3f}", f"{m['psnr_masked']:.2f}", f"{m['coverage']:.2f}",
-                f"{m['copy_psnr']:.2f}", f"{m['copy_ssim']:.3f}", f"{r['time_s']:.1f}",
+                f"{m['copy_psnr']:.2f}", f"{m['copy_ssim']:.3f}", f"{r['measured_pct']:.0f}", f"{r['time_s']:.1f}",
             ]  # fmt: skip
             print("| " + " | ".join(cells) + " |", flush=True)
     if args.json:

@@ -15,10 +15,14 @@ For each view (the *reference*) against the other (the *source*):
 4. Confidence: left-right consistency (a pixel's depth, carried into the other view, must
    agree with the depth found there within ``consistency`` relative error), the
    uniqueness of the winning hypothesis, and the ZNCC of the winning match. Pixels that
-   fail are left without depth; the Gaussian stage skips them.
+   fail are left without depth; the Gaussian stage skips them, and so are pixels whose colour disagrees
+   with the other view's at their projection (:func:`colour_outliers`). Before this check, optionally
+   (``DepthConfig.slanted_iters``, on by default): PatchMatch refinement of slanted planes for the pixels whose
+   winner the tests and the check do not confirm (:mod:`._patchmatch_kernels`), seeded by the confirmed ones.
 
 5. Fill (:func:`fill_depth_rules`): every other pixel inside the view's mask gets a depth from its confident
    neighbours (edge-aware), or, far from any, from a push-pull pyramid.
+
 6. Depth steps (:func:`snap_depth_edges`): pixels between the two sides of a step are moved to one side.
 7. Both-view fusion (:func:`fuse_views`): a filled point that lies in the other view's free space is dropped;
    a filled point that a measured point of the other view shows to be too far takes that point's depth. The
@@ -39,7 +43,7 @@ import cv2
 import numpy as np
 
 from ..errors import ReconstructionError
-from . import _sgm_kernels
+from . import _patchmatch_kernels, _sgm_kernels
 from .pose import triangulate
 from .types import DepthMap, TwoViewGeometry, View
 
@@ -55,6 +59,7 @@ __all__ = [
     "plane_sweep_cost",
     "push_pull",
     "snap_depth_edges",
+    "colour_outliers",
 ]
 
 FILL_RULES = ("measured", "filled_edge_aware", "filled_push_pull", "none")
@@ -71,7 +76,10 @@ class FilledDepthMap(DepthMap):
         fill_counts: rule → pixels. The :data:`FILL_RULES` partition the image (they add up to H·W); within
             them, ``snapped_edge``: pixels moved to one side of a depth step; ``dropped_free_space``: filled pixels
             the fusion proved a wrong second layer (now without depth, in ``none``); ``from_other_view``:
-            filled pixels that took a measured depth of the other view.
+            filled pixels that took a measured depth of the other view; ``slanted_refined``: measured pixels whose
+            depth came from the slanted-plane refinement (``DepthConfig.slanted_iters``) rather than the SGM winner;
+            ``colour_rejected``: pixels that passed the depth checks but failed the colour check
+            (:func:`colour_outliers`) and were filled instead.
     """
 
     fill_counts: dict[str, int] = field(default_factory=dict)
@@ -111,6 +119,23 @@ class DepthConfig:
         a filled one is dropped, and a filled pixel of the other view that a measured point contradicts takes
         that point's depth instead.
     fuse_tol: relative depth margin of the free-space test.
+    slanted_iters: PatchMatch iterations of the slanted-plane refinement (:mod:`._patchmatch_kernels`), 0 = off.
+        The pixels whose SGM winner is not confirmed (it fails the cost or uniqueness test or the left-right check)
+        get a plane (inverse depth and its slope) refined from their confirmed neighbours' planes and random
+        perturbations, with a ZNCC window warped through the plane's own homography, so surfaces foreshortened
+        differently in the two views (slanted to the cameras, wider baselines) match; then the left-right check
+        runs on the refined depths. Cost at 512 × 384 (both views): +0.15 s wall on two cores (+0.30 s CPU) for
+        3 iterations, +0.12 s for 2. On the synthetic orbits it measures 8–14 points more of the pixels at
+        30–60°, more accurately (without the colour check); full-image PSNR on the dev scenes moves ±0.3 dB.
+    slanted_radius: the refinement's ZNCC window has ``(2·radius + 1)²`` samples ...
+    slanted_step: ... spaced ``step`` volume pixels (radius 2, step 2: 25 samples over a 9 × 9 window).
+    slanted_slope_max: largest normalised slope ``|∂ρ/∂u|·f/ρ`` (≈ tan of the tilt from fronto-parallel).
+    slanted_seed: seed of the refinement's random perturbations (the result does not depend on the threads).
+    colour_tol: measured pixels whose colour differs from the other view's at their projection by more than this
+        (mean absolute difference per channel of 5 × 5 local means, after a per-channel gain and offset fitted
+        between the views; :func:`colour_outliers`) are not measured but filled; 0 = off. Catches depths both
+        views agree on wrongly (reflections, repeated texture): CO3D medium 27° +1.3 dB full-image PSNR
+        (0.07: +1.4 there but −0.15 dB at 12°; 0.15: +1.2).
     """
 
     scale: float = 0.5
@@ -133,6 +158,12 @@ class DepthConfig:
     edge_ratio: float = 1.1
     fuse: bool = True
     fuse_tol: float = 0.05
+    slanted_iters: int = 3
+    slanted_radius: int = 2
+    slanted_step: int = 2
+    slanted_slope_max: float = 3.0
+    slanted_seed: int = 0
+    colour_tol: float = 0.1
 
 
 def _relative(geometry: TwoViewGeometry, ref: int) -> tuple[np.ndarray, np.ndarray]:
@@ -224,10 +255,26 @@ def _n_planes(geometry: TwoViewGeometry, ref: int, rho: tuple[float, float], sca
     return int(np.clip(math.ceil(shift), cfg.min_planes, cfg.max_planes))
 
 
+@dataclass
+class _Raw:
+    """One view's winner-take-all result at the volume resolution (before the confidence tests)."""
+
+    inv_depth: np.ndarray  # [h, w] float64, the SGM winner with its sub-plane offset
+    uniq: np.ndarray  # [h, w] float32
+    win_cost: np.ndarray  # [h, w] float32, ZNCC cost of the winner (or of the refined plane)
+    has_window: np.ndarray  # [h, w] bool
+    K: np.ndarray  # [3, 3] volume intrinsics
+    gray: np.ndarray  # [h, w] float32
+    gray_src: np.ndarray  # [hs, ws] float32
+    K_src: np.ndarray  # [3, 3]
+    rho: tuple[float, float]
+    refined: np.ndarray | None = None  # [h, w] bool, pixels whose plane the slanted refinement changed
+
+
 def _depth_one(
     views: list[View], geometry: TwoViewGeometry, ref: int, rho: tuple[float, float], cfg: DepthConfig
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Depth, uniqueness and winning cost at the volume resolution, plus the volume K."""
+) -> _Raw:
+    """Plane sweep + SGM winner at the volume resolution."""
     v_ref, v_src = views[ref], views[1 - ref]
     K_ref = geometry.K0 if ref == 0 else geometry.K1
     K_src = geometry.K1 if ref == 0 else geometry.K0
@@ -246,11 +293,121 @@ def _depth_one(
     agg = _sgm_kernels.aggregate(cost, g_ref, cfg.p1, cfg.p2, cfg.edge_gamma, cfg.eight_paths)
     idx, off, uniq = _sgm_kernels.winner(agg)
     step = (rho[1] - rho[0]) / max(n - 1, 1)
-    inv_depth = rho[0] + (idx + off) * step
+    inv_depth = rho[0] + (idx + off.astype(np.float64)) * step
     win_cost = np.take_along_axis(cost, idx[..., None], axis=2)[..., 0]
-    ok = has_window & (inv_depth > 0) & (win_cost <= cfg.max_cost) & (uniq >= cfg.min_uniqueness)
-    depth = np.where(ok, 1.0 / np.maximum(inv_depth, 1e-12), 0.0).astype(np.float32)
-    return depth, uniq, win_cost, Kr
+    return _Raw(inv_depth, uniq, win_cost, has_window, Kr, g_ref, g_src, Ks, rho)
+
+
+def _confident_depth(raw: _Raw, cfg: DepthConfig) -> np.ndarray:
+    """Depth where the winner passes the window, cost and uniqueness tests, else 0. [h, w] float32"""
+    uniq_ok = raw.uniq >= cfg.min_uniqueness
+    if raw.refined is not None:  # a refined plane has no SGM uniqueness: its own cost must be lower
+        uniq_ok = uniq_ok | raw.refined
+    ok = raw.has_window & (raw.inv_depth > 0) & (raw.win_cost <= cfg.max_cost) & uniq_ok
+    return np.where(ok, 1.0 / np.maximum(raw.inv_depth, 1e-12), 0.0).astype(np.float32)
+
+
+def _slopes(inv_depth: np.ndarray, valid: np.ndarray, radius: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel gradient of the inverse depth (per pixel), central differences averaged over a
+    ``(2·radius + 1)²`` box of valid pixels; 0 where none. ``([h, w], [h, w])`` float64"""
+    inv = np.where(valid, inv_depth, 0.0).astype(np.float32)
+    wgt = valid.astype(np.float32)
+    gx = np.zeros_like(inv)
+    gy = np.zeros_like(inv)
+    okx = np.zeros_like(wgt)
+    oky = np.zeros_like(wgt)
+    okx[:, 1:-1] = wgt[:, 2:] * wgt[:, :-2]
+    oky[1:-1] = wgt[2:] * wgt[:-2]
+    gx[:, 1:-1] = 0.5 * (inv[:, 2:] - inv[:, :-2]) * okx[:, 1:-1]
+    gy[1:-1] = 0.5 * (inv[2:] - inv[:-2]) * oky[1:-1]
+    k = (2 * radius + 1, 2 * radius + 1)
+    sx, nx = cv2.blur(gx, k), cv2.blur(okx, k)
+    sy, ny = cv2.blur(gy, k), cv2.blur(oky, k)
+    gu = np.where(nx > 0.2, sx / np.maximum(nx, 1e-6), 0.0)
+    gv = np.where(ny > 0.2, sy / np.maximum(ny, 1e-6), 0.0)
+    return gu.astype(np.float64), gv.astype(np.float64)
+
+
+def _slanted_refinement(raw: list[_Raw], geometry: TwoViewGeometry, cfg: DepthConfig) -> None:
+    """PatchMatch refinement of slanted planes (:mod:`._patchmatch_kernels`) for the pixels the SGM winner
+    leaves unconfirmed (fails the tests or the left-right check), seeded by the confirmed ones; in place."""
+    confident = [_confident_depth(r, cfg) for r in raw]
+    for ref in (0, 1):
+        r = raw[ref]
+        R, t = _relative(geometry, ref)
+        err = _consistency(confident[ref], confident[1 - ref], r.K, raw[1 - ref].K, R, t)
+        seed = err < cfg.consistency
+        active = r.has_window & ~seed
+        rho = np.clip(r.inv_depth, r.rho[0], r.rho[1]).astype(np.float64)
+        gu, gv = _slopes(rho, seed | active)
+        A = r.K_src @ R @ np.linalg.inv(r.K)
+        b = r.K_src @ t
+        ref_g = r.gray.astype(np.float64)
+        src_g = r.gray_src.astype(np.float64)
+        rad, step = cfg.slanted_radius, cfg.slanted_step
+        cost = _patchmatch_kernels.initial_costs(ref_g, src_g, A, b, rho, gu, gv, rad, step)
+        f = 0.5 * (r.K[0, 0] + r.K[1, 1])
+        rho0 = rho.copy()
+        _patchmatch_kernels.refine(
+            ref_g, src_g, A, b, rho, gu, gv, cost, active, r.rho[0], r.rho[1], f, cfg.slanted_slope_max,
+            rad, step, cfg.slanted_iters, cfg.slanted_seed,
+        )  # fmt: skip
+        changed = active & (rho != rho0)
+        r.inv_depth = np.where(changed, rho, r.inv_depth)
+        r.win_cost = np.where(changed, np.minimum(cost, 0.5), r.win_cost).astype(np.float32)
+        r.refined = changed
+        logger.debug("slanted refinement view %d: %d active, %d changed", ref, int(active.sum()), int(changed.sum()))
+
+
+COLOUR_WINDOW = 5
+"""Side of the box over which :func:`colour_outliers` averages the colours before comparing them."""
+
+
+def colour_outliers(
+    depth: np.ndarray, measured: np.ndarray, v: View, v_o: View, geometry: TwoViewGeometry, ref: int, tol: float
+) -> np.ndarray:
+    """Measured pixels whose colour disagrees with the other view's where their point projects.
+
+    The left-right check and ZNCC accept matches that are consistent in geometry and in texture *contrast* but
+    not in colour: a wrong depth that both views agree on (reflections on a glossy table, repeated wood grain,
+    a shadow edge), which then puts the wrong colours at the wrong place in every novel view. Colours are local
+    means (a ``COLOUR_WINDOW`` box, so a sub-pixel offset on fine texture is no disagreement), compared after a
+    per-channel gain and offset fitted between the views over the measured pixels (least squares, refitted
+    without the worst quarter: exposure and white balance may differ).
+
+    Args:
+        depth: depth of view ``ref``, 0 where none. [H, W]
+        measured: its measured pixels. [H, W] bool
+        v, v_o: view ``ref`` and the other view.
+        geometry: the two cameras.
+        ref: index of ``v`` (0 or 1).
+        tol: largest mean absolute colour difference per channel (colours in [0, 1]).
+
+    Returns:
+        Measured pixels that disagree by more than ``tol`` (none when fewer than 100 project into the other
+        view). [H, W] bool
+    """
+    K, K_o = (geometry.K0, geometry.K1) if ref == 0 else (geometry.K1, geometry.K0)
+    R, t = _relative(geometry, ref)
+    q, _, inside, sel = _project(np.where(measured, depth, 0.0), K, K_o, R, t, (v_o.height, v_o.width))
+    out = np.zeros(depth.shape, bool)
+    if inside.sum() < 100:
+        return out
+    k = (COLOUR_WINDOW, COLOUR_WINDOW)  # local means: a sub-pixel offset on fine texture is no disagreement
+    here, there = sel[inside], q[inside]
+    # channel-first rows: reductions over contiguous memory
+    c = np.stack([cv2.blur(np.ascontiguousarray(v.image[..., i]), k).reshape(-1)[here] for i in range(3)])
+    c_o = np.stack([cv2.blur(np.ascontiguousarray(v_o.image[..., i]), k).reshape(-1)[there] for i in range(3)])
+    a, b = c[:, ::4], c_o[:, ::4]  # a global fit: a quarter of the pixels is plenty
+    for _ in range(2):  # least squares, then again without the worst quarter
+        ma, mb = a.mean(1, keepdims=True), b.mean(1, keepdims=True)
+        gain = ((a - ma) * (b - mb)).mean(1, keepdims=True) / np.maximum(((a - ma) ** 2).mean(1, keepdims=True), 1e-8)
+        r_fit = np.abs((a - ma) * gain + mb - b).sum(0)
+        keep = r_fit <= np.percentile(r_fit, 75)
+        a, b = a[:, keep], b[:, keep]
+    res = np.abs((c - ma) * gain + mb - c_o).sum(0) / 3.0
+    out.reshape(-1)[sel[inside]] = res > tol
+    return out
 
 
 def _consistency(
@@ -535,10 +692,12 @@ def estimate_depths(views: list[View], geometry: TwoViewGeometry, config: DepthC
     cfg = config or DepthConfig()
     ranges = _inverse_depth_range(geometry)
     raw = [_depth_one(views, geometry, ref, ranges[ref], cfg) for ref in (0, 1)]
+    if cfg.slanted_iters > 0:
+        _slanted_refinement(raw, geometry, cfg)
     per_view = []
     for ref in (0, 1):
-        depth, uniq, win_cost, Kr = raw[ref]
-        depth_o, _, _, Ko = raw[1 - ref]
+        depth, depth_o = _confident_depth(raw[ref], cfg), _confident_depth(raw[1 - ref], cfg)
+        uniq, win_cost, Kr, Ko = raw[ref].uniq, raw[ref].win_cost, raw[ref].K, raw[1 - ref].K
         R, t = _relative(geometry, ref)
         err = _consistency(depth, depth_o, Kr, Ko, R, t)
         consistent = err < cfg.consistency
@@ -547,9 +706,18 @@ def estimate_depths(views: list[View], geometry: TwoViewGeometry, config: DepthC
         conf = conf.astype(np.float32)
         depth = np.where(conf > 0, depth, 0.0).astype(np.float32)
         v = views[ref]
+        slanted = raw[ref].refined if raw[ref].refined is not None else np.zeros(depth.shape, bool)
         if depth.shape != (v.height, v.width):
             depth, conf = _upsample_depth(depth, conf, v.gray)
+            up = (v.width, v.height)
+            slanted = cv2.resize(slanted.astype(np.uint8), up, interpolation=cv2.INTER_NEAREST) > 0
         measured = (depth > 0) & (conf > 0) & v.mask
+        colour_bad = np.zeros(depth.shape, bool)
+        if cfg.colour_tol > 0:
+            colour_bad = colour_outliers(depth, measured, v, views[1 - ref], geometry, ref, cfg.colour_tol)
+            depth = np.where(colour_bad, 0.0, depth).astype(np.float32)
+            conf = np.where(colour_bad, 0.0, conf).astype(np.float32)
+            measured &= ~colour_bad
         rule = np.where(measured, 0, 3).astype(np.uint8)
         if cfg.fill:
             depth, conf, rule = fill_depth_rules(
@@ -561,7 +729,7 @@ def estimate_depths(views: list[View], geometry: TwoViewGeometry, config: DepthC
         snapped = np.zeros(depth.shape, bool)
         if cfg.snap_edges:
             depth, snapped = snap_depth_edges(depth, cfg.edge_ratio)
-        per_view.append((depth, conf, measured, rule, snapped))
+        per_view.append((depth, conf, measured, rule, snapped, int((measured & slanted).sum()), int(colour_bad.sum())))
     depths_, confs_ = [p[0] for p in per_view], [p[1] for p in per_view]
     meas_ = [p[2] for p in per_view]
     dropped = transferred = [np.zeros(d.shape, bool) for d in depths_]
@@ -576,6 +744,8 @@ def estimate_depths(views: list[View], geometry: TwoViewGeometry, config: DepthC
         counts["snapped_edge"] = int(snapped.sum())
         counts["dropped_free_space"] = int(dropped[ref].sum())
         counts["from_other_view"] = int(transferred[ref].sum())
+        counts["slanted_refined"] = per_view[ref][5]
+        counts["colour_rejected"] = per_view[ref][6]
         logger.debug("depth view %d: %s", ref, counts)
         out.append(FilledDepthMap(depth=depth, confidence=conf, measured=measured, fill_counts=counts))
     return out
