@@ -157,3 +157,15 @@ def test_report_is_strict_json(pair: tuple[Path, Path, Path]) -> None:
     assert "neural" not in doc and "outputs" not in doc
     rec.report.add_time("extra", 2.0)
     assert rec.report.times_s["total"] == pytest.approx(doc["times_s"]["total"] + 2.0)
+
+
+def test_fast_preset_leaves_out_the_slanted_refinement_and_detects_sift_smaller() -> None:
+    """``--quality fast`` configures the classical stages for speed; the other presets keep the defaults."""
+    from macsplat_cli.engine import FAST_SIFT, EngineConfig, Models, build_pipeline
+
+    fast = build_pipeline(EngineConfig(quality="fast"), Models()).config
+    balanced = build_pipeline(EngineConfig(), Models()).config
+    assert fast.depth.slanted_iters == 0 < balanced.depth.slanted_iters
+    assert (fast.descriptors.detect_size, fast.descriptors.max_keypoints) == FAST_SIFT
+    assert balanced.descriptors.detect_size > FAST_SIFT[0]
+    assert dataclasses.replace(fast.depth, slanted_iters=balanced.depth.slanted_iters) == balanced.depth
