@@ -4,7 +4,7 @@
     python benchmarks/accuracy_dev.py --data ../shared/data --intrinsics given --json out.json
     python benchmarks/accuracy_dev.py --data ../shared/data --intrinsics given --before   # settings before issue 15
     python benchmarks/accuracy_dev.py --data ../shared/data --only co3d --refine 50 --save renders/
-    python benchmarks/accuracy_dev.py --data ../shared/data --intrinsics given --no-slanted --no-colour-check
+    python benchmarks/accuracy_dev.py --data ../shared/data --only co3d --no-slanted --no-colour-check --no-speckle
 
 For every context pair: the relative pose error against ground truth (rotation and
 translation direction), the focal error when it was estimated, and for each held-out
@@ -139,17 +139,22 @@ def _load_rgb(path: Path, size: tuple[int, int]) -> np.ndarray:
 def run_case(
     frames: list[Frame], pair: tuple[int, int], targets: tuple[int, ...], given: bool, size: int,
     refine: int = 0, save: Path | None = None, before: bool = False, slanted: bool = True, colour: bool = True,
+    speckle: bool = True,
 ) -> dict:  # fmt: skip
     f0, f1 = frames[pair[0]], frames[pair[1]]
     cfg = ReconstructConfig(views=ViewConfig(size=size))
     if before:  # the settings before issue 15
-        cfg.depth = DepthConfig(fill_lambda=400.0, snap_edges=False, fuse=False, slanted_iters=0, colour_tol=0.0)
+        cfg.depth = DepthConfig(
+            fill_lambda=400.0, snap_edges=False, fuse=False, slanted_iters=0, colour_tol=0.0, speckle_size=0.0
+        )
         cfg.gaussians = GaussianInitConfig(edge_ratio=math.inf)
     cfg.background = BackgroundConfig(enabled=not before)
     if not slanted:  # the depth without the slanted-plane refinement (issue 15, second step)
         cfg.depth.slanted_iters = 0
     if not colour:  # ... and without the colour check of the measured pixels
         cfg.depth.colour_tol = 0.0
+    if not speckle:  # ... and without removing islands of measured depth
+        cfg.depth.speckle_size = 0.0
     if given:
         tmp = Path(tempfile.mkdtemp()) / "k.json"
         cams = [Camera(f.path.name, f.size[0], f.size[1], f.K, np.eye(4)) for f in (f0, f1)]
@@ -234,6 +239,7 @@ def main() -> None:
     )
     ap.add_argument("--no-slanted", action="store_true", help="depth without the slanted-plane refinement")
     ap.add_argument("--no-colour-check", action="store_true", help="depth without the colour check of measured pixels")
+    ap.add_argument("--no-speckle", action="store_true", help="depth without removing islands of measured depth")
     args = ap.parse_args()
     loaders = {
         "co3d": lambda: co3d(args.data),
@@ -258,7 +264,7 @@ def main() -> None:
         for mode in modes:
             r = run_case(
                 frames, pair, targets, mode == "given", args.size, args.refine, args.save, args.before,
-                not args.no_slanted, not args.no_colour_check,
+                not args.no_slanted, not args.no_colour_check, not args.no_speckle,
             )  # fmt: skip
             r.update(scene=scene, pair=name, mode=mode)
             results.append(r)
