@@ -291,8 +291,8 @@ def test_estimate_depths_colour_check_counts() -> None:
     """``colour_tol`` turns the colour check on and off; rejected pixels are not measured and are counted, and
     the measured pixels more than 10 % off drop from ~10 % to ~5 % (30° object orbit, true geometry)."""
     views, geometry, gt = _orbit_views("object", 30.0)
-    on = estimate_depths(views, geometry, DepthConfig(colour_tol=0.1, slanted_iters=0))
-    off = estimate_depths(views, geometry, DepthConfig(colour_tol=0.0, slanted_iters=0))
+    on = estimate_depths(views, geometry, DepthConfig(colour_tol=0.1, slanted_iters=0, speckle_size=0.0))
+    off = estimate_depths(views, geometry, DepthConfig(colour_tol=0.0, slanted_iters=0, speckle_size=0.0))
     for d_on, d_off, g in zip(on, off, gt):
         assert d_off.fill_counts["colour_rejected"] == 0
         n = d_on.fill_counts["colour_rejected"]

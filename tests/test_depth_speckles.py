@@ -35,14 +35,32 @@ def test_the_size_and_step_limits() -> None:
     assert not remove_speckles(depth, max_size=100, max_step=0.6).any()  # a 50 % step still connects
     assert not remove_speckles(depth, max_size=0, max_step=0.04).any()  # off
     assert not remove_speckles(np.zeros((8, 8), np.float32), max_size=10, max_step=0.04).any()
-    # a slope steeper than the step splits the floor into bands: each band is small, each is removed
+    # a slope steeper than the step splits a floor into one-row bands, each small: islands, but with no other
+    # measured depth around them nothing contradicts them, and they stay
     steep = np.repeat(np.geomspace(1.0, 4.0, 40, dtype=np.float32)[:, None], 10, axis=1)  # 3.6 % a row
-    assert remove_speckles(steep, max_size=50, max_step=0.02).all()
-    assert not remove_speckles(steep, max_size=50, max_step=0.05).any()
+    assert not remove_speckles(steep, max_size=50, max_step=0.02).any()
+    # ... while the same bands next to a measured wall at another depth go (the wall contradicts them)
+    beside = np.concatenate([steep, np.full((40, 30), 8.0, np.float32)], axis=1)
+    gone = remove_speckles(beside, max_size=50, max_step=0.02, context=31)
+    assert gone[:, :10].mean() > 0.9 and not gone[:, 10:].any()
+
+
+def test_an_island_that_agrees_with_its_surroundings_across_a_hole_stays() -> None:
+    depth = _slanted_plane()
+    depth[28:42, 48:62] = 0.0  # a hole in the floor ...
+    depth[33:37, 53:57] = _slanted_plane()[33:37, 53:57]  # ... with a 16-px island of the right depth in it
+    depth[10:14, 20:24] = 0.0  # and one with an island 40 % too near
+    depth[11:13, 21:23] = _slanted_plane()[11:13, 21:23] * 0.6
+    gone = remove_speckles(depth, max_size=100, max_step=0.04)
+    assert not gone[33:37, 53:57].any()
+    assert gone[11:13, 21:23].all() and gone.sum() == 4
 
 
 @pytest.mark.parametrize("shape", [(1, 1), (3, 200), (300, 2)])
 def test_degenerate_shapes(shape: tuple[int, int]) -> None:
     depth = np.full(shape, 2.0, np.float32)
-    assert remove_speckles(depth, max_size=depth.size, max_step=0.04).all()  # one region, as small as the limit
-    assert not remove_speckles(depth, max_size=depth.size - 1, max_step=0.04).any()
+    for size in (depth.size, depth.size - 1):  # an island (nothing around it to contradict it) or a region
+        assert not remove_speckles(depth, max_size=size, max_step=0.04).any()
+    if depth.size > 2:  # a pixel 50 % off inside it is an island its neighbours contradict
+        depth.reshape(-1)[depth.size // 2] = 3.0
+        assert remove_speckles(depth, max_size=1, max_step=0.04).sum() == 1
