@@ -3,6 +3,7 @@
     python benchmarks/accuracy_synthetic.py                 # 2 seeds, field of view 50°
     python benchmarks/accuracy_synthetic.py --seeds 0 1 2 --fov 75
     python benchmarks/accuracy_synthetic.py --intrinsics given --angles 10 20 30 45 60 --no-slanted --no-colour-check
+    python benchmarks/accuracy_synthetic.py --intrinsics given --angles 10 20 30 45 60 --no-speckle
 
 Scenes: `macsplat_cli.datasets.synthetic` room (indoor) and object-centric layouts, ray-traced with
 textured surfaces; the second camera orbits the scene centre by the baseline angle (with
@@ -12,7 +13,8 @@ prior, so the focal length must be self-calibrated. Depth error: median |z − z
 over the measured pixels of view 0 (GT depth divided by the GT baseline length); "all": over every
 pixel of view 0 with a depth (measured or filled); "bad 10 %": share of those more than 10 % off.
 ``--no-slanted`` turns the slanted-plane refinement of the depth off (``DepthConfig.slanted_iters = 0``),
-``--no-colour-check`` the colour check of the measured pixels (``DepthConfig.colour_tol = 0``).
+``--no-colour-check`` the colour check of the measured pixels (``DepthConfig.colour_tol = 0``), ``--no-speckle``
+the removal of contradicted islands of measured depth (``DepthConfig.speckle_size = 0``).
 """
 
 from __future__ import annotations
@@ -36,8 +38,9 @@ from macsplat_cli.pipeline.views import ViewConfig
 
 
 def run(
-    kind: str, angle: float, seed: int, fov: float, known: bool, tmp: Path, slanted: bool = True, colour: bool = True
-) -> dict:
+    kind: str, angle: float, seed: int, fov: float, known: bool, tmp: Path, slanted: bool = True, colour: bool = True,
+    speckle: bool = True,
+) -> dict:  # fmt: skip
     scene = S.make_scene(kind, seed=0)
     c0, c1 = S.orbit_pair(scene, angle, seed=seed, fov_deg=fov)
     paths, views = [], []
@@ -53,6 +56,8 @@ def run(
         cfg.depth.slanted_iters = 0
     if not colour:
         cfg.depth.colour_tol = 0.0
+    if not speckle:
+        cfg.depth.speckle_size = 0.0
     if known:
         save_cameras(tmp / "k.json", CameraSet([c0, c1]))
         cfg.views = ViewConfig(intrinsics=tmp / "k.json")
@@ -91,6 +96,7 @@ def main() -> None:
     ap.add_argument("--kinds", nargs="+", default=["room", "object"])
     ap.add_argument("--no-slanted", action="store_true", help="depth without the slanted-plane refinement")
     ap.add_argument("--no-colour-check", action="store_true", help="depth without the colour check of measured pixels")
+    ap.add_argument("--no-speckle", action="store_true", help="depth without removing contradicted islands")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp())
     print(f"field of view {args.fov:g}° (prior 60°); medians over seeds {args.seeds}; failures counted separately\n")
@@ -102,10 +108,8 @@ def main() -> None:
     for kind in args.kinds:
         for angle in args.angles:
             for known in modes:
-                rs = [
-                    run(kind, angle, s, args.fov, known, tmp, not args.no_slanted, not args.no_colour_check)
-                    for s in args.seeds
-                ]
+                steps = (not args.no_slanted, not args.no_colour_check, not args.no_speckle)
+                rs = [run(kind, angle, s, args.fov, known, tmp, *steps) for s in args.seeds]
                 ok = [r for r in rs if "failed" not in r]
                 med = {
                     k: float(np.median([r[k] for r in ok])) if ok else math.nan
