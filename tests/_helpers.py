@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 from macsplat_cli.gaussians import Gaussians
@@ -80,3 +81,28 @@ def max_rel_err(a: torch.Tensor, b: torch.Tensor) -> float:
 
 def deg(x: float) -> float:
     return math.degrees(x)
+
+
+def smooth_texture(rng: np.random.Generator):  # noqa: ANN201
+    """A smooth random texture over continuous pixel coordinates (sum of sinusoids, periods 5–25 px):
+    ``tex(xy [N, 2]) → [N]`` float32."""
+    freq = rng.uniform(-1, 1, (12, 2))
+    freq *= (2 * np.pi / rng.uniform(5, 25, 12))[:, None] / np.linalg.norm(freq, axis=1, keepdims=True)
+    phase = rng.uniform(0, 2 * np.pi, 12)
+
+    def tex(xy: np.ndarray) -> np.ndarray:
+        return (0.5 + 0.1 * np.sin(xy @ freq.T + phase).sum(-1)).astype(np.float32)
+
+    return tex
+
+
+def pixel_centres(w: int, h: int) -> np.ndarray:
+    """Pixel centres (x + 0.5, y + 0.5), row-major. [h·w, 2]"""
+    ys, xs = np.mgrid[0:h, 0:w]
+    return np.stack([xs + 0.5, ys + 0.5], -1).reshape(-1, 2)
+
+
+def apply_homography(Hm: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """``xy`` [N, 2] mapped by the 3×3 homography ``Hm``. [N, 2]"""
+    p = np.c_[xy, np.ones(len(xy))] @ Hm.T
+    return p[:, :2] / p[:, 2:]

@@ -17,6 +17,8 @@ from macsplat_cli.pipeline.depth import estimate_depths, plane_sweep_cost, push_
 from macsplat_cli.pipeline.types import DepthMap, Matches, TwoViewGeometry, View
 from macsplat_cli.pipeline.views import ViewConfig, load_views
 
+from _helpers import apply_homography, pixel_centres, smooth_texture
+
 # ------------------------------------------------------------------------------------ SGM kernels
 SGM_SHAPES = [(1, 5, 3), (5, 1, 4), (1, 1, 3), (2, 7, 16), (7, 2, 5), (6, 9, 8), (13, 4, 3), (9, 11, 16)]
 SGM_PENALTIES = [(0.04, 0.5, 8.0), (0.1, 0.3, 0.0), (0.3, 0.2, 2.0)]  # the last: P2 < P1, clamped up to P1
@@ -96,28 +98,6 @@ def test_push_pull_single_sample_is_constant(weight: float, where: tuple[int, in
 
 
 # ------------------------------------------------------------------------------------ plane sweep
-def _texture(rng: np.random.Generator):  # noqa: ANN202
-    """A smooth random texture over continuous pixel coordinates (sum of sinusoids, periods 5–25 px)."""
-    freq = rng.uniform(-1, 1, (12, 2))
-    freq *= (2 * np.pi / rng.uniform(5, 25, 12))[:, None] / np.linalg.norm(freq, axis=1, keepdims=True)
-    phase = rng.uniform(0, 2 * np.pi, 12)
-
-    def tex(xy: np.ndarray) -> np.ndarray:
-        return (0.5 + 0.1 * np.sin(xy @ freq.T + phase).sum(-1)).astype(np.float32)
-
-    return tex
-
-
-def _pixel_centres(w: int, h: int) -> np.ndarray:
-    ys, xs = np.mgrid[0:h, 0:w]
-    return np.stack([xs + 0.5, ys + 0.5], -1).reshape(-1, 2)
-
-
-def _apply_h(Hm: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    p = np.c_[xy, np.ones(len(xy))] @ Hm.T
-    return p[:, :2] / p[:, 2:]
-
-
 def _local_variance(img: np.ndarray, k: int) -> np.ndarray:
     """Variance over the k × k window centred on each pixel (edge pixels: their clipped window)."""
     pad = np.pad(img.astype(np.float64), k // 2, mode="edge")
@@ -136,15 +116,15 @@ def test_plane_sweep_minimum_at_the_true_plane() -> None:
     true_k = 6
     rho = inv_depths[true_k]  # depth 2 (with t ≈ 0.3, one plane step moves the image by ~1.5 px)
     H_true = K @ (R + np.outer(t, [0.0, 0.0, rho])) @ np.linalg.inv(K)  # reference pixel → source pixel
-    tex = _texture(np.random.default_rng(0))
-    pix = _pixel_centres(w, h)
+    tex = smooth_texture(np.random.default_rng(0))
+    pix = pixel_centres(w, h)
     ref = tex(pix).reshape(h, w)
-    src = tex(_apply_h(np.linalg.inv(H_true), pix)).reshape(h, w)  # texture fixed on the plane
+    src = tex(apply_homography(np.linalg.inv(H_true), pix)).reshape(h, w)  # texture fixed on the plane
     cost, has_window = plane_sweep_cost(ref, src, K, K, R, t, inv_depths, 5)
     assert cost.shape == (h, w, len(inv_depths)) and cost.dtype == np.float32
     assert has_window.shape == (h, w) and has_window.dtype == bool
 
-    p_src = _apply_h(H_true, pix).reshape(h, w, 2)
+    p_src = apply_homography(H_true, pix).reshape(h, w, 2)
     inside = np.all((p_src > 5.0) & (p_src < np.array([w, h]) - 5.0), axis=-1)
     outside = np.any((p_src < -5.0) | (p_src > np.array([w, h]) + 5.0), axis=-1)
     inner = np.zeros((h, w), bool)
@@ -188,7 +168,7 @@ def test_estimate_depths_with_ground_truth_geometry(kind: str, angle: float) -> 
     renders = [S.render(scene, cam0), S.render(scene, cam1)]
     R, t = S.relative_pose(cam0, cam1)
     baseline = float(np.linalg.norm(t))
-    grid = _pixel_centres(w, h)[::37]
+    grid = pixel_centres(w, h)[::37]
     px1, visible = S.transfer_points(scene, cam0, cam1, grid)
     n = int(visible.sum())
     inliers = Matches(grid[visible], px1[visible], np.ones(n, np.float32), np.arange(n), np.arange(n))
@@ -280,7 +260,7 @@ def test_plane_sweep_window_validity_uses_source_size() -> None:
     """A source image smaller than the reference: pixels whose windows map outside it have no valid window."""
     w, h = 64, 48
     K = np.array([[60.0, 0.0, 32.0], [0.0, 60.0, 24.0], [0.0, 0.0, 1.0]])
-    ref = _texture(np.random.default_rng(1))(_pixel_centres(w, h)).reshape(h, w)
+    ref = smooth_texture(np.random.default_rng(1))(pixel_centres(w, h)).reshape(h, w)
     src = np.ascontiguousarray(ref[:, : w // 2])  # the source only covers the left half (same K, no motion)
     cost, has_window = plane_sweep_cost(ref, src, K, K, np.eye(3), np.zeros(3), np.array([0.5]), 5)
     assert has_window[:, 3 : w // 2 - 3].all()

@@ -15,30 +15,10 @@ from macsplat_cli.pipeline import _patchmatch_reference as PR
 from macsplat_cli.pipeline.depth import DepthConfig, colour_outliers, estimate_depths, plane_sweep_cost
 from macsplat_cli.pipeline.types import Matches, TwoViewGeometry, View
 
+from _helpers import apply_homography, pixel_centres, smooth_texture
+
 K = np.array([[100.0, 0.0, 64.0], [0.0, 100.0, 48.0], [0.0, 0.0, 1.0]])
 W, H = 128, 96
-
-
-def _texture(rng: np.random.Generator):  # noqa: ANN202
-    """A smooth random texture over continuous coordinates (sum of sinusoids, periods 5–25 px)."""
-    freq = rng.uniform(-1, 1, (12, 2))
-    freq *= (2 * np.pi / rng.uniform(5, 25, 12))[:, None] / np.linalg.norm(freq, axis=1, keepdims=True)
-    phase = rng.uniform(0, 2 * np.pi, 12)
-
-    def tex(xy: np.ndarray) -> np.ndarray:
-        return (0.5 + 0.1 * np.sin(xy @ freq.T + phase).sum(-1)).astype(np.float32)
-
-    return tex
-
-
-def _pixel_centres(w: int, h: int) -> np.ndarray:
-    ys, xs = np.mgrid[0:h, 0:w]
-    return np.stack([xs + 0.5, ys + 0.5], -1).reshape(-1, 2)
-
-
-def _apply_h(Hm: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    p = np.c_[xy, np.ones(len(xy))] @ Hm.T
-    return p[:, :2] / p[:, 2:]
 
 
 def _slanted_pair(seed: int = 0) -> dict:
@@ -52,10 +32,10 @@ def _slanted_pair(seed: int = 0) -> dict:
     A = K @ R @ np.linalg.inv(K)
     b = K @ t
     H_plane = A + np.outer(b, m)  # reference pixel → source pixel through the plane
-    tex = _texture(np.random.default_rng(seed))
-    pix = _pixel_centres(W, H)
+    tex = smooth_texture(np.random.default_rng(seed))
+    pix = pixel_centres(W, H)
     ref = tex(pix).reshape(H, W).astype(np.float64)
-    src = tex(_apply_h(np.linalg.inv(H_plane), pix)).reshape(H, W).astype(np.float64)
+    src = tex(apply_homography(np.linalg.inv(H_plane), pix)).reshape(H, W).astype(np.float64)
     ys, xs = np.mgrid[0:H, 0:W]
     rho = m[0] * (xs + 0.5) + m[1] * (ys + 0.5) + m[2]
     return dict(ref=ref, src=src, A=A, b=b, R=R, t=t, m=m, rho=rho)
@@ -205,7 +185,7 @@ def test_estimate_depths_slanted_refinement_measures_more_at_45_degrees() -> Non
     renders = [S.render(scene, cam0), S.render(scene, cam1)]
     R, t = S.relative_pose(cam0, cam1)
     baseline = float(np.linalg.norm(t))
-    grid = _pixel_centres(w, h)[::37]
+    grid = pixel_centres(w, h)[::37]
     px1, visible = S.transfer_points(scene, cam0, cam1, grid)
     n = int(visible.sum())
     inliers = Matches(grid[visible], px1[visible], np.ones(n, np.float32), np.arange(n), np.arange(n))
@@ -236,7 +216,7 @@ def _orbit_views(kind: str, angle: float, w: int = 320, h: int = 240) -> tuple[l
     renders = [S.render(scene, cam0), S.render(scene, cam1)]
     R, t = S.relative_pose(cam0, cam1)
     baseline = float(np.linalg.norm(t))
-    grid = _pixel_centres(w, h)[::37]
+    grid = pixel_centres(w, h)[::37]
     px1, visible = S.transfer_points(scene, cam0, cam1, grid)
     n = int(visible.sum())
     inliers = Matches(grid[visible], px1[visible], np.ones(n, np.float32), np.arange(n), np.arange(n))
@@ -251,7 +231,7 @@ def _orbit_views(kind: str, angle: float, w: int = 320, h: int = 240) -> tuple[l
 def _covisible(views: list[View], geometry: TwoViewGeometry, gt: list) -> np.ndarray:
     """View-0 pixels whose true point is the surface view 1 sees there (not occluded, inside). [H, W] bool"""
     h, w = gt[0].shape
-    pix = np.c_[_pixel_centres(w, h), np.ones(h * w)]
+    pix = np.c_[pixel_centres(w, h), np.ones(h * w)]
     X = pix @ np.linalg.inv(views[0].K).T * gt[0].reshape(-1, 1)
     X1 = X @ geometry.R.T + geometry.t
     with np.errstate(divide="ignore", invalid="ignore"):
