@@ -68,8 +68,9 @@ class RunReport:
         compact: what the compaction (``--quality``, ``--budget``) merged and pruned, step by step, and why.
         fill: how many pixels / Gaussians each fill rule gave a depth or placed: ``depth`` (per view, the
             depth stage's rules: measured, filled_edge_aware, filled_push_pull, none, snapped_edge,
-            dropped_free_space, from_other_view) and ``background`` (the far layer's Gaussians past each view's
-            border and behind its interior, and the cells the other photo covers).
+            dropped_free_space, from_other_view, slanted_refined, colour_rejected, speckle_removed; see
+            :class:`~macsplat_cli.pipeline.depth.FilledDepthMap`) and ``background`` (the far layer's Gaussians
+            past each view's border and behind its interior, and the cells the other photo covers).
         gaussians_written: Gaussians in the written PLY (after writing).
         outputs: role → path of each written file (after writing).
     """

@@ -81,7 +81,8 @@ class FilledDepthMap(DepthMap):
             filled pixels that took a measured depth of the other view; ``slanted_refined``: measured pixels whose
             depth came from the slanted-plane refinement (``DepthConfig.slanted_iters``) rather than the SGM winner;
             ``colour_rejected``: pixels that passed the depth checks but failed the colour check
-            (:func:`colour_outliers`) and were filled instead.
+            (:func:`colour_outliers`) and were filled instead; ``speckle_removed``: measured pixels of islands their
+            surroundings contradict (:func:`remove_speckles`), filled instead.
     """
 
     fill_counts: dict[str, int] = field(default_factory=dict)
