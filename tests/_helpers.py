@@ -106,3 +106,28 @@ def apply_homography(Hm: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """``xy`` [N, 2] mapped by the 3×3 homography ``Hm``. [N, 2]"""
     p = np.c_[xy, np.ones(len(xy))] @ Hm.T
     return p[:, :2] / p[:, 2:]
+
+
+def orbit_views(kind: str, angle: float, w: int = 320, h: int = 240, seed: int = 1):  # noqa: ANN201
+    """A ray-traced synthetic orbit pair with its true geometry (unit baseline) and true correspondences as the
+    inliers: ``(views, geometry, depths)``, the ground-truth depths in baseline units ([h, w] each)."""
+    from pathlib import Path
+
+    from macsplat_cli.datasets import synthetic as S
+    from macsplat_cli.pipeline.types import Matches, TwoViewGeometry, View
+
+    scene = S.make_scene(kind, 0)
+    cam0, cam1 = S.orbit_pair(scene, angle, width=w, height=h, seed=seed)
+    renders = [S.render(scene, cam0), S.render(scene, cam1)]
+    R, t = S.relative_pose(cam0, cam1)
+    baseline = float(np.linalg.norm(t))
+    grid = pixel_centres(w, h)[::37]
+    px1, visible = S.transfer_points(scene, cam0, cam1, grid)
+    n = int(visible.sum())
+    inliers = Matches(grid[visible], px1[visible], np.ones(n, np.float32), np.arange(n), np.arange(n))
+    geometry = TwoViewGeometry(R, t / baseline, cam0.K.copy(), cam1.K.copy(), inliers)
+    views = [
+        View(f"v{i}", Path(f"v{i}.png"), r.image, r.mask.copy(), c.K.copy(), (w, h), "file")
+        for i, (r, c) in enumerate(zip(renders, (cam0, cam1)))
+    ]
+    return views, geometry, [r.depth / baseline for r in renders]

@@ -17,7 +17,7 @@ from macsplat_cli.pipeline.depth import estimate_depths, plane_sweep_cost, push_
 from macsplat_cli.pipeline.types import DepthMap, Matches, TwoViewGeometry, View
 from macsplat_cli.pipeline.views import ViewConfig, load_views
 
-from _helpers import apply_homography, pixel_centres, smooth_texture
+from _helpers import apply_homography, orbit_views, pixel_centres, smooth_texture
 
 # ------------------------------------------------------------------------------------ SGM kernels
 SGM_SHAPES = [(1, 5, 3), (5, 1, 4), (1, 1, 3), (2, 7, 16), (7, 2, 5), (6, 9, 8), (13, 4, 3), (9, 11, 16)]
@@ -162,28 +162,12 @@ def _check_coverage(depths: list[DepthMap], views: list[View]) -> None:
 def test_estimate_depths_with_ground_truth_geometry(kind: str, angle: float) -> None:
     """Synthetic orbit with its true pose (unit baseline) and true correspondences as inliers: the measured
     pixels have median relative depth error < 3 %, and every pixel inside the masks gets a depth."""
-    w, h = 320, 240
-    scene = S.make_scene(kind, 0)
-    cam0, cam1 = S.orbit_pair(scene, angle, width=w, height=h, seed=1)
-    renders = [S.render(scene, cam0), S.render(scene, cam1)]
-    R, t = S.relative_pose(cam0, cam1)
-    baseline = float(np.linalg.norm(t))
-    grid = pixel_centres(w, h)[::37]
-    px1, visible = S.transfer_points(scene, cam0, cam1, grid)
-    n = int(visible.sum())
-    inliers = Matches(grid[visible], px1[visible], np.ones(n, np.float32), np.arange(n), np.arange(n))
-    geometry = TwoViewGeometry(R, t / baseline, cam0.K.copy(), cam1.K.copy(), inliers)
-    masks = [r.mask.copy() for r in renders]
-    masks[0][:, : w // 5] = False  # the user masked out a strip of view 0
-    views = [
-        View(f"v{i}", Path(f"v{i}.png"), r.image, m, c.K.copy(), (w, h), "file")
-        for i, (r, m, c) in enumerate(zip(renders, masks, (cam0, cam1)))
-    ]
+    views, geometry, gts = orbit_views(kind, angle)
+    views[0].mask[:, : views[0].mask.shape[1] // 5] = False  # the user masked out a strip of view 0
     depths = estimate_depths(views, geometry)
     assert len(depths) == 2
     _check_coverage(depths, views)
-    for dm, r in zip(depths, renders):
-        gt = r.depth / baseline
+    for dm, gt in zip(depths, gts):
         meas = dm.measured & (gt > 0)
         assert meas.mean() > 0.4
         rel = np.abs(dm.depth[meas] - gt[meas]) / gt[meas]

@@ -4,8 +4,6 @@ refinement on a wide synthetic orbit."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -13,9 +11,9 @@ from macsplat_cli.datasets import synthetic as S
 from macsplat_cli.pipeline import _patchmatch_kernels as PK
 from macsplat_cli.pipeline import _patchmatch_reference as PR
 from macsplat_cli.pipeline.depth import DepthConfig, colour_outliers, estimate_depths, plane_sweep_cost
-from macsplat_cli.pipeline.types import Matches, TwoViewGeometry, View
+from macsplat_cli.pipeline.types import TwoViewGeometry, View
 
-from _helpers import apply_homography, pixel_centres, smooth_texture
+from _helpers import apply_homography, orbit_views, pixel_centres, smooth_texture
 
 K = np.array([[100.0, 0.0, 64.0], [0.0, 100.0, 48.0], [0.0, 0.0, 1.0]])
 W, H = 128, 96
@@ -179,25 +177,10 @@ def test_estimate_depths_slanted_refinement_measures_more_at_45_degrees() -> Non
     """A 45° orbit of the synthetic object with its true geometry: the refinement measures more pixels than the
     plane sweep alone (+30 %), at least as accurately (median < 2 %; 18–21 % of them are > 10 % off either
     way at this baseline), and ``slanted_iters = 0`` turns it off."""
-    w, h = 320, 240
-    scene = S.make_scene("object", 0)
-    cam0, cam1 = S.orbit_pair(scene, 45.0, width=w, height=h, seed=1)
-    renders = [S.render(scene, cam0), S.render(scene, cam1)]
-    R, t = S.relative_pose(cam0, cam1)
-    baseline = float(np.linalg.norm(t))
-    grid = pixel_centres(w, h)[::37]
-    px1, visible = S.transfer_points(scene, cam0, cam1, grid)
-    n = int(visible.sum())
-    inliers = Matches(grid[visible], px1[visible], np.ones(n, np.float32), np.arange(n), np.arange(n))
-    geometry = TwoViewGeometry(R, t / baseline, cam0.K.copy(), cam1.K.copy(), inliers)
-    views = [
-        View(f"v{i}", Path(f"v{i}.png"), r.image, r.mask.copy(), c.K.copy(), (w, h), "file")
-        for i, (r, c) in enumerate(zip(renders, (cam0, cam1)))
-    ]
+    views, geometry, gts = orbit_views("object", 45.0)
     off = estimate_depths(views, geometry, DepthConfig(slanted_iters=0))
     on = estimate_depths(views, geometry, DepthConfig(slanted_iters=3))
-    for d_off, d_on, r in zip(off, on, renders):
-        gt = r.depth / baseline
+    for d_off, d_on, gt in zip(off, on, gts):
         assert d_on.measured.sum() > 1.15 * d_off.measured.sum()
         rel = []
         for d in (d_off, d_on):
@@ -210,24 +193,6 @@ def test_estimate_depths_slanted_refinement_measures_more_at_45_degrees() -> Non
 
 
 # ------------------------------------------------------------------------------------ colour check
-def _orbit_views(kind: str, angle: float, w: int = 320, h: int = 240) -> tuple[list[View], TwoViewGeometry, list]:
-    scene = S.make_scene(kind, 0)
-    cam0, cam1 = S.orbit_pair(scene, angle, width=w, height=h, seed=1)
-    renders = [S.render(scene, cam0), S.render(scene, cam1)]
-    R, t = S.relative_pose(cam0, cam1)
-    baseline = float(np.linalg.norm(t))
-    grid = pixel_centres(w, h)[::37]
-    px1, visible = S.transfer_points(scene, cam0, cam1, grid)
-    n = int(visible.sum())
-    inliers = Matches(grid[visible], px1[visible], np.ones(n, np.float32), np.arange(n), np.arange(n))
-    geometry = TwoViewGeometry(R, t / baseline, cam0.K.copy(), cam1.K.copy(), inliers)
-    views = [
-        View(f"v{i}", Path(f"v{i}.png"), r.image, r.mask.copy(), c.K.copy(), (w, h), "file")
-        for i, (r, c) in enumerate(zip(renders, (cam0, cam1)))
-    ]
-    return views, geometry, [r.depth / baseline for r in renders]
-
-
 def _covisible(views: list[View], geometry: TwoViewGeometry, gt: list) -> np.ndarray:
     """View-0 pixels whose true point is the surface view 1 sees there (not occluded, inside). [H, W] bool"""
     h, w = gt[0].shape
@@ -246,7 +211,7 @@ def _covisible(views: list[View], geometry: TwoViewGeometry, gt: list) -> np.nda
 def test_colour_outliers_flags_wrong_depths_not_exposure() -> None:
     """With the true depth few co-visible pixels disagree in colour, also after an exposure and white-balance
     change of the other photo; a block given a 30 % wrong depth lands on other colours and is flagged."""
-    views, geometry, gt = _orbit_views("room", 20.0)
+    views, geometry, gt = orbit_views("room", 20.0)
     depth = gt[0].astype(np.float32)
     measured = _covisible(views, geometry, gt)
     assert measured.mean() > 0.5
@@ -270,7 +235,7 @@ def test_colour_outliers_flags_wrong_depths_not_exposure() -> None:
 def test_estimate_depths_colour_check_counts() -> None:
     """``colour_tol`` turns the colour check on and off; rejected pixels are not measured and are counted, and
     the measured pixels more than 10 % off drop from ~10 % to ~5 % (30° object orbit, true geometry)."""
-    views, geometry, gt = _orbit_views("object", 30.0)
+    views, geometry, gt = orbit_views("object", 30.0)
     on = estimate_depths(views, geometry, DepthConfig(colour_tol=0.1, slanted_iters=0, speckle_size=0.0))
     off = estimate_depths(views, geometry, DepthConfig(colour_tol=0.0, slanted_iters=0, speckle_size=0.0))
     for d_on, d_off, g in zip(on, off, gt):
