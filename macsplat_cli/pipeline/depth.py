@@ -373,6 +373,13 @@ COLOUR_WINDOW = 5
 """Side of the box over which :func:`colour_outliers` averages the colours before comparing them."""
 
 
+def _gain_offset(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-channel least squares ``b ≈ (a − ma)·gain + mb`` of colours ``a, b`` [3, N]: ``(ma, mb, gain)`` [3, 1]."""
+    ma, mb = a.mean(1, keepdims=True), b.mean(1, keepdims=True)
+    gain = ((a - ma) * (b - mb)).mean(1, keepdims=True) / np.maximum(((a - ma) ** 2).mean(1, keepdims=True), 1e-8)
+    return ma, mb, gain
+
+
 def colour_outliers(
     depth: np.ndarray, measured: np.ndarray, v: View, v_o: View, geometry: TwoViewGeometry, ref: int, tol: float
 ) -> np.ndarray:
@@ -409,12 +416,10 @@ def colour_outliers(
     c = np.stack([cv2.blur(np.ascontiguousarray(v.image[..., i]), k).reshape(-1)[here] for i in range(3)])
     c_o = np.stack([cv2.blur(np.ascontiguousarray(v_o.image[..., i]), k).reshape(-1)[there] for i in range(3)])
     a, b = c[:, ::4], c_o[:, ::4]  # a global fit: a quarter of the pixels is plenty
-    for _ in range(2):  # least squares, then again without the worst quarter
-        ma, mb = a.mean(1, keepdims=True), b.mean(1, keepdims=True)
-        gain = ((a - ma) * (b - mb)).mean(1, keepdims=True) / np.maximum(((a - ma) ** 2).mean(1, keepdims=True), 1e-8)
-        r_fit = np.abs((a - ma) * gain + mb - b).sum(0)
-        keep = r_fit <= np.percentile(r_fit, 75)
-        a, b = a[:, keep], b[:, keep]
+    ma, mb, gain = _gain_offset(a, b)  # least squares, then again without the worst quarter
+    r_fit = np.abs((a - ma) * gain + mb - b).sum(0)
+    keep = r_fit <= np.percentile(r_fit, 75)
+    ma, mb, gain = _gain_offset(a[:, keep], b[:, keep])
     res = np.abs((c - ma) * gain + mb - c_o).sum(0) / 3.0
     out.reshape(-1)[sel[inside]] = res > tol
     return out
@@ -744,9 +749,10 @@ def estimate_depths(views: list[View], geometry: TwoViewGeometry, config: DepthC
     raw = [_depth_one(views, geometry, ref, ranges[ref], cfg) for ref in (0, 1)]
     if cfg.slanted_iters > 0:
         _slanted_refinement(raw, geometry, cfg)
+    confident = [_confident_depth(r, cfg) for r in raw]
     per_view = []
     for ref in (0, 1):
-        depth, depth_o = _confident_depth(raw[ref], cfg), _confident_depth(raw[1 - ref], cfg)
+        depth, depth_o = confident[ref], confident[1 - ref]
         uniq, win_cost, Kr, Ko = raw[ref].uniq, raw[ref].win_cost, raw[ref].K, raw[1 - ref].K
         R, t = _relative(geometry, ref)
         err = _consistency(depth, depth_o, Kr, Ko, R, t)
