@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -20,6 +21,7 @@ from macsplat_cli.metrics import rotation_error_deg
 from macsplat_cli.pipeline.descriptors import SiftConfig, SiftDescriptors
 from macsplat_cli.pipeline.matching import match_features
 from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig
+from macsplat_cli.pipeline.types import Features
 from macsplat_cli.pipeline.views import ViewConfig, load_views
 
 W, H = 512, 384
@@ -83,6 +85,37 @@ def test_tiebreak_refuses_without_a_clear_winner(table_pair) -> None:
         ReconstructConfig(views=cfg.views, plane_tiebreak_min=10**6),  # too little support
     ):
         assert Pipeline(strict)._plane_tiebreak(views, feats, plane, None) is None
+
+
+def test_tiebreak_is_not_diluted_by_the_planes_own_matches(table_pair) -> None:
+    """Matches on the plane are explained by both of its poses: adding thousands of them (distinctive descriptors,
+    exact plane transfer) must leave the scores, the winner and its margin unchanged (a score over all explained
+    matches fell to a tie here)."""
+    cfg, views, feats, plane, R, _ = table_pair
+    pipe = Pipeline(cfg)
+    g = pipe._plane_tiebreak(views, feats, plane, None)
+    assert g is not None
+    # the tie-break's own estimate of the plane
+    Hm, _ = cv2.findHomography(
+        plane.xy0, plane.xy1, cv2.USAC_MAGSAC, 1.5 * cfg.pose.threshold_px, maxIters=cfg.pose.max_iters
+    )
+    rng = np.random.default_rng(0)
+    n = 3000
+    xy0 = plane.xy0[rng.integers(0, len(plane), n)] + rng.uniform(-3.0, 3.0, (n, 2))
+    p1 = np.c_[xy0, np.ones(n)] @ Hm.T
+    xy1 = p1[:, :2] / p1[:, 2:]
+    desc = rng.normal(size=(n, feats[0].desc.shape[1])).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+
+    def extend(f: Features, xy: np.ndarray) -> Features:
+        return Features(np.r_[f.xy, xy], np.r_[f.desc, desc], np.r_[f.conf, np.ones(n, np.float32)])
+
+    more = [extend(feats[0], xy0), extend(feats[1], xy1)]
+    g_more = pipe._plane_tiebreak(views, more, plane, None)
+    assert g_more is not None
+    assert rotation_error_deg(g_more.R, R) < 2.0
+    s, s_more = g.info["plane_tiebreak"], g_more.info["plane_tiebreak"]
+    assert len(s_more) == len(s) and all(abs(a - b) <= 0.02 * a + 5 for a, b in zip(s, s_more)), (s, s_more)
 
 
 def test_wide_tier_only_runs_when_the_chain_gives_no_pose(table_pair, monkeypatch: pytest.MonkeyPatch) -> None:
