@@ -176,7 +176,7 @@ def _one_error_line(err: str, *, after_progress: bool = False) -> str:
     """The single ``error:`` line; with ``after_progress``, it may follow the failed stage's progress line."""
     lines = [ln for ln in err.splitlines() if ln.strip()]
     if after_progress:
-        assert all("✗ failed" in ln for ln in lines[:-1]), err
+        assert all(ln.lstrip().startswith("✗") and ln.rstrip().endswith("failed") for ln in lines[:-1]), err
         lines = lines[-1:]
     assert len(lines) == 1, err
     assert lines[0].startswith("error: ")

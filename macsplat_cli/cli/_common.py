@@ -143,9 +143,16 @@ class StageProgress:
 
     def __init__(self, disabled: bool) -> None:
         from rich.progress import Progress, SpinnerColumn, TextColumn
+        from rich.text import Text
+
+        class StateColumn(SpinnerColumn):
+            """The spinner while a stage runs, a tick when it ends, a red cross when it fails."""
+
+            def render(self, task: Any) -> Any:
+                return Text("✗", style="red") if task.fields.get("failed") else super().render(task)
 
         self.progress = Progress(
-            SpinnerColumn(finished_text="[green]✓[/]"), TextColumn("{task.description:<22}"),
+            StateColumn(finished_text="[green]✓[/]"), TextColumn("{task.description:<22}"),
             TextColumn("{task.fields[took]}"), console=err_console, disable=disabled, transient=False,
         )  # fmt: skip
         self.tasks: dict[str, Any] = {}
@@ -158,7 +165,7 @@ class StageProgress:
     def __exit__(self, *exc: object) -> None:
         for stage, task in self.tasks.items():  # a stage interrupted by an error stops its spinner
             if stage in self.started:
-                self.progress.update(task, took="[red]✗ failed[/]")
+                self.progress.update(task, took="[red]failed[/]", failed=True)
             self.progress.stop_task(task)
         self.progress.stop()
 
@@ -175,10 +182,10 @@ class StageProgress:
 
         if kind == "start":
             self.started[stage] = time.perf_counter()
-            self.tasks[stage] = self.progress.add_task(stage, total=1, took="")
+            self.tasks[stage] = self.progress.add_task(stage, total=1, took="", failed=False)
         elif kind == "fail":
             self.started.pop(stage, None)
-            self.progress.update(self.tasks[stage], took="[red]✗ failed[/]")
+            self.progress.update(self.tasks[stage], took="[red]failed[/]", failed=True)
             self.progress.stop_task(self.tasks[stage])
         else:
             took = time.perf_counter() - self.started.pop(stage)
