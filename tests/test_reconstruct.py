@@ -273,6 +273,21 @@ def test_cli_exits_0_and_prints_a_summary(cli_run: CliRun) -> None:
     )  # nothing else, no temporary files
 
 
+def test_summary_names_the_descriptors_that_gave_the_pose(cli_run: CliRun) -> None:
+    """The summary's matches row names the fallback or the wide-baseline tier when their matches were kept."""
+    from macsplat_cli.cli.reconstruct import _matches_line
+
+    report = json.loads((cli_run.folder / "report.json").read_text())
+    plain = _matches_line(report)
+    assert "verified" in plain and "(" not in plain  # an easy pair: the first descriptors
+    assert plain.split(" → ")[0] in cli_run.err  # the row as printed (long rows wrap in the table)
+    fallback = _matches_line({**report, "fallback_used": True})
+    assert fallback.startswith(plain) and "affine-simulated fallback" in fallback
+    for tier, words in (("wide", "wide-baseline tier"), ("wide+plane-tiebreak", "plane's two poses")):
+        line = _matches_line({**report, "fallback_used": True, "pose": {**report["pose"], "descriptors_tier": tier}})
+        assert line.startswith(plain) and words in line
+
+
 def test_cli_scene_ply_reads_back(cli_run: CliRun) -> None:
     """The PLY reads back, finite, with as many Gaussians as the report says were written."""
     g = read_ply(cli_run.folder / "scene.ply")

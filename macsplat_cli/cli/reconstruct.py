@@ -296,6 +296,21 @@ def _write_outputs(result, output, cameras, renders, num_renders, video, progres
     return written
 
 
+_TIERS = {
+    "wide": "the wide-baseline tier's matches",
+    "wide+plane-tiebreak": "the wide-baseline tier: the plane's two poses told apart by the scene off it",
+}
+
+
+def _matches_line(report: dict[str, Any]) -> str:
+    """The match counts of each step, and which descriptors gave them when it was not the first ones."""
+    line = " → ".join(f"{v} {k}" for k, v in report["matches"].items())
+    tier = _TIERS.get(str(report.get("pose", {}).get("descriptors_tier")))
+    if tier is None and report.get("fallback_used"):
+        tier = "the affine-simulated fallback's matches"
+    return line if tier is None else f"{line} ({tier})"
+
+
 def _summary(report: dict[str, Any], written: dict[str, Any]) -> None:
     from rich.table import Table
 
@@ -311,9 +326,8 @@ def _summary(report: dict[str, Any], written: dict[str, Any]) -> None:
             for p, i in zip(report["inputs"], imgs)
         ),
     )
-    m = report["matches"]
     t.add_row("keypoints", " / ".join(str(k) for k in report["keypoints"]))
-    t.add_row("matches", escape(" → ".join(f"{v} {k}" for k, v in m.items())))
+    t.add_row("matches", escape(_matches_line(report)))
     pose = report["pose"]
 
     def num(key: str, fmt: str) -> str:
