@@ -53,9 +53,12 @@ __all__ = [
     "LOW_CONFIDENCE_HINT",
     "STAGES",
     "Pipeline",
+    "PlanePose",
     "ReconstructConfig",
     "Reconstruction",
     "count_gaussians",
+    "dominant_plane",
+    "plane_poses",
     "pose_confidence",
 ]
 
@@ -191,6 +194,71 @@ def pose_confidence(geometry: TwoViewGeometry) -> dict[str, Any] | None:
 def count_gaussians(maps: Sequence[GaussianMaps]) -> int:
     """Gaussians the per-view maps carry (their valid pixels)."""
     return int(sum(int(m.valid_mask().sum()) for m in maps))
+
+
+def dominant_plane(matches: Matches, pose: PoseConfig) -> tuple[np.ndarray, np.ndarray] | None:
+    """The homography of the matches' dominant plane (MAGSAC++, 1.5 pose thresholds) and which matches lie on it:
+    ([3, 3], [M] bool), or None when none fits."""
+    H, mask = cv2.findHomography(
+        matches.xy0, matches.xy1, cv2.USAC_MAGSAC, 1.5 * pose.threshold_px, maxIters=pose.max_iters
+    )
+    if H is None or mask is None:
+        return None
+    return H, mask.ravel() > 0
+
+
+@dataclass
+class PlanePose:
+    """One physical pose of a plane (a decomposition of its homography) and its dense-consistency score."""
+
+    R: np.ndarray  # [3, 3]
+    t: np.ndarray  # [3], unit
+    score: int
+    """Keypoints matched along its epipolar lines (``guided``) that it explains in front of both cameras and
+    that the plane does not."""
+    guided: Matches
+
+
+def plane_poses(
+    views: Sequence[View], feats: Sequence[Features], matches: Matches, H: np.ndarray, on_plane: np.ndarray,
+    config: ReconstructConfig,
+) -> list[PlanePose]:  # fmt: skip
+    """The plane's physical poses, best score first (see :meth:`Pipeline._plane_tiebreak`).
+
+    Each decomposition of ``H`` (known intrinsics) that puts the plane's matches (``on_plane``) in front of both
+    cameras, once per distinct pose, is scored by the keypoints of ``feats`` matched within
+    ``config.guided_band_px`` of its epipolar lines that it explains (Sampson distance below the pose threshold)
+    in front of both cameras and that the plane does not (transfer error over 3 pose thresholds).
+    """
+    c = config
+    assert c.guided_band_px is not None
+    thr = c.pose.threshold_px
+    K0, K1 = views[0].K, views[1].K
+
+    def off_plane(m: Matches) -> np.ndarray:  # [N] bool: farther than 3 thresholds from the plane's transfer
+        p = np.c_[m.xy0, np.ones(len(m))] @ H.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            err = np.linalg.norm(p[:, :2] / p[:, 2:] - m.xy1, axis=1)
+        return ~(err <= 3.0 * thr)
+
+    _, Rs, ts, _ = cv2.decomposeHomographyMat(np.linalg.inv(K1) @ H @ K0, np.eye(3))
+    poses: list[PlanePose] = []
+    for R, t in zip(Rs, ts):
+        t = t.ravel()
+        if np.linalg.norm(t) < 1e-9:
+            continue
+        t = t / np.linalg.norm(t)
+        _, front = epipolar_fit(R, t, K0, K1, matches.xy0[on_plane], matches.xy1[on_plane])
+        if front.mean() < 0.5 or any(
+            rotation_error_deg(R, p.R) < 1.0 and translation_direction_error_deg(t, p.t) < 5.0 for p in poses
+        ):
+            continue  # the plane behind a camera, or the same pose again
+        F = fundamental_from_pose(R, t, K0, K1)
+        g = guided_matches(feats[0], feats[1], F, band_px=c.guided_band_px, ratio=c.guided_ratio)
+        d, front_g = epipolar_fit(R, t, K0, K1, g.xy0, g.xy1)
+        # every candidate explains the plane by construction: only matches off it are evidence
+        poses.append(PlanePose(R, t, int((front_g & (d < thr) & off_plane(g)).sum()), g))
+    return sorted(poses, key=lambda p: -p.score)
 
 
 class Pipeline:
@@ -443,12 +511,10 @@ class Pipeline:
         """Rank the physical poses of the matches' dominant plane by dense consistency and re-estimate the best.
 
         A plane seen from two views has two relative poses that explain its matches equally well; the true one
-        also explains the scene off the plane. Each decomposition of the homography (``matches``, MAGSAC++) that
-        puts the plane's matches in front of both cameras is scored by the keypoints of ``feats`` matched within
-        ``guided_band_px`` of its epipolar lines that it explains (Sampson distance below the pose threshold) in
-        front of both cameras and that the plane does not (transfer error over 3 pose thresholds): matches on the
-        plane are explained by every candidate and only dilute the margin (CO3D 39°: 1046 against 845 guided
-        matches, 1.24×; off the plane 448 against 270, 1.66×, the true pose first). The best must score
+        also explains the scene off the plane. The plane's poses are scored by :func:`plane_poses` (keypoints of
+        ``feats`` matched along each one's epipolar lines that it explains off the plane: matches on the plane are
+        explained by every candidate and only dilute the margin; CO3D 39°: 1046 against 845 guided matches,
+        1.24×; off the plane 448 against 270, 1.66×, the true pose first). The best must score
         ``plane_tiebreak_margin`` times every distinct rival and at least ``plane_tiebreak_min``; the pose stage
         then re-estimates the pose from its guided matches (all its checks apply), and the result must stay within
         ``guided_max_change_deg`` of the candidate.
@@ -458,48 +524,21 @@ class Pipeline:
         """
         c = self.config
         assert c.plane_tiebreak_margin is not None
-        thr = c.pose.threshold_px
         if len(matches) < c.pose.min_inliers or c.guided_band_px is None:
             return None
         if any(v.intrinsics_source == "prior" for v in views):
             return None  # the decomposition needs the intrinsics (CO3D 62°, prior focal: a pose 7° off passed)
-        H, hmask = cv2.findHomography(matches.xy0, matches.xy1, cv2.USAC_MAGSAC, 1.5 * thr, maxIters=c.pose.max_iters)
-        if H is None or hmask is None or int(hmask.sum()) < max(c.plane_tiebreak_plane, len(matches) / 2):
+        plane = dominant_plane(matches, c.pose)
+        if plane is None or int(plane[1].sum()) < max(c.plane_tiebreak_plane, len(matches) / 2):
             return None  # no dominant plane (CO3D 74°, 17 of 39 on a "plane": a pose 11° off passed)
-        K0, K1 = views[0].K, views[1].K
-        on_plane = hmask.ravel() > 0
-
-        def off_plane(m: Matches) -> np.ndarray:  # [N] bool: farther than 3 thresholds from the plane's transfer
-            p = np.c_[m.xy0, np.ones(len(m))] @ H.T
-            with np.errstate(divide="ignore", invalid="ignore"):
-                err = np.linalg.norm(p[:, :2] / p[:, 2:] - m.xy1, axis=1)
-            return ~(err <= 3.0 * thr)
-
-        _, Rs, ts, _ = cv2.decomposeHomographyMat(np.linalg.inv(K1) @ H @ K0, np.eye(3))
-        scored: list[tuple[int, np.ndarray, np.ndarray, Matches]] = []
-        for R, t in zip(Rs, ts):
-            t = t.ravel()
-            if np.linalg.norm(t) < 1e-9:
-                continue
-            t = t / np.linalg.norm(t)
-            _, front = epipolar_fit(R, t, K0, K1, matches.xy0[on_plane], matches.xy1[on_plane])
-            if front.mean() < 0.5 or any(
-                rotation_error_deg(R, r) < 1.0 and translation_direction_error_deg(t, u) < 5.0 for _, r, u, _ in scored
-            ):
-                continue  # the plane behind a camera, or the same pose again
-            F = fundamental_from_pose(R, t, K0, K1)
-            g = guided_matches(feats[0], feats[1], F, band_px=c.guided_band_px, ratio=c.guided_ratio)
-            d, front_g = epipolar_fit(R, t, K0, K1, g.xy0, g.xy1)
-            # every candidate explains the plane by construction: only matches off it are evidence
-            scored.append((int((front_g & (d < thr) & off_plane(g)).sum()), R, t, g))
-        scored.sort(key=lambda s: -s[0])
-        scores = [s[0] for s in scored]
+        scored = plane_poses(views, feats, matches, *plane, c)
+        scores = [s.score for s in scored]
         logger.debug("plane tie-break: candidates explain %s guided matches off the plane", scores)
         if not scored or scores[0] < c.plane_tiebreak_min:
             return None
         if len(scores) > 1 and scores[0] < c.plane_tiebreak_margin * scores[1]:
             return None
-        _, R_best, t_best, guided = scored[0]
+        R_best, t_best, guided = scored[0].R, scored[0].t, scored[0].guided
         guided.counts = {**matches.counts, **guided.counts}
         try:
             geometry = self.pose(views[0], views[1], guided, pair)
