@@ -33,7 +33,13 @@ import pose_confidence as PC  # noqa: E402  (the cases and their preparation)
 from macsplat_cli.metrics import rotation_error_deg  # noqa: E402
 from macsplat_cli.pipeline.descriptors import SiftDescriptors  # noqa: E402
 from macsplat_cli.pipeline.matching import match_features  # noqa: E402
-from macsplat_cli.pipeline.run import ReconstructConfig, dominant_plane, plane_poses  # noqa: E402
+from macsplat_cli.pipeline.run import (  # noqa: E402
+    ReconstructConfig,
+    dominant_plane,
+    plane_poses,
+    tiebreak_plane_ok,
+    tiebreak_winner_ok,
+)
 from macsplat_cli.pipeline.views import load_views  # noqa: E402
 
 RIGHT_DEG = 5.0
@@ -83,13 +89,7 @@ def verdict(row: dict[str, Any], cfg: ReconstructConfig) -> tuple[bool, bool, bo
     cands = row["candidates"]
     if not cands:
         return False, False, False
-    scores = [s for _, s in cands]
-    assert cfg.plane_tiebreak_margin is not None
-    through = (
-        row["plane"] >= max(cfg.plane_tiebreak_plane, row["matches"] / 2)
-        and scores[0] >= cfg.plane_tiebreak_min
-        and (len(scores) == 1 or scores[0] >= cfg.plane_tiebreak_margin * scores[1])
-    )
+    through = tiebreak_plane_ok(row["plane"], row["matches"], cfg) and tiebreak_winner_ok([s for _, s in cands], cfg)
     nearer = all(cands[0][0] <= e for e, _ in cands[1:])
     return through, nearer, cands[0][0] < RIGHT_DEG
 

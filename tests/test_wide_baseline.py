@@ -9,7 +9,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 
@@ -20,7 +19,7 @@ from macsplat_cli.images import save_image
 from macsplat_cli.metrics import rotation_error_deg
 from macsplat_cli.pipeline.descriptors import SiftConfig, SiftDescriptors
 from macsplat_cli.pipeline.matching import match_features
-from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig
+from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig, dominant_plane
 from macsplat_cli.pipeline.types import Features
 from macsplat_cli.pipeline.views import ViewConfig, load_views
 
@@ -95,10 +94,9 @@ def test_tiebreak_is_not_diluted_by_the_planes_own_matches(table_pair) -> None:
     pipe = Pipeline(cfg)
     g = pipe._plane_tiebreak(views, feats, plane, None)
     assert g is not None
-    # the tie-break's own estimate of the plane
-    Hm, _ = cv2.findHomography(
-        plane.xy0, plane.xy1, cv2.USAC_MAGSAC, 1.5 * cfg.pose.threshold_px, maxIters=cfg.pose.max_iters
-    )
+    fit = dominant_plane(plane, cfg.pose)  # the tie-break's own estimate of the plane
+    assert fit is not None
+    Hm = fit[0]
     rng = np.random.default_rng(0)
     n = 3000
     xy0 = plane.xy0[rng.integers(0, len(plane), n)] + rng.uniform(-3.0, 3.0, (n, 2))

@@ -60,6 +60,8 @@ __all__ = [
     "dominant_plane",
     "plane_poses",
     "pose_confidence",
+    "tiebreak_plane_ok",
+    "tiebreak_winner_ok",
 ]
 
 logger = logging.getLogger(__name__)
@@ -205,6 +207,21 @@ def dominant_plane(matches: Matches, pose: PoseConfig) -> tuple[np.ndarray, np.n
     if H is None or mask is None:
         return None
     return H, mask.ravel() > 0
+
+
+def tiebreak_plane_ok(n_plane: int, n_matches: int, config: ReconstructConfig) -> bool:
+    """The plane tie-break's first guard: a dominant plane, ``plane_tiebreak_plane`` matches and half of them (CO3D
+    74°, 17 of 39 on a "plane": a pose 11° off passed without it)."""
+    return n_plane >= max(config.plane_tiebreak_plane, n_matches / 2)
+
+
+def tiebreak_winner_ok(scores: Sequence[int], config: ReconstructConfig) -> bool:
+    """The plane tie-break's second guard on the candidates' scores (best first): at least ``plane_tiebreak_min``
+    and ``plane_tiebreak_margin`` times the next one's."""
+    assert config.plane_tiebreak_margin is not None
+    if not scores or scores[0] < config.plane_tiebreak_min:
+        return False
+    return len(scores) == 1 or scores[0] >= config.plane_tiebreak_margin * scores[1]
 
 
 @dataclass
@@ -529,14 +546,12 @@ class Pipeline:
         if any(v.intrinsics_source == "prior" for v in views):
             return None  # the decomposition needs the intrinsics (CO3D 62°, prior focal: a pose 7° off passed)
         plane = dominant_plane(matches, c.pose)
-        if plane is None or int(plane[1].sum()) < max(c.plane_tiebreak_plane, len(matches) / 2):
-            return None  # no dominant plane (CO3D 74°, 17 of 39 on a "plane": a pose 11° off passed)
+        if plane is None or not tiebreak_plane_ok(int(plane[1].sum()), len(matches), c):
+            return None
         scored = plane_poses(views, feats, matches, *plane, c)
         scores = [s.score for s in scored]
         logger.debug("plane tie-break: candidates explain %s guided matches off the plane", scores)
-        if not scored or scores[0] < c.plane_tiebreak_min:
-            return None
-        if len(scores) > 1 and scores[0] < c.plane_tiebreak_margin * scores[1]:
+        if not tiebreak_winner_ok(scores, c):
             return None
         R_best, t_best, guided = scored[0].R, scored[0].t, scored[0].guided
         guided.counts = {**matches.counts, **guided.counts}
