@@ -1,0 +1,166 @@
+"""``benchmarks/gpu_smoke.py``: the no-GPU exit, a tiny CPU run of its steps, and its step runner.
+
+The script is for a machine with a GPU; here it runs its steps on the CPU with ``--device cpu --tiny``.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+import torch
+
+SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "gpu_smoke.py"
+GPU_HERE = shutil.which("nvidia-smi") is not None or Path("/dev/nvidia0").exists() or torch.cuda.is_available()
+
+
+@pytest.fixture(scope="module")
+def smoke() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("gpu_smoke", SCRIPT)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["gpu_smoke"] = module  # dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+def _rows(stdout: str) -> dict[str, list[str]]:
+    """The Markdown table's rows by step: ``[result, seconds, peak MiB, note]``."""
+    rows = {}
+    for line in stdout.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if line.startswith("| ") and cells[0] not in ("step", "---"):
+            rows[cells[0]] = cells[1:]
+    return rows
+
+
+_RUN_SCRIPT = """
+import runpy, sys
+sys.argv = [sys.argv[1], *sys.argv[2:]]
+try:
+    runpy.run_path(sys.argv[0], run_name="__main__")
+except SystemExit as e:
+    print("exit", e.code)
+print("torch imported:", "torch" in sys.modules)
+"""
+
+
+@pytest.mark.skipif(GPU_HERE, reason="an NVIDIA GPU is attached here")
+def test_without_a_gpu_it_says_so_and_exits_0_without_importing_torch() -> None:
+    run = subprocess.run([sys.executable, "-c", _RUN_SCRIPT, str(SCRIPT)], capture_output=True, text=True, timeout=60)
+    assert run.stdout.splitlines() == ["no CUDA device: nothing to check", "exit 0", "torch imported: False"]
+    plain = subprocess.run([sys.executable, str(SCRIPT)], capture_output=True, text=True, timeout=60)
+    assert (plain.returncode, plain.stdout.strip()) == (0, "no CUDA device: nothing to check")
+
+
+def test_help_imports_no_torch() -> None:
+    run = subprocess.run([sys.executable, "-c", _RUN_SCRIPT, str(SCRIPT), "--help"], capture_output=True, text=True,
+                         timeout=60)  # fmt: skip
+    assert "--tiny" in run.stdout and "--steps" in run.stdout
+    assert run.stdout.splitlines()[-2:] == ["exit 0", "torch imported: False"]
+
+
+def test_cpu_tiny_run_prints_one_table_of_ok_rows(tmp_path: Path) -> None:
+    """The real steps (reconstruct through the neural backend, bf16 train) in subprocesses, on the CPU."""
+    run = subprocess.run(
+        [sys.executable, str(SCRIPT), "--device", "cpu", "--tiny", "--steps", "reconstruct,train", "--train-steps",
+         "2", "--workdir", str(tmp_path / "work")],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stdout + run.stderr[-3000:]
+    assert run.stdout.count("| step | result | seconds | peak RSS MiB | note |") == 1
+    rows = _rows(run.stdout)
+    assert list(rows) == ["prepare", "reconstruct", "train"]
+    assert all(r[0] == "ok" for r in rows.values()), rows
+    for step in ("reconstruct", "train"):
+        seconds, mib = float(rows[step][1]), float(rows[step][2].replace(",", ""))
+        assert seconds > 0 and mib > 50, rows[step]  # a Python process with torch loaded
+    assert rows["reconstruct"][3].endswith("Gaussians") and rows["train"][3].startswith("2 steps bf16")
+    # the commands the steps ran, as printed while they run
+    assert "python -m macsplat_cli reconstruct" in run.stderr and "--backend neural --weights weights/mast3r.pth" in (
+        run.stderr
+    )
+    assert "python -m macsplat_cli train --data scannetpp" in run.stderr and "--precision bf16 --device cpu" in (
+        run.stderr
+    )
+    assert (tmp_path / "work" / "train" / "last.pt").is_file()  # --workdir is kept
+
+
+# ------------------------------------------------------------------------------ the runner and the plan
+def test_a_failed_step_gives_its_exit_code_and_last_stderr_line(smoke: ModuleType, tmp_path: Path) -> None:
+    argv = [sys.executable, "-c", "import sys; print('loading\\r50 %', file=sys.stderr); "
+            "print('error: \\x1b[1mno such file\\x1b[0m', file=sys.stderr); sys.exit(2)"]  # fmt: skip
+    r = smoke.run_process("x", argv, cwd=tmp_path, env={}, timeout=60, gpu=False, logs=tmp_path / "logs")
+    assert (r.status, r.note) == ("failed", "exit 2: error: no such file")
+    assert r.seconds > 0 and r.peak_mib > 1 and r.stderr_tail == ["loading", "50 %", "error: no such file"]
+    assert (tmp_path / "logs" / "x.err").read_text().startswith("loading")
+    assert "| x | failed |" in smoke.table([r], gpu=False) and smoke.exit_code([r]) == 1
+
+
+def test_a_hung_step_is_killed_at_its_timeout(smoke: ModuleType, tmp_path: Path) -> None:
+    argv = [sys.executable, "-c", "import time; time.sleep(60)"]
+    r = smoke.run_process("hang", argv, cwd=tmp_path, env={}, timeout=0.5, gpu=False, logs=tmp_path)
+    assert (r.status, r.note) == ("failed", "timed out after 0.5 s") and r.seconds < 30
+
+
+def test_an_exit_0_with_wrong_output_fails_the_step(smoke: ModuleType, tmp_path: Path) -> None:
+    def check() -> str:
+        raise AssertionError("no Gaussians were written")
+
+    r = smoke.run_process("y", [sys.executable, "-c", "pass"], cwd=tmp_path, env={}, timeout=60, gpu=False,
+                          logs=tmp_path, check=check)  # fmt: skip
+    assert (r.status, r.note) == ("failed", "exit 0 but no Gaussians were written")
+    ok = smoke.run_process("z", [sys.executable, "-c", "pass"], cwd=tmp_path, env={}, timeout=60, gpu=False,
+                           logs=tmp_path, check=lambda: "fine")  # fmt: skip
+    assert (ok.status, ok.note) == ("ok", "fine") and smoke.exit_code([ok]) == 0
+
+
+def test_step_selection_adds_what_a_step_needs(smoke: ModuleType) -> None:
+    assert smoke.select_steps("render") == ["reconstruct", "render"]
+    assert smoke.select_steps("train,onnx") == ["export-onnx", "reconstruct-onnx", "train"]
+    assert smoke.select_steps("all") == list(smoke.STEPS)
+    with pytest.raises(ValueError, match="unknown step 'nope'"):
+        smoke.select_steps("train,nope")
+    with pytest.raises(SystemExit) as e:
+        smoke.parse_args(["--steps", "nope"])
+    assert e.value.code == 2
+
+
+def test_a_failed_step_skips_the_steps_that_need_it_and_the_run_exits_1(
+    smoke: ModuleType, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    def checkpoints(folder: Path, *, tiny: bool) -> dict[str, Path]:
+        folder.mkdir(parents=True)
+        for name in ("mast3r", "splatt3r", "dino", "fusion"):
+            (folder / name).write_bytes(b"w")
+        return {name: folder / name for name in ("mast3r", "splatt3r", "dino", "fusion")}
+
+    def data(root: Path, size: tuple[int, int]) -> tuple[Path, Path, Path]:
+        root.mkdir()
+        return root, root / "a.jpg", root / "b.jpg"
+
+    ran: list[list[str]] = []
+
+    def run_process(step: str, argv: list[str], **kwargs: object) -> object:
+        ran.append(argv)
+        if step == "reconstruct":
+            return smoke.Result(step, "failed", 1.0, 10.0, "exit 3: error: the pose is doubtful")
+        return smoke.Result(step, "ok", 1.0, 10.0, "fine")
+
+    monkeypatch.setattr(smoke, "write_checkpoints", checkpoints)
+    monkeypatch.setattr(smoke, "write_data", data)
+    monkeypatch.setattr(smoke, "run_process", run_process)
+    code = smoke.main(["--device", "cpu", "--tiny", "--steps", "render,torchrun", "--workdir", str(tmp_path)])
+    rows = _rows(capsys.readouterr().out)
+    assert code == 1
+    assert {k: v[0] for k, v in rows.items()} == {
+        "prepare": "ok", "reconstruct": "failed", "torchrun": "ok", "render": "skipped"
+    }  # fmt: skip
+    assert rows["reconstruct"][3] == "exit 3: error: the pose is doubtful" and rows["render"][3] == "needs reconstruct"
+    assert [a[1:5] for a in ran] == [["-m", "macsplat_cli", "reconstruct", "scannetpp/a.jpg"],
+                                     ["-m", "torch.distributed.run", "--standalone", "--nproc-per-node"]]  # fmt: skip
