@@ -136,22 +136,19 @@ def gpu_present() -> bool:
     return bool(nvidia_gpus()) or Path("/dev/nvidia0").exists()
 
 
-def smi_index() -> str | None:
-    """The nvidia-smi index of the GPU the steps use: the first of ``CUDA_VISIBLE_DEVICES`` (0 when unset).
-
-    None when that entry is a UUID or MIG name that nvidia-smi's ``-i`` may not take as it is.
-    """
-    first = os.environ.get("CUDA_VISIBLE_DEVICES", "0").split(",")[0].strip()
-    return first if first.isdigit() else None
+def smi_index() -> str:
+    """nvidia-smi's ``-i`` for the GPU the steps use: the first of ``CUDA_VISIBLE_DEVICES`` (an index or a UUID,
+    as nvidia-smi takes them), else 0. Where nvidia-smi refuses it, the memory column shows ``-``."""
+    return os.environ.get("CUDA_VISIBLE_DEVICES", "").split(",")[0].strip() or "0"
 
 
 # ============================================================================================= peak memory
 class GpuMemoryPoll:
     """Peak of the GPU's used memory (MiB) from ``nvidia-smi -lms``, minus the value when it started."""
 
-    def __init__(self, index: str | None) -> None:
+    def __init__(self, index: str) -> None:
         self.exe = shutil.which("nvidia-smi")
-        self.args = ["--query-gpu=memory.used", "--format=csv,noheader,nounits"] + (["-i", index] if index else [])
+        self.args = ["--query-gpu=memory.used", "--format=csv,noheader,nounits", "-i", index]
         self.base: float | None = None
         self.peak: float | None = None
         self._proc: subprocess.Popen[str] | None = None
@@ -191,9 +188,6 @@ class GpuMemoryPoll:
 
     def __exit__(self, *exc: object) -> None:
         if self._proc is not None:
-            last = self._read_one()  # one reading after the step, in case the stream was slow to start
-            if last is not None and self.peak is not None:
-                self.peak = max(self.peak, last)
             self._proc.terminate()
             try:
                 self._proc.wait(timeout=10)

@@ -6,6 +6,7 @@ The script is for a machine with a GPU; here it runs its steps on the CPU with `
 from __future__ import annotations
 
 import importlib.util
+import os
 import shutil
 import subprocess
 import sys
@@ -164,3 +165,49 @@ def test_a_failed_step_skips_the_steps_that_need_it_and_the_run_exits_1(
     assert rows["reconstruct"][3] == "exit 3: error: the pose is doubtful" and rows["render"][3] == "needs reconstruct"
     assert [a[1:5] for a in ran] == [["-m", "macsplat_cli", "reconstruct", "scannetpp/a.jpg"],
                                      ["-m", "torch.distributed.run", "--standalone", "--nproc-per-node"]]  # fmt: skip
+
+
+_FAKE_SMI = """#!/bin/sh
+case "$*" in
+  -L) echo "GPU 0: NVIDIA H100 80GB HBM3 (UUID: GPU-0)";;
+  *"-i 0 -lms 100") for v in 1000 1500 4000 1200; do echo "$v"; sleep 0.05; done; exec sleep 30;;
+  *"-i 0") echo 1000;;
+  *) echo "No devices were found" >&2; exit 6;;
+esac
+"""
+
+
+@pytest.fixture
+def fake_smi(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """An ``nvidia-smi`` on PATH: one GPU, index 0, whose used memory streams as 1000, 1500, 4000, 1200 MiB."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    (bin_dir / "nvidia-smi").write_text(_FAKE_SMI)
+    (bin_dir / "nvidia-smi").chmod(0o755)
+    monkeypatch.setenv("PATH", f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+    return bin_dir
+
+
+def test_gpu_peak_memory_is_the_highest_nvidia_smi_reading_above_the_one_before(
+    smoke: ModuleType, fake_smi: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    argv = [sys.executable, "-c", "import time; time.sleep(1.0)"]
+    r = smoke.run_process("gpu", argv, cwd=tmp_path, env=dict(os.environ), timeout=60, gpu=True, logs=tmp_path)
+    assert (r.status, r.peak_mib) == ("ok", 3000.0)
+    text = smoke.table([r], gpu=True)
+    assert text.startswith("| step | result | seconds | peak GPU MiB | note |") and _rows(text)["gpu"][2] == "3,000"
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "1,0")  # GPU 1, which this nvidia-smi does not know: no figure
+    r = smoke.run_process("gpu", argv, cwd=tmp_path, env=dict(os.environ), timeout=60, gpu=True, logs=tmp_path)
+    assert (r.status, r.peak_mib) == ("ok", None) and _rows(smoke.table([r], gpu=True))["gpu"][2] == "-"
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this torch has CUDA")
+def test_a_gpu_that_torch_cannot_use_is_a_failure(
+    smoke: ModuleType, fake_smi: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert smoke.nvidia_gpus() == ["GPU 0: NVIDIA H100 80GB HBM3 (UUID: GPU-0)"] and smoke.gpu_present()
+    assert smoke.main([]) == 1
+    out = capsys.readouterr().out
+    assert out.startswith("error: GPU 0: NVIDIA H100 80GB HBM3 (UUID: GPU-0) is attached but torch ")
+    assert "sees no CUDA device" in out
