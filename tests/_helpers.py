@@ -79,6 +79,25 @@ def max_rel_err(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a - b).abs().max()) / scale if scale > 0 else float((a - b).abs().max())
 
 
+def unit_roundoff(dtype: torch.dtype | np.dtype | type) -> float:
+    """u = eps / 2: the largest relative error of one rounded operation in ``dtype``."""
+    if isinstance(dtype, torch.dtype):
+        return torch.finfo(dtype).eps / 2
+    return float(np.finfo(dtype).eps) / 2
+
+
+def gamma(n: int, dtype: torch.dtype | np.dtype | type) -> float:
+    """Higham's γₙ = n·u / (1 − n·u): |fl(Σ xᵢyᵢ) − Σ xᵢyᵢ| ≤ γₙ Σ |xᵢyᵢ| for a sum of n products in any order.
+
+    The bound holds whatever the summation order, blocking or vector width of the kernel, so a tolerance built
+    from it holds on every CPU (SSE, AVX2, AVX-512, NEON) and thread count; two results computed in different
+    orders differ by at most twice it.
+    """
+    u = unit_roundoff(dtype)
+    assert n * u < 1, "γₙ needs n·u < 1"
+    return n * u / (1 - n * u)
+
+
 def deg(x: float) -> float:
     return math.degrees(x)
 

@@ -228,10 +228,9 @@ def test_covariance_shape_term_is_stable_for_repeated_eigenvalues(eigs: list[flo
     want = mac_loss(ref, b, xy, xy, torch.tensor([0]), one, T, T)
     # eigenvalues carry ~eps·‖Σ‖ absolute error: 1e-3 relative for the float32 needle
     torch.testing.assert_close(out.shape, want.shape, rtol=1e-3 if dtype == torch.float32 else 1e-9, atol=0)
-    if eigs[0] == eigs[1] == eigs[2]:  # contrast: eigenvector gradients are not finite here
-        Y = cov.detach()[0, 0, 0].to(D).requires_grad_(True)
-        torch.linalg.eigh(Y)[1].sum().backward()
-        assert not torch.isfinite(Y.grad).all()
+    # No contrast with ``torch.linalg.eigh``'s eigenvector gradient here: at an exactly repeated eigenvalue it
+    # divides by λi − λj = 0, and what LAPACK returns there (inf, NaN or finite 1e14 values, by CPU kernel set)
+    # is undefined behaviour, not a property of macsplat.
 
 
 @pytest.mark.parametrize(("path", "smallest"), [("scales", 1e-12), ("covariances", 1e-10)])
