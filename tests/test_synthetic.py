@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import time
 
 import cv2
 import numpy as np
@@ -226,15 +225,15 @@ def test_textured_views_have_many_sift_features_textureless_few(room: S.Scene, o
         assert flat < 100 and flat < 0.1 * textured, (kind, flat, textured)
 
 
-def test_render_time_512x384(room: S.Scene) -> None:
+def test_render_512x384_gives_a_float_image_in_range(room: S.Scene) -> None:
+    """Rendering twice (the textures are rasterised on first use) gives the same float32 image in [0, 1]. Its speed
+    is no test's business (a loaded machine fails any bound): ``benchmarks/`` times things."""
     cam, _ = S.orbit_pair("room", 30.0)
-    S.render(room, cam)  # textures are rasterised on first use
-    start = time.perf_counter()
+    first = S.render(room, cam)
     view = S.render(room, cam)
-    elapsed = time.perf_counter() - start
     assert view.image.shape == (384, 512, 3) and view.image.dtype == np.float32
     assert 0.0 <= view.image.min() and view.image.max() <= 1.0
-    assert elapsed < 2.0, elapsed
+    assert np.array_equal(first.image, view.image)
 
 
 def test_supersampling_keeps_centre_depth_and_smooths_colour(obj: S.Scene) -> None:
