@@ -25,11 +25,13 @@
    (``Matches.below_gate``): a pose wins with matches it explains (in front of both cameras)
    that the other refutes (behind a camera: the plane's wrong pose often puts part of it
    there; or far off its epipolar lines: points off the plane). Tied evidence is refused.
-6. Degeneracies raise :class:`~macsplat_cli.errors.ReconstructionError`: too few
-   verified matches, identical images, a pure rotation (no baseline, so no depth), and an
-   unreliable pose. Two checks, measured on synthetic wide-baseline and textureless
-   failures: fewer than ``min_inlier_ratio`` of the matches agree with the pose (wrong
-   poses had 28–37 %, correct ones 67–99 %), or a homography explains clearly more
+6. Degeneracies raise :class:`~macsplat_cli.errors.ReconstructionError`: too few (distinct)
+   matches or verified matches, matches along one line, identical images, a pure rotation (no
+   baseline, so no depth), and an unreliable pose. OpenCV's estimators run only within their
+   preconditions (:func:`_robust_fit`): no ``cv2.error`` leaves this module. An unreliable pose:
+   two checks, measured on synthetic wide-baseline and textureless failures: fewer than
+   ``min_inlier_ratio`` of the matches agree with the pose (wrong poses had 28–37 %, correct
+   ones 67–99 %), or a homography explains clearly more
    matches than the pose does (``homography_excess``) — impossible for a correct pose,
    since points on a real plane satisfy its epipolar geometry too.
 """
@@ -39,6 +41,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -49,7 +52,14 @@ from ..errors import NonFiniteError, ReconstructionError
 from ..metrics import angle_between_deg, rotation_angle_deg
 from .types import Matches, TwoViewGeometry, View
 
-__all__ = ["PoseConfig", "epipolar_fit", "estimate_pose", "flipped_fraction", "sampson_distance"]
+__all__ = [
+    "PoseConfig",
+    "epipolar_fit",
+    "estimate_pose",
+    "find_homography",
+    "flipped_fraction",
+    "sampson_distance",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -172,6 +182,89 @@ def _parallax_deg(R: np.ndarray, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
 _rotation_angle_deg = rotation_angle_deg  # the one formula (atan2), in macsplat_cli.metrics
 
 
+# ----------------------------------------------------------------------------------- OpenCV within its preconditions
+MIN_POINTS_ESSENTIAL = 5
+"""Correspondences the five-point essential-matrix solver needs."""
+MIN_POINTS_FUNDAMENTAL = 8
+"""Correspondences a fundamental matrix needs (OpenCV's USAC samples 7; the 8-point refit needs 8)."""
+MIN_POINTS_HOMOGRAPHY = 4
+"""Correspondences a homography needs."""
+
+
+def distinct_matches(xy0: np.ndarray, xy1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct correspondences among ``xy0, xy1`` [M, 2]: (index of the first occurrence of each [K], which
+    of them each match repeats [M]). One keypoint can carry several descriptors (SIFT: one per dominant
+    orientation), so the same pair of pixels can be matched more than once."""
+    if len(xy0) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    _, first, inverse = np.unique(
+        np.concatenate([xy0, xy1], axis=1), axis=0, return_index=True, return_inverse=True
+    )  # fmt: skip
+    order = np.argsort(first)  # keep the matches' order: the distinct ones as they first appear
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return first[order], rank[np.asarray(inverse).reshape(-1)]
+
+
+def _robust_fit(
+    fit: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray | None, np.ndarray | None]],
+    xy0: np.ndarray,
+    xy1: np.ndarray,
+    min_points: int,
+    what: str,
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """An OpenCV robust estimator, ``fit(xy0, xy1) → (model, inlier mask)``, run within its preconditions.
+
+    The points go in as contiguous float64 [M, 2]; fewer than ``min_points`` distinct correspondences, or a
+    non-finite one, and OpenCV is not called. OpenCV's USAC asserts (``!model.empty()``) when a minimal sample
+    is degenerate, which repeated correspondences make likely (issue 23: 441 matches, 396 distinct, at
+    ``--size 128``): then the distinct correspondences are fitted instead, and each repeat takes the inlier flag
+    of its first occurrence. The full set is tried first so that every input OpenCV accepts keeps its result.
+
+    Returns:
+        ``(model, mask)``: the model and the inlier flags [M] bool, or ``(None, None)`` when no model fits.
+        Never raises ``cv2.error``.
+    """
+    a = np.ascontiguousarray(xy0, np.float64).reshape(-1, 2)
+    b = np.ascontiguousarray(xy1, np.float64).reshape(-1, 2)
+    if len(a) != len(b) or not (np.isfinite(a).all() and np.isfinite(b).all()):
+        return None, None
+    first, inverse = distinct_matches(a, b)
+    if len(first) < min_points:
+        return None, None
+    subsets = [None] if len(first) == len(a) else [None, first]
+    for sub in subsets:
+        try:
+            model, mask = fit(a, b) if sub is None else fit(a[sub], b[sub])
+        except cv2.error as e:
+            logger.debug("%s on %d matches (%d distinct): %s", what, len(a), len(first), str(e).strip()[-120:])
+            continue
+        if model is None or mask is None or model.size == 0 or not np.isfinite(model).all():
+            return None, None
+        flags = np.asarray(mask).reshape(-1).astype(bool)
+        return model, (flags if sub is None else flags[inverse])
+    return None, None
+
+
+def find_homography(
+    xy0: np.ndarray, xy1: np.ndarray, threshold_px: float, max_iters: int
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """MAGSAC++ homography of the matches ``xy0 → xy1`` [M, 2]: ([3, 3], inliers [M] bool), or (None, None) when
+    none fits or the matches cannot determine one (:func:`_robust_fit`)."""
+    return _robust_fit(
+        lambda a, b: cv2.findHomography(a, b, cv2.USAC_MAGSAC, threshold_px, maxIters=max_iters),
+        xy0, xy1, MIN_POINTS_HOMOGRAPHY, "homography",
+    )  # fmt: skip
+
+
+def _line_spread_px(xy: np.ndarray) -> float:
+    """RMS distance (px) of the points ``xy`` [M, 2] from their best-fitting line (0: collinear)."""
+    if len(xy) < 3:
+        return 0.0
+    s = np.linalg.svd(xy - xy.mean(0), compute_uv=False)
+    return float(s[-1]) / math.sqrt(len(xy))
+
+
 # ----------------------------------------------------------------------------------- estimation
 def _scaled_K(K: np.ndarray, s: float, unknown: bool) -> np.ndarray:
     if not unknown or s == 0.0:
@@ -197,12 +290,14 @@ def _focal_search(F: np.ndarray, K0: np.ndarray, K1: np.ndarray, unknown: tuple[
 
 def _essential(x0v: np.ndarray, x1v: np.ndarray, f_v: float, cfg: PoseConfig) -> tuple[np.ndarray, np.ndarray]:
     Kv = np.array([[f_v, 0.0, 0.0], [0.0, f_v, 0.0], [0.0, 0.0, 1.0]])
-    E, mask = cv2.findEssentialMat(
-        x0v, x1v, Kv, method=cv2.USAC_MAGSAC, prob=cfg.confidence, threshold=cfg.threshold_px, maxIters=cfg.max_iters
-    )
-    if E is None or E.shape != (3, 3) or mask is None:
+    E, inl = _robust_fit(
+        lambda a, b: cv2.findEssentialMat(
+            a, b, Kv, method=cv2.USAC_MAGSAC, prob=cfg.confidence, threshold=cfg.threshold_px, maxIters=cfg.max_iters
+        ),
+        x0v, x1v, MIN_POINTS_ESSENTIAL, "essential matrix",
+    )  # fmt: skip
+    if E is None or E.shape != (3, 3) or inl is None:
         raise ReconstructionError("pose could not be estimated: no essential matrix fits the matches")
-    inl = mask.ravel().astype(bool)
     R, t, front = _cheirality(E, x0v[inl] / f_v, x1v[inl] / f_v)
     good = np.zeros_like(inl)
     good[np.flatnonzero(inl)[front]] = True
@@ -460,7 +555,7 @@ def _planar_check(
         translation-direction/3 differences, °); and those other poses ``(R, t)`` (unit ``t``), distinct from
         each other, that explain at least one match.
     """
-    H, hmask = cv2.findHomography(xy0, xy1, cv2.USAC_MAGSAC, 1.5 * cfg.threshold_px, maxIters=cfg.max_iters)
+    H, hmask = find_homography(xy0, xy1, 1.5 * cfg.threshold_px, cfg.max_iters)
     if H is None or hmask is None:
         return len(xy0), 0, 0.0, []
     off_plane = int(len(xy0) - hmask.sum())
@@ -565,11 +660,21 @@ def estimate_pose(v0: View, v1: View, matches: Matches, config: PoseConfig | Non
         if not np.isfinite(a).all():
             raise NonFiniteError(f"{name} holds {int((~np.isfinite(a)).sum())} non-finite value(s) (NaN or Inf)")
     n = len(matches)
-    if n < max(cfg.min_inliers, 8):
-        raise ReconstructionError(
-            f"pose could not be estimated: {n} matches survived filtering, need at least {max(cfg.min_inliers, 8)}"
-        )
     xy0, xy1 = matches.xy0.astype(np.float64), matches.xy1.astype(np.float64)
+    distinct, _ = distinct_matches(xy0, xy1)
+    need = max(cfg.min_inliers, MIN_POINTS_FUNDAMENTAL)
+    if len(distinct) < need:
+        repeats = f" ({n} with repeats)" if len(distinct) < n else ""
+        raise ReconstructionError(
+            f"pose could not be estimated: only {len(distinct)} match{'es' if len(distinct) != 1 else ''} survived "
+            f"filtering{repeats}, need at least {need}"
+        )
+    for k, xy in enumerate((xy0[distinct], xy1[distinct])):
+        if _line_spread_px(xy) < cfg.threshold_px:
+            raise ReconstructionError(
+                f"pose could not be estimated: the {len(distinct)} matches lie along one line in photo {k + 1} "
+                "(within the inlier threshold), which leaves the relative pose undetermined"
+            )
     if v0.image.shape == v1.image.shape:
         shift = np.median(np.linalg.norm(xy1 - xy0, axis=1))
         if shift < 0.5 and np.mean(np.linalg.norm(xy1 - xy0, axis=1) < 1.0) > 0.8:
@@ -584,7 +689,10 @@ def estimate_pose(v0: View, v1: View, matches: Matches, config: PoseConfig | Non
     s = 0.0
     with_focal = cfg.estimate_focal and any(unknown)
     if with_focal:
-        F, fmask = cv2.findFundamentalMat(xy0, xy1, cv2.USAC_MAGSAC, cfg.threshold_px, cfg.confidence, cfg.max_iters)
+        F, fmask = _robust_fit(
+            lambda a, b: cv2.findFundamentalMat(a, b, cv2.USAC_MAGSAC, cfg.threshold_px, cfg.confidence, cfg.max_iters),
+            xy0, xy1, MIN_POINTS_FUNDAMENTAL, "fundamental matrix",
+        )  # fmt: skip
         if F is not None and F.shape == (3, 3) and fmask is not None and int(fmask.sum()) >= cfg.min_inliers:
             s, defect = _focal_search(F, K0, K1, unknown)
             info["focal_search_scale"] = math.exp(s)
@@ -655,7 +763,7 @@ def estimate_pose(v0: View, v1: View, matches: Matches, config: PoseConfig | Non
     info["focal_estimated"] = bool(with_focal and s != 0.0)
 
     final, d, X, x0n, x1n = _final_inliers(R, t, K0s, K1s, xy0, xy1, cfg)
-    H, hmask = cv2.findHomography(xy0, xy1, cv2.USAC_MAGSAC, 1.5 * cfg.threshold_px, maxIters=cfg.max_iters)
+    H, hmask = find_homography(xy0, xy1, 1.5 * cfg.threshold_px, cfg.max_iters)
     n_h = int(hmask.sum()) if H is not None and hmask is not None else 0
     if cfg.planar_resolve and H is not None and n_h >= max(cfg.planar_fraction * int(final.sum()), cfg.min_inliers):
         # the plane dominates: its two poses, and the essential matrix's, compete on all the evidence

@@ -31,7 +31,7 @@ from .depth import DepthConfig
 from .descriptors import SiftConfig, SiftDescriptors
 from .gaussian_init import GaussianInitConfig
 from .matching import MatchConfig, guided_matches
-from .pose import PoseConfig, epipolar_fit, fundamental_from_pose
+from .pose import PoseConfig, epipolar_fit, find_homography, fundamental_from_pose
 from .pose_confidence import ConfidenceConfig, PoseConfidence, assess_pose
 from .stages import (
     DepthGaussians,
@@ -201,12 +201,10 @@ def count_gaussians(maps: Sequence[GaussianMaps]) -> int:
 def dominant_plane(matches: Matches, pose: PoseConfig) -> tuple[np.ndarray, np.ndarray] | None:
     """The homography of the matches' dominant plane (MAGSAC++, 1.5 pose thresholds) and which matches lie on it:
     ([3, 3], [M] bool), or None when none fits."""
-    H, mask = cv2.findHomography(
-        matches.xy0, matches.xy1, cv2.USAC_MAGSAC, 1.5 * pose.threshold_px, maxIters=pose.max_iters
-    )
+    H, mask = find_homography(matches.xy0, matches.xy1, 1.5 * pose.threshold_px, pose.max_iters)
     if H is None or mask is None:
         return None
-    return H, mask.ravel() > 0
+    return H, mask
 
 
 def tiebreak_plane_ok(n_plane: int, n_matches: int, config: ReconstructConfig) -> bool:

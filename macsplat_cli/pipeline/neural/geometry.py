@@ -116,14 +116,23 @@ def pose_from_pointmap(
     projection has none: a constant shift of both the pixels and the principal point, so no effect).
 
     Raises:
-        ReconstructionError: fewer than ``min_points`` points, or no pose found.
+        ReconstructionError: fewer than ``min_points`` distinct finite correspondences, 3-D points along one line
+            (a rotation about it is undetermined), or no pose found.
     """
     ok = np.isfinite(X).all(1) & np.isfinite(xy).all(1)
     X, xy = np.ascontiguousarray(X[ok], np.float64), np.ascontiguousarray(xy[ok], np.float64)
     n = len(X)
-    if n < max(min_points, 4):
+    distinct = len(np.unique(np.concatenate([X, xy], axis=1), axis=0)) if n else 0
+    if distinct < max(min_points, 4):
+        repeats = f" ({n} with repeats)" if distinct < n else ""
         raise ReconstructionError(
-            f"pose could not be estimated: the network is confident about only {n} pixels of the second view"
+            f"pose could not be estimated: the network is confident about only {distinct} pixels of the second "
+            f"view{repeats}"
+        )
+    spread = np.linalg.svd(X - X.mean(0), compute_uv=False)  # [3], descending
+    if not spread[1] > 1e-6 * spread[0]:
+        raise ReconstructionError(
+            f"pose could not be estimated: the network's {n} confident points of the second view lie on one line"
         )
     K = np.asarray(K, np.float64)
     found, rvec, tvec, idx = False, None, None, None
