@@ -1,5 +1,9 @@
-"""Hostile input to the pose stage (issue 23, the second round of hostile input).
+"""Hostile input to the pose stage and its acceptance (issue 23, the second round of hostile input).
 
+* A network whose point maps are nonsense (random weights in the official layout, or a stand-in returning
+  shape-correct noise) gave a pose that was written with exit 0 (0–1 verified matches, 0 % PnP agreement, only a
+  log warning). The neural pose now goes through the classical acceptance (:func:`accept_pose`): exit 3 naming the
+  failing figure, or the scene written and flagged with ``--accept-low-confidence``; exact point maps still pass.
 * A pair at ``--size 128`` crashed the pose stage with OpenCV's ``!model.empty()`` assertion (exit 1, "internal
   error"). Not the CMYK JPEG of the report (OpenCV decodes CMYK and YCCK JPEGs to the right colours:
   ``tests/test_images.py``); the cause is repeated correspondences (one keypoint with several SIFT orientations
@@ -11,21 +15,169 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
-from test_neural_pipeline import _run
+import torch
+from test_neural_pipeline import SIZE, OracleBackbone, Scene, _run, write_tiny_checkpoints
 
+from macsplat_cli.cameras import load_cameras
 from macsplat_cli.datasets import synthetic as syn
+from macsplat_cli.engine import EngineConfig, Models, reconstruct
 from macsplat_cli.errors import NonFiniteError, ReconstructionError
+from macsplat_cli.neural import BackboneConfig, BackboneView
+from macsplat_cli.neural.predictor import PairPredictor
+from macsplat_cli.pipeline import run as run_module
 from macsplat_cli.pipeline.neural import pose_from_pointmap
-from macsplat_cli.pipeline.pose import _robust_fit, estimate_pose, find_homography
+from macsplat_cli.pipeline.pose import PoseConfig, _robust_fit, estimate_pose, find_homography
+from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig, Reconstruction
 from macsplat_cli.pipeline.types import Matches, View
+from macsplat_cli.pipeline.views import ViewConfig
 
 
 # ------------------------------------------------------------------------------ fixtures and helpers
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory: pytest.TempPathFactory) -> Scene:
+    return Scene(tmp_path_factory.mktemp("scene"))
+
+
+@pytest.fixture(scope="module")
+def ckpts(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    return write_tiny_checkpoints(tmp_path_factory.mktemp("ckpt"))
+
+
+TOO_FEW_VERIFIED = r"only \d+ verified match(es)? agrees? with the pose, need at least 15"
+
+
+def _error_line(err: str) -> str:
+    """The one ``error:`` line (after the progress lines of the stages that ran and the one that failed)."""
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert "Traceback" not in err and "internal error" not in err, err
+    assert sum("error:" in ln for ln in lines) == 1 and lines[-1].startswith("error: "), err
+    return lines[-1]
+
+
+class NoiseBackbone(torch.nn.Module):
+    """A network that returns shape-correct nonsense: point maps of uniform noise in front of the camera, noise
+    descriptors, confident everywhere."""
+
+    def __init__(self, seed: int = 0) -> None:
+        super().__init__()
+        self.config = BackboneConfig.tiny()
+        self.generator = torch.Generator().manual_seed(seed)
+
+    def forward(self, img1: torch.Tensor, img2: torch.Tensor) -> tuple[BackboneView, BackboneView]:
+        b, _, h, w = img1.shape
+        g = self.generator
+        views = []
+        for _ in range(2):
+            pts = torch.rand(b, h, w, 3, generator=g) * torch.tensor([4.0, 4.0, 4.0]) + torch.tensor([-2.0, -2.0, 1.0])
+            desc = torch.nn.functional.normalize(torch.randn(b, h, w, 24, generator=g), dim=-1)
+            conf, desc_conf = torch.full((b, h, w), 5.0), torch.full((b, h, w), 3.0)
+            views.append(BackboneView(pts, conf, desc, desc_conf, (), (h // 16, w // 16)))
+        return views[0], views[1]
+
+
+class UnrelatedDescriptors(OracleBackbone):
+    """The exact point maps of the scene, but descriptors of noise: the PnP agrees, the matches do not."""
+
+    def __init__(self, scene: Scene) -> None:
+        super().__init__(scene)
+        g = torch.Generator().manual_seed(1)
+        self.desc = [torch.nn.functional.normalize(torch.randn(d.shape, generator=g), dim=-1) for d in self.desc]
+
+
+def _neural(scene: Scene, predictor: torch.nn.Module, *, accept: bool = False) -> Reconstruction:
+    """The scene's pair through the neural backend with ``predictor`` in place of MASt3R."""
+    config = EngineConfig(backend="neural")
+    config.pipeline.accept_low_confidence = accept
+    models = Models(predictor=PairPredictor(predictor))  # type: ignore[arg-type]
+    return reconstruct([scene.a, scene.b], config, models=models)
+
+
+# ---------------------------------------------------------------------- 1. the neural pose, accepted as a classical one
+def test_random_weight_network_pose_is_refused_naming_the_figure(
+    scene: Scene, ckpts: dict[str, Path], tmp_path: Path
+) -> None:
+    """Tiny random weights in the official MASt3R layout: exit 3, one line naming the PnP agreement, nothing
+    written (before: exit 0 and a scene, 0 verified matches, a log warning)."""
+    out = tmp_path / "out"
+    out.mkdir()
+    code, stdout, err = _run(["reconstruct", scene.a, scene.b, "-o", out / "scene.ply", "--backend", "neural",
+                              "--weights", ckpts["mast3r"]])  # fmt: skip
+    assert code == 3, err
+    line = _error_line(err)
+    assert re.search(r"only \d+ of \d+ confident pixels \(\d+ %\) agree with the PnP pose, need 20 %", line), line
+    assert "--accept-low-confidence" in line
+    assert stdout == "" and list(out.iterdir()) == []
+
+
+def test_random_weight_network_pose_is_written_flagged_with_accept_low_confidence(
+    scene: Scene, ckpts: dict[str, Path], tmp_path: Path
+) -> None:
+    """``--accept-low-confidence``: exit 0, and the report, the cameras file and the summary say the pose may be
+    wrong, with every failed figure (PnP agreement, too few verified matches)."""
+    code, _, err = _run(["reconstruct", scene.a, scene.b, "-o", tmp_path / "scene.ply", "--backend", "neural",
+                         "--weights", ckpts["mast3r"], "--accept-low-confidence",
+                         "--report", tmp_path / "r.json"])  # fmt: skip
+    assert code == 0, err
+    pose = json.loads((tmp_path / "r.json").read_text())["pose"]
+    assert pose["accepted_low_confidence"] is True and pose["confidence"] == 0.0
+    assert any("agree with the PnP pose" in d for d in pose["doubts"])
+    assert any(re.search(TOO_FEW_VERIFIED, d) for d in pose["doubts"])
+    conf = load_cameras(tmp_path / "scene.cameras.json").pose_confidence
+    assert conf is not None and conf["accepted_low_confidence"] is True and conf["doubts"] == pose["doubts"]
+    assert "the pose may be wrong" in err
+
+
+def test_noise_point_maps_are_refused(scene: Scene) -> None:
+    """A stand-in network returning shape-correct noise: refused by the library too, naming the PnP figure."""
+    with pytest.raises(ReconstructionError, match=r"confident pixels \(\d+ %\) agree with the PnP pose"):
+        _neural(scene, NoiseBackbone())
+
+
+def test_exact_point_maps_with_unrelated_descriptors_fail_the_verified_match_minimum(scene: Scene) -> None:
+    """The PnP agrees (exact point maps) but the descriptors match nothing the point maps confirm: the classical
+    minimum of verified matches (PoseConfig.min_inliers) refuses it; written, flagged, when accepted."""
+    with pytest.raises(ReconstructionError, match=TOO_FEW_VERIFIED):
+        _neural(scene, UnrelatedDescriptors(scene))
+    rec = _neural(scene, UnrelatedDescriptors(scene), accept=True)
+    conf = rec.cameras().pose_confidence
+    assert conf is not None and conf["accepted_low_confidence"] is True and conf["score"] == 0.0
+    assert len(rec.geometry.inliers) < PoseConfig().min_inliers
+
+
+def test_exact_point_maps_are_accepted(scene: Scene) -> None:
+    """A sensible neural pose (the true point maps of the pair) passes the same acceptance without a doubt."""
+    rec = _neural(scene, OracleBackbone(scene))
+    info = rec.geometry.info
+    assert info["doubts"] == [] and not info.get("accepted_low_confidence")
+    assert info["confidence"] > 0.5 and "refit_rotation_deg" in info["confidence_checks"]
+    assert syn.pose_errors(rec.geometry.R, rec.geometry.t, scene.R, scene.t)[0] < 0.05
+
+
+def test_both_backends_call_the_one_acceptance(scene: Scene, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The classical and the neural pose go through the same function, once per run."""
+    calls: list[str] = []
+
+    class Accepted(Exception):
+        pass
+
+    def spy(v0: View, v1: View, geometry, pose, config, *, evidence=None):  # noqa: ANN001, ANN202
+        calls.append(str(geometry.info.get("method", "essential")))
+        raise Accepted
+
+    monkeypatch.setattr(run_module, "accept_pose", spy)
+    with pytest.raises(Accepted):
+        Pipeline(ReconstructConfig(views=ViewConfig(size=SIZE[0]))).run([scene.a, scene.b])
+    with pytest.raises(Accepted):
+        _neural(scene, OracleBackbone(scene))
+    assert calls == ["essential", "pnp-ransac"]
+
+
 # ------------------------------------------------------------------------------ 2. degenerate matches, kept from OpenCV
 W, H = 128, 96
 K = np.array([[111.0, 0.0, 64.0], [0.0, 111.0, 48.0], [0.0, 0.0, 1.0]])

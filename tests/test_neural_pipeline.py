@@ -2,7 +2,8 @@
 
 * The CLI end to end with tiny random-weight checkpoints written in the official layouts (MASt3R
   ``.pth``, DINOv3 ``.pth``, macsplat fusion ``.pth``, Splatt3R Lightning ``.ckpt``): random weights
-  give meaningless geometry, so these check the plumbing (exit codes, files, report), not accuracy.
+  give meaningless geometry, which the pose acceptance refuses (``tests/test_hostile_pose.py``), so these run
+  with ``--accept-low-confidence`` and check the plumbing (exit codes, files, report), not accuracy.
 * The pipeline with a stand-in backbone that returns the exact point maps of a ray-traced pair:
   the pose (metric), the focal length and the depth must come out right.
 * The geometry routines on synthetic point maps with noise and outliers, descriptor sampling, and
@@ -120,12 +121,21 @@ def _neural_args(scene: Scene, out: Path, *extra: str | Path) -> list[str | Path
     return ["reconstruct", scene.a, scene.b, "-o", out / "scene.ply", "--backend", "neural", *extra]
 
 
+ACCEPT = "--accept-low-confidence"  # random weights: a pose the acceptance refuses, written anyway for the plumbing
+
+
+def _accepting(config: EngineConfig) -> EngineConfig:
+    """``config`` with ``accept_low_confidence`` (random weights give a pose the acceptance refuses)."""
+    config.pipeline.accept_low_confidence = True
+    return config
+
+
 # ------------------------------------------------------------------------------ CLI end to end
 def test_cli_neural_end_to_end(scene: Scene, ckpts: dict[str, Path], tmp_path: Path) -> None:
     """Exit 0, a standard PLY, a metric cameras file, renders, and a report naming every backend."""
     code, out, err = _run(
         _neural_args(scene, tmp_path, "--weights", ckpts["mast3r"], "--report", tmp_path / "report.json",
-                     "--renders", tmp_path / "views", "--num-renders", "2")
+                     "--renders", tmp_path / "views", "--num-renders", "2", ACCEPT)
     )  # fmt: skip
     assert code == 0, err
     assert out == "" and "error:" not in err and "Traceback" not in err
@@ -134,6 +144,7 @@ def test_cli_neural_end_to_end(scene: Scene, ckpts: dict[str, Path], tmp_path: P
     assert len(g) > 0 and all(torch.isfinite(t).all() for t in (g.means, g.log_scales, g.quats, g.sh))
     cams = load_cameras(tmp_path / "scene.cameras.json")
     assert cams.scale == "metric" and cams.world == "camera_0" and len(cams) == 2
+    assert cams.pose_confidence is not None and cams.pose_confidence["accepted_low_confidence"] is True
     np.testing.assert_array_equal(cams[0].cam_to_world, np.eye(4))
     assert len(list((tmp_path / "views").iterdir())) == 2
     r = json.loads((tmp_path / "report.json").read_text())
@@ -157,7 +168,7 @@ def test_cli_neural_fusion_gaussian_head_and_refine(scene: Scene, ckpts: dict[st
     """--dino + --fusion apply the fusion; --gaussian-head gives the head's Gaussians; --refine runs on top."""
     code, out, err = _run(
         _neural_args(scene, tmp_path, "--weights", ckpts["mast3r"], "--dino", ckpts["dino"], "--fusion",
-                     ckpts["fusion"], "--gaussian-head", ckpts["splatt3r"], "--refine", "3", "--json", "-q")
+                     ckpts["fusion"], "--gaussian-head", ckpts["splatt3r"], "--refine", "3", "--json", "-q", ACCEPT)
     )  # fmt: skip
     assert code == 0, err
     assert "error:" not in err  # -q: only warnings (random weights give an inconsistent pose)
@@ -305,7 +316,12 @@ def test_pipeline_recovers_metric_pose_focal_and_depth(scene: Scene) -> None:
     assert np.median(err) < 1.0 and np.mean(err < 2.0) > 0.9  # snapped off the 4-px grid by refine_matches
     # the report is JSON and names the stages
     r = json.loads(json.dumps(rec.report.to_json()))
-    assert r["pose"]["method"] == "pnp-ransac" and r["pose"]["inlier_ratio"] > 0.95
+    assert r["pose"]["method"] == "pnp-ransac" and r["pose"]["pnp_inlier_ratio"] > 0.95
+    # accepted by the same acceptance as a classical pose: checked, no doubt (measured: confidence 0.86)
+    assert r["pose"]["doubts"] == [] and r["pose"]["confidence"] > 0.5 and "refit_rotation_deg" in r["pose"][
+        "confidence_checks"
+    ]  # fmt: skip
+    assert r["inlier_ratio"] == pytest.approx(len(m) / r["matches"]["confident"])  # verified / candidates
 
 
 def test_pipeline_with_given_intrinsics_keeps_them(scene: Scene, tmp_path: Path) -> None:
@@ -521,7 +537,7 @@ def test_fusion_changes_descriptors_and_head_gaussians_keep_their_frame(
     predictor = load_pair_predictor(
         weights=ckpts["mast3r"], gaussian_head=ckpts["splatt3r"], dino=ckpts["dino"], fusion=ckpts["fusion"]
     )
-    pipeline = build_pipeline(EngineConfig(backend="neural"), Models(predictor=predictor))
+    pipeline = build_pipeline(_accepting(EngineConfig(backend="neural")), Models(predictor=predictor))
     rec = pipeline.run([scene.a, small])
     pred = pipeline.pair.last
     assert pred is not None and predictor.fusion_enabled
@@ -603,7 +619,7 @@ def test_bf16_precision_matches_fp32_and_runs_from_the_cli(
     assert not np.array_equal(bf16.pts3d, fp32.pts3d)  # autocast did run in bfloat16
 
     code, _, err = _run(_neural_args(scene, tmp_path, "--weights", ckpts["mast3r"], "--precision", "bf16", "-q",
-                                     "--report", tmp_path / "r.json"))  # fmt: skip
+                                     "--report", tmp_path / "r.json", ACCEPT))  # fmt: skip
     assert code == 0, err
     assert json.loads((tmp_path / "r.json").read_text())["neural"]["config"]["precision"] == "bf16"
     code, _, err = _run(["reconstruct", scene.a, scene.b, "-o", tmp_path / "c.ply", "--precision", "bf16"])
@@ -661,10 +677,10 @@ def test_fusion_auto_skips_dinov3_while_matches_verify_and_runs_it_on_demand(
     calls = []
     hook = predictor.dino.register_forward_hook(lambda *_: calls.append(1))
     try:
-        always = build_pipeline(EngineConfig(backend="neural"), Models(predictor=predictor))
+        always = build_pipeline(_accepting(EngineConfig(backend="neural")), Models(predictor=predictor))
         always.run([scene.a, scene.b])
         assert len(calls) == 1
-        fast = EngineConfig(backend="neural", quality="fast")
+        fast = _accepting(EngineConfig(backend="neural", quality="fast"))
         fast.pipeline.fallback_min_inliers = 0  # every pair verifies "enough": the fusion is never needed
         skip = build_pipeline(fast, Models(predictor=predictor))
         rec_skip = skip.run([scene.a, scene.b])
@@ -694,6 +710,7 @@ def test_fusion_auto_skips_dinov3_while_matches_verify_and_runs_it_on_demand(
                 "fast",
                 "--json",
                 "-q",
+                ACCEPT,
             ]
         )
         assert code == 0, err

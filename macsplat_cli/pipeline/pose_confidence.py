@@ -20,7 +20,9 @@ by them. Measured on ray-traced wide pairs and CO3D (``benchmarks/pose_confidenc
 * ``refit_rotation_deg``: how far the rotation moves when the pose is re-fitted (Gauss–Newton on the Sampson
   distances, Cauchy weights) at the given intrinsics: a pose that is not the optimum of its own matches (a
   perturbed or foreign estimate) moves.
-* ``focal_rotation_deg`` (only when a view's intrinsics come from the field-of-view prior): the pose is re-fitted
+* ``focal_rotation_deg`` (only when a view's intrinsics come from the field-of-view prior and nothing but the
+  matches can tell its focal length: not when the pose stage measured it on other evidence, as the neural backend
+  does on the network's point map, ``info["focal_evidence"] = "pointmap"``): the pose is re-fitted
   with the focal length fixed ``focal_probe`` (10 %) lower and higher; ``focal_residual_rise`` is how much the
   median Sampson distance grows at the better of the two, and the rotation's swing between them is extrapolated
   to the focal change the matches cannot reject (a rise of ``focal_tolerance``, 10 %, assuming the rise grows
@@ -36,6 +38,12 @@ by them. Measured on ray-traced wide pairs and CO3D (``benchmarks/pose_confidenc
 * ``parallax_to_rotation``: the median parallax of the verified matches over the rotation angle, checked when
   the rotation exceeds ``parallax_check_above_deg``.
 * ``spread``: the share of each photo that the verified matches' convex hull covers (the smaller), reported.
+
+:func:`accept_pose` is the acceptance of a relative pose, whichever backend estimated it (the classical essential
+matrix, the neural backend's PnP on the network's point maps): the pose stage's own doubts, the support the pose has
+in the matches (``PoseConfig.min_inliers`` verified matches: the classical pose stage returns no pose without them, a
+pose from elsewhere is held to the same figure here), then :func:`assess_pose`. The pipeline calls it once for every
+backend; a replacement of the acceptance (issue 23: an a-contrario test) replaces this function.
 
 Each check gives a score in [0, 1] that is 0.5 at its threshold (``x² / (x² + thr²)`` for a lower bound, the
 converse for an upper one); the confidence is the smallest, and the pose is ``ok`` when every check passes.
@@ -54,10 +62,10 @@ import cv2
 import numpy as np
 
 from ..metrics import rotation_angle_deg, rotation_error_deg
-from .pose import fundamental_from_pose, sampson_distance
+from .pose import PoseConfig, fundamental_from_pose, sampson_distance
 from .types import Matches, TwoViewGeometry, View
 
-__all__ = ["ConfidenceConfig", "PoseConfidence", "assess_pose", "refit_pose"]
+__all__ = ["ConfidenceConfig", "PoseConfidence", "accept_pose", "assess_pose", "refit_pose"]
 
 
 @dataclass
@@ -242,6 +250,18 @@ def _focal_uncertainty(
     return max(swing * plausible / cfg.focal_probe, scanned), rise, plausible
 
 
+FOCAL_EVIDENCE_OTHER_THAN_MATCHES = ("pointmap",)
+"""Values of ``info["focal_evidence"]`` by which a pose stage says it measured a prior view's focal length on
+something else than the matches (the neural backend: Weiszfeld on the network's point map)."""
+
+
+def _focal_unknown(v0: View, v1: View, geometry: TwoViewGeometry) -> tuple[bool, bool]:
+    """Which views' focal lengths only the matches can determine (the prior's, not measured otherwise)."""
+    if geometry.info.get("focal_evidence") in FOCAL_EVIDENCE_OTHER_THAN_MATCHES:
+        return False, False
+    return v0.intrinsics_source == "prior", v1.intrinsics_source == "prior"
+
+
 def assess_pose(
     v0: View, v1: View, geometry: TwoViewGeometry, config: ConfidenceConfig | None = None, *,
     evidence: Matches | None = None,
@@ -250,7 +270,8 @@ def assess_pose(
 
     Args:
         v0, v1: the two views; a view whose ``intrinsics_source`` is ``"prior"`` has an unknown focal length
-            (whether or not the pose stage re-estimated it: call this before the pipeline marks it estimated).
+            (whether or not the pose stage re-estimated it from the matches: call this before the pipeline marks it
+            estimated), unless the pose stage measured it on other evidence (``info["focal_evidence"]``).
         geometry: the final pose and its verified matches.
         evidence: the filtered matches the pose was first estimated from, before any matching guided by the pose
             (which selects matches that agree with it, right or wrong); the focal check fits on those within
@@ -301,7 +322,7 @@ def assess_pose(
             reasons.append(
                 f"pose confidence low: re-fitted on its own {n} verified matches the rotation moves by {moved:.1f}°"
             )
-        unknown = (v0.intrinsics_source == "prior", v1.intrinsics_source == "prior")
+        unknown = _focal_unknown(v0, v1, g)
         if any(unknown):
             f0, f1 = _fit_set(g, evidence, cfg, xy0, xy1)
             checks["focal_fit_matches"] = len(f0)
@@ -316,5 +337,55 @@ def assess_pose(
                 )
     score = min(scores.values(), default=1.0)
     checks = {k: float(v) for k, v in checks.items()}
+    return PoseConfidence(score=float(score), ok=not reasons, reasons=reasons, checks=checks,
+                          seconds=time.perf_counter() - t0)  # fmt: skip
+
+
+def _support_reasons(geometry: TwoViewGeometry, pose: PoseConfig) -> list[str]:
+    """The pose's support in the matches, as reasons: at least ``pose.min_inliers`` verified matches.
+
+    Not ``pose.min_inlier_ratio``: it was measured on SIFT matches verified within 1 px of their epipolar lines;
+    the neural backend's grid-sampled matches verified against the point maps (exact ones, 96×64) agree at 54 %.
+    """
+    n = len(geometry.inliers)
+    if n >= pose.min_inliers:
+        return []
+    return [
+        f"pose confidence low: only {n} verified match{'es' if n != 1 else ''} agree{'s' if n == 1 else ''} with the "
+        f"pose, need at least {pose.min_inliers}"
+    ]
+
+
+def accept_pose(
+    v0: View, v1: View, geometry: TwoViewGeometry, pose: PoseConfig, config: ConfidenceConfig | None, *,
+    evidence: Matches | None = None,
+) -> PoseConfidence:  # fmt: skip
+    """The acceptance of a relative pose, for every backend (module docstring): one place, one set of thresholds.
+
+    Args:
+        v0, v1: the two views (``intrinsics_source`` as loaded: call before the pipeline marks a focal estimated).
+        geometry: the final pose, its verified matches and its ``info`` (``doubts``: the pose stage's own).
+        pose: the minimum of support (``min_inliers``).
+        config: the checks of :func:`assess_pose`; None skips them (the support is still checked).
+        evidence: as for :func:`assess_pose`.
+
+    Returns:
+        :class:`PoseConfidence`: ``reasons`` are the pose stage's doubts, then the failed support minimum, then
+        :func:`assess_pose`'s reasons (one user-facing line each, the first is the one a refusal names);
+        ``score`` is :func:`assess_pose`'s, 0 when the support minimum fails; ``checks`` are :func:`assess_pose`'s.
+    """
+    t0 = time.perf_counter()
+    raw = geometry.info.get("doubts", [])
+    reasons = [str(d) for d in raw] if isinstance(raw, (list, tuple)) else [str(raw)]
+    support = _support_reasons(geometry, pose)
+    reasons += support
+    if config is not None:
+        conf = assess_pose(v0, v1, geometry, config, evidence=evidence)
+        score, checks = conf.score, conf.checks
+        reasons += [r for r in conf.reasons if r not in reasons]
+    else:
+        score, checks = 1.0, {}
+    if support:
+        score = 0.0
     return PoseConfidence(score=float(score), ok=not reasons, reasons=reasons, checks=checks,
                           seconds=time.perf_counter() - t0)  # fmt: skip

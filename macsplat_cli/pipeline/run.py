@@ -32,7 +32,7 @@ from .descriptors import SiftConfig, SiftDescriptors
 from .gaussian_init import GaussianInitConfig
 from .matching import MatchConfig, guided_matches
 from .pose import PoseConfig, epipolar_fit, find_homography, fundamental_from_pose
-from .pose_confidence import ConfidenceConfig, PoseConfidence, assess_pose
+from .pose_confidence import ConfidenceConfig, PoseConfidence, accept_pose
 from .stages import (
     DepthGaussians,
     DepthStage,
@@ -92,8 +92,9 @@ class ReconstructConfig:
     "refined" into a 50° wrong one on a 90° object pair). ``None`` disables it.
 
     ``confidence``: the checks of the final pose that are independent of the RANSAC
-    (:func:`~.pose_confidence.assess_pose`; relative-scale backends only, ``None`` disables them). Their
-    reasons join the pose stage's doubts (``geometry.info["doubts"]``); a pose with any doubt is refused
+    (:func:`~.pose_confidence.assess_pose`; ``None`` disables them). Every backend's pose goes through one
+    acceptance, :func:`~.pose_confidence.accept_pose`: the pose stage's doubts (``geometry.info["doubts"]``), the
+    support minimum of ``pose`` (verified matches) and these checks; a pose with any doubt is refused
     (:class:`~macsplat_cli.errors.ReconstructionError`, naming the first) unless ``accept_low_confidence``,
     which writes the scene and logs a warning. The report's ``pose`` section and the cameras file carry the
     confidence either way.
@@ -471,15 +472,14 @@ class Pipeline:
         """
         c = self.config
         info = geometry.info
-        raw = info.get("doubts", [])
-        doubts = [str(d) for d in raw] if isinstance(raw, (list, tuple)) else [str(raw)]
-        if c.confidence is not None and self.scale == "relative":
-            conf: PoseConfidence = timed(
-                "pose confidence", lambda: assess_pose(views[0], views[1], geometry, c.confidence, evidence=evidence)
-            )
+        conf: PoseConfidence = timed(
+            "pose confidence",
+            lambda: accept_pose(views[0], views[1], geometry, c.pose, c.confidence, evidence=evidence),
+        )
+        if c.confidence is not None:
             info["confidence"] = conf.score
             info["confidence_checks"] = conf.checks  # type: ignore[assignment]
-            doubts += [r for r in conf.reasons if r not in doubts]
+        doubts = conf.reasons
         info["doubts"] = doubts  # type: ignore[assignment]
         if not doubts:
             return

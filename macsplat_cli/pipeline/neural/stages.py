@@ -11,7 +11,8 @@ descriptors    the 24-d MASt3R descriptors (fused with DINOv3 features when ``--
                given), subsampled on a regular grid, with the descriptor confidence
 matching       the shared :class:`~..stages.FilteredMatcher` (reciprocal NN, ``c0·c1 > τ``), unchanged
 pose           focal length of view 0 from its own point map (Weiszfeld), unless intrinsics were given;
-               camera 1 from view 1's pixels and their 3-D points in camera 0 (PnP + RANSAC); metric
+               camera 1 from view 1's pixels and their 3-D points in camera 0 (PnP + RANSAC); metric;
+               accepted as the classical pose is (:func:`~..pose_confidence.accept_pose`, in the pipeline)
 depth          z of each view's point map in its own camera frame; confidence from ``conf``
 gaussians      the Splatt3R head's per-pixel Gaussians, or the classical surfels from that depth
 =============  ==========================================================================================
@@ -101,7 +102,9 @@ class NeuralConfig:
         verify_px: a match is verified when view 0's 3-D point at its pixel projects within this
             distance (pixels at a 512-px long side, at least 1.5 px) of its pixel in view 1, after
             :func:`refine_matches` moved that pixel to the best descriptor within the sampling cell.
-        warn_inlier_ratio: below this PnP inlier ratio the pose is reported as doubtful.
+        min_pnp_inlier_ratio: below this share of the confident pixels agreeing with the PnP pose, the network's
+            point maps are not one rigid scene seen by two cameras: the pose is doubted (``info["doubts"]``; refused
+            unless ``--accept-low-confidence``, as every doubt of :func:`~..pose_confidence.accept_pose`).
         precision: ``"fp32"``, or ``"bf16"`` (autocast: matrix products in bfloat16, 1.8× faster on
             a CPU with AVX512-BF16 in ``benchmarks/bench_neural.py``; accuracy with the official
             weights unmeasured).
@@ -123,7 +126,7 @@ class NeuralConfig:
     pnp_max_points: int = 20000
     min_pose_points: int = 6
     verify_px: float = 5.0
-    warn_inlier_ratio: float = 0.2
+    min_pnp_inlier_ratio: float = 0.2
     precision: Literal["fp32", "bf16"] = "fp32"
     fusion: Literal["always", "auto"] = "always"
 
@@ -444,6 +447,8 @@ class NeuralPose:
             K1[0, 0] = K1[1, 1] = f1
             estimated = True
         info["focal_estimated"] = estimated
+        if estimated:
+            info["focal_evidence"] = "pointmap"  # not the matches: the acceptance does not ask them for the focal
 
         K1n = pred.warps[1].K_net(K1)
         sel = np.flatnonzero(ok[1].reshape(-1))
@@ -457,17 +462,19 @@ class NeuralPose:
         )  # fmt: skip
         R, t = pnp.R, pnp.t
         n_in = int(pnp.inliers.sum())
-        ratio = n_in / max(len(sel), 1)
-        if ratio < cfg.warn_inlier_ratio:
-            logger.warning(
-                "the network's point maps are not consistent with one camera pose: only %d of %d confident pixels "
-                "(%.0f %%) agree with the PnP pose",
-                n_in, len(sel), 100 * ratio,
-            )  # fmt: skip
+        pnp_ratio = n_in / max(len(sel), 1)
+        doubts: list[str] = []
+        if pnp_ratio < cfg.min_pnp_inlier_ratio:
+            doubts.append(
+                f"pose confidence low: the network's point maps are not consistent with one camera pose: only {n_in} "
+                f"of {len(sel)} confident pixels ({100 * pnp_ratio:.0f} %) agree with the PnP pose, need "
+                f"{100 * cfg.min_pnp_inlier_ratio:.0f} %"
+            )
         # parallax over view 0's confident points
         X0 = pred.pts3d[0][ok[0]].astype(np.float64)
         parallax = float(np.nanmedian(angle_between_deg(X0, X0 + R.T @ t))) if len(X0) else float("nan")
         radius = cfg.stride // 2 if cfg.sampling == "grid" else 1
+        n_candidates = len(matches)
         matches = refine_matches(pred, matches, radius)
         verified = self._verify(pred, ok[0], matches, R, t, K1, max(cfg.verify_px * px, 1.5))
         inl = matches.subset(verified, "verified")
@@ -480,7 +487,8 @@ class NeuralPose:
             method="pnp-ransac",
             pnp_points=len(sel),
             pnp_inliers=n_in,
-            inlier_ratio=ratio,
+            pnp_inlier_ratio=pnp_ratio,
+            inlier_ratio=len(inl) / max(n_candidates, 1),  # verified / candidate matches, as the classical pose's
             pnp_median_reprojection_px=pnp.median_error_px,
             inliers=len(inl),
             median_sampson_px=sampson,
@@ -489,6 +497,8 @@ class NeuralPose:
             translation_norm=float(np.linalg.norm(t)),
             scale="metric",
         )
+        if doubts:
+            info["doubts"] = doubts  # type: ignore[assignment]
         logger.debug("neural pose: %s", info)
         return TwoViewGeometry(R=R, t=t, K0=K0, K1=K1, inliers=inl, info=info)
 
