@@ -130,6 +130,25 @@ def _header_size(data: bytes) -> tuple[int, int] | None:
         Image.MAX_IMAGE_PIXELS = saved
 
 
+_ALPHA_MODES = frozenset({"LA", "La", "PA", "RGBA", "RGBa"})
+"""Pillow modes with an alpha band."""
+
+
+def _pil_alpha(data: bytes) -> np.ndarray | None:
+    """The file's transparency as Pillow decodes it, in [0, 1], when it has any: an alpha band (``_ALPHA_MODES``)
+    or a transparent colour or palette entry (PNG ``tRNS``, GIF). None otherwise or when Pillow cannot read it.
+    [H, W] float32, as stored (before the EXIF orientation)"""
+    from PIL import Image
+
+    try:
+        with Image.open(io.BytesIO(data)) as im:
+            if im.mode not in _ALPHA_MODES and "transparency" not in im.info:
+                return None
+            return np.asarray(im.convert("RGBA"))[..., 3].astype(np.float32) / 255.0
+    except Exception:  # noqa: BLE001 - OpenCV decoded the pixels; the alpha is only a refinement
+        return None
+
+
 def _check_pixel_count(p: Path, data: bytes) -> None:
     """Refuse an image whose header declares more pixels than ``MACSPLAT_MAX_MEGAPIXELS``."""
     size = _header_size(data)
@@ -148,7 +167,9 @@ def load_image(path: str | os.PathLike[str]) -> LoadedImage:
     """Read a JPEG/PNG/WebP/TIFF/BMP photo: EXIF orientation applied, any bit depth.
 
     Grey and grey+alpha images become RGB; 16-bit and float images keep their
-    precision (scaled to [0, 1]); an alpha channel is returned separately.
+    precision (scaled to [0, 1]); CMYK and YCCK JPEGs (Adobe's inverted CMYK) and palette
+    images become their RGB colours; an alpha channel (also a grey+alpha TIFF's, or a PNG's
+    transparent colour) is returned separately.
 
     The image's size is read from its header before it is decoded: images above
     ``MACSPLAT_MAX_MEGAPIXELS`` megapixels (default 100) are refused, so a small file that
@@ -196,6 +217,12 @@ def load_image(path: str | os.PathLike[str]) -> LoadedImage:
     if channels in (2, 4):
         alpha = np.clip(img[..., -1], 0.0, 1.0)
         img = img[..., :-1]
+    if alpha is None:
+        # OpenCV drops some files' transparency (a grey+alpha or palette+alpha TIFF, a grey PNG's transparent
+        # colour); Pillow reads it
+        alpha = _pil_alpha(data)
+        if alpha is not None and alpha.shape != img.shape[:2]:
+            alpha = None
     if img.shape[2] == 1:
         img = np.repeat(img, 3, axis=2)
     elif img.shape[2] == 3:

@@ -1,7 +1,8 @@
-"""Image, depth and video writers."""
+"""Image, depth and video writers; photo modes the reader turns into RGB (and alpha)."""
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import cv2
@@ -10,7 +11,7 @@ import pytest
 import torch
 
 from macsplat_cli.errors import InputError, OutputPathError
-from macsplat_cli.images import save_depth, save_image, to_uint8, write_video
+from macsplat_cli.images import load_image, save_depth, save_image, to_uint8, write_video
 
 
 def test_to_uint8_clamps_and_rounds() -> None:
@@ -70,3 +71,100 @@ def test_write_video(tmp_path: Path, ext: str) -> None:
     cap.release()
     assert n == 6
     assert [p.name for p in tmp_path.iterdir()] == [f"v{ext}"]
+
+
+# ------------------------------------------------------------------------------ photo modes (issue 23)
+def _patches() -> np.ndarray:
+    """Eight flat colour patches (primaries, secondaries, black, white, greys), 8×8 px each. [16, 32, 3] uint8"""
+    colours = [(255, 0, 0), (0, 255, 0), (0, 0, 255), (255, 255, 0), (0, 0, 0), (255, 255, 255), (64, 64, 64),
+               (200, 120, 40)]  # fmt: skip
+    img = np.zeros((16, 32, 3), np.uint8)
+    for k, c in enumerate(colours):
+        img[8 * (k // 4) : 8 * (k // 4) + 8, 8 * (k % 4) : 8 * (k % 4) + 8] = c
+    return img
+
+
+def _ycck_jpeg(rgb: np.ndarray) -> bytes:
+    """A YCCK JPEG (Adobe transform 2, as Photoshop writes CMYK) of ``rgb`` [H, W, 3] uint8, K = 0.
+
+    Adobe's CMYK is stored inverted (255 − ink), and YCCK is the YCbCr transform of the first three stored
+    channels inverted again, i.e. of 255 − RGB; Pillow writes the four components as given (its CMYK JPEGs are
+    Adobe-inverted, so the components go in inverted) and the Adobe marker's transform byte is set to 2.
+    """
+    from PIL import Image
+
+    r, g, b = (255.0 - rgb[..., i] for i in range(3))
+    y = 0.299 * r + 0.587 * g + 0.114 * b
+    cb = 128 - 0.168736 * r - 0.331264 * g + 0.5 * b
+    cr = 128 + 0.5 * r - 0.418688 * g - 0.081312 * b
+    comp = np.clip(np.rint(np.stack([y, cb, cr, np.full_like(y, 255.0)], -1)), 0, 255).astype(np.uint8)
+    im = Image.frombytes("CMYK", (rgb.shape[1], rgb.shape[0]), (255 - comp).tobytes())
+    buf = io.BytesIO()
+    im.save(buf, "JPEG", quality=100, subsampling=0)
+    data = bytearray(buf.getvalue())
+    at = data.find(b"Adobe")
+    assert at > 0 and data[at + 11] == 0  # APP14: "Adobe", version, flags0, flags1, transform
+    data[at + 11] = 2
+    return bytes(data)
+
+
+@pytest.mark.parametrize("kind", ["cmyk-jpeg", "ycck-jpeg", "cmyk-tiff", "palette-png", "palette-tiff"])
+def test_cmyk_ycck_and_palette_photos_give_their_rgb_colours(tmp_path: Path, kind: str) -> None:
+    """CMYK/YCCK JPEGs (Adobe's inverted CMYK: an inverted decoder would turn red into cyan) and palette images
+    come back as their RGB colours (issue 23 asked whether a CMYK JPEG's colours were right: they are)."""
+    from PIL import Image
+
+    rgb = _patches()
+    path = tmp_path / f"p.{kind.split('-')[1].replace('tiff', 'tif').replace('jpeg', 'jpg')}"
+    if kind == "ycck-jpeg":
+        path.write_bytes(_ycck_jpeg(rgb))
+        assert Image.open(path).mode == "CMYK"
+    else:
+        im = Image.fromarray(rgb)
+        im = im.convert("CMYK") if kind.startswith("cmyk") else im.quantize(8)
+        im.save(path, **({"quality": 100, "subsampling": 0} if path.suffix == ".jpg" else {}))
+    img = load_image(path)
+    assert img.rgb.shape == (16, 32, 3)
+    centres = img.rgb[4::8, 4::8] * 255  # the middle of each patch [2, 4, 3]
+    np.testing.assert_allclose(centres, rgb[4::8, 4::8].astype(np.float32), atol=3)
+    assert img.alpha is None or (img.alpha == 1).all()
+
+
+@pytest.mark.parametrize("kind", ["la-png", "la-tiff", "grey-png-trns", "palette-png-trns"])
+def test_transparency_of_grey_and_palette_photos_becomes_alpha(tmp_path: Path, kind: str) -> None:
+    """Grey+alpha and palette+alpha files, and a PNG's transparent colour, keep their transparency (OpenCV drops
+    it for the TIFFs and the grey PNG's colour key; before: no alpha, the masked region reconstructed)."""
+    from PIL import Image
+
+    grey = np.tile(np.arange(0, 256, 8, dtype=np.uint8), (16, 1))  # [16, 32]
+    opaque = np.ones((16, 32), bool)
+    opaque[:, :8] = False
+    a = np.where(opaque, 255, 0).astype(np.uint8)
+    if kind in ("la-png", "la-tiff"):
+        im = Image.fromarray(np.dstack([grey, a]), "LA")
+    elif kind == "grey-png-trns":  # colour key: grey value 0 is transparent, only the masked region is black
+        grey = np.where(opaque, np.maximum(grey, 8), 0).astype(np.uint8)
+        im = Image.fromarray(grey, "L")
+    else:  # palette entry 0 transparent; entry k is grey 8·k
+        im = Image.fromarray(np.where(opaque, np.maximum(grey // 8, 1), 0).astype(np.uint8), "P")
+        im.putpalette([v for k in range(256) for v in (min(8 * k, 255),) * 3])
+        grey = np.where(opaque, np.maximum(grey, 8), 0).astype(np.uint8)
+    path = tmp_path / ("a.tif" if kind.endswith("tiff") else "a.png")
+    im.save(path, **({"transparency": 0} if kind.endswith("trns") else {}))
+    img = load_image(path)
+    assert img.alpha is not None, kind
+    np.testing.assert_array_equal(img.alpha > 0.5, opaque)
+    np.testing.assert_allclose(img.rgb[opaque] * 255, np.repeat(grey[opaque][:, None], 3, 1), atol=0.5)
+
+
+def test_sixteen_bit_grey_png_keeps_its_values(tmp_path: Path) -> None:
+    """Pillow's "I;16" (16-bit grey) PNG: value/65535 in all three channels."""
+    from PIL import Image
+
+    raw = (np.arange(16 * 32, dtype=np.uint32).reshape(16, 32) * 127).astype(np.uint16)
+    Image.fromarray(raw).save(tmp_path / "g16.png")
+    assert Image.open(tmp_path / "g16.png").mode.startswith("I;16")
+    img = load_image(tmp_path / "g16.png")
+    assert img.bit_depth == 16 and img.alpha is None
+    for c in range(3):
+        np.testing.assert_array_equal(img.rgb[..., c], raw.astype(np.float32) / 65535.0)
