@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import warnings
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -99,6 +100,11 @@ def check_no_clobber(
         seen.append((label, p, ident))
 
 
+def _log_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int, *_: object) -> None:
+    """``warnings.showwarning`` for CLI commands: one DEBUG line naming the category and where it came from."""
+    logger.debug("%s from %s:%d: %s", category.__name__, Path(filename).name, lineno, " ".join(str(message).split()))
+
+
 @contextlib.contextmanager
 def command_context(ctx: typer.Context, verbose: bool, quiet: bool) -> Iterator[State]:
     """Set up logging for a command and convert its errors into one line and an exit code.
@@ -107,12 +113,19 @@ def command_context(ctx: typer.Context, verbose: bool, quiet: bool) -> Iterator[
       3 not reconstructable);
     * any other exception → ``internal error: ...`` and exit code 1;
     * with ``--verbose`` the traceback is printed as well.
+
+    Python warnings of the libraries underneath (NumPy, Pillow, OpenCV's bindings, torch) become DEBUG log lines
+    (shown with ``--verbose``) instead of raw multi-line text on stderr: what the user needs to know is said by
+    macsplat's own log lines and errors.
     """
     root = ctx.find_root().obj if ctx.find_root().obj is not None else State()
     state = State(verbose=verbose or root.verbose, quiet=(quiet or root.quiet) and not (verbose or root.verbose))
     setup_logging(err_console, verbose=state.verbose, quiet=state.quiet)
     try:
-        yield state
+        with warnings.catch_warnings():
+            warnings.simplefilter("default")  # each distinct warning once per place, as Python shows them
+            warnings.showwarning = _log_warning
+            yield state
     except (typer.Exit, typer.Abort):
         raise
     except MacsplatError as e:
