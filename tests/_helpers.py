@@ -98,6 +98,58 @@ def gamma(n: int, dtype: torch.dtype | np.dtype | type) -> float:
     return n * u / (1 - n * u)
 
 
+def _as_f64(x) -> np.ndarray:  # noqa: ANN001
+    if isinstance(x, torch.Tensor):
+        return x.detach().cpu().to(torch.float64).numpy()
+    return np.asarray(x, dtype=np.float64)
+
+
+def assert_within(actual, expected, bound, what: str = "") -> None:  # noqa: ANN001
+    """``|actual − expected| ≤ bound`` elementwise, compared in float64 (tensors or arrays; ``bound`` is a scalar or
+    broadcasts, e.g. one derived bound per element). The message gives the worst element and its bound."""
+    a, e = np.broadcast_arrays(_as_f64(actual), _as_f64(expected))
+    b = np.broadcast_to(_as_f64(bound), a.shape)
+    assert a.shape == e.shape, f"{what}: shapes {a.shape} and {e.shape}"
+    err = np.abs(a - e)
+    bad = ~(err <= b)  # NaN fails too
+    if bad.any():
+        i = np.unravel_index(int(np.argmax(np.where(bad, err / np.where(b > 0, b, np.finfo(float).tiny), -1.0))), a.shape)
+        raise AssertionError(
+            f"{what}: {int(bad.sum())} of {a.size} elements exceed the bound; worst at {tuple(int(k) for k in i)}: "
+            f"|{float(a[i])!r} − {float(e[i])!r}| = {err[i]:.3e} > {b[i]:.3e}"
+        )
+
+
+def dot_lengths(module: torch.nn.Module) -> list[int]:
+    """The number of terms of the dot products in ``module``'s layers: fan-in of each Linear and convolution, and
+    two sums (mean, variance) over the normalised size of each LayerNorm/GroupNorm."""
+    out: list[int] = []
+    for m in module.modules():
+        if isinstance(m, torch.nn.Linear):
+            out.append(m.in_features)
+        elif isinstance(m, (torch.nn.Conv1d, torch.nn.Conv2d, torch.nn.Conv3d)):
+            out.append(m.in_channels // m.groups * math.prod(m.kernel_size))
+        elif isinstance(m, (torch.nn.ConvTranspose1d, torch.nn.ConvTranspose2d, torch.nn.ConvTranspose3d)):
+            out.append(m.in_channels // m.groups * math.prod(m.kernel_size))  # an upper bound of the fan-in
+        elif isinstance(m, torch.nn.LayerNorm):
+            out += [math.prod(m.normalized_shape)] * 2
+        elif isinstance(m, torch.nn.GroupNorm):
+            out += [m.num_channels // m.num_groups] * 2
+    return out
+
+
+def forward_rel_tol(module: torch.nn.Module, *sums: int, dtype: torch.dtype = torch.float32) -> float:
+    """A first-order estimate of a forward pass's relative rounding error: ``Σ_l γ(n_l)`` over every dot product
+    of the network (:func:`dot_lengths`) and the extra ``sums`` (e.g. attention's ``QKᵀ`` over the head size and
+    ``softmax·V`` over the tokens, once per attention layer), each layer taken to pass its input's relative error
+    on with unit gain (normalisations and residual connections keep activations O(1)).
+
+    Not a rigorous a-priori bound for a deep network, but the worst case of every layer's rounding at once: two
+    evaluations in different orders differ by up to twice it, one against a float64 reference by up to it. Compare
+    with :func:`max_rel_err` (relative to the largest magnitude, so a cancelling element is not over-weighted)."""
+    return sum(gamma(n, dtype) for n in [*dot_lengths(module), *sums])
+
+
 def deg(x: float) -> float:
     return math.degrees(x)
 

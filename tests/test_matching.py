@@ -19,7 +19,9 @@ from macsplat_cli.pipeline.matching import (
 from macsplat_cli.pipeline.pose import fundamental_from_pose
 from macsplat_cli.pipeline.types import Features
 
-from _helpers import gamma, unit_roundoff
+from _helpers import assert_within, gamma, unit_roundoff
+
+U32 = unit_roundoff(np.float32)
 
 
 def _unit(x: np.ndarray) -> np.ndarray:
@@ -35,6 +37,36 @@ def _features(xy: np.ndarray, desc: np.ndarray, conf: np.ndarray | None = None) 
     return Features(np.asarray(xy, np.float64), desc, np.ones(n, np.float32) if conf is None else conf)
 
 
+def _sim_err(d0: np.ndarray, d1: np.ndarray) -> float:
+    """Bound on the rounding error of any float32 similarity d0ᵢ·d1ⱼ (D-term dot product, in any order):
+    γ_D·Σ|d0ᵢₖ d1ⱼₖ| ≤ γ_D·‖d0ᵢ‖‖d1ⱼ‖ (Cauchy–Schwarz)."""
+    if d0.size == 0 or d1.size == 0:
+        return 0.0
+    norms = [float(np.linalg.norm(d.astype(np.float64), axis=1).max()) for d in (d0, d1)]
+    return gamma(d0.shape[1], np.float32) * norms[0] * norms[1]
+
+
+def _conf_tol(d_best: np.ndarray, ds: float, roundings: int) -> np.ndarray:
+    """Bound on |Δw| of the joint confidence w = c0·c1, c = conf·(1 − d_best/d_second) with d = √(2 − 2s), when every
+    similarity is off by at most ``ds``: |∂c/∂s_best| = 1/(d_best·d_second) and |∂c/∂s_second| = d_best/d_second³
+    are both ≤ 1/d_best² (d_second ≥ d_best; sorting top-2 lists is 1-Lipschitz), so |Δc| ≤ 2·ds/d_best²; w adds
+    both views' (conf, c ≤ 1); plus ``roundings`` float32 roundings of values ≤ 1 on the two sides together."""
+    return 2 * (2 * ds / d_best**2) + roundings * U32
+
+
+def _pair_distance(d0: np.ndarray, d1: np.ndarray, idx0: np.ndarray, idx1: np.ndarray) -> np.ndarray:
+    """L2 distance of each matched pair of unit descriptors, in float64. [K]"""
+    return np.linalg.norm(d0[idx0].astype(np.float64) - d1[idx1], axis=1)
+
+
+def _assert_separated(top: np.ndarray, err: float) -> None:
+    """Precondition of comparing a float32 argmax with the float64 one: every best similarity beats the second by
+    more than twice the float32 rounding bound, so no rounding can swap them (a data property, checked)."""
+    if top.shape[1] == 2 and len(top):
+        second = np.where(top[:, 1] > -1.0, top[:, 1], -np.inf)
+        assert (top[:, 0] - second > 2 * err).all(), "a near-tie in the test data: the argmax is not determined"
+
+
 def _brute_force(d0: np.ndarray, d1: np.ndarray) -> tuple[set[tuple[int, int]], np.ndarray, np.ndarray]:
     """Mutual argmax pairs of the full similarity matrix, and the sorted top-2 of every row and column."""
     sim = d0.astype(np.float64) @ d1.astype(np.float64).T
@@ -45,11 +77,12 @@ def _brute_force(d0: np.ndarray, d1: np.ndarray) -> tuple[set[tuple[int, int]], 
     return pairs, top_rows, top_cols
 
 
-def _check_top2(actual: np.ndarray, expected: np.ndarray, m: int) -> None:
-    """The best two similarities; where only one exists, the second is a sentinel no similarity beats."""
+def _check_top2(actual: np.ndarray, expected: np.ndarray, m: int, err: float) -> None:
+    """The best two similarities; where only one exists, the second is a sentinel no similarity beats. ``err``
+    bounds each float32 similarity's rounding; sorting is 1-Lipschitz, so the sorted top-2 are within it too."""
     assert actual.shape == (m, 2)
     k = expected.shape[1]
-    np.testing.assert_allclose(actual[:, :k], expected, atol=1e-5)
+    assert_within(actual[:, :k], expected, err, "top-2 similarities")
     if k == 1:
         assert (actual[:, 1] <= -1.0).all()
 
@@ -66,13 +99,18 @@ def test_reciprocal_nn_equals_brute_force(m0: int, m1: int, dim: int, max_block_
     d0, d1 = _random_desc(m0, dim, rng), _random_desc(m1, dim, rng)
     nn = reciprocal_nearest_neighbours(d0, d1, max_block_elems=max_block_elems)
     pairs, top_rows, top_cols = _brute_force(d0, d1)
+    err = _sim_err(d0, d1)
+    _assert_separated(top_rows, err)
+    _assert_separated(top_cols, err)
     got = set(zip(nn.idx0.tolist(), nn.idx1.tolist()))
     assert got == pairs
     assert len(got) == len(nn.idx0)  # no duplicates
     assert nn.idx0.dtype == np.int64 and nn.idx1.dtype == np.int64
-    np.testing.assert_allclose(nn.sim, np.sum(d0[nn.idx0].astype(np.float64) * d1[nn.idx1], axis=1), atol=1e-5)
-    _check_top2(nn.top2_0, top_rows, m0)
-    _check_top2(nn.top2_1, top_cols, m1)
+    # float32 dot of D terms against float64 (of the same float32 inputs): ≤ γ_D·Σ|terms| each
+    terms = d0[nn.idx0].astype(np.float64) * d1[nn.idx1]
+    assert_within(nn.sim, terms.sum(1), gamma(dim, np.float32) * np.abs(terms).sum(1), "similarities")
+    _check_top2(nn.top2_0, top_rows, m0, err)
+    _check_top2(nn.top2_1, top_cols, m1, err)
 
 
 def test_reciprocal_nn_recovers_a_permutation() -> None:
@@ -105,6 +143,16 @@ def _sims_at_angles(a_deg: float, b_deg: float) -> np.ndarray:
     return np.array([q @ va, q @ vb])
 
 
+def _ratio_tol(a_deg: float | np.ndarray) -> float | np.ndarray:
+    """Bound on |ratio_distinctiveness − exact| for similarities from cos/sin in float64: the float32 output is one
+    rounding of a value in [0, 1] (≤ u32); before it, float64 s is off by ≤ 4u (cos, sin, the dot), so
+    d = √(2 − 2s) by ≤ 4u/d² + 2u relative and r = d1/d2 (d2 ≥ d1) by ≤ 8u/d1² + 5u relative — with the test's
+    own float64 evaluation, ≤ (8/d1² + 16)·u64, d1 = 2 sin(a/2) the best chord (d1 = 0 is exact: r = 0)."""
+    d1 = 2 * np.sin(np.radians(np.asarray(a_deg, np.float64)) / 2)
+    d1 = np.where(d1 > 0, d1, 1.0)  # a = 0: d1 = 0 gives r = 0 exactly
+    return U32 + (8 / d1**2 + 16) * unit_roundoff(np.float64)
+
+
 @pytest.mark.parametrize(
     ("a_deg", "b_deg", "expected"),
     [
@@ -121,7 +169,7 @@ def test_ratio_distinctiveness_hand_computed(a_deg: float, b_deg: float, expecte
     """``1 − d1/d2`` with ``d = 2 sin(θ/2)`` the chord between unit vectors θ apart."""
     out = ratio_distinctiveness(_sims_at_angles(a_deg, b_deg)[None])
     assert out.shape == (1,) and out.dtype == np.float32
-    assert out[0] == pytest.approx(expected, abs=1e-6)
+    assert_within(out, expected, _ratio_tol(a_deg), "1 − d1/d2")
 
 
 def test_ratio_distinctiveness_is_vectorised() -> None:
@@ -130,7 +178,7 @@ def test_ratio_distinctiveness_is_vectorised() -> None:
     batch = np.stack([_sims_at_angles(a, b) for a, b in angles])
     out = ratio_distinctiveness(batch)
     expected = [1.0 - math.sin(math.radians(a / 2)) / math.sin(math.radians(b / 2)) for a, b in angles]
-    np.testing.assert_allclose(out, expected, atol=1e-6)
+    assert_within(out, expected, _ratio_tol(np.array([a for a, _ in angles])), "1 − d1/d2")
 
 
 # ------------------------------------------------------------------------------------ the confidence gate
@@ -163,12 +211,16 @@ def test_match_features_counts_and_ratio_weights() -> None:
     assert set(zip(m.idx0.tolist(), m.idx1.tolist())) <= pairs
     c0 = f0.conf * ratio_distinctiveness(top_rows)
     c1 = f1.conf * ratio_distinctiveness(top_cols)
-    np.testing.assert_allclose(m.conf, c0[m.idx0] * c1[m.idx1], atol=1e-5)
+    # float32 similarities (≤ γ₃₂ each) against float64 ones; c = conf·ratio and w = c0·c1: 3 float32 roundings a side
+    ds = _sim_err(f0.desc, f1.desc)
+    tol = _conf_tol(_pair_distance(f0.desc, f1.desc, m.idx0, m.idx1), ds, roundings=6)
+    assert_within(m.conf, c0[m.idx0] * c1[m.idx1], tol, "joint confidence")
     assert (m.conf > 0.04).all()
     np.testing.assert_array_equal(m.xy0, f0.xy[m.idx0])
     np.testing.assert_array_equal(m.xy1, f1.xy[m.idx1])
-    dropped = [(i, j) for i, j in pairs if (i, j) not in set(zip(m.idx0.tolist(), m.idx1.tolist()))]
-    assert all(c0[i] * c1[j] <= 0.04 + 1e-6 for i, j in dropped)  # only the gate removed them
+    dropped = np.array([(i, j) for i, j in pairs if (i, j) not in set(zip(m.idx0.tolist(), m.idx1.tolist()))])
+    tol_dropped = _conf_tol(_pair_distance(f0.desc, f1.desc, dropped[:, 0], dropped[:, 1]), ds, roundings=6)
+    assert (c0[dropped[:, 0]] * c1[dropped[:, 1]] <= 0.04 + tol_dropped).all()  # only the gate removed them
 
 
 def test_match_features_keeps_the_matches_below_the_gate_apart() -> None:
@@ -220,7 +272,8 @@ def test_match_features_without_ratio_uses_feature_confidence() -> None:
     pairs, _, _ = _brute_force(f0.desc, f1.desc)
     expected = {(i, j) for i, j in pairs if f0.conf[i] * f1.conf[j] > tau}
     assert set(zip(m.idx0.tolist(), m.idx1.tolist())) == expected
-    np.testing.assert_allclose(m.conf, f0.conf[m.idx0] * f1.conf[m.idx1], rtol=1e-6)
+    # (a) the same single float32 multiplication of the same two float32 numbers: IEEE rounds it identically
+    np.testing.assert_array_equal(m.conf, f0.conf[m.idx0] * f1.conf[m.idx1])
     assert m.counts["reciprocal"] == len(pairs) > len(m)
     # the gate is strict: a zero confidence is dropped even at τ = 0
     f0.conf[:40] = 0.0
@@ -248,8 +301,10 @@ def test_match_features_is_symmetric(m0: int, m1: int) -> None:
     fwd = dict(zip(zip(a.idx0.tolist(), a.idx1.tolist()), a.conf.tolist()))
     bwd = dict(zip(zip(b.idx1.tolist(), b.idx0.tolist()), b.conf.tolist()))
     assert fwd.keys() == bwd.keys() and len(fwd) > 0
-    for key, w in fwd.items():
-        assert bwd[key] == pytest.approx(w, abs=1e-6)
+    # d0·d1ᵀ and d1·d0ᵀ are two float32 orders of the same sums: similarities differ by ≤ 2γ₁₆ (a 3-rounding side)
+    keys = np.array(list(fwd))
+    tol = _conf_tol(_pair_distance(d0, d1, keys[:, 0], keys[:, 1]), 2 * _sim_err(d0, d1), roundings=6)
+    assert_within([bwd[k] for k in fwd], list(fwd.values()), tol, "swapped-view confidences")
 
 
 # ------------------------------------------------------------------------------------ guided matching
@@ -272,6 +327,16 @@ def _line_distance(F: np.ndarray, xy0: np.ndarray, xy1: np.ndarray) -> np.ndarra
     """Distance of each xy1 to the epipolar line of its xy0 in view 1 (pixels)."""
     lines = np.c_[xy0, np.ones(len(xy0))] @ F.T
     return np.abs(np.sum(lines * np.c_[xy1, np.ones(len(xy1))], axis=1)) / np.linalg.norm(lines[:, :2], axis=1)
+
+
+def _line_distance_err(F: np.ndarray, xy0: np.ndarray, xy1: np.ndarray) -> np.ndarray:
+    """Bound on the rounding of ``guided_matches``' float32 point-to-line distance a·x + b·y + c (unit normal):
+    the coefficients and the point are rounded to float32 (u each) and the 3-term dot adds γ₃, all relative to
+    Σ = |a·x| + |b·y| + |c|; the float64 lines before the rounding and this test's float64 distance add γ₁₀(f64)."""
+    lines = np.c_[xy0, np.ones(len(xy0))] @ F.T
+    lines /= np.linalg.norm(lines[:, :2], axis=1, keepdims=True)
+    terms = np.abs(lines * np.c_[xy1, np.ones(len(xy1))]).sum(1)
+    return (gamma(3, np.float32) + 2 * U32 + gamma(10, np.float64)) * terms
 
 
 def test_guided_matches_separate_duplicates_by_the_epipolar_band() -> None:
@@ -297,7 +362,7 @@ def test_guided_matches_separate_duplicates_by_the_epipolar_band() -> None:
     assert guided.counts == {"guided": len(guided)}
     assert len(guided) >= 0.95 * n
     np.testing.assert_array_equal(guided.idx1, guided.idx0)  # true match of i is view-1 feature i
-    np.testing.assert_allclose(guided.xy1, xy1_true[guided.idx0])
+    np.testing.assert_array_equal(guided.xy1, xy1_true[guided.idx0])  # (a) copies of the input positions
     assert ((guided.conf > 0) & (guided.conf <= 1)).all()
 
 
@@ -311,8 +376,31 @@ def test_guided_matches_lie_in_the_band(band_px: float) -> None:
     d1 = _unit(d0[rng.permutation(300)] + 0.5 * rng.normal(size=(300, 8)) / math.sqrt(8))
     m = guided_matches(_features(xy0, d0), _features(xy1, d1), F, band_px=band_px, ratio=1.0)
     assert len(m) > 0
-    assert (_line_distance(F, m.xy0, m.xy1) <= band_px + 1e-6).all()
+    assert (_line_distance(F, m.xy0, m.xy1) <= band_px + _line_distance_err(F, m.xy0, m.xy1)).all()
     assert len(set(m.idx0.tolist())) == len(m) and len(set(m.idx1.tolist())) == len(m)  # one-to-one
+
+
+def _assert_guided_decisions_robust(f0: Features, f1: Features, F: np.ndarray, band_px: float, ratio: float) -> None:
+    """Precondition of comparing two float32 runs of ``guided_matches`` (other block shapes, so other summation
+    orders) by their indices: no decision of the data is within rounding of its threshold — band membership
+    (distance off by ≤ :func:`_line_distance_err`), the in-band argmax (similarities off by ≤ γ_D) and the ratio
+    test (c off by ≤ :func:`_conf_tol`). Checked in float64; a failure means the test data must change."""
+    n1 = len(f1)
+    lines = np.c_[f0.xy, np.ones(len(f0))] @ F.T
+    lines /= np.linalg.norm(lines[:, :2], axis=1, keepdims=True)
+    p1 = np.c_[f1.xy, np.ones(n1)]
+    dist = np.abs(lines @ p1.T)
+    dist_err = (gamma(3, np.float32) + 2 * U32 + gamma(10, np.float64)) * (np.abs(lines) @ np.abs(p1).T)
+    assert (np.abs(dist - band_px) > 2 * dist_err).all(), "a distance at the band's edge"
+    sim = np.where(dist <= band_px, f0.desc.astype(np.float64) @ f1.desc.astype(np.float64).T, -4.0)
+    err = _sim_err(f0.desc, f1.desc)
+    for s in (sim, sim.T):
+        top = -np.sort(-s, axis=1)[:, :2]
+        _assert_separated(top, err)
+        d = np.sqrt(np.maximum(2.0 - 2.0 * top.clip(-1.0, 1.0), 0.0))
+        both = top[:, 1] > -4.0  # a second in-band candidate: the ratio test decides
+        c = 1.0 - d[both, 0] / d[both, 1]
+        assert (np.abs(c - (1.0 - ratio)) > _conf_tol(d[both, 0], err, roundings=2)).all(), "c at the ratio gate"
 
 
 def test_guided_matches_band_and_block_size() -> None:
@@ -322,6 +410,7 @@ def test_guided_matches_band_and_block_size() -> None:
     d0 = _random_desc(150, 16, rng)
     d1 = _unit(d0 + 0.2 * rng.normal(size=d0.shape) / 4)
     f0, f1 = _features(xy0, d0), _features(xy1 + rng.normal(scale=0.3, size=xy1.shape), d1)
+    _assert_guided_decisions_robust(f0, f1, F, band_px=2.0, ratio=0.95)
     a = guided_matches(f0, f1, F, band_px=2.0)
     b = guided_matches(f0, f1, F, band_px=2.0, max_block_elems=7)
     np.testing.assert_array_equal(a.idx0, b.idx0)
