@@ -13,7 +13,9 @@ from macsplat_cli.pipeline import _patchmatch_reference as PR
 from macsplat_cli.pipeline.depth import DepthConfig, colour_outliers, estimate_depths, plane_sweep_cost
 from macsplat_cli.pipeline.types import TwoViewGeometry, View
 
-from _helpers import apply_homography, orbit_views, pixel_centres, smooth_texture
+from _helpers import apply_homography, orbit_views, pixel_centres, smooth_texture, unit_roundoff
+
+U32 = unit_roundoff(np.float32)
 
 K = np.array([[100.0, 0.0, 64.0], [0.0, 100.0, 48.0], [0.0, 0.0, 1.0]])
 W, H = 128, 96
@@ -40,6 +42,10 @@ def _slanted_pair(seed: int = 0) -> dict:
 
 
 # ------------------------------------------------------------------------------------ kernels vs twins
+# (a) The NumPy twins run the kernels' IEEE operations (+, −, ×, ÷, √, truncation, comparisons) in the same
+# order — window sums accumulated offset by offset, per pixel, no reductions that could be reordered — and
+# Numba compiles without fastmath (no reassociation, no FMA contraction), so each result is correctly rounded
+# the same way on every CPU: the outputs are bitwise equal, and the tests say so.
 def test_uniform_matches_reference_and_is_uniform() -> None:
     pix = np.arange(20000)
     for seed, it, draw in ((0, 0, 0), (7, 3, 5), (123456, 11, 8)):
@@ -70,14 +76,14 @@ def test_plane_cost_matches_reference(radius: int, step: int, shape: tuple[int, 
     want = PR.plane_cost_reference(ref, src, A, b, ys, xs, rho, gu, gv, radius, step)
     got = np.array([PK.plane_cost(ref, src, A, b, y, x, r, u, v, radius, step)
                     for y, x, r, u, v in zip(ys, xs, rho, gu, gv)])  # fmt: skip
-    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(got, want)
     valid = want < PK.INVALID
     assert 0.2 < valid.mean() < 0.95  # both kinds are exercised
     assert ((want[valid] >= 0) & (want[valid] <= 1)).all()
     full = PR.initial_costs_reference(ref, src, A, b, np.full((h, w), 0.5), np.zeros((h, w)), np.zeros((h, w)),
                                       radius, step)  # fmt: skip
     got_full = PK.initial_costs(ref, src, A, b, np.full((h, w), 0.5), np.zeros((h, w)), np.zeros((h, w)), radius, step)
-    np.testing.assert_allclose(got_full, full, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(got_full, full)
 
 
 @pytest.mark.parametrize("iters", [1, 3])
@@ -106,7 +112,7 @@ def test_refine_matches_reference(iters: int, shape: tuple[int, int]) -> None:
     PK.refine(ref, src, A, b, *state_nb, active, *args)
     PR.refine_reference(ref, src, A, b, *state_np, active, *args)
     for a_nb, a_np in zip(state_nb, state_np):
-        np.testing.assert_allclose(a_nb, a_np, rtol=1e-12, atol=1e-12)
+        np.testing.assert_array_equal(a_nb, a_np)
     for a_nb, a0 in zip(state_nb, (rho, gu, gv, cost)):
         np.testing.assert_array_equal(a_nb[~active], a0[~active])
     assert (state_nb[3][active] <= cost[active]).all()  # a pixel's cost never rises
@@ -116,19 +122,27 @@ def test_refine_matches_reference(iters: int, shape: tuple[int, int]) -> None:
 # ------------------------------------------------------------------------------------ behaviour
 def test_plane_cost_fronto_matches_plane_sweep() -> None:
     """A zero slope is a fronto-parallel plane: the cost equals the plane sweep's (OpenCV warp, box filters) up
-    to the warp's fixed-point interpolation."""
+    to the sweep's float32 rounding."""
     pair = _slanted_pair(2)
     ref, src = pair["ref"].astype(np.float32), pair["src"].astype(np.float32)
     rhos = np.array([0.3, 0.45, 0.6])
     sweep, _ = plane_sweep_cost(ref, src, K, K, pair["R"], pair["t"], rhos, 5)
     ys, xs = np.mgrid[4 : H - 4 : 3, 4 : W - 4 : 3]
     ys, xs = ys.ravel(), xs.ravel()
+    # (c) float32 sweep against the float64 twin: the sweep's 5×5 means (float64 box sums, one float32 store) and
+    # var = E[x²] − μ², cov = E[xy] − μμ' carry ≤ 6u·E[x²] each; ncc = cov/√(var·var') then moves by
+    # ≤ 6u·E[x²]·(1/√(var·var') + (1/var + 1/var')/2) ≤ 12u·E[x²]/var_min, the cost ½(1 − ncc) by half of it.
+    # E[x²] and var_min from the images' 5×5 windows (the warped windows are the same texture); measured 4e-6.
+    wins = [np.stack([img[ys + dy, xs + dx] for dy in range(-2, 3) for dx in range(-2, 3)], 1) for img in (ref, src)]
+    e2_max = max(float((w.astype(np.float64) ** 2).mean(1).max()) for w in wins)
+    var_min = min(float(w.astype(np.float64).var(1).min()) for w in wins)
+    tol = 6 * U32 * e2_max / var_min
     for k, r in enumerate(rhos):
         c = PR.plane_cost_reference(pair["ref"], pair["src"], pair["A"], pair["b"], ys, xs,
                                     np.full(len(ys), r), np.zeros(len(ys)), np.zeros(len(ys)), 2, 1)  # fmt: skip
         ok = c < PK.INVALID
         assert ok.mean() > 0.3
-        np.testing.assert_allclose(c[ok], sweep[ys[ok], xs[ok], k], atol=0.02)
+        np.testing.assert_allclose(c[ok], sweep[ys[ok], xs[ok], k], rtol=0, atol=tol)
 
 
 def test_slanted_window_beats_fronto_parallel_on_a_tilted_plane() -> None:
@@ -143,6 +157,7 @@ def test_slanted_window_beats_fronto_parallel_on_a_tilted_plane() -> None:
     slanted = PR.plane_cost_reference(*args, np.full(n, m[0]), np.full(n, m[1]), 3, 1)
     fronto = PR.plane_cost_reference(*args, np.zeros(n), np.zeros(n), 3, 1)
     ok = (slanted < PK.INVALID) & (fronto < PK.INVALID)
+    # (d) measured: 93 % valid, median slanted cost 1.1e-3, fronto 0.085, slanted lower at every pixel
     assert ok.mean() > 0.3
     assert np.median(slanted[ok]) < 0.01
     assert np.median(fronto[ok]) > 3 * np.median(slanted[ok]) + 0.02
@@ -162,6 +177,8 @@ def test_refine_recovers_a_slanted_plane_from_sparse_seeds() -> None:
     cost = PK.initial_costs(ref, src, pair["A"], pair["b"], rho, gu, gv, 2, 2)
     valid = cost < PK.INVALID
     PK.refine(ref, src, pair["A"], pair["b"], rho, gu, gv, cost, ~seeds, 0.05, 2.0, 100.0, 3.0, 2, 2, 4, 0)
+    # (d) measured: 92 % of the inner pixels judged, all within 1 % of the true inverse depth, median slope error
+    # 2.7e-5, 84 % valid at the start
     judged = ~seeds & (cost < 0.1)
     inner = np.zeros((H, W), bool)
     inner[8:-8, 8:-8] = True
@@ -180,6 +197,8 @@ def test_estimate_depths_slanted_refinement_measures_more_at_45_degrees() -> Non
     views, geometry, gts = orbit_views("object", 45.0)
     off = estimate_depths(views, geometry, DepthConfig(slanted_iters=0))
     on = estimate_depths(views, geometry, DepthConfig(slanted_iters=3))
+    # (d) measured (view 0, view 1): measured ×1.37/×1.38, median 0.58 %/0.56 % (off: 0.78 %/0.72 %), within 10 %
+    # 0.95/0.96 (off: 0.94/0.95), refined share 0.27
     for d_off, d_on, gt in zip(off, on, gts):
         assert d_on.measured.sum() > 1.15 * d_off.measured.sum()
         rel = []
@@ -214,6 +233,8 @@ def test_colour_outliers_flags_wrong_depths_not_exposure() -> None:
     views, geometry, gt = orbit_views("room", 20.0)
     depth = gt[0].astype(np.float32)
     measured = _covisible(views, geometry, gt)
+    # (d) measured: co-visible 0.69; flagged 0.4 % (0.1 % after the exposure change); in the wrong block 49 %,
+    # outside it 0.4 %
     assert measured.mean() > 0.5
     flagged = colour_outliers(depth, measured, views[0], views[1], geometry, 0, 0.1)
     assert flagged.shape == depth.shape and flagged.dtype == bool
@@ -238,6 +259,7 @@ def test_estimate_depths_colour_check_counts() -> None:
     views, geometry, gt = orbit_views("object", 30.0)
     on = estimate_depths(views, geometry, DepthConfig(colour_tol=0.1, slanted_iters=0, speckle_size=0.0))
     off = estimate_depths(views, geometry, DepthConfig(colour_tol=0.0, slanted_iters=0, speckle_size=0.0))
+    # (d) measured: 7 % rejected; > 10 % off: 5.2 %/4.4 % with the check, 10.5 %/9.3 % without (ratio 0.49/0.47)
     for d_on, d_off, g in zip(on, off, gt):
         assert d_off.fill_counts["colour_rejected"] == 0
         n = d_on.fill_counts["colour_rejected"]
