@@ -12,9 +12,10 @@ from macsplat_cli.gaussians import GaussianMaps
 from macsplat_cli.mac import MACConfig, huber, mac_loss, sample_maps
 from macsplat_cli.rotations import quat_to_rotmat
 
-from _helpers import GC_ATOL, GC_EPS, GC_RTOL
+from _helpers import GC_ATOL, GC_EPS, GC_RTOL, gamma, unit_roundoff
 
 D = torch.float64
+U64 = unit_roundoff(D)
 
 
 def _maps(b: int, h: int, w: int, seed: int, k: int = 4, dtype: torch.dtype = D) -> GaussianMaps:
@@ -71,14 +72,18 @@ def test_sample_maps_matches_hand_bilinear_interpolation() -> None:
     maps = torch.arange(2 * 3 * 4 * 2, dtype=D).reshape(2, 3, 4, 2)
     xy = torch.tensor([[0.5, 0.5], [1.0, 0.5], [1.25, 1.75], [3.5, 2.5], [-3.0, 9.0]], dtype=D)
     out = sample_maps(maps, xy, torch.tensor([0, 0, 1, 1, 0]))
-    torch.testing.assert_close(out[0], maps[0, 0, 0])  # a pixel centre
-    torch.testing.assert_close(out[1], 0.5 * (maps[0, 0, 0] + maps[0, 0, 1]))  # between two centres
+    # float64: grid_sample normalises the position (2x/W − 1) and back ((g + 1)·W − 1)/2, ≤ 4 roundings of values
+    # ≤ 2W (≤ 8u·W px; the map changes by ≤ 8 per px), then blends ≤ 4 values ≤ 47 (3 roundings, and ≤ 3 more in
+    # ``want``): |Δ| ≤ 8u·4·8 + 6u·47
+    tol = dict(rtol=0.0, atol=U64 * (8 * 4 * 8 + 6 * 47))
+    torch.testing.assert_close(out[0], maps[0, 0, 0], **tol)  # a pixel centre
+    torch.testing.assert_close(out[1], 0.5 * (maps[0, 0, 0] + maps[0, 0, 1]), **tol)  # between two centres
     # (1.25, 1.75): x between columns 0 and 1 (t = 0.75), y between rows 1 and 2 (t = 0.25)
     m = maps[1]
     want = 0.75 * (0.25 * m[1, 0] + 0.75 * m[1, 1]) + 0.25 * (0.25 * m[2, 0] + 0.75 * m[2, 1])
-    torch.testing.assert_close(out[2], want)
-    torch.testing.assert_close(out[3], maps[1, 2, 3])
-    torch.testing.assert_close(out[4], maps[0, 2, 0])  # outside: the border clamps
+    torch.testing.assert_close(out[2], want, **tol)
+    torch.testing.assert_close(out[3], maps[1, 2, 3], **tol)
+    torch.testing.assert_close(out[4], maps[0, 2, 0], **tol)  # outside: the border clamps
 
 
 def test_identical_gaussians_give_zero_loss() -> None:
@@ -86,7 +91,7 @@ def test_identical_gaussians_give_zero_loss() -> None:
     T1, _ = _poses(2, 1)
     xy1, _, batch, wts = _matches(2, 5, 6, 30, 2)
     out = mac_loss(m, m, xy1, xy1, batch, wts, T1, T1)
-    assert float(out.loss) == pytest.approx(0.0, abs=1e-12)
+    assert float(out.loss) == 0.0  # (a) both views run the same operations on the same numbers: every term is 0
 
 
 def test_terms_match_a_hand_computation() -> None:
@@ -109,10 +114,13 @@ def test_terms_match_a_hand_computation() -> None:
     shape = 1.0 - 0.05
     app = 0.4 + (0.1 + 0.0 + 0.6)
     w = 2.0 / (2.0 + cfg.eps)
-    assert float(out.position) == pytest.approx(w * pos)
-    assert float(out.shape) == pytest.approx(w * shape)
-    assert float(out.appearance) == pytest.approx(w * app)
-    assert float(out.loss) == pytest.approx(w * (pos + 0.02 * shape + 0.1 * app))
+    # float64, ≤ 20 roundings a side plus logit/sigmoid/log (≤ 2 ulp each), no cancellation of inputs beyond
+    # their own rounding: γ₃₂ relative
+    rel = dict(rel=gamma(32, D), abs=0.0)
+    assert float(out.position) == pytest.approx(w * pos, **rel)
+    assert float(out.shape) == pytest.approx(w * shape, **rel)
+    assert float(out.appearance) == pytest.approx(w * app, **rel)
+    assert float(out.loss) == pytest.approx(w * (pos + 0.02 * shape + 0.1 * app), **rel)
 
 
 def test_position_term_only_where_both_depths_are_positive() -> None:
@@ -135,12 +143,19 @@ def test_world_translation_invariance_and_rotation_dependence() -> None:
     xy1, xy2, batch, wts = _matches(2, 5, 6, 40, 9)
     a = mac_loss(m1, m2, xy1, xy2, batch, wts, T1, T2)
     b = mac_loss(m1, m2, xy1, xy2, batch, wts, G @ T1, G @ T2)
-    torch.testing.assert_close(a.shape, b.shape)
-    torch.testing.assert_close(a.appearance, b.appearance)
+    # (a) from log-scales and opacities/SH: neither term reads the poses, the same operations on the same numbers
+    assert torch.equal(a.shape, b.shape)
+    assert torch.equal(a.appearance, b.appearance)
     assert abs(float(a.position) - float(b.position)) > 1e-3  # L1 is not rotation-invariant
     G[:3, :3] = torch.eye(3, dtype=D)
     c = mac_loss(m1, m2, xy1, xy2, batch, wts, G @ T1, G @ T2)
-    torch.testing.assert_close(a.loss, c.loss)
+    # G·T adds g to each translation (one rounding of ≤ |t| + |g|), μ_w = Rμ + t' one more (of ≤ S, the largest
+    # world coordinate), and g cancels in μ1 − μ2 only up to those: ≤ 4u·S per coordinate and view; the huber and
+    # the weighted mean are 1-Lipschitz, and the weighted sums (≤ 40 terms) add γ₄₂ of the loss
+    S = float(sum(x.abs().max() for x in (m1.means, m2.means)) * 3 + torch.cat([T1, T2])[:, :3, 3].abs().max())
+    S += float(G[:3, 3].abs().max()) * 2
+    tol = MACConfig().lambda_pos * 3 * 2 * 4 * U64 * S + gamma(42, D) * abs(float(a.loss))
+    torch.testing.assert_close(a.loss, c.loss, rtol=0.0, atol=tol)
 
 
 def test_scale_and_covariance_paths_agree() -> None:
@@ -153,8 +168,15 @@ def test_scale_and_covariance_paths_agree() -> None:
     xy2 = torch.floor(xy2) + 0.5
     a = mac_loss(m1, m2, xy1, xy2, batch, wts, T1, T2)
     b = mac_loss(m1, m2, xy1, xy2, batch, wts, T1, T2, covariances=(_cov(m1), _cov(m2)))
-    torch.testing.assert_close(a.shape, b.shape, rtol=1e-6, atol=1e-8)
-    torch.testing.assert_close(a.loss, b.loss, rtol=1e-6, atol=1e-8)
+    # (b) float64, two routes to log λ: R S² Rᵀ (γ₅·λ_max per entry), the world rotation (γ₆·λ_max) and eigvalsh's
+    # backward error (γ₉·λ_max, Householder + QR on 3×3) give |Δλ| ≤ γ₂₀·λ_max, so |Δ log λ| ≤ γ₂₀·κ with
+    # κ = λ_max/λ_min of the Gaussian; 3 eigenvalues × 2 views per match, huber and weighted mean 1-Lipschitz
+    ls = torch.cat([m1.log_scales, m2.log_scales])
+    kappa = float(torch.exp(2 * (ls.max(-1).values - ls.min(-1).values)).max())
+    shape_tol = 6 * gamma(20, D) * kappa + gamma(52, D) * abs(float(a.shape))
+    torch.testing.assert_close(a.shape, b.shape, rtol=0.0, atol=shape_tol)
+    loss_tol = MACConfig().lambda_shape * shape_tol + gamma(4, D) * abs(float(a.loss))  # the other terms: (a)
+    torch.testing.assert_close(a.loss, b.loss, rtol=0.0, atol=loss_tol)
 
 
 def test_no_matches_or_all_gated_out_is_exactly_zero_with_zero_gradients() -> None:
@@ -226,8 +248,13 @@ def test_covariance_shape_term_is_stable_for_repeated_eigenvalues(eigs: list[flo
         return
     ref = _one_pixel((0.5 * torch.log(ev)).to(dtype), **base)
     want = mac_loss(ref, b, xy, xy, torch.tensor([0]), one, T, T)
-    # eigenvalues carry ~eps·‖Σ‖ absolute error: 1e-3 relative for the float32 needle
-    torch.testing.assert_close(out.shape, want.shape, rtol=1e-3 if dtype == torch.float32 else 1e-9, atol=0)
+    # Σ rounded to ``dtype`` (|E| ≤ u|Σ| entrywise, ‖E‖₂ ≤ √3·u‖Σ‖) and eigvalsh's backward error (γ₉‖Σ‖) move each
+    # λᵢ by ≤ (√3u + γ₉)‖Σ‖, so log λᵢ by that over λᵢ (huber and |·| are 1-Lipschitz); the scale path rounds
+    # 2·log s (≤ 2u|log λ|), and the sums add γ₈: 1e-3 relative ≈ 0.3× this bound for the float32 needle
+    u = unit_roundoff(dtype)
+    tol = (math.sqrt(3) * u + gamma(9, dtype)) * ev.max() * (1 / ev).sum() + 2 * u * ev.log().abs().sum()
+    tol = float(tol) + gamma(8, dtype) * abs(float(want.shape))
+    torch.testing.assert_close(out.shape, want.shape, rtol=0.0, atol=tol)
     # No contrast with ``torch.linalg.eigh``'s eigenvector gradient here: at an exactly repeated eigenvalue it
     # divides by λi − λj = 0, and what LAPACK returns there (inf, NaN or finite 1e14 values, by CPU kernel set)
     # is undefined behaviour, not a property of macsplat.
@@ -259,7 +286,11 @@ def test_shape_gradient_scales_as_one_over_lambda(path: str, smallest: float) ->
         (g,) = torch.autograd.grad(out.shape, ev1)
         grads.append(abs(float(g[0])))
     slopes = [math.log(grads[i + 1] / grads[i]) / math.log(lams[i + 1] / lams[i]) for i in range(len(lams) - 1)]
-    assert all(s == pytest.approx(-1.0, abs=0.01) for s in slopes), slopes
+    # The gradient is huber'·(1/λ) exactly (linear part of the huber), so the slope is −1 up to the gradient's
+    # relative rounding: a few u on the scale path; through eigvalsh, γ₉·‖Σ‖/λ (λ down to 1e-10, ‖Σ‖ = 2).
+    # Two gradients over log(100), plus the slope's own ratio, logs and quotient (4u) (measured: −1 ± 2.2e-16)
+    rel_err = gamma(4, D) + (gamma(9, D) * 2.0 / lams[-1] if path == "covariances" else 0.0)
+    assert all(s == pytest.approx(-1.0, abs=2 * rel_err / math.log(100) + 4 * U64) for s in slopes), slopes
     assert all(math.isfinite(g) and g > 0 for g in grads)
 
 
@@ -301,11 +332,15 @@ def test_transforms_default_to_the_maps_own_then_the_identity() -> None:
     one = mac_loss(m1, m2, xy, xy, torch.tensor([1]), torch.ones(1, dtype=D))
     a1, a2 = torch.sigmoid(m1.opacity_logits[1, 2, 1]), torch.sigmoid(m2.opacity_logits[1, 2, 1])
     app = (a1 - a2).abs() + (m1.sh[1, 2, 1] - m2.sh[1, 2, 1]).abs().sum()
-    torch.testing.assert_close(one.appearance, app / (1 + MACConfig().eps))
+    # float64 at a pixel centre (exact bilinear weights): a sum of 13 absolute differences (γ₁₄ of the total) and
+    # the division; the vectorised and the scalar sigmoid each ≤ 2 ulp of α ≤ 1 — γ₂₀ relative covers it all
+    torch.testing.assert_close(one.appearance, app / (1 + MACConfig().eps), rtol=gamma(20, D), atol=0.0)
     with pytest.raises(InputError, match="covariances"):
         mac_loss(m1, m2, xy1, xy2, batch, wts, covariances=(torch.zeros(2, 4, 5, 3), None))
 
 
 def test_huber() -> None:
     x = torch.tensor([0.0, 0.05, 0.1, 1.0, -2.0], dtype=D)
-    torch.testing.assert_close(huber(x, 0.1), torch.tensor([0.0, 0.0125, 0.05, 0.95, 1.95], dtype=D))
+    # float64: ≤ 3 roundings of the decimal inputs, and the literals' own rounding: γ₄ relative (0 stays exact)
+    torch.testing.assert_close(huber(x, 0.1), torch.tensor([0.0, 0.0125, 0.05, 0.95, 1.95], dtype=D),
+                               rtol=gamma(4, D), atol=0.0)  # fmt: skip
