@@ -150,6 +150,14 @@ def forward_rel_tol(module: torch.nn.Module, *sums: int, dtype: torch.dtype = to
     return sum(gamma(n, dtype) for n in [*dot_lengths(module), *sums])
 
 
+# Rounding budgets of the rotation conversions (macsplat_cli.rotations and NumPy twins), in units of the unit
+# roundoff u of the working precision, first order (derivations in tests/test_rotations.py):
+ROT_UNIT_Q = 4  # a normalised quaternion q/‖q‖, per component; and ‖q̂‖ − 1
+ROT_MAT = 16  # R(q̂) per entry, off a rotation (its own 8u, plus 2·(‖q̂‖² − 1))
+ROT_QUAT = 13 + ROT_MAT  # Shepperd's R → q per component, for an R within ROT_MAT of a rotation
+ROT_ROUND_TRIP = 2 * math.sqrt(2) * 2 * ROT_QUAT + ROT_MAT  # R → q → R per entry (a rotation by ≤ 2‖δq‖)
+
+
 def deg(x: float) -> float:
     return math.degrees(x)
 

@@ -17,6 +17,11 @@ from macsplat_cli.camera_formats import read_colmap_text, read_nerfstudio, write
 from macsplat_cli.cameras import Camera, CameraSet, load_cameras, quat_to_rotmat_np, rotmat_to_quat_np, save_cameras
 from macsplat_cli.errors import CameraFileError, OutputPathError
 
+from _helpers import ROT_MAT, ROT_ROUND_TRIP, ROT_UNIT_Q, gamma, unit_roundoff
+
+U = unit_roundoff(np.float64)  # every camera quantity is float64
+# Rotation budgets (ROT_*) are derived in tests/test_rotations.py; Shepperd on an exactly orthogonal R: ≤ 13u.
+
 
 # ------------------------------------------------------------------------------------ helpers
 def random_rotation(rng: np.random.Generator) -> np.ndarray:
@@ -55,13 +60,21 @@ def random_camera_set(seed: int, n: int = 6) -> CameraSet:
     return CameraSet(cams, scale="metric", world="camera_0")
 
 
-def assert_sets_match(a: CameraSet, b: CameraSet, atol: float = 1e-9) -> None:
+def assert_sets_match(a: CameraSet, b: CameraSet) -> None:
+    """Equal names, sizes and K; poses equal up to a rotation round trip through another convention: R → q → R
+    (ROT_ROUND_TRIP·u per entry, plus the QR rotations' own orthogonality defect ≤ 16u) and the centre
+    c = −Rᵀt with t = −R'c: the rotation error times |c| twice, plus two 3-term products (γ₃|c| each)."""
     assert len(a) == len(b)
     for x, y in zip(a, b):
         assert x.name == y.name
         assert (x.width, x.height) == (y.width, y.height)
         np.testing.assert_array_equal(x.K, y.K)
-        np.testing.assert_allclose(x.cam_to_world, y.cam_to_world, rtol=0, atol=atol)
+        c = float(np.abs(x.center).sum())
+        rot = (ROT_ROUND_TRIP + 16) * U
+        atol = np.zeros((4, 4))
+        atol[:3, :3] = rot
+        atol[:3, 3] = 2 * rot * c + 2 * gamma(3, np.float64) * c
+        np.testing.assert_array_less(np.abs(x.cam_to_world - y.cam_to_world), atol + np.finfo(float).tiny)
 
 
 def simple_camera(name: str = "cam0") -> Camera:
@@ -93,11 +106,13 @@ def test_quaternion_of_known_rotations() -> None:
     np.testing.assert_array_equal(rotmat_to_quat_np(np.eye(3)), [1, 0, 0, 0])
     Rz90 = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     h = math.sqrt(0.5)
-    np.testing.assert_allclose(rotmat_to_quat_np(Rz90), [h, 0, 0, h], atol=1e-15)
-    np.testing.assert_allclose(rotmat_to_quat_np(np.diag([1.0, -1.0, -1.0])), [0, 1, 0, 0], atol=1e-15)
-    np.testing.assert_allclose(quat_to_rotmat_np(np.array([h, 0, 0, h])), Rz90, atol=1e-15)
+    # Shepperd on exact rotations: ≤ 13u per component (and h itself is one rounding)
+    np.testing.assert_allclose(rotmat_to_quat_np(Rz90), [h, 0, 0, h], rtol=0, atol=14 * U)
+    np.testing.assert_allclose(rotmat_to_quat_np(np.diag([1.0, -1.0, -1.0])), [0, 1, 0, 0], rtol=0, atol=14 * U)
+    # R(q̂): ROT_MAT per entry, from an h that is one rounding off (2√2·u more)
+    np.testing.assert_allclose(quat_to_rotmat_np(np.array([h, 0, 0, h])), Rz90, rtol=0, atol=(ROT_MAT + 3) * U)
     # Not normalised: same rotation.
-    np.testing.assert_allclose(quat_to_rotmat_np(np.array([2 * h, 0, 0, 2 * h])), Rz90, atol=1e-15)
+    np.testing.assert_allclose(quat_to_rotmat_np(np.array([2 * h, 0, 0, 2 * h])), Rz90, rtol=0, atol=(ROT_MAT + 3) * U)
 
 
 def test_quaternion_round_trip_random_and_half_turns() -> None:
@@ -109,8 +124,9 @@ def test_quaternion_round_trip_random_and_half_turns() -> None:
     for R in rotations:
         q = rotmat_to_quat_np(R)
         assert q[0] >= 0
-        assert abs(np.linalg.norm(q) - 1) < 1e-12
-        np.testing.assert_allclose(quat_to_rotmat_np(q), R, atol=1e-12)
+        assert abs(np.linalg.norm(q) - 1) <= (ROT_UNIT_Q + 3) * U  # and the test's own norm: 3u
+        # the QR rotations are orthogonal to ≤ 16u per entry, within the ROT_ROUND_TRIP budget's E_R
+        np.testing.assert_allclose(quat_to_rotmat_np(q), R, rtol=0, atol=ROT_ROUND_TRIP * U)
 
 
 # ------------------------------------------------------------------------------------ Camera
@@ -118,10 +134,14 @@ def test_camera_pose_helpers() -> None:
     rng = np.random.default_rng(1)
     for _ in range(20):
         cam = Camera("c", 10, 10, intrinsics(5, 5, 5, 5), pose(random_rotation(rng), rng.normal(0, 5, 3)))
-        np.testing.assert_allclose(cam.world_to_cam @ cam.cam_to_world, np.eye(4), atol=1e-12)
-        np.testing.assert_allclose(cam.cam_to_world @ cam.world_to_cam, np.eye(4), atol=1e-12)
+        # 4×4 products: γ₄·(|A||B|) entrywise, the inverse's own −Rᵀc (γ₃|c|, times |R| ≤ 1 in the product), and the
+        # QR rotation's orthogonality defect (≤ 16u per entry, times |c| in the translation column)
+        c = float(np.abs(cam.center).sum())
+        for A, B in ((cam.world_to_cam, cam.cam_to_world), (cam.cam_to_world, cam.world_to_cam)):
+            bound = gamma(4, np.float64) * (np.abs(A) @ np.abs(B)) + (gamma(3, np.float64) + 16 * 3 * U) * (1 + c)
+            np.testing.assert_array_less(np.abs(A @ B - np.eye(4)), bound)
         np.testing.assert_array_equal(cam.center, cam.cam_to_world[:3, 3])
-        np.testing.assert_allclose(cam.R @ cam.center + cam.t, 0, atol=1e-12)
+        np.testing.assert_allclose(cam.R @ cam.center + cam.t, 0, rtol=0, atol=2 * gamma(3, np.float64) * c + U * c)
         np.testing.assert_array_equal(cam.world_to_cam[3], [0, 0, 0, 1])
 
 
@@ -154,7 +174,8 @@ def test_rescaled_scales_rows_of_K() -> None:
     for u, v in [(0.0, 0.0), (640.0, 480.0), (100.0, 7.0)]:
         ray = np.linalg.solve(cam.K, [u, v, 1.0])
         p = half.K @ ray
-        np.testing.assert_allclose(p[:2] / p[2], [u / 2, v / 4], atol=1e-9)
+        # a 3×3 solve (LU: γ₉ backward error, K's condition ≲ 2·640/500) and a product (γ₃), of values ≤ 640
+        np.testing.assert_allclose(p[:2] / p[2], [u / 2, v / 4], rtol=0, atol=gamma(16, np.float64) * 640 * 4)
     with pytest.raises(CameraFileError):
         cam.rescaled(0, 10)
 
@@ -218,7 +239,7 @@ def test_small_rotation_noise_is_accepted() -> None:
     T = np.eye(4)
     T[:3, :3] += 1e-6
     cam = Camera("x", 10, 10, intrinsics(5, 5, 5, 5), T)
-    np.testing.assert_allclose(cam.cam_to_world, T, atol=1e-5)  # accepted, and still that pose
+    np.testing.assert_array_equal(cam.cam_to_world, T)  # accepted, and kept as given (validation only)
 
 
 @pytest.mark.parametrize(
@@ -411,11 +432,15 @@ def test_colmap_pose_is_world_to_camera(tmp_path: Path) -> None:
     q = np.array([float(v) for v in fields[1:5]])
     t = np.array([float(v) for v in fields[5:8]])
     assert q[0] >= 0
-    np.testing.assert_allclose(quat_to_rotmat_np(q), R_c2w.T, atol=1e-12)
-    np.testing.assert_allclose(t, -R_c2w.T @ center, atol=1e-12)
+    # the text holds repr()s (exact); R → q → R within ROT_ROUND_TRIP (+16u: the QR rotation's orthogonality)
+    rot = (ROT_ROUND_TRIP + 16) * U
+    np.testing.assert_allclose(quat_to_rotmat_np(q), R_c2w.T, rtol=0, atol=rot)
+    c = float(np.abs(center).sum())
+    np.testing.assert_allclose(t, -R_c2w.T @ center, rtol=0, atol=2 * gamma(3, np.float64) * c)
     # A world point in front of the camera projects with COLMAP's x_cam = R X + t.
     X = center + R_c2w @ np.array([0.1, -0.2, 2.0])
-    np.testing.assert_allclose(quat_to_rotmat_np(q) @ X + t, [0.1, -0.2, 2.0], atol=1e-12)
+    np.testing.assert_allclose(quat_to_rotmat_np(q) @ X + t, [0.1, -0.2, 2.0], rtol=0,
+                               atol=rot * np.abs(X).sum() + gamma(8, np.float64) * (2 * c + 3))  # fmt: skip
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -426,7 +451,7 @@ def test_json_colmap_json_round_trip(tmp_path: Path, seed: int) -> None:
     imported = read_colmap_text(tmp_path / "sparse" / "0")
     assert imported.world == "colmap" and imported.scale == "relative"
     save_cameras(tmp_path / "back.json", imported)
-    assert_sets_match(cams, load_cameras(tmp_path / "back.json"), atol=1e-9)
+    assert_sets_match(cams, load_cameras(tmp_path / "back.json"))
 
 
 def test_colmap_reader_handles_other_models_and_comments(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
@@ -458,10 +483,11 @@ def test_colmap_reader_handles_other_models_and_comments(tmp_path: Path, caplog:
     np.testing.assert_array_equal(b.K, intrinsics(500, 500, 320, 240))
     np.testing.assert_array_equal(c.K, intrinsics(900, 910, 512, 384))
     assert (a.width, a.height, c.width, c.height) == (800, 600, 1024, 768)
-    # a: q = (0, 1, 0, 0) is 180° about x (its own inverse), t = (1, 2, 3): centre = −Rᵀt = (−1, 2, 3).
-    np.testing.assert_allclose(a.cam_to_world[:3, :3], np.diag([1.0, -1.0, -1.0]), atol=1e-15)
-    np.testing.assert_allclose(a.center, [-1, 2, 3], atol=1e-15)
-    np.testing.assert_allclose(c.center, [0, 0, -1], atol=1e-15)  # unnormalised q = (2, 0, 0, 0)
+    # a: q = (0, 1, 0, 0) is 180° about x (its own inverse), t = (1, 2, 3): centre = −Rᵀt = (−1, 2, 3). Quaternions
+    # with one non-zero component: every product and sum is exact, so are R and the centres
+    np.testing.assert_array_equal(a.cam_to_world[:3, :3], np.diag([1.0, -1.0, -1.0]))
+    np.testing.assert_array_equal(a.center, [-1, 2, 3])
+    np.testing.assert_array_equal(c.center, [0, 0, -1])  # unnormalised q = (2, 0, 0, 0)
     warnings = [r.getMessage() for r in caplog.records]
     assert len(warnings) == 1 and "distortion" in warnings[0] and "SIMPLE_RADIAL" in warnings[0]
 
@@ -527,7 +553,7 @@ def test_json_nerfstudio_json_round_trip(tmp_path: Path, seed: int) -> None:
     assert imported.world == "nerfstudio"
     save_cameras(tmp_path / "back.json", imported)
     back = load_cameras(tmp_path / "back.json")
-    assert_sets_match(cams, back, atol=1e-9)
+    assert_sets_match(cams, back)
     for a, b in zip(cams, back):  # sign flips are exact
         np.testing.assert_array_equal(a.cam_to_world, b.cam_to_world)
 
