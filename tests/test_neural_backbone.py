@@ -24,7 +24,27 @@ from macsplat_cli.neural import (
 from macsplat_cli.rotations import quat_to_rotmat
 from macsplat_cli.sh import C0, rgb_to_sh0
 
+from _helpers import forward_rel_tol, gamma, max_rel_err, unit_roundoff
+
 TINY = BackboneConfig.tiny()
+U32 = unit_roundoff(torch.float32)
+U64 = unit_roundoff(torch.float64)
+
+
+def _forward_tol(model: torch.nn.Module, n_tokens: int) -> float:
+    """Relative rounding estimate of one float32 forward pass (``forward_rel_tol``): every Linear/conv/LayerNorm
+    of the model, and per attention layer QKᵀ over the head size and the softmax sum and softmax·V over the
+    tokens (the encoder's blocks; self- and cross-attention in each decoder block)."""
+    enc = TINY.enc_depth * [TINY.enc_embed_dim // TINY.enc_num_heads, n_tokens, n_tokens]
+    dec = 2 * TINY.dec_depth * [TINY.dec_embed_dim // TINY.dec_num_heads, n_tokens, n_tokens]
+    return forward_rel_tol(model, *enc, *dec)
+
+
+def _head_gain(raw: torch.Tensor) -> float:
+    """How the heads' activations scale a relative error ε of the raw channels (≤ ε·max|raw| absolute): conf =
+    1 + eˣ and pts = v/‖v‖·expm1(‖v‖) move by ≤ (1 + max|raw|)·ε·max|raw| relative to their largest value."""
+    m = float(raw[..., :4].abs().max())
+    return (1 + m) * max(m, 1.0)
 
 
 def _images(b: int, h: int, w: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -73,7 +93,10 @@ def test_rope_matches_the_per_channel_formula() -> None:
     x = torch.randn(2, 3, 6, 16, generator=g, dtype=torch.float64)
     pos = patch_positions(2, 3)
     got = RoPE2D(100.0)(x, pos)
-    torch.testing.assert_close(got, _rope_reference(x, pos, 100.0), rtol=1e-12, atol=1e-12)
+    # float64: θ = p·base^(−2i/D′) (pow ≤ 2 ulp, ·p: ≤ 4u·|θ| on either side, |θ| ≤ 2), cos/sin to 1 ulp (ATen vs
+    # libm), then a·cos − b·sin (3 roundings): per side ≤ (|a| + |b|)·(7u + 8u·|θ|), both ≤ 2·(7 + 16)u·2max|x|
+    tol = 2 * (7 + 16) * U64 * 2 * float(x.abs().max())
+    torch.testing.assert_close(got, _rope_reference(x, pos, 100.0), rtol=0, atol=tol)
 
 
 def test_rope_dot_products_depend_only_on_relative_position() -> None:
@@ -83,10 +106,16 @@ def test_rope_dot_products_depend_only_on_relative_position() -> None:
     k = torch.randn(1, 2, 1, 32, generator=g, dtype=torch.float64)
     pq, pk = torch.tensor([[3, 5]]), torch.tensor([[7, 1]])
     base = (rope(q, pq) * rope(k, pk)).sum(-1)
+    # float64: each rotated component is off by ≤ (|a| + |b|)·(7u + 8u·|θ|) (|θ| ≤ the largest position, 20), so
+    # the 32-term score by ≤ Σ over pairs of (|q|+|q'|)(|k|+|k'|)·2·(7 + 8·20)u, plus γ₃₂ of Σ|qₖkₖ|; two scores
+    pair_q = q.abs()[..., :16] + q.abs()[..., 16:]
+    pair_k = k.abs()[..., :16] + k.abs()[..., 16:]
+    s_abs = float((pair_q * pair_k).sum())
+    tol = 2 * (2 * (7 + 8 * 20) * U64 * s_abs + gamma(32, torch.float64) * s_abs)
     for shift in ([0, 4], [9, 0], [11, 13]):
         t = torch.tensor([shift])
         shifted = (rope(q, pq + t) * rope(k, pk + t)).sum(-1)
-        torch.testing.assert_close(shifted, base, rtol=1e-10, atol=1e-10)
+        torch.testing.assert_close(shifted, base, rtol=0, atol=tol)
     # A change of the relative position does change the score.
     moved = (rope(q, pq) * rope(k, pk + torch.tensor([[0, 1]]))).sum(-1)
     assert (moved - base).abs().max() > 1e-3
@@ -98,31 +127,40 @@ def test_rope_preserves_norms_and_splits_axes() -> None:
     x = torch.randn(2, 2, 4, 16, generator=g)
     pos = torch.tensor([[0, 0], [1, 5], [3, 2], [7, 7]])
     y = rope(x, pos)
-    torch.testing.assert_close(y.norm(dim=-1), x.norm(dim=-1))
-    torch.testing.assert_close(y[..., 0, :], x[..., 0, :])  # position (0, 0) is the identity
-    # Changing only x positions leaves the y half (first 8 channels) unchanged, and vice versa.
+    # float32: cos, sin to 1 ulp make c² + s² = 1 ± 4u (a pair's length ± 2u), the output's 3 roundings ≤ 3√2·u of
+    # the pair's length; the two 16-term norms γ₁₆/2 + u each: ≤ 2 + 4.3 + 18 ≤ 25u relative
+    torch.testing.assert_close(y.norm(dim=-1), x.norm(dim=-1), rtol=gamma(25, torch.float32), atol=0)
+    # position (0, 0) is the identity: sin 0 = 0, cos 0 within an ulp of 1, one rounding of x·cos 0
+    torch.testing.assert_close(y[..., 0, :], x[..., 0, :], rtol=2 * U32, atol=0)
+    # Changing only x positions leaves the y half (first 8 channels) unchanged, and vice versa: (a) the unchanged
+    # half is rotated by its own call, with the same angles and inputs
     y_x = rope(x, pos + torch.tensor([0, 3]))
-    torch.testing.assert_close(y_x[..., :8], y[..., :8])
+    assert torch.equal(y_x[..., :8], y[..., :8])
     assert (y_x[..., 8:] - y[..., 8:]).abs().max() > 1e-3
     y_y = rope(x, pos + torch.tensor([2, 0]))
-    torch.testing.assert_close(y_y[..., 8:], y[..., 8:])
+    assert torch.equal(y_y[..., 8:], y[..., 8:])
 
 
 # ============================================================================================= activations
 def test_depth_activation_is_expm1_of_the_norm_along_the_raw_direction() -> None:
     v = torch.tensor([[0.6, 0.8, 0.0], [0.0, 0.0, -2.0], [0.0, 0.0, 0.0]])
     out = depth_activation(v, ("exp", -math.inf, math.inf))
-    torch.testing.assert_close(out[0], v[0] * math.expm1(1.0))
-    torch.testing.assert_close(out[1], torch.tensor([0.0, 0.0, -math.expm1(2.0)]))
+    # float32: d = ‖v‖ (γ₃/2 + u), expm1(d) to 1 ulp and amplifying δd by d·eᵈ/expm1(d) ≤ 1.6, v/d·(…) 2 roundings;
+    # the test's float64 constant is rounded to float32 and multiplied (2u): ≤ 12u relative (zeros stay exact)
+    torch.testing.assert_close(out[0], v[0] * math.expm1(1.0), rtol=gamma(12, torch.float32), atol=0)
+    # d = 2 and v/d = −1 exactly; expm1(2) to 1 ulp (2u) and the constant's rounding (u)
+    torch.testing.assert_close(out[1], torch.tensor([0.0, 0.0, -math.expm1(2.0)]), rtol=3 * U32, atol=0)
     assert torch.equal(out[2], torch.zeros(3))  # no NaN at zero
     assert torch.equal(depth_activation(v, ("linear", -math.inf, math.inf)), v)
 
 
 def test_conf_activation_offsets_and_clips() -> None:
     x = torch.tensor([-30.0, 0.0, 2.0])
-    torch.testing.assert_close(conf_activation(x, ("exp", 1.0, math.inf)), 1 + x.exp())
-    torch.testing.assert_close(conf_activation(x, ("exp", 0.0, math.inf)), x.exp())
-    assert conf_activation(x, ("exp", 1.0, 3.0)).tolist() == pytest.approx([1.0, 2.0, 3.0], abs=1e-6)
+    # (a) vmin + exp(x) is the test's own expression: the same exp kernel on the same tensor, and one addition
+    assert torch.equal(conf_activation(x, ("exp", 1.0, math.inf)), 1 + x.exp())
+    assert torch.equal(conf_activation(x, ("exp", 0.0, math.inf)), x.exp())
+    # 1 + e⁻³⁰ rounds to 1, 1 + e⁰ to 2 for an exp within an ulp of 1, and the clip gives 3: ≤ 2u·3 in all
+    assert conf_activation(x, ("exp", 1.0, 3.0)).tolist() == pytest.approx([1.0, 2.0, 3.0], rel=0, abs=6 * U32)
 
 
 # ============================================================================================= backbone
@@ -149,8 +187,8 @@ def test_dec_feature_map_is_the_token_grid(net: MASt3RBackbone) -> None:
     with torch.no_grad():
         v1, _ = net(*_images(1, 32, 48))
     fmap = v1.dec_feature_map()
-    # token n = y·w + x sits at (y, x)
-    torch.testing.assert_close(fmap[0, :, 1, 2], v1.dec_tokens[0, 1 * 3 + 2])
+    # token n = y·w + x sits at (y, x): (a) a reshape, no arithmetic
+    assert torch.equal(fmap[0, :, 1, 2], v1.dec_tokens[0, 1 * 3 + 2])
 
 
 @pytest.mark.parametrize(
@@ -183,11 +221,18 @@ def test_activations_on_the_network_outputs(net: MASt3RBackbone) -> None:
     for v in (v1, v2):
         assert v.conf.min() >= 1.0  # conf_mode ('exp', 1, inf)
         assert v.desc_conf.min() > 0.0  # desc_conf_mode ('exp', 0, inf)
-        torch.testing.assert_close(v.desc.norm(dim=-1), torch.ones(v.desc.shape[:-1]))
-    torch.testing.assert_close(v2.conf, 1 + raw[..., 3].exp())
-    torch.testing.assert_close(v2.desc_conf, raw[..., 28].exp())
+        # normalised 24-d descriptors: the normalisation's norm and division (γ₂₄/2 + 2u), the test's norm
+        # (γ₂₄/2 + u)
+        torch.testing.assert_close(v.desc.norm(dim=-1), torch.ones(v.desc.shape[:-1]), rtol=0,
+                                   atol=gamma(24, torch.float32) + 3 * U32)  # fmt: skip
+    # The same activations recomputed from the head's raw output (the same kernels on the same tokens, so the same
+    # raw): only an exp on another memory layout may round differently, by ≤ 1 ulp (2u) a side
+    torch.testing.assert_close(v2.conf, 1 + raw[..., 3].exp(), rtol=gamma(5, torch.float32), atol=0)
+    torch.testing.assert_close(v2.desc_conf, raw[..., 28].exp(), rtol=gamma(4, torch.float32), atol=0)
     d = raw[..., :3].norm(dim=-1, keepdim=True)
-    torch.testing.assert_close(v2.pts3d, raw[..., :3] / d * torch.expm1(d))
+    # the norm (γ₃/2 + u a side, amplified ≤ 1 + d by expm1), expm1 1 ulp, 2 roundings: ≤ 2·(3(1 + d) + 4)u relative
+    rtol = 2 * (3 * (1 + float(d.max())) + 4) * U32
+    torch.testing.assert_close(v2.pts3d, raw[..., :3] / d * torch.expm1(d), rtol=rtol, atol=0)
 
 
 def test_local_features_are_pixel_shuffled_channel_major(net: MASt3RBackbone) -> None:
@@ -208,9 +253,15 @@ def test_eval_mode_is_deterministic_and_batch_independent(net: MASt3RBackbone) -
         a1, a2 = net(img1, img2)
         b1, b2 = net(img1, img2)
         s1, s2 = net(img1[1:], img2[1:])
-    assert torch.equal(a1.pts3d, b1.pts3d) and torch.equal(a2.desc, b2.desc)
-    torch.testing.assert_close(s2.pts3d[0], a2.pts3d[1], rtol=1e-4, atol=1e-5)
-    torch.testing.assert_close(s1.conf[0], a1.conf[1], rtol=1e-4, atol=1e-5)
+        raw2 = net.downstream_head2.raw(a2.tokens, a2.grid)
+        raw1 = net.downstream_head1.raw(a1.tokens, a1.grid)
+    assert torch.equal(a1.pts3d, b1.pts3d) and torch.equal(a2.desc, b2.desc)  # (a) the same call twice
+    # (b) batch 1 vs batch 2 may block the matrix products differently: two float32 orders of the same forward
+    # pass, each within _forward_tol (relative to the largest value), scaled by the heads' activations
+    # (measured: 5u and 2u)
+    tol = 2 * _forward_tol(net, n_tokens=3 * 2)
+    assert max_rel_err(s2.pts3d[0], a2.pts3d[1]) <= tol * _head_gain(raw2)
+    assert max_rel_err(s1.conf[0], a1.conf[1]) <= tol * _head_gain(raw1)
 
 
 def test_decoders_cross_attend_symmetrically_when_weights_are_tied() -> None:
@@ -226,8 +277,14 @@ def test_decoders_cross_attend_symmetrically_when_weights_are_tied() -> None:
         untied = MASt3RBackbone(TINY).eval()
         _, u2 = untied(a, b)
         u1, _ = untied(b, a)
-    torch.testing.assert_close(ab2.pts3d, ba1.pts3d, rtol=1e-5, atol=1e-6)
-    torch.testing.assert_close(ab2.desc, ba1.desc, rtol=1e-5, atol=1e-6)
+        raw = model.downstream_head1.raw(ba1.tokens, ba1.grid)
+    # (b) the same math with the views in the other batch slots: two float32 orders, each within _forward_tol
+    # (measured: equal bits). The descriptors are the raw channels 4:28 normalised per pixel: an error of
+    # ε·max|raw| moves a unit descriptor by ≤ that over the pixel's raw norm.
+    tol = 2 * _forward_tol(model, n_tokens=2 * 3)
+    assert max_rel_err(ab2.pts3d, ba1.pts3d) <= tol * _head_gain(raw)
+    desc_gain = float(raw[..., 4:28].abs().max() / raw[..., 4:28].norm(dim=-1).min())
+    assert max_rel_err(ab2.desc, ba1.desc) <= tol * desc_gain
     assert (u2.pts3d - u1.pts3d).abs().max() > 1e-4  # separate weights do break the symmetry
 
 
@@ -340,14 +397,18 @@ def test_gaussian_head_outputs(net: MASt3RBackbone, gauss_head: GaussianHead) ->
     for view, g, v, rgb in ((1, g1, v1, rgb1), (2, g2, v2, rgb2)):
         holder = gauss_head.downstream_head1 if view == 1 else gauss_head.downstream_head2
         with torch.no_grad():
-            _, offsets = gauss_head.activate(holder.gaussian_dpt(v.tokens, v.grid), v.pts3d, rgb.permute(0, 2, 3, 1))
+            raw = holder.gaussian_dpt(v.tokens, v.grid)
+            _, offsets = gauss_head.activate(raw, v.pts3d, rgb.permute(0, 2, 3, 1))
         assert isinstance(g, GaussianMaps) and g.batch == 2 and g.size == (48, 64)
         assert g.valid is None and g.cam_to_world is None  # every pixel, view 1's frame
         assert g.means.shape == offsets.shape == g.log_scales.shape == (2, 48, 64, 3)
         assert g.quats.shape == (2, 48, 64, 4) and g.sh.shape == (2, 48, 64, 1, 3)
         assert g.opacity_logits.shape == (2, 48, 64)
-        torch.testing.assert_close(g.means, v.pts3d + offsets)
-        torch.testing.assert_close(g.quats.norm(dim=-1), torch.ones(2, 48, 64))
+        assert torch.equal(g.means, v.pts3d + offsets)  # (a) the head's own addition, on the same numbers
+        # rot/(‖rot‖ + 1e-8): the norm and division (γ₄/2 + 2u), the test's norm (γ₄/2 + u), and the 1e-8 itself
+        rot_norm = torch.linalg.vector_norm(raw[..., 6:10], dim=-1)
+        tol = gamma(4, torch.float32) + 3 * U32 + 1e-8 / rot_norm
+        assert ((g.quats.norm(dim=-1) - 1).abs() <= tol).all()
         # Initialisation: offsets "small at init", scales ≈ e^-7, opacity ≈ sigmoid(-2).
         scales, opacities = torch.exp(g.log_scales), torch.sigmoid(g.opacity_logits)
         assert offsets.abs().max() < 1e-3
@@ -370,7 +431,9 @@ def test_gaussian_sh_residual_is_exact_with_zero_sh_weights(net: MASt3RBackbone)
         v1, v2 = net(img1, img2)
         g1, _ = head(v1, v2, (img1 + 1) / 2, (img2 + 1) / 2)
     assert g1.sh.shape == (1, 32, 32, 4, 3)  # band-major
-    torch.testing.assert_close(g1.sh[..., 0, :], rgb_to_sh0((img1 + 1).permute(0, 2, 3, 1) / 2))
+    # (a) zero weights and bias give raw SH of exactly ±0, and 0 + x = x; ((x + 1)/2) permuted equals (x + 1)
+    # permuted, halved (halving is exact), so rgb_to_sh0 runs on the same numbers
+    assert torch.equal(g1.sh[..., 0, :], rgb_to_sh0((img1 + 1).permute(0, 2, 3, 1) / 2))
     assert torch.equal(g1.sh[..., 1:, :], torch.zeros(1, 32, 32, 3, 3))
 
 
@@ -382,9 +445,12 @@ def test_gaussian_quaternions_are_splatt3rs_xyzw_reordered() -> None:
     raw = torch.zeros(1, 1, 1, 14)
     raw[..., 6:10] = torch.tensor([0.0, 0.0, s, s])
     maps, _ = head.activate(raw, torch.zeros(1, 1, 1, 3), torch.zeros(1, 1, 1, 3))
-    torch.testing.assert_close(maps.quats[0, 0, 0], torch.tensor([s, 0.0, 0.0, s]))
+    # float32: s rounded once, the norm of (s, s) (γ₂/2 + u), + 1e-8 (< u/2: no change), the division: ≤ 4u
+    torch.testing.assert_close(maps.quats[0, 0, 0], torch.tensor([s, 0.0, 0.0, s]), rtol=4 * U32, atol=0)
     r = quat_to_rotmat(maps.quats[0, 0, 0])
-    torch.testing.assert_close(r @ torch.tensor([1.0, 0.0, 0.0]), torch.tensor([0.0, 1.0, 0.0]))
+    # R(q) in float32 (ROT_MAT = 16u per entry) and the 3-term product (γ₃)
+    torch.testing.assert_close(r @ torch.tensor([1.0, 0.0, 0.0]), torch.tensor([0.0, 1.0, 0.0]), rtol=0,
+                               atol=16 * U32 + gamma(3, torch.float32))  # fmt: skip
 
 
 def test_gaussian_means_do_not_backpropagate_into_the_point_map(net: MASt3RBackbone, gauss_head: GaussianHead) -> None:
