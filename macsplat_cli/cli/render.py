@@ -157,24 +157,25 @@ def _render(
 
     from .._atomic import check_writable
     from ..cameras import load_cameras
-    from ..errors import InputError
+    from ..errors import InputError, OutputPathError
     from ..images import DEPTH_FORMATS, VIDEO_FORMATS, check_image_path, save_depth, save_image, to_uint8, write_video
     from ..ply import read_ply
     from ..render import render_camera
     from ..trajectory import interpolate_cameras
 
     # ---- validate everything before any work, so bad input fails fast and writes nothing
+    writes: list[Path] = []  # every file written, checked by check_writable after the clobber check
     if path is None:
         if output is None:
             raise InputError("--output/-o is required: the image to write")
         if video is not None:
             raise InputError("--video needs --path N (a path of views to put in the video)")
         check_image_path(output)
-        check_writable(output)
+        writes.append(output)
         if depth is not None:
             if depth.suffix.lower() not in DEPTH_FORMATS:
                 raise InputError(f"{depth}: unsupported depth format; use one of {', '.join(DEPTH_FORMATS)}")
-            check_writable(depth)
+            writes.append(depth)
     else:
         if output is None and video is None:
             raise InputError("with --path, give a frame folder (-o DIR) and/or a video (--video FILE)")
@@ -183,17 +184,15 @@ def _render(
         if output is not None:
             if output.exists() and not output.is_dir():
                 raise InputError(f"{output}: exists and is not a folder (with --path, -o names a folder of frames)")
-            if not output.exists():
-                check_writable(output)
         if video is not None:
             if video.suffix.lower() not in VIDEO_FORMATS:
                 raise InputError(f"{video}: unsupported video format; use one of {', '.join(VIDEO_FORMATS)}")
-            check_writable(video)
+            writes.append(video)
     frame_files = [] if path is None or output is None else [output / f"frame_{i:04d}.png" for i in range(path)]
-    for f in frame_files:  # an existing folder must be writable too
-        check_writable(f)
     single = [("-o", output), ("--depth", depth)] if path is None else [("--video", video)]
     check_no_clobber([*single, *(("-o", f) for f in frame_files)], [("SCENE.ply", scene), ("--pose", camera_file)])
+    for f in [*writes, *frame_files]:  # links, devices, unwritable folders (an existing frame folder too)
+        check_writable(f)
     if device == "cuda" and not torch.cuda.is_available():
         raise InputError("--device cuda: this PyTorch has no CUDA device")
     if backend == "gsplat" and device != "cuda":
@@ -224,7 +223,10 @@ def _render(
     # Frames are written as they are rendered (each file atomically); only a video keeps them, as 8-bit images.
     written, images, n_visible = [], [], []
     if path is not None and output is not None:
-        output.mkdir(parents=True, exist_ok=True)
+        try:
+            output.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise OutputPathError(f"cannot create folder {output}: {e.strerror or e}") from None
     t0 = time.perf_counter()
     with _progress(len(targets), quiet or len(targets) == 1) as advance, torch.no_grad():
         for k, cam in enumerate(targets):
