@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 
 from ._app import app
-from ._common import QuietOpt, VerboseOpt, command_context, err_console, escape, out_console
+from ._common import QuietOpt, VerboseOpt, check_no_clobber, command_context, err_console, escape, out_console
 from ._options import DeviceOpt, DinoOpt, FusionOpt, GaussianHeadOpt, PrecisionOpt, WeightsOpt, neural_options
 from .eval import (
     AssignmentChoice,
@@ -141,10 +141,17 @@ def _bench(
 ) -> None:  # fmt: skip
     import json
 
-    from .._atomic import check_writable
     from ..errors import InputError
     from ..evaluation import BACKENDS
-    from ..evaluation.bench import METRICS, bench_json, bench_markdown, grid, run_bench
+    from ..evaluation.bench import (
+        BENCH_FILES,
+        METRICS,
+        bench_json,
+        bench_markdown,
+        check_bench_outputs,
+        grid,
+        run_bench,
+    )
     from ..evaluation.protocol import ResultWriter
 
     if metric not in METRICS:
@@ -164,13 +171,18 @@ def _bench(
         raise InputError(f"{', '.join(neural.given)} only apply to --backend neural")
     if "neural" in backends:  # usage errors (no weights, --dino without --fusion, ...) before any work
         engine_config("neural", neural=neural).validate()
-    check_writable(out / "bench.md")
+    settings = grid(backends, sizes, taus, steps, qualities)
+    check_bench_outputs(out, settings)  # every file of the bench and of each setting's run, before any work
+    check_no_clobber(
+        [(f"--out {out}:", out / name) for name in BENCH_FILES]
+        + [(f"--out {out}:", out / "runs" / s.slug / name) for s in settings for name in ResultWriter.FILES],
+        [("--cases", cases_file)],
+    )
     dataset = load_data(data, layout, scannetpp_split, scenes)
     sel = select_cases(
         dataset, cases_file=cases_file, split=split, split_by=split_by, assignment=assignment,
         max_pairs=max_pairs, max_targets=max_targets, seed=seed, quiet=quiet,
     )  # fmt: skip
-    settings = grid(backends, sizes, taus, steps, qualities)
     if not quiet:
         err_console.print(
             f"{len(settings)} setting(s) × {len(sel.cases)} case(s) from {len(dataset.scenes)} scene(s)",

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 
 from ._app import app
-from ._common import QuietOpt, VerboseOpt, command_context, err_console, escape, out_console
+from ._common import QuietOpt, VerboseOpt, check_no_clobber, command_context, err_console, escape, out_console
 from ._options import DeviceOpt, DinoOpt, FusionOpt, GaussianHeadOpt, PrecisionOpt, WeightsOpt, neural_options
 
 if TYPE_CHECKING:
@@ -124,13 +124,16 @@ def select_cases(
 
     from ..errors import DatasetError
     from ..evaluation import SplitConfig, load_cases, make_cases, parse_splits
+    from ..evaluation.protocol import check_context_sizes
 
     splits = parse_splits(split)
     if cases_file is not None:
         sel = load_cases(cases_file, dataset)
         if split.strip().lower() != "all":
             sel.cases = [c for c in sel.cases if c.split in splits]
+        check_context_sizes(dataset, sel.cases)
     else:
+        check_context_sizes(dataset)  # any frame may become a context view: before the O(N²) coverage
         cfg = SplitConfig(
             splits=splits,
             mode=split_by,  # type: ignore[arg-type]
@@ -353,6 +356,11 @@ def _eval(
     from ..lpips import load_lpips
 
     parse_splits(split)  # bad options fail before any work
+    ResultWriter.check(out)  # and outputs that cannot be written (a link, a device, a read-only folder)
+    check_no_clobber(
+        [(f"--out {out}:", out / name) for name in ResultWriter.FILES],
+        [("--cases", cases_file), ("--lpips-weights", lpips_weights)],
+    )
     lpips = load_lpips(lpips_weights) if lpips_weights is not None else None
     reconstructor = make_reconstructor(engine)
     dataset = load_data(data, layout, scannetpp_split, scenes)

@@ -35,7 +35,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .._atomic import atomic_write_bytes, atomic_write_text
+from .._atomic import atomic_write_bytes, atomic_write_text, check_folder, check_writable
 from ..datasets import EvalDataset
 from ..engine import BACKENDS as ENGINE
 from ..engine import EngineConfig, Models, NeuralOptions, RefineOptions, load_models
@@ -207,6 +207,26 @@ def mark_pareto(rows: Sequence[BenchRow], metric: str) -> list[BenchRow]:
     return out
 
 
+BENCH_FILES = ("bench.md", "bench.json", "bench.png")
+"""The files :func:`write_bench` writes into the output folder."""
+
+
+def check_bench_outputs(out_dir: Path, settings: Sequence[BenchSetting]) -> None:
+    """Before any work: every file a bench writes can be written, and ``runs/`` and its setting folders are
+    real folders (no link to carry the results elsewhere; :func:`~.._atomic.check_folder`).
+
+    Raises:
+        OutputPathError: naming the file or folder.
+    """
+    out_dir = Path(out_dir)
+    for name in BENCH_FILES:
+        check_writable(out_dir / name)
+    check_folder(out_dir / "runs")
+    for s in settings:
+        check_folder(out_dir / "runs" / s.slug)
+        ResultWriter.check(out_dir / "runs" / s.slug)
+
+
 def run_bench(
     dataset: EvalDataset,
     cases: Sequence[EvalCase],
@@ -242,12 +262,16 @@ def run_bench(
 
     Raises:
         InputError: unknown metric or backend.
+        OutputPathError: an output under ``out_dir`` cannot be written (:func:`check_bench_outputs`),
+            before any work.
     """
     if metric not in METRICS:
         raise InputError(f"unknown bench metric {metric!r}; use one of {', '.join(METRICS)}")
     for s in settings:
         if s.backend not in BACKENDS:  # unknown backends fail before any work
             raise InputError(f"unknown backend {s.backend!r}; available: {', '.join(sorted(BACKENDS))}")
+    if out_dir is not None:
+        check_bench_outputs(out_dir, settings)
     run = run_fn or _default_run
     eval_size = eval_size or max((s.size for s in settings), default=None)
     runs: list[EvalRun] = []
@@ -271,7 +295,10 @@ def run_bench(
             splatt3r_compatible=splatt3r_compatible,
             baselines=(),
         )
-        writer = ResultWriter(out_dir / "runs" / s.slug, {"setting": asdict(s)}) if out_dir is not None else None
+        writer = None
+        if out_dir is not None:  # checked again: runs/ might have become a link since check_bench_outputs
+            check_folder(out_dir / "runs")
+            writer = ResultWriter(check_folder(out_dir / "runs" / s.slug), {"setting": asdict(s)})
         runs.append(run(dataset, cases, recon, cfg, writer, i))
         rows = bench_rows(settings[: i + 1], runs, metric)
         if out_dir is not None:

@@ -28,10 +28,12 @@ in the results, counts as a 180° pose error in the AUC, and has no image metric
 baseline is still measured). Bad input met during a case (an unreadable image) makes it
 an **error**: recorded with its message, left out of every statistic, and the run goes on.
 
-**A run** (:func:`evaluate`) evaluates the cases in order; with a :class:`ResultWriter`,
-each finished case is appended to ``cases.jsonl`` at once and ``results.json`` /
-``results.csv`` are rewritten (atomically) after every case, so an interrupted run keeps
-everything it finished.
+**A run** (:func:`evaluate`) first checks every case's context views against the pipeline's
+minimum photo size (:func:`check_context_sizes`, from the cameras, whose sizes the data set's
+loader matched to the image headers: no pixel is read), so such bad input stops the run before
+the first reconstruction; then it evaluates the cases in order. With a :class:`ResultWriter`,
+``cases.jsonl``, ``results.json`` and ``results.csv`` are rewritten (atomically) after every case,
+so an interrupted run keeps everything it finished.
 
 **Summary** (:func:`summarize`): per split and method, image metrics averaged over targets
 (the reconstruction and ``points`` over the targets of successful cases, ``copy`` over
@@ -56,14 +58,14 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from .._atomic import atomic_write_text
+from .._atomic import atomic_write_text, check_folder, check_writable
 from .._json import to_jsonable
 from ..cameras import Camera
 from ..datasets import EvalDataset, EvalScene, resize_depth_nearest
-from ..errors import InputError, OutputPathError, ReconstructionError
+from ..errors import DatasetError, InputError, OutputPathError, ReconstructionError
 from ..metrics import rotation_error_deg, translation_direction_error_deg
 from ..pipeline.run import Reconstruction
-from ..pipeline.views import working_size
+from ..pipeline.views import MIN_IMAGE_SIDE, working_size
 from ..render import render_camera
 from .baselines import PointsConfig, nearest_context, point_cloud, render_points
 from .coverage import DEPTH_ATOL, DEPTH_RTOL, visibility_mask
@@ -78,6 +80,7 @@ __all__ = [
     "EvalRun",
     "ResultWriter",
     "TargetResult",
+    "check_context_sizes",
     "evaluate",
     "evaluate_case",
     "summarize",
@@ -350,6 +353,31 @@ def evaluate_case(
 
 
 # ------------------------------------------------------------------------------------ a run
+def check_context_sizes(dataset: EvalDataset, cases: Sequence[EvalCase] | None = None) -> None:
+    """Refuse, before any reconstruction, context views smaller than the pipeline accepts (``MIN_IMAGE_SIDE``).
+
+    The sizes are the cameras', which the loaders matched to the image headers (EXIF orientation
+    applied), so no file is read. ``cases`` None checks every frame of every scene (any frame may
+    be drawn as a context view when the cases are made from the splits). O(frames + cases).
+
+    Raises:
+        DatasetError: naming the image, its size and the case (or the scene).
+    """
+    scenes = {s.name: s for s in dataset.scenes}
+    if cases is None:
+        todo = [(s, i, f"scene {s.name!r}") for s in dataset.scenes for i in range(len(s.frames))]
+    else:
+        todo = [(scenes[c.scene], i, f"case {c.key}") for c in cases if c.scene in scenes for i in c.context]
+    for scene, i, where in todo:
+        f = scene.frames[i]
+        w, h = f.camera.width, f.camera.height
+        if min(w, h) < MIN_IMAGE_SIDE:
+            raise DatasetError(
+                f"{f.image}: {w}x{h} px is too small for a context view ({where}); at least {MIN_IMAGE_SIDE} px "
+                "on each side are needed"
+            )
+
+
 def evaluate(
     dataset: EvalDataset,
     cases: Sequence[EvalCase],
@@ -371,8 +399,13 @@ def evaluate(
 
     Returns:
         The run (every case has a result; bad input in a case is recorded as an error).
+
+    Raises:
+        DatasetError: a context view too small for the pipeline (:func:`check_context_sizes`),
+            before the first case.
     """
     cfg = config or EvalConfig()
+    check_context_sizes(dataset, cases)
     run = EvalRun(str(dataset.root), dataset.layout, reconstructor.name, cfg, list(cases))
     if writer is not None:
         writer.start(run)
@@ -537,16 +570,25 @@ def _fmt_csv(v: Any) -> Any:
 class ResultWriter:
     """Writes a run's results into a folder after every case.
 
-    Files: ``cases.jsonl`` (one JSON line per finished case, appended and flushed at once),
-    ``results.json`` (settings, summary and every case), ``results.csv`` (one row per
-    case, target and method) and ``summary.md`` (the summary tables), rewritten atomically
-    after every case, and
-    ``coverage/<scene>.json`` when coverage matrices are given.
+    Files: ``cases.jsonl`` (one JSON line per finished case), ``results.json`` (settings, summary
+    and every case), ``results.csv`` (one row per case, target and method) and ``summary.md`` (the
+    summary tables), each rewritten atomically after every case, and ``coverage/<scene>.json``
+    when coverage matrices are given.
+
+    ``cases.jsonl`` is rewritten whole rather than appended to: O(cases) per case, as for
+    ``results.json`` (which holds the same cases), and in exchange the file is whole at every
+    moment (a run killed mid-write leaves no half line) and is never opened in place, so a
+    symbolic link or device planted at its name is refused like at any output (:mod:`.._atomic`)
+    instead of being written through. ``coverage/`` may not be a link either.
     """
+
+    FILES = ("cases.jsonl", "results.json", "results.csv", "summary.md")
+    """The files written into the folder (besides ``coverage/``)."""
 
     def __init__(self, folder: str | Path, extra: dict[str, Any] | None = None) -> None:
         self.folder = Path(folder)
         self.extra = extra or {}
+        self.check(self.folder)
         try:
             self.folder.mkdir(parents=True, exist_ok=True)
         except OSError as e:
@@ -555,27 +597,36 @@ class ResultWriter:
         self.json_path = self.folder / "results.json"
         self.csv_path = self.folder / "results.csv"
 
+    @classmethod
+    def check(cls, folder: str | Path) -> None:
+        """Before any work: every file of :attr:`FILES` can be written (:func:`~.._atomic.check_writable`: no
+        link, device or folder at its name) and ``coverage/`` is not a link or a file.
+
+        Raises:
+            OutputPathError: naming the file.
+        """
+        folder = Path(folder)
+        for name in cls.FILES:
+            check_writable(folder / name)
+        check_folder(folder / "coverage")
+
     def write_coverage(self, coverage: dict[str, np.ndarray], frames: dict[str, list[str]]) -> None:
         for scene, cov in coverage.items():
             doc = {"scene": scene, "frames": frames.get(scene, []), "coverage": np.round(cov, 5).tolist()}
-            atomic_write_text(self.folder / "coverage" / f"{scene.replace('/', '_')}.json", json.dumps(doc) + "\n")
+            name = scene.replace("/", "_").replace("\\", "_")  # one file directly in coverage/
+            atomic_write_text(check_folder(self.folder / "coverage") / f"{name}.json", json.dumps(doc) + "\n")
 
     def start(self, run: EvalRun) -> None:
-        try:
-            self.jsonl.write_text("", encoding="utf-8")
-        except OSError as e:
-            raise OutputPathError(f"cannot write {self.jsonl}: {e.strerror or e}") from None
         self.write(run)
 
     def add(self, run: EvalRun, result: CaseResult) -> None:
-        with open(self.jsonl, "a", encoding="utf-8") as f:
-            f.write(json.dumps(result.to_dict()) + "\n")
-            f.flush()
         self.write(run)
 
     def write(self, run: EvalRun) -> None:
         from dataclasses import asdict, replace
 
+        cases = [r.to_dict() for r in run.results]
+        atomic_write_text(self.jsonl, "".join(json.dumps(c) + "\n" for c in cases))
         doc = {
             "dataset": run.dataset,
             "layout": run.layout,
@@ -588,7 +639,7 @@ class ResultWriter:
             "pending": [c.key for c in run.cases[len(run.results) :]],
             "errors": [{"case": r.case.key, "error": r.error} for r in run.errors],
             "summary": to_jsonable(summarize(run)),
-            "cases": [r.to_dict() for r in run.results],
+            "cases": cases,
         }
         atomic_write_text(self.json_path, json.dumps(doc, indent=1) + "\n")
         buf = io.StringIO()
