@@ -150,6 +150,17 @@ def forward_rel_tol(module: torch.nn.Module, *sums: int, dtype: torch.dtype = to
     return sum(gamma(n, dtype) for n in [*dot_lengths(module), *sums])
 
 
+def forward_rel_tol_probabilistic(
+    module: torch.nn.Module, *sums: int, dtype: torch.dtype = torch.float32, lam: float = 8.0
+) -> float:
+    """:func:`forward_rel_tol` with each layer's γ(n) replaced by the probabilistic bound λ·√n·u (Higham & Mary,
+    SIAM J. Sci. Comput. 41(5), 2019: with independent rounding errors, a sum of n terms is within λ√n·u·Σ|terms|
+    except with probability ≤ 2n·exp(−λ²(1 − u)²/2); λ = 8: < 1e-12 per 4608-term dot). For wide layers, where the
+    worst case n·u is √n times too pessimistic to leave a meaningful tolerance."""
+    u = unit_roundoff(dtype)
+    return sum(lam * math.sqrt(n) * u for n in [*dot_lengths(module), *sums])
+
+
 # Rounding budgets of the rotation conversions (macsplat_cli.rotations and NumPy twins), in units of the unit
 # roundoff u of the working precision, first order (derivations in tests/test_rotations.py):
 ROT_UNIT_Q = 4  # a normalised quaternion q/‖q‖, per component; and ‖q̂‖ − 1

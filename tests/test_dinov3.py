@@ -40,7 +40,10 @@ from macsplat_cli.neural.dinov3 import (
     rope_sin_cos,
 )
 
+from _helpers import forward_rel_tol, gamma, max_rel_err, unit_roundoff
+
 TINY = DINOv3Config.preset("tiny")
+U32 = unit_roundoff(torch.float32)
 TINY_SWIGLU = dataclasses.replace(TINY, name="tiny-swiglu", ffn="swiglu", ffn_hidden_dim=96)
 
 
@@ -206,6 +209,15 @@ def write_hf_folder(folder: Path, sd_official: dict[str, torch.Tensor], cfg: DIN
     return folder
 
 
+def _forward_tol(enc: torch.nn.Module, n_tokens: int) -> float:
+    """Relative rounding estimate of one float32 encoder pass (``forward_rel_tol``): its Linear/conv/LayerNorm
+    layers, and per block QKᵀ over the head size, the softmax sum and softmax·V over the tokens, and the float32
+    RoPE tables' ε ≤ (10π + 2)u on each of q and k (≈ 68 roundings of a score)."""
+    cfg = enc.config
+    per_block = [cfg.embed_dim // cfg.num_heads, n_tokens, n_tokens, 68]
+    return forward_rel_tol(enc, *(cfg.depth * per_block))
+
+
 def reference_forward(sd: dict[str, torch.Tensor], cfg: DINOv3Config, x: torch.Tensor) -> torch.Tensor:
     """Naive DINOv3 forward in float64 on ImageNet-normalised images → all tokens after the final norm."""
     sd = {k: v.double() for k, v in sd.items()}
@@ -296,6 +308,7 @@ def test_preset_keys_and_shapes_match_official_layout(name: str) -> None:
     got = {k: tuple(v.shape) for k, v in enc.state_dict().items()}
     assert got == official_spec(c, depth, heads, hidden, ffn)
     assert len(got) == n_keys
+    # an exact count against the reference's figure, which is rounded to 0.1 M (± 0.05 M)
     assert sum(p.numel() for p in enc.parameters()) / 1e6 == pytest.approx(mparams, abs=0.05)
 
 
@@ -401,7 +414,16 @@ def test_other_rope_base_is_custom(base: float, stored: str) -> None:
         cfg = infer_dinov3_config(real_state_dict("vitl16", periods, sat=sat))
         assert cfg.name.startswith("custom-1024d-24x16h-mlp4096-rope"), cfg.name
         assert cfg.image_mean == IMAGENET_MEAN  # not the SAT-493M normalisation: not that model
-        assert cfg.rope_base == pytest.approx(base, rel=1e-6 if stored == "float32" else 5e-3)
+        # The base is the least-squares slope of log pᵢ = (i/P)·log base, printed to 4 significant digits. Periods
+        # off by ≤ u relative (u of the stored dtype, + 5u32 of the float32 pow) move log base by
+        # ≤ u·Σeᵢ/Σeᵢ² = u·3P/(2P − 1); the 4-digit rounding adds ≤ 5e-4 relative. For float32 periods the fit is
+        # within 1e-6 of a 4-digit base, so the rounding returns it exactly.
+        if stored == "float32":
+            assert cfg.rope_base == base
+        else:
+            p = 64 // 4
+            rel = 3 * p / (2 * p - 1) * (unit_roundoff(torch.bfloat16) + 5 * U32) + 5e-4
+            assert cfg.rope_base == pytest.approx(base, rel=rel, abs=0)
         assert cfg.untie_global_and_local_cls_norm == sat
         with torch.device("meta"):
             assert set(DINOv3Encoder(cfg).state_dict()) == set(real_state_dict("vitl16", periods, sat=sat))
@@ -432,7 +454,7 @@ def test_rope_periods_vits16() -> None:
     p = rope_periods(64, 100.0)
     assert p.shape == (16,)
     assert p[0].item() == 1.0
-    assert p[-1].item() == pytest.approx(74.99, abs=5e-3)
+    assert p[-1].item() == pytest.approx(74.99, abs=5e-3)  # 100^(15/16) = 74.989…; the reference gives 2 decimals
     assert torch.all(p[1:] > p[:-1])
 
 
@@ -443,13 +465,20 @@ def test_rope_tables_hand_computed() -> None:
     pi = math.pi
     # token 1 = row 0, column 1: y = 2·0.25 − 1 = −0.5, x = +0.5; y frequencies first, then x, tiled twice.
     expected = torch.tensor([-pi, -pi / 10, pi, pi / 10] * 2)
-    torch.testing.assert_close(sin[1], torch.sin(expected), rtol=0, atol=1e-6)
-    torch.testing.assert_close(cos[1], torch.cos(expected), rtol=0, atol=1e-6)
+    # float32: the coordinates are exact here; θ = fl(2π)·c/p is 3 roundings (3u|θ|), the test's θ one (u|θ|); sin
+    # and cos to 1 ulp each side (2·2u): |Δ| ≤ 4u·|θ| + 4u
+    tol = U32 * (4 * math.pi + 4)
+    torch.testing.assert_close(sin[1], torch.sin(expected), rtol=0, atol=tol)
+    torch.testing.assert_close(cos[1], torch.cos(expected), rtol=0, atol=tol)
     # "separate" normalisation on a 1×3 grid: y = 0, x ∈ {−2/3, 0, 2/3}.
     sin, cos = rope_sin_cos(periods, 1, 3)
     angles_x = torch.tensor([-2 / 3, 0.0, 2 / 3])[:, None] * 2 * pi / periods
-    torch.testing.assert_close(sin[:, 2:4], torch.sin(angles_x), rtol=0, atol=1e-6)
-    torch.testing.assert_close(sin[:, 0:2], torch.zeros(3, 2), rtol=0, atol=1e-7)
+    # x = 2·(j + 0.5)/3 − 1 is now ≤ 2u off (the /3 and the cancelling − 1), i.e. ≤ 2π·2u in θ (p ≥ 1); the test's
+    # −2/3 and 2π/p ≤ 3u|θ|; |θ| ≤ 4π/3: |Δ| ≤ (4π + 4·4π/3 + 4)u
+    tol_x = U32 * (4 * math.pi + 16 * math.pi / 3 + 4)
+    torch.testing.assert_close(sin[:, 2:4], torch.sin(angles_x), rtol=0, atol=tol_x)
+    # y = 2·0.5 − 1 = 0 exactly, and sin 0 = 0 for any sin with a relative error bound
+    assert torch.equal(sin[:, 0:2], torch.zeros(3, 2))
 
 
 def test_rope_relative_position_property() -> None:
@@ -460,14 +489,23 @@ def test_rope_relative_position_property() -> None:
     q = torch.randn(hd, generator=g, dtype=torch.float64).expand(h * w, hd)
     k = torch.randn(hd, generator=g, dtype=torch.float64).expand(h * w, hd)
     qr, kr = apply_rope(q, sin.double(), cos.double()), apply_rope(k, sin.double(), cos.double())
-    torch.testing.assert_close(qr.norm(dim=-1), q.norm(dim=-1), rtol=1e-6, atol=0)
+    # The float32 tables: c, s within 1 ulp (2u32 relative) of cos, sin of the same float32 θ, so c² + s² = 1 ± 4u32
+    # and each pair's length moves by ≤ 2u32; the float64 arithmetic and norms add γ₃₂(f64)
+    torch.testing.assert_close(qr.norm(dim=-1), q.norm(dim=-1), rtol=2 * U32 + gamma(32, torch.float64), atol=0)
     dots = qr @ kr.T  # [hw, hw]
     by_offset: dict[tuple[int, int], list[float]] = {}
     for a in range(h * w):
         for b in range(h * w):
             by_offset.setdefault((b // w - a // w, b % w - a % w), []).append(float(dots[a, b]))
+    # Each table entry is off the exact cos/sin of the exact angle by ε ≤ δθ + 2u32, δθ ≤ 2π·2u (the coordinate, p ≥ 1)
+    # + 3u·2π (the float32 product and quotient, |θ| ≤ 2π): ε ≤ (10π + 2)u32. A rotated pair moves by ≤ ε·‖pair‖₁, so a
+    # score by ≤ 4ε·S, S = Σ over pairs of ‖q pair‖₁‖k pair‖₁; two scores of one offset differ by ≤ 8εS (+ float64)
+    eps = (10 * math.pi + 2) * U32
+    pq, pk = q[0].abs(), k[0].abs()
+    s_pairs = float(((pq[: hd // 2] + pq[hd // 2 :]) * (pk[: hd // 2] + pk[hd // 2 :])).sum())
+    spread = 8 * eps * s_pairs + 2 * gamma(hd, torch.float64) * s_pairs
     for vals in by_offset.values():
-        assert max(vals) - min(vals) < 1e-5
+        assert max(vals) - min(vals) <= spread
     means = {off: sum(v) / len(v) for off, v in by_offset.items()}
     assert abs(means[(0, 1)] - means[(0, 0)]) > 1e-3  # the rotation does depend on the offset
     assert abs(means[(1, 0)] - means[(0, 1)]) > 1e-3
@@ -486,11 +524,13 @@ def test_forward_matches_naive_reference(cfg: DINOv3Config) -> None:
     img = random_images(2, 48, 80)
     out = enc.encode(img)
     x = ((img * 0.5 + 0.5) - IMAGENET_MEAN_T) / IMAGENET_STD_T
-    ref = reference_forward(sd, cfg, x).float()  # [B, 1+4+hw, C]
+    ref = reference_forward(sd, cfg, x)  # [B, 1+4+hw, C] float64
     assert out.patch.shape == (2, 3, 5, cfg.embed_dim)
-    torch.testing.assert_close(out.cls, ref[:, 0], rtol=0, atol=1e-4)
-    torch.testing.assert_close(out.storage, ref[:, 1:5], rtol=0, atol=1e-4)
-    torch.testing.assert_close(out.patch, ref[:, 5:].reshape(2, 3, 5, -1), rtol=0, atol=1e-4)
+    # (c) float32 against the float64 reference: within _forward_tol relative to the largest value (measured ≤ 122u)
+    tol = _forward_tol(enc, n_tokens=1 + 4 + 3 * 5)
+    assert max_rel_err(out.cls.double(), ref[:, 0].double()) <= tol
+    assert max_rel_err(out.storage.double(), ref[:, 1:5].double()) <= tol
+    assert max_rel_err(out.patch.double(), ref[:, 5:].reshape(2, 3, 5, -1).double()) <= tol
     # The weights were chosen so that RoPE matters: dropping it changes the output.
     no_rope = reference_forward({**sd, "rope_embed.periods": torch.full_like(sd["rope_embed.periods"], 1e9)}, cfg, x)
     assert (no_rope[:, 5:].float() - ref[:, 5:]).abs().max() > 1e-2
@@ -513,12 +553,15 @@ def test_bad_image_shape_raises(shape: tuple[int, ...]) -> None:
 def test_imagenet_renormalisation() -> None:
     enc = DINOv3Encoder(TINY)
     ones = torch.ones(1, 3, 2, 2)
-    torch.testing.assert_close(enc.renormalize(-ones), (-IMAGENET_MEAN_T / IMAGENET_STD_T).expand(1, 3, 2, 2))
-    torch.testing.assert_close(enc.renormalize(ones), ((1 - IMAGENET_MEAN_T) / IMAGENET_STD_T).expand(1, 3, 2, 2))
+    # (a) ±1·0.5 + 0.5 is 0 or 1 exactly, then the same subtraction and division as the test's
+    assert torch.equal(enc.renormalize(-ones), (-IMAGENET_MEAN_T / IMAGENET_STD_T).expand(1, 3, 2, 2))
+    assert torch.equal(enc.renormalize(ones), ((1 - IMAGENET_MEAN_T) / IMAGENET_STD_T).expand(1, 3, 2, 2))
     img = random_images(2, 32, 48)
     manual = ((img + 1) / 2 - IMAGENET_MEAN_T) / IMAGENET_STD_T
-    torch.testing.assert_close(enc.renormalize(img), manual)
-    torch.testing.assert_close(enc(img), enc.encode_normalized(manual).patch, rtol=1e-5, atol=1e-5)
+    # (a) fl(x·0.5 + 0.5) = fl(x + 1)/2: halving is exact and commutes with rounding; the rest is the same operations
+    assert torch.equal(enc.renormalize(img), manual)
+    # (a) so the encoder then runs the same kernels on the same numbers
+    assert torch.equal(enc(img), enc.encode_normalized(manual).patch)
     # Feeding [-1, 1] images straight to the normalised entry point gives something else.
     assert (enc.encode_normalized(img).patch - enc(img)).abs().max() > 1e-3
     sat = DINOv3Encoder(dataclasses.replace(TINY, image_mean=SAT493M_MEAN))
@@ -561,8 +604,8 @@ def test_load_official_pth_strict(tiny_pth: tuple[Path, dict[str, torch.Tensor]]
         assert not enc.training and all(not p.requires_grad for p in enc.parameters())
     img = random_images(1, 32, 64)
     x = ((img * 0.5 + 0.5) - IMAGENET_MEAN_T) / IMAGENET_STD_T
-    ref = reference_forward(sd, TINY, x).float()[:, 5:].reshape(1, 2, 4, -1)
-    torch.testing.assert_close(enc(img), ref, rtol=0, atol=1e-4)
+    ref = reference_forward(sd, TINY, x)[:, 5:].reshape(1, 2, 4, -1)
+    assert max_rel_err(enc(img).double(), ref) <= _forward_tol(enc, n_tokens=1 + 4 + 2 * 4)  # (c), as above
 
 
 @pytest.mark.parametrize("cfg", [TINY, TINY_SWIGLU], ids=["mlp", "swiglu"])
@@ -574,7 +617,8 @@ def test_load_hf_folder_matches_official(tmp_path: Path, cfg: DINOv3Config) -> N
     enc_hf = load_dinov3(folder)
     assert dataclasses.replace(enc_hf.config, name=cfg.name) == cfg
     img = random_images(2, 48, 32)
-    torch.testing.assert_close(enc_hf(img), load_dinov3(official)(img), rtol=0, atol=1e-6)
+    # (a) the conversion only moves numbers (checked bitwise below): the same module, weights and input
+    assert torch.equal(enc_hf(img), load_dinov3(official)(img))
 
 
 def test_hf_config_checked(tmp_path: Path) -> None:
@@ -606,7 +650,9 @@ def test_hf_mapping_round_trip_and_model_prefix(tmp_path: Path) -> None:
     single = tmp_path / "tiny_hf.safetensors"
     write_safetensors(single, official_to_hf(sd, prefix="model."))
     enc = load_dinov3(single, TINY)
-    torch.testing.assert_close(enc.rope_embed.periods, sd["rope_embed.periods"])
+    # HF files have no periods: the encoder computes base^(2i/(D/2)) in float32, the test's file in float64 then
+    # rounds: pow to 2 ulp (4u) and the rounding (u), of values ≤ 100^(7/8)
+    torch.testing.assert_close(enc.rope_embed.periods, sd["rope_embed.periods"], rtol=5 * U32, atol=0)
 
 
 def test_hf_unknown_key_is_named() -> None:

@@ -20,7 +20,13 @@ from macsplat_cli.neural.fusion import (
     save_fusion,
 )
 
+from _helpers import gamma, unit_roundoff
+
 TINY = DINOv3Config.preset("tiny")  # C = 64
+U32 = unit_roundoff(torch.float32)
+# Renormalised output f'·‖f‖/‖f'‖ of unit f (F.normalize: ‖f‖ = 1 ± (γ₂₄/2 + 2u)): the two norms (γ₂₄/2 + u each),
+# the quotient and the product (2u), and a test's norm (γ₂₄/2 + u): |‖out‖ − 1| ≤ 2γ₂₄ + 6u
+UNIT_LEN = 2 * gamma(24, torch.float32) + 6 * U32
 CFG = FusionConfig(desc_dim=24, dino_dim=64, hidden_dim=32, depth=2)
 
 
@@ -78,12 +84,13 @@ def test_renormalised_output_keeps_descriptor_length() -> None:
     m = trained_like()
     out = m(desc, dino_features(1, 1, 1))
     assert (out - desc).abs().max() > 1e-2
-    torch.testing.assert_close(out.norm(dim=-1), torch.ones(1, 16, 16), rtol=0, atol=1e-6)
+    torch.testing.assert_close(out.norm(dim=-1), torch.ones(1, 16, 16), rtol=0, atol=UNIT_LEN)
     raw = ResidualSemanticFusion(FusionConfig(dino_dim=64, hidden_dim=32, renormalize=False))
     raw.load_state_dict(m.state_dict())
     plain = raw(desc, dino_features(1, 1, 1))
     assert (plain.norm(dim=-1) - 1).abs().max() > 1e-3  # without re-normalisation the length drifts
-    torch.testing.assert_close(out, F.normalize(plain, dim=-1), rtol=0, atol=1e-6)
+    # (b) plain·‖f‖/‖plain‖ vs plain/‖plain‖: ‖f‖ is 1 up to γ₂₄ + 3u, and each side's other roundings (≤ UNIT_LEN)
+    torch.testing.assert_close(out, F.normalize(plain, dim=-1), rtol=0, atol=UNIT_LEN)
 
 
 def test_zero_descriptor_is_safe() -> None:
@@ -135,6 +142,8 @@ def test_gradcheck_float64() -> None:
     m = trained_like(cfg).double()
     desc = F.normalize(torch.randn(1, 3, 4, 4, dtype=torch.float64), dim=-1).requires_grad_(True)
     dino = torch.randn(1, 2, 2, 5, dtype=torch.float64, requires_grad=True)
+    # float64: central differences with eps = 1e-6 err by O(eps²) ≈ 1e-12 (truncation) + u/eps ≈ 1e-10 (rounding)
+    # relative to O(1) values, far inside atol/rtol; a wrong gradient term is off by O(1)
     assert torch.autograd.gradcheck(m, (desc, dino), eps=1e-6, atol=1e-5, rtol=1e-3, fast_mode=True)
 
 
@@ -166,9 +175,14 @@ def test_bilinear_resize_aligns_patch_centres() -> None:
     y = torch.arange(48, dtype=torch.float32)[:, None] + 0.5  # pixel centres
     x = torch.arange(64, dtype=torch.float32)[None, :] + 0.5
     inner = (slice(8, 40), slice(8, 56))  # between the outermost patch centres (bilinear clamps beyond them)
-    torch.testing.assert_close(p[0, :, :, 0][inner], y.expand(48, 64)[inner], rtol=0, atol=1e-4)
-    torch.testing.assert_close(p[0, :, :, 1][inner], x.expand(48, 64)[inner], rtol=0, atol=1e-4)
-    torch.testing.assert_close(p[0, :, :, 2], torch.full((48, 64), 5.0))
+    # float32: the identity projection is exact (products by 0 and 1, sums with zeros); the source coordinate
+    # (dst + 0.5)·(in/out) − 0.5 is ≤ 2 roundings of values ≤ 4 input pixels (16 output px each, and the ramp's
+    # slope is 1 per output px: ≤ 16·2u·4), the blend 3 roundings of values ≤ 56
+    tol = U32 * (16 * 2 * 4 + 3 * 56)
+    torch.testing.assert_close(p[0, :, :, 0][inner], y.expand(48, 64)[inner], rtol=0, atol=tol)
+    torch.testing.assert_close(p[0, :, :, 1][inner], x.expand(48, 64)[inner], rtol=0, atol=tol)
+    # a blend of equal values: ≤ 3 roundings of 5
+    torch.testing.assert_close(p[0, :, :, 2], torch.full((48, 64), 5.0), rtol=0, atol=3 * U32 * 5.0)
     assert p[0, 0, 0, 0] == 8.0 and p[0, -1, -1, 1] == 56.0  # clamped at the border
 
 
@@ -176,9 +190,11 @@ def test_project_then_resize_equals_resize_then_project() -> None:
     m = ResidualSemanticFusion(CFG)
     dino = dino_features(2, 3, 5)
     resized = F.interpolate(dino.permute(0, 3, 1, 2), size=(40, 72), mode="bilinear", align_corners=False)
-    torch.testing.assert_close(
-        m.project_dino(dino, (40, 72)), m.proj(resized.permute(0, 2, 3, 1)), rtol=1e-5, atol=1e-5
-    )
+    # (b) two orders of two linear maps: the 64-term projection (γ₆₄ of Σ|W||x| + |b|) and the 4-term convex blend
+    # (γ₃ of the largest input); each order within (γ₆₄ + γ₃)·S, S = the largest Σ|W||x| + |b|
+    s_abs = float((dino.abs().amax(dim=(1, 2)) @ m.proj.weight.detach().abs().T + m.proj.bias.detach().abs()).max())
+    tol = 2 * (gamma(64, torch.float32) + gamma(3, torch.float32)) * s_abs
+    torch.testing.assert_close(m.project_dino(dino, (40, 72)), m.proj(resized.permute(0, 2, 3, 1)), rtol=0, atol=tol)
 
 
 def test_same_grid_needs_no_resize() -> None:
