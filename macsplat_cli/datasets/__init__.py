@@ -30,8 +30,13 @@ Layouts (``layout="auto"`` picks the first that fits):
   RGB calibration (fx 518, fy 519, cx 325.5, cy 253.5; approximate poses).
 
 Loading validates cheaply, before any evaluation work: every file exists, every image's
-header is readable and its size matches its camera, depth maps match their image size.
-Problems raise :class:`~macsplat_cli.errors.DatasetError` naming the file.
+header is readable (no pixel decoded) and its size (EXIF orientation applied) matches its camera
+and the photo limits, no two frames share an image, depth maps match their image size. A name
+read from a data set's files (camera names, CO3D ``image`` paths, ScanNet++ frame and scene ids)
+cannot reach outside the data set: no absolute path, no ``..``, no path separator where a plain
+name is expected, no link out of the folders the layout reads (:func:`.base.member_path`,
+:func:`.base.check_inside`). Problems raise :class:`~macsplat_cli.errors.DatasetError` naming
+the file (and the camera).
 
 Modules: :mod:`.base` (the types, depth reading, validation), one module per layout
 (:mod:`.folder`, :mod:`.scannetpp`, :mod:`.co3d`, :mod:`.icl`), :mod:`.registry`

@@ -1,22 +1,35 @@
 """Data-set types (:class:`EvalDataset` of :class:`EvalScene` s of :class:`Frame` s) and what every loader shares.
 
 Loaders validate cheaply, before any evaluation work, with :func:`validate_scene`: every
-file exists, every image's header is readable and its size matches its camera, depth maps
-match their image size. Problems raise :class:`~macsplat_cli.errors.DatasetError` naming
-the file.
+file exists, every image's header is readable (no pixel is decoded), its size matches its camera
+and is within the photo limits, no two frames share an image, depth maps match their image size,
+and no file leads out of the data set. Problems raise :class:`~macsplat_cli.errors.DatasetError`
+naming the file.
+
+**What a data set may name.** A file name read from a data set's own files (a camera name of
+``cameras.json``, an ``image`` of ``cameras_opencv.json``, a ScanNet++ frame or scene id) goes
+through :func:`member_path`: it must be relative, without a ``..`` component, and (except where
+a layout names files in subfolders) a plain file name without a path separator. And every file
+read, links resolved, must lie inside the data set folder the user named (``--data``, itself
+resolved: it may be a link) or macsplat's own undistortion cache (:func:`check_inside`): a link
+inside the data set that leads out of it, to a file or to a folder (``images -> /elsewhere``), is
+refused, so that a data set cannot make macsplat read ``/etc/passwd`` or photos it does not hold.
+A data set whose files live elsewhere is read by pointing ``--data`` at a folder that holds them.
 """
 
 from __future__ import annotations
 
 import os
+import re
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Any, Literal, get_args
 
 import cv2
 import numpy as np
 
-from .._limits import read_json_file
+from .._limits import MAX_IMAGE_FILE_BYTES, MAX_MEGAPIXELS_ENV, max_image_pixels, read_json_file
 from ..cameras import Camera, Scale
 from ..errors import DatasetError, ImageReadError
 from ..images import load_image
@@ -27,7 +40,9 @@ __all__ = [
     "EvalScene",
     "Frame",
     "Layout",
+    "check_inside",
     "image_size",
+    "member_path",
     "read_depth",
     "read_json",
     "resize_depth_nearest",
@@ -158,16 +173,70 @@ def resize_depth_nearest(depth: np.ndarray, width: int, height: int) -> np.ndarr
     return np.ascontiguousarray(depth[ys[:, None], xs[None, :]])
 
 
+def member_path(folder: Path, name: object, what: str, *, subfolders: bool = False) -> Path:
+    """``folder / name`` for a file name read from a data set's own files, refused where it could lead elsewhere.
+
+    Args:
+        folder: the folder the name is relative to.
+        name: the name as read (any JSON value; it must be a string).
+        what: where the name comes from, for the message (``"D/cameras.json: camera"``; the name follows).
+        subfolders: the layout names files in subfolders of ``folder`` (``images/frame1.jpg``);
+            otherwise the name must be a plain file name.
+
+    Raises:
+        DatasetError: the name is not a string, is empty or ``.``/``..``, holds a NUL character, is
+            absolute (POSIX or Windows), has a ``..`` component, or (without ``subfolders``) a path
+            separator (``/`` or ``\\``).
+    """
+    if not isinstance(name, str):
+        raise DatasetError(f"{what} {name!r}: the file name must be a string")
+    parts = re.split(r"[\\/]", name)
+    bad = None
+    if not name.strip() or name in (".", "..") or "\x00" in name:
+        bad = "is not a file name"
+    elif PurePosixPath(name).is_absolute() or PureWindowsPath(name).is_absolute() or PureWindowsPath(name).drive:
+        bad = "is an absolute path"
+    elif ".." in parts:
+        bad = "has a '..' component"
+    elif len(parts) > 1 and not subfolders:
+        bad = "holds a path separator"
+    if bad is not None:
+        raise DatasetError(f"{what} {name!r} {bad}; a data set names its files by plain names inside {folder}")
+    return folder / name
+
+
+def check_inside(path: Path, roots: Sequence[Path], what: str) -> Path:
+    """``path``, which must lie inside one of the folders ``roots`` once links are resolved (when it exists).
+
+    Raises:
+        DatasetError: a link (of the file or of a folder below a root) leads out of every root.
+    """
+    if not os.path.lexists(path):
+        return path
+    real = Path(os.path.realpath(path))
+    if any(real == r or r in real.parents for r in (Path(os.path.realpath(r)) for r in roots)):
+        return path
+    shown = ", ".join(str(r) for r in roots)
+    raise DatasetError(
+        f"{path}: {what} leads to {real}, outside the data set ({shown}); a link out of the data set is not followed"
+    )
+
+
 def image_size(path: Path) -> tuple[int, int]:
-    """(width, height) of an image as displayed (EXIF orientation applied), from its header."""
+    """(width, height) of an image as displayed (EXIF orientation applied), from its header (no pixel decoded)."""
     if not path.is_file():
         raise DatasetError(f"{path}: image not found")
     try:
         from PIL import Image
 
-        with Image.open(path) as im:
-            w, h = im.size
-            orientation = int(im.getexif().get(0x0112, 1) or 1)
+        saved = Image.MAX_IMAGE_PIXELS
+        Image.MAX_IMAGE_PIXELS = None  # macsplat applies its own cap (validate_scene); Pillow's would hide the size
+        try:
+            with Image.open(path) as im:
+                w, h = im.size
+                orientation = int(im.getexif().get(0x0112, 1) or 1)
+        finally:
+            Image.MAX_IMAGE_PIXELS = saved
     except Exception as e:  # noqa: BLE001 - Pillow raises many types for a broken header
         raise DatasetError(f"{path}: not a readable image ({type(e).__name__}: {e})") from None
     return (h, w) if orientation in (5, 6, 7, 8) else (w, h)
@@ -193,21 +262,52 @@ def read_json(path: Path) -> Any:
     return read_json_file(path, DatasetError)
 
 
-def validate_scene(scene: EvalScene, where: Path) -> EvalScene:
-    """Files exist, image and depth sizes match the cameras, at least three frames."""
+def validate_scene(scene: EvalScene, where: Path, roots: Sequence[Path] | None = None) -> EvalScene:
+    """Check a scene from its files' headers, before any evaluation work (nothing is decoded).
+
+    At least three frames with distinct names; every image exists, its header is readable, its
+    size (EXIF orientation applied) is its camera's, it is within the photo limits
+    (``MACSPLAT_MAX_MEGAPIXELS``, 1 GiB per file), and no two frames use one image file (also
+    through a link); depth maps exist and match their image's size; with ``roots``, every image
+    and depth map lies, links resolved, inside one of these folders. O(N) in the number of
+    frames, one header read per file.
+
+    Raises:
+        DatasetError: the first problem, naming the file (and the frames, for a shared image).
+    """
     if len(scene.frames) < 3:
         raise DatasetError(f"{where}: scene {scene.name!r} has {len(scene.frames)} frame(s); at least 3 are needed")
     names = [f.name for f in scene.frames]
-    dup = sorted({n for n in names if names.count(n) > 1})
+    dup = sorted({n for n in names if names.count(n) > 1}) if len(set(names)) != len(names) else []
     if dup:
         raise DatasetError(f"{where}: frame names repeated in scene {scene.name!r}: {', '.join(dup)}")
+    limit = max_image_pixels()
+    used: dict[object, str] = {}
     for f in scene.frames:
+        for p in (f.image, f.depth) if roots is not None else ():
+            if p is not None:
+                check_inside(p, roots, f"frame {f.name!r}")
         size = image_size(f.image)
         cam = (f.camera.width, f.camera.height)
         if size != cam:
             raise DatasetError(
                 f"{f.image}: the image is {size[0]}x{size[1]}, but its camera {f.camera.name!r} is {cam[0]}x{cam[1]}"
             )
+        st = f.image.stat()
+        if st.st_size > MAX_IMAGE_FILE_BYTES:
+            raise DatasetError(f"{f.image}: {st.st_size:,} bytes is too large for an image")
+        if size[0] * size[1] > limit:
+            raise DatasetError(
+                f"{f.image}: {size[0]}x{size[1]} is {size[0] * size[1] / 1e6:.1f} megapixels, above the limit of "
+                f"{limit / 1e6:g} megapixels (raise it with the environment variable {MAX_MEGAPIXELS_ENV})"
+            )
+        key = (st.st_dev, st.st_ino)
+        if key in used:
+            raise DatasetError(
+                f"{where}: frames {used[key]!r} and {f.name!r} of scene {scene.name!r} use the same image file "
+                f"{f.image}: each camera needs its own image"
+            )
+        used[key] = f.name
         if f.depth is not None:
             if not f.depth.is_file():
                 raise DatasetError(f"{f.depth}: depth map not found")

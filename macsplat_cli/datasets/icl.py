@@ -17,7 +17,7 @@ import numpy as np
 
 from ..cameras import Camera, quat_to_rotmat_np
 from ..errors import DatasetError
-from .base import EvalScene, Frame, image_size, validate_scene
+from .base import EvalScene, Frame, check_inside, image_size, validate_scene
 
 __all__ = ["load_rgbd_poses"]
 
@@ -34,7 +34,8 @@ def _quat_xyzw(q: np.ndarray) -> np.ndarray:
 
 def load_rgbd_poses(root: Path, kind: Literal["icl-nuim", "nyu-rgbd"]) -> list[EvalScene]:
     """The one (metric) scene of an ICL-NUIM or NYU RGB-D sequence folder."""
-    pose_file = root / "pose.txt"
+    roots = (root,)  # every file read lies inside the data set folder, links resolved
+    pose_file = check_inside(root / "pose.txt", roots, "the pose file")
     if not pose_file.is_file():
         raise DatasetError(f"{pose_file}: file not found")
     K, flip, ext, scale = (
@@ -53,7 +54,7 @@ def load_rgbd_poses(root: Path, kind: Literal["icl-nuim", "nyu-rgbd"]) -> list[E
         T[:3, :3], T[:3, 3] = _quat_xyzw(v[3:]), v[:3]
         if flip:
             T = _FLIP_Y @ T @ _FLIP_Y
-        img = root / "color" / f"{i}.png"
+        img = check_inside(root / "color" / f"{i}.png", roots, f"frame {i}")
         size = image_size(img)
         if size != _ICL_SIZE:
             raise DatasetError(
@@ -61,4 +62,4 @@ def load_rgbd_poses(root: Path, kind: Literal["icl-nuim", "nyu-rgbd"]) -> list[E
             )
         cam = Camera(str(i), size[0], size[1], K, T)
         frames.append(Frame(str(i), img, cam, root / "depth" / f"{i}{ext}", scale))
-    return [validate_scene(EvalScene(root.resolve().name, frames, "metric"), root)]
+    return [validate_scene(EvalScene(root.resolve().name, frames, "metric"), root, roots=roots)]

@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Literal
 
 from ...errors import DatasetError
-from ..base import EvalScene
+from ..base import EvalScene, member_path
 from .poses import Lens, nerfstudio_to_opencv, opencv_to_nerfstudio, poses_from_transforms, read_colmap_scene
 from .scene import IPHONE_VIDEO_SIZE, load_dslr_scene, load_iphone_scene
 from .undistort import CACHE_FOLDER, UndistortCache, cache_root, pinhole_K, undistort_maps
@@ -69,6 +69,12 @@ def _has_sensor(scene_dir: Path) -> bool:
     return (scene_dir / "dslr").is_dir() or (scene_dir / "iphone").is_dir()
 
 
+def _scene_id(data_root: Path, scene: str, what: str) -> str:
+    """A scene id is a plain folder name under ``data_root`` (no separator, no ``..``): :func:`..base.member_path`."""
+    member_path(data_root, scene, what)
+    return scene
+
+
 def scannetpp_scene_ids(root: str | Path, split: str, scenes: Iterable[str] | None = None) -> list[str]:
     """The scene ids to load (see the module doc); not checked for presence.
 
@@ -78,7 +84,7 @@ def scannetpp_scene_ids(root: str | Path, split: str, scenes: Iterable[str] | No
     r = Path(root)
     data_root, raw_root = _roots(r)
     if scenes is not None:
-        return list(scenes)
+        return [_scene_id(data_root, s, "--scenes: scene") for s in scenes]
     splits = raw_root / "splits"
     if splits.is_dir():
         split_file = splits / f"{split}.txt"
@@ -89,7 +95,8 @@ def scannetpp_scene_ids(root: str | Path, split: str, scenes: Iterable[str] | No
             text = split_file.read_text(encoding="utf-8")
         except (OSError, UnicodeDecodeError) as e:
             raise DatasetError(f"{split_file}: cannot read ({e})") from None
-        return [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+        ids = [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+        return [_scene_id(data_root, s, f"{split_file}: scene") for s in ids]
     if not data_root.is_dir():
         raise DatasetError(f"{data_root}: folder not found (a ScanNet++ tree has data/<scene>/dslr or iphone)")
     ids = sorted(p.name for p in data_root.iterdir() if p.is_dir() and _has_sensor(p))
@@ -125,9 +132,10 @@ def load_scannetpp(root: Path, split: str, scenes: Iterable[str] | None, *, sens
     if not present:
         raise DatasetError(f"{data_root}: none of the {len(ids)} scenes of split {split!r} is there")
     out = []
+    within = (Path(root),)  # every file read lies in the tree, links resolved (or in the undistortion cache)
     for s in present:
         if "dslr" in wanted and (data_root / s / "dslr").is_dir():
-            out.append(load_dslr_scene(s, data_root / s / "dslr", raw_root / "data" / s / "dslr"))
+            out.append(load_dslr_scene(s, data_root / s / "dslr", raw_root / "data" / s / "dslr", within=within))
         else:
-            out.append(load_iphone_scene(s, data_root / s / "iphone"))
+            out.append(load_iphone_scene(s, data_root / s / "iphone", within=within))
     return out

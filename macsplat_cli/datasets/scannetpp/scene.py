@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from ...cameras import Camera
 from ...errors import CameraFileError, DatasetError
-from ..base import EvalScene, Frame, image_size, read_json, validate_scene
+from ..base import EvalScene, Frame, check_inside, image_size, member_path, read_json, validate_scene
 from .poses import Lens, PoseTable, poses_from_transforms, read_colmap_scene
 from .undistort import UndistortCache, pinhole_K
 
@@ -46,7 +47,9 @@ def _pose_source(ns_path: Path, colmap: Path, also: Path | None = None) -> tuple
     raise DatasetError(f"{ns_path}: file not found (nor {nor}{colmap / 'images.txt'}): the scene has no poses")
 
 
-def load_dslr_scene(scene_id: str, dslr: Path, raw_dslr: Path | None = None) -> EvalScene:
+def load_dslr_scene(
+    scene_id: str, dslr: Path, raw_dslr: Path | None = None, *, within: Sequence[Path] | None = None
+) -> EvalScene:
     """The DSLR frames of a scene.
 
     Images, in order of preference:
@@ -69,6 +72,8 @@ def load_dslr_scene(scene_id: str, dslr: Path, raw_dslr: Path | None = None) -> 
         dslr: ``<scene>/dslr``.
         raw_dslr: where ``train_test_lists.json`` and the raw ``transforms.json`` are, when
             elsewhere (Splatt3R's ``raw``/``processed`` split).
+        within: the folders every file read must lie in, links resolved (default: ``dslr`` and
+            ``raw_dslr``); the undistortion cache is added.
     """
     raw = raw_dslr if raw_dslr is not None and raw_dslr.is_dir() else dslr
     ns_u = dslr / "nerfstudio" / "transforms_undistorted.json"
@@ -115,6 +120,8 @@ def load_dslr_scene(scene_id: str, dslr: Path, raw_dslr: Path | None = None) -> 
         names = train
 
     frames = []
+    roots = [*(within if within is not None else (dslr, raw)), *([cache.root] if cache is not None else [])]
+    check_inside(source, roots, "the pose file")
     try:
         for name in names:
             if name in bad:
@@ -122,11 +129,12 @@ def load_dslr_scene(scene_id: str, dslr: Path, raw_dslr: Path | None = None) -> 
             if name not in table:
                 raise DatasetError(f"{source}: no pose for frame {name} of the train list")
             c2w, lens, _ = table[name]
+            member_path(img_dir, name, f"{source}: frame")
             stem = Path(name).stem
             depth = depth_dir / f"{stem}.png" if depth_dir is not None else None
             if cache is not None and lens.distorted:
-                image, K = cache.image(img_dir / name, lens)
-                depth = cache.depth(depth, lens) if depth is not None else None
+                image, K = cache.image(check_inside(img_dir / name, roots, f"frame {stem!r}"), lens)
+                depth = cache.depth(check_inside(depth, roots, f"frame {stem!r}"), lens) if depth is not None else None
             else:
                 image, K = img_dir / name, (lens.K if pinhole else pinhole_K(lens))
             frames.append(Frame(stem, image, _camera(stem, K, lens, c2w, source), depth, 1.0 / 1000.0))
@@ -134,7 +142,7 @@ def load_dslr_scene(scene_id: str, dslr: Path, raw_dslr: Path | None = None) -> 
         if cache is not None:
             cache.close()
     logger.debug("scannetpp %s: %d DSLR frames from %s (%d marked is_bad)", scene_id, len(frames), source, len(bad))
-    return validate_scene(EvalScene(scene_id, frames, "metric"), dslr)
+    return validate_scene(EvalScene(scene_id, frames, "metric"), dslr, roots=roots)
 
 
 def _pose_intrinsic_imu(path: Path, rgb: Path) -> PoseTable:
@@ -149,7 +157,7 @@ def _pose_intrinsic_imu(path: Path, rgb: Path) -> PoseTable:
     present = sorted(p for p in rgb.iterdir() if p.is_file() and p.stem in doc)
     if not present:
         raise DatasetError(f"{rgb}: none of the frames of {path.name} is there")
-    w, h = image_size(present[0])
+    w, h = image_size(check_inside(present[0], (path.parent,), f"frame {present[0].stem!r}"))
     sx, sy = w / IPHONE_VIDEO_SIZE[0], h / IPHONE_VIDEO_SIZE[1]
     table: PoseTable = {}
     for p in present:
@@ -169,7 +177,7 @@ def _pose_intrinsic_imu(path: Path, rgb: Path) -> PoseTable:
     return table
 
 
-def load_iphone_scene(scene_id: str, iphone: Path) -> EvalScene:
+def load_iphone_scene(scene_id: str, iphone: Path, *, within: Sequence[Path] | None = None) -> EvalScene:
     """The iPhone frames of a scene: ``rgb/<frame>.jpg`` (extracted from ``rgb.mkv``), depth ``depth/<frame>.png``.
 
     Poses, in order of preference: ``nerfstudio/transforms.json`` (converted like the DSLR's),
@@ -177,7 +185,8 @@ def load_iphone_scene(scene_id: str, iphone: Path) -> EvalScene:
     frame, as third-party ScanNet++ code uses it; not checked against the toolkit), ``colmap/``.
     Frames: every extracted frame that has a pose, in name order. Depth maps (uint16 mm, the
     LiDAR's 256×192) are resized (nearest) to the image size into the cache
-    (:class:`.undistort.UndistortCache`), as are images of distorted (``OPENCV``) lenses.
+    (:class:`.undistort.UndistortCache`), as are images of distorted (``OPENCV``) lenses. Every file
+    read lies inside ``within`` (default: ``iphone``) or the cache, links resolved.
     """
     rgb = iphone / "rgb"
     if not rgb.is_dir():
@@ -197,20 +206,25 @@ def load_iphone_scene(scene_id: str, iphone: Path) -> EvalScene:
         raise DatasetError(f"{rgb}: none of the frames of {source} is there")
     depth_dir = iphone / "depth" if (iphone / "depth").is_dir() else None
     cache = UndistortCache(iphone)
+    roots = [*(within if within is not None else (iphone,)), cache.root]
+    check_inside(source, roots, "the pose file")
     frames = []
     try:
         for name in names:
             c2w, lens, _ = table[name]
+            member_path(rgb, name, f"{source}: frame")
             stem = Path(name).stem
             if lens.distorted:
-                image, K = cache.image(rgb / name, lens)
+                image, K = cache.image(check_inside(rgb / name, roots, f"frame {stem!r}"), lens)
             else:
                 image, K = rgb / name, lens.K
             depth = depth_dir / f"{stem}.png" if depth_dir is not None else None
+            if depth is not None:
+                check_inside(depth, roots, f"frame {stem!r}")
             if depth is not None and (lens.distorted or image_size(depth) != (lens.width, lens.height)):
                 depth = cache.depth(depth, lens)
             frames.append(Frame(stem, image, _camera(stem, K, lens, c2w, source), depth, 1.0 / 1000.0))
     finally:
         cache.close()
     logger.debug("scannetpp %s: %d iPhone frames from %s", scene_id, len(frames), source)
-    return validate_scene(EvalScene(scene_id, frames, "metric"), iphone)
+    return validate_scene(EvalScene(scene_id, frames, "metric"), iphone, roots=roots)

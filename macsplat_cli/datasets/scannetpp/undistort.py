@@ -18,6 +18,8 @@ nearest neighbour, constant 0 border.
 ``$XDG_CACHE_HOME/macsplat/scannetpp/<hash of the sensor folder>/`` (``~/.cache`` without
 ``XDG_CACHE_HOME``). ``params.json`` records the lenses; a file is written when it is missing,
 older than its source or the lens changed, atomically (parallel readers never see half a file).
+The cache folder and its ``images/``/``depth/`` are never written through a symbolic link (a data set
+could plant one pointing anywhere): the local folder is then not used, a link below it is refused.
 """
 
 from __future__ import annotations
@@ -89,7 +91,7 @@ def undistort_maps(lens: Lens) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def cache_root(sensor_dir: Path) -> Path:
     """Where the undistorted files of ``sensor_dir`` (a scene's ``dslr/`` or ``iphone/``) go (see module doc)."""
     local = sensor_dir / CACHE_FOLDER
-    if _writable(local):
+    if not local.is_symlink() and _writable(local):  # a link planted in the data set is not written through
         return local
     base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
     digest = hashlib.sha1(str(sensor_dir.resolve()).encode("utf-8")).hexdigest()[:16]
@@ -155,6 +157,16 @@ class UndistortCache:
         self._dirty = True
         self.written += 1
 
+    def _write(self, out: Path, data: bytes) -> None:
+        """Write a cache file atomically, never through a link among the cache's own folders."""
+        for folder in (self.root, out.parent):
+            if folder.is_symlink():
+                raise OutputPathError(
+                    f"{folder}: the undistortion cache folder is a symbolic link; refusing to write through it "
+                    "(remove the link)"
+                )
+        atomic_write_bytes(out, data)
+
     def image(self, src: Path, lens: Lens) -> tuple[Path, np.ndarray]:
         """The undistorted image of ``src`` (written if needed) and its pinhole ``K`` [3, 3].
 
@@ -179,7 +191,7 @@ class UndistortCache:
         ok, buf = cv2.imencode(out.suffix if out.suffix else ".png", und)
         if not ok:  # pragma: no cover - OpenCV encodes every image suffix it decodes
             raise OutputPathError(f"{out}: OpenCV could not encode the image")
-        atomic_write_bytes(out, buf.tobytes())
+        self._write(out, buf.tobytes())
         self._record(out, lens)
         return out, K_new
 
@@ -206,7 +218,7 @@ class UndistortCache:
         ok, buf = cv2.imencode(".png", np.ascontiguousarray(d.astype(np.uint16)))
         if not ok:  # pragma: no cover
             raise OutputPathError(f"{out}: OpenCV could not encode the depth map")
-        atomic_write_bytes(out, buf.tobytes())
+        self._write(out, buf.tobytes())
         self._record(out, lens)
         return out
 
