@@ -242,6 +242,59 @@ def test_distributed_ranks_split_the_samples(plane_ds: EvalDataset, plane_pairs:
         assert all(torch.equal(s[k], one[i][k]) for k in s)
 
 
+def test_a_resumed_epoch_skips_the_done_batches_without_loading_them(
+    plane_ds: EvalDataset, plane_pairs: list[TrainPair]
+) -> None:
+    cfg = PairSamplingConfig(size=SMALL, targets=1)
+    ds = PairDataset(plane_ds, plane_pairs, cfg, seed=4, epoch=1)
+    whole = batches(make_loader(ds, batch_size=3, seed=4))
+    loaded: list[int] = []
+    real = ds.sample
+    ds.sample = lambda i: (loaded.append(i), real(i))[1]  # type: ignore[method-assign]
+    rest = batches(make_loader(ds, batch_size=3, seed=4, start_batch=2))
+    assert same(rest, whole[2:]) and len(rest) == 3
+    assert sorted(loaded) == sorted(torch.cat([b["index"] for b in whole[2:]]).tolist())  # nothing else was read
+
+
+def _brute_force_pairs(seen: np.ndarray, pair_ok: np.ndarray, both: bool) -> list[tuple[int, int, tuple[int, ...]]]:
+    """What candidate_pairs listed before: every pair with its targets (O(N³))."""
+    out = []
+    for a, b in zip(*np.nonzero(pair_ok)):
+        ok = (seen[a] & seen[b]) if both else (seen[a] | seen[b])
+        ok[[a, b]] = False
+        if ok.any():
+            out.append((int(a), int(b), tuple(int(f) for f in np.flatnonzero(ok))))
+    return out
+
+
+def test_compact_pairs_give_the_targets_of_the_listing_they_replace() -> None:
+    """Random visibility: the pairs kept, their targets (in order), and the frames a subset names, as listed in full."""
+    from macsplat_cli.training.data import CandidatePairs, _TargetRule
+
+    rng = np.random.default_rng(0)
+    for trial in range(120):
+        n = int(rng.integers(2, 12))
+        seen = rng.random((n, n)) < rng.random()
+        if trial % 2:
+            seen |= seen.T
+        np.fill_diagonal(seen, trial % 3 != 0)
+        pair_ok = (rng.random((n, n)) < rng.random()) & ~np.eye(n, dtype=bool)
+        for both in (False, True):
+            rule = _TargetRule(seen, both)
+            a, b = np.nonzero(rule.has_targets(pair_ok))
+            pairs = CandidatePairs(np.zeros(len(a)), np.stack([a, b], 1), {0: rule})
+            want = _brute_force_pairs(seen, pair_ok, both)
+            assert pairs == [TrainPair(0, (x, y), t) for x, y, t in want]
+            if not want:
+                continue
+            keep = np.flatnonzero(rng.random(len(want)) < 0.5)[::-1]
+            sub = pairs.subset(keep)
+            assert list(sub) == [pairs[int(k)] for k in keep]
+            assert set(sub.used_frames().get(0, [])) == {f for k in keep for f in (*want[k][:2], *want[k][2])}
+            explicit = CandidatePairs.from_pairs(list(pairs))
+            assert explicit == pairs and explicit.subset(keep) == sub
+
+
 # ------------------------------------------------------------------------------------ resize / crop
 def _blob_image(cam: Camera, X: np.ndarray, sigma: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
     """An image with a Gaussian blob centred on the projection of ``X``; returns (image, (u, v))."""

@@ -2,7 +2,8 @@
 
 Validation pairs come from the held-out split when the data set has one (ScanNet++ ``nvs_sem_val``, the
 scenes Splatt3R evaluates on); otherwise ``val_pairs`` candidate pairs are held out (drawn with the seed),
-and the training pairs are the rest.
+and the training pairs are the rest. The pairs stay compact (:class:`~.data.CandidatePairs`: ``O(N²)`` memory for
+a scene of ``N`` frames, targets derived per sample), so a scene of thousands of frames starts at once.
 """
 
 from __future__ import annotations
@@ -54,14 +55,15 @@ def load_training_data(
         val_set = load_dataset(root, kind, scannetpp_split=VAL_SPLIT)
         val_candidates = candidate_pairs(val_set, sampling)
         rng = np.random.default_rng(seed)
-        keep = sorted(rng.permutation(len(val_candidates))[:val_pairs].tolist())
-        val_ds = PairDataset(val_set, [val_candidates[i] for i in keep], sampling, seed=seed, depth=True)
+        keep = np.sort(rng.permutation(len(val_candidates))[:val_pairs])
+        val_ds = PairDataset(val_set, val_candidates.subset(keep), sampling, seed=seed, depth=True)
         train_pairs = pairs
     elif len(pairs) > 1:
         n_val = min(val_pairs, max(1, len(pairs) // 5))
-        held = set(np.random.default_rng(seed).permutation(len(pairs))[:n_val].tolist())
-        train_pairs = [p for i, p in enumerate(pairs) if i not in held]
-        val_ds = PairDataset(dataset, [p for i, p in enumerate(pairs) if i in held], sampling, seed=seed, depth=True)
+        held = np.zeros(len(pairs), dtype=bool)
+        held[np.random.default_rng(seed).permutation(len(pairs))[:n_val]] = True
+        train_pairs = pairs.subset(np.flatnonzero(~held))
+        val_ds = PairDataset(dataset, pairs.subset(np.flatnonzero(held)), sampling, seed=seed, depth=True)
     else:
         train_pairs = pairs
         logger.warning("only one training pair: no validation (best.pt is the last model)")
