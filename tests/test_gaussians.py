@@ -12,7 +12,9 @@ from macsplat_cli.gaussians import GaussianMaps, Gaussians
 from macsplat_cli.rotations import quat_to_rotmat
 from macsplat_cli.sh import C0, eval_sh, rgb_to_sh0, sh0_to_rgb
 
-from _helpers import random_gaussians
+from _helpers import ROT_MAT, ROT_QUAT, ROT_UNIT_Q, gamma, random_gaussians, unit_roundoff
+
+U32 = unit_roundoff(torch.float32)
 
 
 def _params(n: int = 4, k: int = 1, dtype: torch.dtype = torch.float32) -> dict:
@@ -72,9 +74,14 @@ def test_from_activated_round_trips_activations() -> None:
     rgb = torch.rand(6, 3)
     g = Gaussians.from_activated(means, scales, quats, op, rgb, sh_degree=2)
     assert g.sh_degree == 2 and torch.all(g.sh[:, 1:] == 0)
-    torch.testing.assert_close(g.scales, scales)
-    torch.testing.assert_close(g.opacities, op)
-    torch.testing.assert_close(sh0_to_rgb(g.sh[:, 0]), rgb)
+    # float32: exp(log s): log to 1 ulp (2u·|log s| absolute) passed on by exp, plus exp's own ulp (2u)
+    torch.testing.assert_close(g.scales, scales, rtol=(2 + 2 * float(scales.log().abs().max())) * U32, atol=0)
+    # sigmoid(log op − log1p(−op)): the logit off by 2u(|log op| + |log(1 − op)|) + u|logit|, times sigmoid' / op
+    # = 1 − op ≤ 1, and sigmoid's 2 ulps (4u)
+    logit_err = 2 * (op.log().abs() + (-op).log1p().abs()) + (op.log() - (-op).log1p()).abs()
+    torch.testing.assert_close(g.opacities, op, rtol=float(logit_err.max() + 4) * U32, atol=0)
+    # (x − 0.5)/C0·C0 + 0.5: 4 roundings of values ≤ 1
+    torch.testing.assert_close(sh0_to_rgb(g.sh[:, 0]), rgb, rtol=0, atol=4 * U32)
     assert torch.all(torch.isfinite(Gaussians.from_activated(means, scales * 0, quats, op * 0 + 1, rgb).opacity_logits))
 
 
@@ -86,7 +93,9 @@ def test_cat_select_and_covariance() -> None:
     cov = c.covariances()
     R = c.rotations()
     expected = R @ torch.diag_embed(c.scales**2) @ R.transpose(-1, -2)
-    torch.testing.assert_close(cov, expected)
+    # (b) (R·s)(R·s)ᵀ vs R·diag(s²)·Rᵀ with the same R: 3-term sums of products ≤ s² each (γ₃) plus the products'
+    # roundings (2u), each side
+    torch.testing.assert_close(cov, expected, rtol=0, atol=2 * (gamma(3, torch.float32) + 2 * U32) * float(c.scales.max()) ** 2)
     assert torch.all(torch.linalg.eigvalsh(cov) > 0)
 
 
@@ -104,13 +113,17 @@ def test_sh_basis_is_orthonormal_on_the_sphere() -> None:
         basis.append(eval_sh(sh, dirs)[:, 0] - 0.5)
     Y = torch.stack(basis, -1)
     gram = Y.T @ Y * (4 * math.pi / n)
-    torch.testing.assert_close(gram, torch.eye(16, dtype=torch.float64), atol=2e-3, rtol=0)
+    # (d) quadrature, not rounding: the spherical Fibonacci rule integrates these degree ≤ 6 products to 1.4e-7
+    # (measured; float64 rounding of the 200 000-term sums ≤ γ₂₀₀₀₀₀·1 ≈ 2e-11): 1e-5 leaves 70× and still fails
+    # for a basis constant wrong in its 5th digit
+    torch.testing.assert_close(gram, torch.eye(16, dtype=torch.float64), atol=1e-5, rtol=0)
 
 
 def test_dc_conversion() -> None:
     rgb = torch.tensor([[0.0, 0.5, 1.0]])
-    torch.testing.assert_close(rgb_to_sh0(rgb), torch.tensor([[-0.5 / C0, 0.0, 0.5 / C0]]))
-    torch.testing.assert_close(sh0_to_rgb(rgb_to_sh0(rgb)), rgb)
+    # float32 ±0.5/fl(C0) against fl(±0.5/C0): C0's rounding and the quotient's (2u)
+    torch.testing.assert_close(rgb_to_sh0(rgb), torch.tensor([[-0.5 / C0, 0.0, 0.5 / C0]]), rtol=2 * U32, atol=0)
+    torch.testing.assert_close(sh0_to_rgb(rgb_to_sh0(rgb)), rgb, rtol=0, atol=4 * U32)  # 4 roundings of values ≤ 1
 
 
 # ------------------------------------------------------------------------------ GaussianMaps
@@ -176,8 +189,15 @@ def test_to_gaussians_moves_means_and_rotations_into_the_world_frame() -> None:
         part = g[slice(start, start + n)]
         start += n
         R, t = m.cam_to_world[b, :3, :3], m.cam_to_world[b, :3, 3]
-        torch.testing.assert_close(part.means, m.means[b][valid[b]] @ R.T + t, rtol=0, atol=1e-14)
-        torch.testing.assert_close(quat_to_rotmat(part.quats), R @ quat_to_rotmat(m.quats[b][valid[b]]))
+        mu = m.means[b][valid[b]]
+        # float64 Rμ + t in two orders: γ₄·(|R||μ| + |t|) each
+        bound = 2 * gamma(4, D) * (mu.abs() @ R.abs().T + t.abs())
+        assert ((part.means - (mu @ R.T + t)).abs() <= bound).all()
+        # R → q (Shepperd, ROT_QUAT), q ⊗ q' (γ₄ relative), back to R (ROT_MAT; a rotation by ≤ 2‖δq‖), against
+        # R·R(q') (ROT_MAT twice, γ₃)
+        rot_tol = (2 * math.sqrt(2) * 2 * (ROT_QUAT + 4) + 3 * ROT_MAT + 3) * unit_roundoff(D)
+        torch.testing.assert_close(quat_to_rotmat(part.quats), R @ quat_to_rotmat(m.quats[b][valid[b]]), rtol=0,
+                                   atol=rot_tol)  # fmt: skip
         # rotation does not change the other parameters: copied bit for bit
         assert torch.equal(part.log_scales, m.log_scales[b][valid[b]])
         assert torch.equal(part.opacity_logits, m.opacity_logits[b][valid[b]])
@@ -240,11 +260,20 @@ def test_pooled_averages_the_valid_pixels_of_each_block() -> None:
     assert p.size == (2, 2) and p.batch == 2
     assert p.valid[0].tolist() == [[True, True], [True, False]] and bool(p.valid[1].all())
     block = m.means[0, :2, :2][valid[0, :2, :2]]
-    torch.testing.assert_close(p.means[0, 0, 0], block.mean(0))
-    torch.testing.assert_close(p.log_scales[0, 0, 0], m.log_scales[0, :2, :2][valid[0, :2, :2]].mean(0) + math.log(2))
-    torch.testing.assert_close(p.sh[0, 1, 0], m.sh[0, 2:, :2].reshape(4, 1, 3).mean(0))
-    torch.testing.assert_close(p.opacity_logits[1, 1, 1], m.opacity_logits[1, 2:, 2:].mean())
-    torch.testing.assert_close(torch.linalg.vector_norm(p.quats[0, 0, 0]), torch.tensor(1.0, dtype=D))
+    # float64 means of ≤ 4 values: avg_pool2d's masked sum and ÷ count (γ₅) against the test's mean (γ₄), of the
+    # largest |value|; + log 2 one more rounding
+    def tol(x: torch.Tensor) -> dict:
+        return dict(rtol=0, atol=(gamma(5, D) + gamma(4, D) + unit_roundoff(D)) * float(x.abs().max() + 1))
+
+    torch.testing.assert_close(p.means[0, 0, 0], block.mean(0), **tol(block))
+    ls = m.log_scales[0, :2, :2][valid[0, :2, :2]]
+    torch.testing.assert_close(p.log_scales[0, 0, 0], ls.mean(0) + math.log(2), **tol(ls))
+    torch.testing.assert_close(p.sh[0, 1, 0], m.sh[0, 2:, :2].reshape(4, 1, 3).mean(0), **tol(m.sh[0, 2:, :2]))
+    ol = m.opacity_logits[1, 2:, 2:]
+    torch.testing.assert_close(p.opacity_logits[1, 1, 1], ol.mean(), **tol(ol))
+    # a normalised quaternion, measured by the test's own norm (3u)
+    torch.testing.assert_close(torch.linalg.vector_norm(p.quats[0, 0, 0]), torch.tensor(1.0, dtype=D), rtol=0,
+                               atol=(ROT_UNIT_Q + 3) * unit_roundoff(D))  # fmt: skip
     assert torch.equal(p.cam_to_world, m.cam_to_world)
     # B views pool as each view alone
     for b in range(2):

@@ -11,6 +11,21 @@ from macsplat_cli.cameras import Camera, quat_to_rotmat_np, rotmat_to_quat_np
 from macsplat_cli.errors import InputError
 from macsplat_cli.trajectory import interpolate_cameras, slerp
 
+from _helpers import ROT_MAT, ROT_QUAT, ROT_ROUND_TRIP
+
+U = np.finfo(np.float64).eps / 2
+# float64 budgets (ROT_*: tests/test_rotations.py): a camera at a key frame is its rotation's R → q → R round trip;
+# a slerp between them adds ≤ 8u to q (θ = acos of a dot ≤ cos 30°-conditioned, two sines and their quotients);
+# a rotation built from cos/sin of a known angle is ROT_MAT off a rotation
+KEY = ROT_ROUND_TRIP * U
+SLERPED = (2 * math.sqrt(2) * 2 * (ROT_QUAT + 8) + 2 * ROT_MAT) * U  # against a rotation built directly
+
+
+def _step_tol_deg(step_deg: float) -> float:
+    """Bound on _angle's error between two interpolated rotations: tr(R1ᵀR2) is 9 products of entries each ≤ SLERPED
+    off (≤ 6·SLERPED) plus γ₉·3, and acos amplifies by 1/sin θ."""
+    return math.degrees((6 * SLERPED + 27 * U) / math.sin(math.radians(step_deg)))
+
 
 def _rot(axis: np.ndarray, deg: float) -> np.ndarray:
     axis = axis / np.linalg.norm(axis)
@@ -34,14 +49,15 @@ def test_endpoints_and_constant_speed() -> None:
     b = _cam("b", _rot(axis, 60.0), np.array([1.0, 0.0, 0.5]))
     path = interpolate_cameras([a, b], 7)
     assert [c.name for c in path] == [f"path_{i:04d}" for i in range(7)]
-    np.testing.assert_allclose(path[0].cam_to_world, a.cam_to_world, atol=1e-12)
-    np.testing.assert_allclose(path[-1].cam_to_world, b.cam_to_world, atol=1e-12)
+    # the key frames: a rotation round trip; centres (1 − u)·c0 + u·c1 with u ∈ {0, 1} are exact
+    np.testing.assert_allclose(path[0].cam_to_world, a.cam_to_world, rtol=0, atol=KEY)
+    np.testing.assert_allclose(path[-1].cam_to_world, b.cam_to_world, rtol=0, atol=KEY)
     # slerp: equal angular steps about one axis; lerp: equal steps of the centre
     steps = [_angle(p.cam_to_world[:3, :3], q.cam_to_world[:3, :3]) for p, q in zip(path, path[1:])]
-    np.testing.assert_allclose(steps, 10.0, atol=1e-9)
-    np.testing.assert_allclose(path[3].center, [0.5, 0.0, 0.25], atol=1e-12)
+    np.testing.assert_allclose(steps, 10.0, rtol=0, atol=_step_tol_deg(10.0))
+    np.testing.assert_array_equal(path[3].center, [0.5, 0.0, 0.25])  # u = 1/2: halves and sums are exact here
     mid = path[3].cam_to_world[:3, :3]
-    np.testing.assert_allclose(mid, _rot(axis, 30.0), atol=1e-12)
+    np.testing.assert_allclose(mid, _rot(axis, 30.0), rtol=0, atol=SLERPED)
 
 
 def test_takes_the_short_arc_and_passes_through_middle_cameras() -> None:
@@ -49,8 +65,9 @@ def test_takes_the_short_arc_and_passes_through_middle_cameras() -> None:
     b = _cam("b", _rot(np.array([0, 1.0, 0]), 170.0), np.array([1.0, 0, 0]))
     c = _cam("c", _rot(np.array([0, 1.0, 0]), -170.0), np.array([2.0, 0, 0]))  # 20° further across ±180°
     path = interpolate_cameras([a, b, c], 5)
-    np.testing.assert_allclose(path[2].cam_to_world, b.cam_to_world, atol=1e-12)
-    assert _angle(path[2].cam_to_world[:3, :3], path[3].cam_to_world[:3, :3]) == pytest.approx(10.0, abs=1e-9)
+    np.testing.assert_allclose(path[2].cam_to_world, b.cam_to_world, rtol=0, atol=KEY)
+    step = _angle(path[2].cam_to_world[:3, :3], path[3].cam_to_world[:3, :3])
+    assert step == pytest.approx(10.0, rel=0, abs=_step_tol_deg(10.0))
 
 
 def test_mixed_sizes_are_rescaled_and_intrinsics_interpolated() -> None:
@@ -58,9 +75,10 @@ def test_mixed_sizes_are_rescaled_and_intrinsics_interpolated() -> None:
     b = _cam("b", np.eye(3), np.ones(3), f=400.0, w=128, h=96)  # f=200 at 64x48
     path = interpolate_cameras([a, b], 3)
     assert all((p.width, p.height) == (64, 48) for p in path)
-    assert path[1].K[0, 0] == pytest.approx(150.0)
+    # every focal, scale factor and weight here is a binary-exact fraction: the interpolation is exact
+    assert path[1].K[0, 0] == 150.0
     path = interpolate_cameras([a, b], 2, width=32, height=24)
-    assert path[1].K[0, 0] == pytest.approx(100.0) and path[1].K[0, 2] == pytest.approx(16.0)
+    assert path[1].K[0, 0] == 100.0 and path[1].K[0, 2] == 16.0
 
 
 def test_slerp_matches_rotation_about_a_fixed_axis() -> None:
@@ -68,7 +86,7 @@ def test_slerp_matches_rotation_about_a_fixed_axis() -> None:
     q1 = rotmat_to_quat_np(_rot(np.array([1.0, 0, 0]), 90))
     for u in (0.0, 0.25, 0.5, 1.0):
         R = quat_to_rotmat_np(slerp(q0, q1, u))
-        np.testing.assert_allclose(R, _rot(np.array([1.0, 0, 0]), 90 * u), atol=1e-12)
+        np.testing.assert_allclose(R, _rot(np.array([1.0, 0, 0]), 90 * u), rtol=0, atol=SLERPED)
     # nearly identical quaternions: no 0/0
     q2 = rotmat_to_quat_np(_rot(np.array([1.0, 0, 0]), 1e-6))
     assert np.all(np.isfinite(slerp(q0, q2, 0.5)))
