@@ -33,7 +33,7 @@ from macsplat_cli.neural import BackboneView
 from macsplat_cli.neural._state_dict import sha256_file
 from macsplat_cli.neural.config import BackboneConfig
 from macsplat_cli.neural.onnx_export import ExportConfig, export_onnx
-from macsplat_cli.neural.onnx_format import METADATA_KEY, ParityError
+from macsplat_cli.neural.onnx_format import ALLOWED_OPS, METADATA_KEY, ParityError, check_graph
 from macsplat_cli.neural.onnx_runtime import OnnxPairPredictor, read_predictor_info
 from macsplat_cli.neural.predictor import PairPredictor, load_pair_predictor
 from macsplat_cli.ply import read_ply
@@ -107,6 +107,22 @@ def test_export_writes_a_checked_dynamic_predictor_with_its_metadata(exported: P
     assert parity == info.parity and parity["ok"] and parity["sample_size"] == list(SIZE)
     assert {r["output"] for r in parity["outputs"]} == set(info.outputs)
     assert all(r["max_rel"] < 1e-4 for r in parity["outputs"])  # fp32: summation order only
+
+
+def _assert_ops_allowed(path: Path) -> None:
+    """Every node of an export is on the runtime's allow-list (which refuses anything else before loading)."""
+    model = onnx.load(str(path), load_external_data=False)
+    ops = {("" if n.domain == "ai.onnx" else n.domain, n.op_type) for n in model.graph.node}
+    assert ops <= ALLOWED_OPS, sorted(ops - ALLOWED_OPS)
+    check_graph(model, path.name)  # no subgraphs, no functions, float outputs
+
+
+def test_every_exported_operator_is_on_the_runtime_allow_list(exported: Path) -> None:
+    """``ALLOWED_OPS`` is what the exporter writes (backbone + fusion + Gaussian head at opset 20 here; fp16 at
+    opset 18 and int8 below; the exporter itself refuses to write a file outside it): it cannot rot unnoticed."""
+    _assert_ops_allowed(exported)
+    ops = {n.op_type for n in onnx.load(str(exported), load_external_data=False).graph.node}
+    assert {"MatMul", "Conv", "LayerNormalization", "Softmax", "Gelu"} <= ops  # the network, not a stub
 
 
 @pytest.mark.parametrize("shape", [(1, 64, 96), (2, 48, 80), (3, 128, 32)])
@@ -183,7 +199,7 @@ class ExactBackbone(torch.nn.Module):
         views = []
         for k, img in enumerate((img1, img2)):
             b, _, h, w = img.shape
-            conf = 4.0 + img.mean(dim=1)  # [B, H, W], 4–5
+            conf = 4.0 + (img[:, 0] + img[:, 1] + img[:, 2]) / 3.0  # [B, H, W], 4–5 (no ReduceMean: not exported)
             if self.noise:
                 conf = conf + self.noise * torch.rand_like(conf)
             pts = self.pts[k][None].expand(b, h, w, 3)
@@ -247,15 +263,17 @@ def test_a_failed_parity_check_keeps_no_file(tmp_path: Path) -> None:
 def test_fp16_export_of_a_training_checkpoint_from_the_cli(
     ckpts: dict[str, Path], pair: tuple[Path, Path], tmp_path: Path
 ) -> None:
-    """``--checkpoint runs/x/best.pt`` (macsplat's own format) with ``--fp16``."""
+    """``--checkpoint runs/x/best.pt`` (macsplat's own format) with ``--fp16``, at the other supported opset (18)."""
     from macsplat_cli.neural.predictor_io import save_predictor_checkpoint
 
     best = save_predictor_checkpoint(tmp_path / "best.pt", load_pair_predictor(weights=ckpts["mast3r"]), {"step": 7})
     out = tmp_path / "p16.onnx"
-    code, _, err = _run(["export-onnx", "--checkpoint", best, "-o", out, "--size", "96x64", "--fp16", "-q"])
+    code, _, err = _run(["export-onnx", "--checkpoint", best, "-o", out, "--size", "96x64", "--fp16", "--opset", "18",
+                         "-q"])  # fmt: skip
     assert code == 0, err
     info = read_predictor_info(out)
-    assert info.precision == "fp16" and info.parity["ok"]
+    assert info.precision == "fp16" and info.parity["ok"] and info.opset == 18
+    _assert_ops_allowed(out)
     assert info.sources == {"checkpoint": {"path": str(best), "sha256": sha256_file(best)}}
     worst = max(r["max_rel"] for r in info.parity["outputs"])
     assert 1e-5 < worst < 3e-2  # half precision: visibly coarser than fp32, within its bound
@@ -273,6 +291,7 @@ def test_int8_export_is_smaller_and_reports_its_parity(ckpts: dict[str, Path], t
     assert result.info.precision == "int8" and result.parity.ok and result.info.dynamic
     ops = {n.op_type for n in onnx.load(str(result.path)).graph.node}
     assert ops & {"DynamicQuantizeLinear", "MatMulInteger", "DynamicQuantizeMatMul"}
+    _assert_ops_allowed(result.path)
     weights = onnx.load(str(result.path)).graph.initializer
     int8 = sum(np.prod(t.dims) for t in weights if t.data_type == onnx.TensorProto.INT8)
     assert int8 > 0.9 * sum(p.numel() for p in predictor.parameters())  # the matrix products' weights: 1 byte each

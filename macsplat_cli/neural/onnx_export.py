@@ -7,11 +7,14 @@ them symbolic — writes :class:`~.onnx_format.OnnxPredictorInfo` into the model
 ``onnx.checker``, optionally quantises it (onnxruntime's dynamic int8 quantisation), and runs the
 **parity check**: onnxruntime and the fp32 torch predictor on a sample pair, each output's error
 printed and written beside the file (``<stem>.parity.json``). An output beyond the tolerance fails
-the export (:class:`~.onnx_format.ParityError`, exit 3).
+the export (:class:`~.onnx_format.ParityError`, exit 3); so does a node the runtime would refuse
+(:func:`~.onnx_format.check_graph`; :class:`ExportError`).
 
 Everything is written into a temporary folder beside the output and moved into place at the end:
-a failure, or an interrupt, leaves no partial file. Models over 2 GB (ViT-L MASt3R in fp32) keep
-their weights in ``<name>.onnx.data`` beside the graph (ONNX's external-data format).
+a failure, or an interrupt, leaves no partial file; a write that fails (a full disk, a folder that refuses
+files although ``os.access`` allowed them) is an :class:`~macsplat_cli.errors.OutputPathError` (exit 2).
+Models over 2 GB (ViT-L MASt3R in fp32) keep their weights in ``<name>.onnx.data`` beside the graph
+(ONNX's external-data format).
 """
 
 from __future__ import annotations
@@ -36,16 +39,19 @@ from torch import nn
 
 from .. import __version__
 from .._atomic import check_writable
-from ..errors import InputError, MacsplatError
+from ..errors import InputError, MacsplatError, OutputPathError
 from ._state_dict import sha256_file
 from .onnx_format import (
     INPUT_NAMES,
+    MAX_SIDE,
     METADATA_KEY,
     OUTPUT_MEANINGS,
     PARITY_TOLERANCE,
+    OnnxPredictorError,
     OnnxPredictorInfo,
     ParityError,
     ParityReport,
+    check_graph,
     compare_outputs,
     sample_pair,
 )
@@ -92,8 +98,8 @@ class ExportConfig:
     def validate(self) -> None:
         """Raises InputError: a size that is not a multiple of 16, fp16 with int8, an unknown quantisation."""
         w, h = self.size
-        if w < 32 or h < 32 or w % 16 or h % 16:
-            raise InputError(f"sample size {w}x{h}: both sides must be multiples of 16, at least 32")
+        if w < 32 or h < 32 or w % 16 or h % 16 or max(w, h) > MAX_SIDE:
+            raise InputError(f"sample size {w}x{h}: both sides must be multiples of 16, from 32 to {MAX_SIDE}")
         if self.quantize is not None and self.quantize not in QUANTIZE:
             raise InputError(f"--quantize {self.quantize!r}: use {', '.join(QUANTIZE)}")
         if self.fp16 and self.quantize:
@@ -162,7 +168,9 @@ def check_opset(opset: int) -> None:
         InputError: the installed exporter or onnxruntime cannot produce/run ``opset``.
     """
     if opset not in _OPSET_CACHE:
-        import onnxruntime as ort
+        from .onnx_runtime import _import_ort
+
+        ort = _import_ort()  # and onnxruntime's own log silenced
 
         probe = nn.Sequential(nn.Linear(4, 8), nn.GELU(), nn.LayerNorm(8))
         problem: str | None = None
@@ -189,21 +197,30 @@ def check_opset(opset: int) -> None:
 
 def source_digests(files: dict[str, Path | str]) -> dict[str, dict[str, str]]:
     """Role → ``{"path", "sha256"}`` of the checkpoints an export came from (a folder: the digest of its
-    files' digests, in name order)."""
-    import hashlib
+    files' digests, in name order).
 
+    Raises:
+        InputError: a file that cannot be read.
+    """
     out = {}
     for role, f in files.items():
         p = Path(f)
-        if p.is_dir():
-            h = hashlib.sha256()
-            for child in sorted(c for c in p.rglob("*") if c.is_file()):
-                h.update(f"{child.relative_to(p).as_posix()}\0{sha256_file(child)}\n".encode())
-            digest = h.hexdigest()
-        else:
-            digest = sha256_file(p)
-        out[role] = {"path": str(p), "sha256": digest}
+        try:
+            out[role] = {"path": str(p), "sha256": _digest(p)}
+        except OSError as e:
+            raise InputError(f"cannot read {p}: {e.strerror or e}") from None
     return out
+
+
+def _digest(p: Path) -> str:
+    import hashlib
+
+    if not p.is_dir():
+        return sha256_file(p)
+    h = hashlib.sha256()
+    for child in sorted(c for c in p.rglob("*") if c.is_file()):
+        h.update(f"{child.relative_to(p).as_posix()}\0{sha256_file(child)}\n".encode())
+    return h.hexdigest()
 
 
 def _export_program(module: nn.Module, example: tuple[torch.Tensor, ...], config: ExportConfig, names: tuple[str, ...],
@@ -273,10 +290,11 @@ def _quantize_int8(src: Path, dst: Path) -> None:
 
 
 def _run_ort(path: Path, images: tuple[torch.Tensor, torch.Tensor]) -> tuple[list[Any], str]:
-    import onnxruntime as ort
+    from .onnx_runtime import ORT_LOG_SEVERITY, _import_ort
 
+    ort = _import_ort()  # and onnxruntime's own log silenced
     so = ort.SessionOptions()
-    so.log_severity_level = 3
+    so.log_severity_level = ORT_LOG_SEVERITY
     sess = ort.InferenceSession(str(path), sess_options=so, providers=["CPUExecutionProvider"])
     feeds = {n: t.numpy() for n, t in zip(INPUT_NAMES, images)}
     return sess.run(None, feeds), sess.get_providers()[0]
@@ -304,8 +322,9 @@ def export_onnx(
         The files written, the metadata, the parity report and each step's seconds.
 
     Raises:
-        InputError: bad settings, an opset the installed exporter cannot produce, an unwritable output.
-        ExportError: the exporter or ``onnx.checker`` failed.
+        InputError: bad settings, an opset the installed exporter cannot produce, an unreadable checkpoint.
+        OutputPathError: an output that cannot be written (checked first; a write that fails later too).
+        ExportError: the exporter or ``onnx.checker`` failed, or the graph has nodes the runtime refuses.
         ParityError: onnxruntime and torch disagree beyond the tolerance (exit 3); nothing is kept.
     """
     config = config or ExportConfig()
@@ -317,12 +336,15 @@ def export_onnx(
     for p in (out, out.with_name(out.name + ".data"), parity_path):
         check_writable(p)
     check_opset(config.opset)
+    digests = source_digests(sources or {})
     # Trace a CPU float32 module in eval mode; copy only when the caller's is elsewhere (the full model is 2.9 GB)
     on_cpu = all(p.device.type == "cpu" and p.dtype == torch.float32 for p in predictor.parameters())
     was_training = predictor.training
     predictor = predictor.eval() if on_cpu else copy.deepcopy(predictor).to("cpu", torch.float32).eval()
     try:
-        return _export(predictor, out, parity_path, config, sources, on_step)
+        return _export(predictor, out, parity_path, config, digests, on_step)
+    except OSError as e:  # a full disk, a folder that refuses files although os.access allowed them (/sys)
+        raise OutputPathError(f"cannot write {out}: {e.strerror or e}") from None
     finally:
         if on_cpu:
             predictor.train(was_training)
@@ -333,9 +355,11 @@ def _export(
     out: Path,
     parity_path: Path,
     config: ExportConfig,
-    sources: dict[str, Path | str] | None,
+    digests: dict[str, dict[str, str]],
     on_step: Callable[[str], None] | None,
 ) -> ExportResult:
+    """:func:`export_onnx` once the settings are checked. Every OSError it raises is a write into the output's
+    folder (the caller reports it as such); nothing is left behind when it raises."""
     import onnx
 
     step = on_step or (lambda name: None)
@@ -380,7 +404,7 @@ def _export(
             precision=config.precision, dynamic=dynamic, size=(w, h), network=predictor.network_name(),
             fusion=predictor.fusion_name(), fusion_enabled=predictor.fusion_enabled, desc_dim=predictor.desc_dim,
             gaussian_head=predictor.has_gaussian_head, dino=_dino_info(predictor), opset=config.opset,
-            outputs={n: OUTPUT_MEANINGS[n] for n in names}, sources=source_digests(sources or {}),
+            outputs={n: OUTPUT_MEANINGS[n] for n in names}, sources=digests,
             config=_config_dict(predictor), macsplat_version=__version__,
         )  # fmt: skip
         _set_metadata(fp32_path, info)
@@ -422,17 +446,30 @@ def _export(
                 "no file was kept",
                 parity,
             )
+        try:  # a file the runtime would refuse is not written (and ALLOWED_OPS cannot rot unnoticed)
+            check_graph(onnx.load(str(final), load_external_data=False), out.name)
+        except OnnxPredictorError as e:
+            raise ExportError(
+                f"torch {torch.__version__}'s exporter wrote a graph macsplat's ONNX runtime would refuse ({e}); "
+                "no file was kept"
+            ) from None
         _set_metadata(final, info)
         (final.parent / parity_path.name).write_text(json.dumps(parity.to_dict(), indent=1) + "\n")
 
         # ---- move into place: weights first, the graph that names them last
         produced = [final.with_name(final.name + ".data"), final.parent / parity_path.name, final]
-        written = []
-        for src in produced:
-            if src.exists():
-                dst = out.parent / src.name
-                os.replace(src, dst)
-                written.append(dst)
+        written: list[Path] = []
+        try:
+            for src in produced:
+                if src.exists():
+                    dst = out.parent / src.name
+                    os.replace(src, dst)
+                    written.append(dst)
+        except BaseException:
+            for dst in written:  # no new weights or parity file without the graph that goes with them
+                with contextlib.suppress(OSError):
+                    dst.unlink()
+            raise
         stale = out.with_name(out.name + ".data")
         if stale not in written and stale.exists():
             stale.unlink()  # an earlier, larger export's weights: this graph does not use them

@@ -30,8 +30,11 @@ import torch
 from ..errors import InputError, MacsplatError
 
 __all__ = [
+    "ALLOWED_OPS",
     "FORMAT",
     "INPUT_NAMES",
+    "MAX_METADATA_BYTES",
+    "MAX_SIDE",
     "METADATA_KEY",
     "OUTPUT_MEANINGS",
     "PARITY_TOLERANCE",
@@ -39,6 +42,7 @@ __all__ = [
     "OnnxPredictorInfo",
     "ParityError",
     "ParityReport",
+    "check_graph",
     "compare_outputs",
     "expected_output_names",
     "sample_pair",
@@ -49,6 +53,32 @@ FORMAT_VERSION = 1
 METADATA_KEY = "macsplat.predictor"
 INPUT_NAMES = ("img0", "img1")
 PATCH = 16
+MAX_SIDE = 8192
+"""Largest image side a predictor file may declare (its ``size``): the exporter's dynamic height and width
+go up to 512 patches of 16 px."""
+MAX_DESC_DIM = 4096
+"""Widest descriptor a predictor file may declare (MASt3R's are 24-d)."""
+MAX_METADATA_BYTES = 1024 * 1024
+"""Largest ``macsplat.predictor`` metadata string read (an export writes a few KB)."""
+MAX_TEXT_FIELD = 10_000
+"""Longest text field of the metadata (names and descriptions: a few hundred characters)."""
+
+ALLOWED_OPS: frozenset[tuple[str, str]] = frozenset(
+    ("", op)
+    for op in (
+        # what torch 2.13's exporter writes for the predictor (fp32, --fp16, --fixed-size) at opsets 18 and 20
+        "Add", "Cast", "Clip", "Concat", "Conv", "ConvTranspose", "Cos", "DepthToSpace", "Div", "Erf", "Exp",
+        "Expand", "Gather", "Gelu", "Greater", "LayerNormalization", "MatMul", "Min", "Mul", "Neg", "Range",
+        "ReduceL2", "Relu", "Reshape", "Resize", "Shape", "Sin", "Slice", "Softmax", "Split", "Squeeze", "Sub",
+        "Tile", "Transpose", "Unsqueeze", "Where",
+        # onnxruntime's dynamic int8 quantiser (--quantize int8)
+        "ConvInteger", "DequantizeLinear", "DynamicQuantizeLinear", "MatMulInteger",
+    )
+)  # fmt: skip
+"""``(domain, op type)`` of every node ``export-onnx`` writes ("" is the standard ``ai.onnx`` domain): a file
+with any other node (control flow such as ``Loop``/``If``/``Scan``, which can run without end; a custom
+domain) was not made by the exporter and is refused before onnxruntime loads it. ``tests/test_onnx.py``
+checks every export against it, and the exporter refuses to write a file outside it."""
 
 OUTPUT_MEANINGS: dict[str, str] = {
     "pts3d": "[B, 2, H, W, 3] float32: both views' point maps in view 0's camera frame",
@@ -90,6 +120,56 @@ def expected_output_names(gaussian_head: bool) -> tuple[str, ...]:
     """The outputs of a predictor with or without a Gaussian head, in order."""
     names = tuple(OUTPUT_MEANINGS)
     return names if gaussian_head else names[:4]
+
+
+def check_graph(model: Any, source: str) -> None:
+    """Refuse a graph ``export-onnx`` cannot have written, before onnxruntime loads it.
+
+    Every node must be in :data:`ALLOWED_OPS`; no node may carry a subgraph (a ``GRAPH``/``GRAPHS``
+    attribute); the model may define no functions of its own; every output must be a float tensor.
+
+    Args:
+        model: the ``onnx.ModelProto`` (its weights need not be loaded).
+        source: the file, for messages.
+
+    Raises:
+        OnnxPredictorError: the first offending node, function or output, named.
+    """
+    import onnx
+
+    if len(model.functions):
+        names = sorted({f"{f.domain}:{f.name}" if f.domain else f.name for f in model.functions})
+        raise OnnxPredictorError(
+            f"{source} defines its own ONNX functions ({', '.join(names[:5])}): not a file export-onnx writes"
+        )
+    subgraph_types = (onnx.AttributeProto.GRAPH, onnx.AttributeProto.GRAPHS)
+    unknown: dict[str, int] = {}
+    for node in model.graph.node:
+        domain = "" if node.domain in ("", "ai.onnx") else node.domain
+        if (domain, node.op_type) not in ALLOWED_OPS:
+            key = f"{domain}:{node.op_type}" if domain else node.op_type
+            unknown[key] = unknown.get(key, 0) + 1
+            continue
+        for attr in node.attribute:
+            if attr.type in subgraph_types or attr.HasField("g") or len(attr.graphs):
+                raise OnnxPredictorError(
+                    f"{source}: node {node.name or node.op_type!r} ({node.op_type}) carries a subgraph in its "
+                    f"attribute {attr.name!r}: not a file export-onnx writes"
+                )
+    if unknown:
+        listed = ", ".join(f"{k} ×{n}" if n > 1 else k for k, n in sorted(unknown.items())[:8])
+        raise OnnxPredictorError(
+            f"{source} uses operators export-onnx never writes ({listed}): refused (control flow and custom "
+            "operators are not run)"
+        )
+    for out in model.graph.output:
+        kind = out.type.WhichOneof("value")
+        if kind != "tensor_type" or out.type.tensor_type.elem_type != onnx.TensorProto.FLOAT:
+            what = (
+                onnx.TensorProto.DataType.Name(out.type.tensor_type.elem_type).lower()
+                if kind == "tensor_type" else (kind or "untyped")
+            )  # fmt: skip
+            raise OnnxPredictorError(f"{source}: output {out.name} is {what}, expected a float tensor")
 
 
 @dataclass
@@ -140,27 +220,38 @@ class OnnxPredictorInfo:
         """Parse the metadata string.
 
         Raises:
-            OnnxPredictorError: not JSON, another format, a newer format version, or missing fields.
+            OnnxPredictorError: not JSON (or over :data:`MAX_METADATA_BYTES`), another format, a newer format
+                version, missing fields, or a field of the wrong type or range (the message names it).
         """
+        from .._limits import MAX_JSON_DEPTH, json_depth
+
+        if len(text) > MAX_METADATA_BYTES:
+            raise OnnxPredictorError(
+                f"{source}: its macsplat metadata is {len(text):,} characters (at most {MAX_METADATA_BYTES:,})"
+            )
         try:
             doc = json.loads(text)
-        except (ValueError, RecursionError) as e:
+        except (ValueError, RecursionError, MemoryError) as e:
             raise OnnxPredictorError(f"{source}: its macsplat metadata is not JSON ({e})") from None
+        if json_depth(doc) > MAX_JSON_DEPTH:
+            raise OnnxPredictorError(f"{source}: its macsplat metadata is nested too deeply (at most {MAX_JSON_DEPTH})")
         if not isinstance(doc, dict) or doc.get("format") != FORMAT:
             raise OnnxPredictorError(f"{source}: its metadata is not a {FORMAT}'s")
-        if not isinstance(doc.get("format_version"), int) or doc["format_version"] > FORMAT_VERSION:
+        version = doc.get("format_version")
+        if not _is_int(version) or not 1 <= version <= FORMAT_VERSION:
             raise OnnxPredictorError(
-                f"{source}: format version {doc.get('format_version')!r}; this macsplat reads version "
+                f"{source}: format version {version!r}; this macsplat reads version "
                 f"{FORMAT_VERSION} (re-export it, or update macsplat)"
             )
         names = {f.name for f in dataclasses.fields(cls)}
-        try:
-            info = cls(**{k: v for k, v in doc.items() if k in names})
-            info.size = (int(info.size[0]), int(info.size[1]))
-        except (TypeError, ValueError, IndexError) as e:
-            raise OnnxPredictorError(f"{source}: incomplete macsplat metadata ({e})") from None
-        if info.precision not in PARITY_TOLERANCE:
-            raise OnnxPredictorError(f"{source}: unknown precision {info.precision!r} in its metadata")
+        required = [f.name for f in dataclasses.fields(cls) if f.default is dataclasses.MISSING
+                    and f.default_factory is dataclasses.MISSING]  # fmt: skip
+        missing = [k for k in required if k not in doc]
+        if missing:
+            raise OnnxPredictorError(f"{source}: incomplete macsplat metadata (missing {', '.join(missing)})")
+        _check_metadata(doc, source)
+        info = cls(**{k: v for k, v in doc.items() if k in names})
+        info.size = (int(info.size[0]), int(info.size[1]))
         return info
 
     def fusion_detail(self, size: tuple[int, int]) -> str:
@@ -172,6 +263,75 @@ class OnnxPredictorInfo:
             f"semantic fusion applied: DINOv3 {self.dino['name']} features {size[0] // p}×{size[1] // p}×"
             f"{self.dino['embed_dim']} → descriptors {size[0]}×{size[1]}×{self.desc_dim}"
         )
+
+
+# ============================================================================================= metadata checks
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _check_metadata(doc: dict[str, Any], source: str) -> None:
+    """The type and range of every metadata field macsplat reads (what a hostile file could set).
+
+    Raises:
+        OnnxPredictorError: the first bad field, named, with what it should be.
+    """
+
+    def bad(name: str, expected: str) -> OnnxPredictorError:
+        got = json.dumps(doc[name]) if name in doc else "missing"
+        got = got if len(got) <= 60 else got[:57] + "..."
+        return OnnxPredictorError(f"{source}: its macsplat metadata field {name!r} is {got}: expected {expected}")
+
+    def text(value: Any) -> bool:
+        return isinstance(value, str) and len(value) <= MAX_TEXT_FIELD
+
+    def int_in(value: Any, lo: int, hi: int) -> bool:
+        return _is_int(value) and lo <= value <= hi
+
+    if doc["precision"] not in PARITY_TOLERANCE:
+        raise bad("precision", " or ".join(repr(p) for p in PARITY_TOLERANCE))
+    for name in ("dynamic", "fusion_enabled", "gaussian_head"):
+        if not isinstance(doc[name], bool):
+            raise bad(name, "true or false")
+    size = doc["size"]
+    if not (isinstance(size, list) and len(size) == 2 and all(int_in(v, 2 * PATCH, MAX_SIDE) and v % PATCH == 0
+                                                             for v in size)):  # fmt: skip
+        raise bad("size", f"[width, height], multiples of {PATCH} from {2 * PATCH} to {MAX_SIDE}")
+    if not int_in(doc["desc_dim"], 1, MAX_DESC_DIM):
+        raise bad("desc_dim", f"an integer from 1 to {MAX_DESC_DIM}")
+    for name in ("network", "fusion", "macsplat_version", "input", "normalisation"):
+        if name in doc and not text(doc[name]):
+            raise bad(name, f"text of at most {MAX_TEXT_FIELD:,} characters")
+    dino = doc.get("dino")
+    if dino is not None and not (
+        isinstance(dino, dict) and text(dino.get("name")) and int_in(dino.get("patch_size"), 1, 1024)
+        and int_in(dino.get("embed_dim"), 1, 1 << 16)
+    ):  # fmt: skip
+        raise bad("dino", 'null or {"name": text, "patch_size": 1-1024, "embed_dim": 1-65536}')
+    if doc.get("opset") is not None and not int_in(doc["opset"], 1, 1000):
+        raise bad("opset", "null or an integer")
+    outputs = doc.get("outputs", {})
+    if not (isinstance(outputs, dict) and all(text(v) for v in outputs.values())):
+        raise bad("outputs", "an object of output name -> text")
+    sources = doc.get("sources", {})
+    if not (isinstance(sources, dict) and all(isinstance(v, dict) and all(text(b) for b in v.values())
+                                              for v in sources.values())):  # fmt: skip
+        raise bad("sources", 'an object of role -> {"path": text, "sha256": text}')
+    config = doc.get("config", {})
+    if not isinstance(config, dict):
+        raise bad("config", "an object (the predictor's configuration)")
+    backbone = config.get("backbone")
+    if backbone is not None:
+        img_size = backbone.get("img_size") if isinstance(backbone, dict) else None
+        if not isinstance(backbone, dict) or (img_size is not None and not (
+            isinstance(img_size, list) and len(img_size) == 2 and all(int_in(v, 1, MAX_SIDE) for v in img_size)
+        )):  # fmt: skip
+            raise OnnxPredictorError(
+                f"{source}: its macsplat metadata field 'config.backbone' is not an object with an img_size of two "
+                f"integers from 1 to {MAX_SIDE}"
+            )
+    if doc.get("parity") is not None and not isinstance(doc["parity"], dict):
+        raise bad("parity", "null or an object")
 
 
 # ============================================================================================= parity
