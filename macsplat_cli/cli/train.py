@@ -200,15 +200,20 @@ def _train(
             )
         result = trainer.fit()
     if not quiet and trainer.ctx.is_main:
-        best = f"best validation PSNR {result.best_psnr:.2f} dB, " if result.best_psnr is not None else ""
-        err_console.print(
-            escape(
-                f"{result.steps} step(s) in {result.seconds:.1f} s ({result.skipped_steps} skipped); {best}"
-                f"wrote {out / 'best.pt'}, {out / 'last.pt'}, {out / 'metrics.csv'}"
-            ),
-            highlight=False,
-            soft_wrap=True,
-        )
+        err_console.print(escape(_summary(result, out)), highlight=False, soft_wrap=True)
+
+
+def _summary(result: Any, out: Path) -> str:
+    """The closing line: steps, the best PSNR, and the files this run wrote — best.pt only when it was written."""
+    best = f"best validation PSNR {result.best_psnr:.2f} dB, " if result.best_psnr is not None else ""
+    order = {name: i for i, name in enumerate(("best.pt", "last.pt", "metrics.csv"))}
+    written = sorted(result.written, key=lambda p: order.get(Path(p).name, len(order)))
+    text = f"{result.steps} step(s) in {result.seconds:.1f} s ({result.skipped_steps} skipped); {best}"
+    text += f"wrote {', '.join(str(p) for p in written)}" if written else "wrote nothing"
+    if not any(Path(p).name == "best.pt" for p in written):
+        best_pt = out / "best.pt"
+        text += f"; {best_pt} unchanged" if best_pt.is_file() else "; no best.pt (no finite validation PSNR yet)"
+    return text
 
 
 class _TrainProgress:

@@ -7,8 +7,21 @@ Files in the run folder (only rank 0 writes):
 * ``metrics.csv``: one row per optimiser step (loss terms, learning rate, seconds) and the validation rows;
 * ``last.pt``: a macsplat predictor checkpoint (:mod:`macsplat_cli.neural.predictor_io`) that also carries the
   optimiser, scheduler, step, data position and RNG states — written every ``ckpt_every`` steps, at the end and
-  on Ctrl-C, always atomically (the previous one stays intact if writing fails);
-* ``best.pt``: the predictor with the best validation PSNR (what ``reconstruct --backend neural --weights`` takes).
+  on Ctrl-C or SIGTERM, always atomically (the previous one stays intact if writing fails, a full disk included:
+  :class:`~macsplat_cli.errors.OutputPathError`);
+* ``best.pt``: the predictor with the best (finite) validation PSNR (what ``reconstruct --backend neural --weights``
+  takes).
+
+**Exact resume.** ``last.pt`` always holds a state at a step boundary: the data position and RNG states are those
+remembered after the last completed step (or skipped step), and the few statements that complete a step (optimiser,
+scheduler, counters, metrics row) run with SIGINT/SIGTERM held back. An interruption anywhere — while a batch is
+being drawn, during the forward or backward pass, while validating — therefore resumes to the same weights as an
+uninterrupted run: the batch in flight is drawn again, and a validation that was due is run first.
+
+**Resuming checks the file** before anything is restored: its structure, the keys, shapes and dtypes of the weights
+and of the optimiser state against this run's model, finite values, the scheduler and RNG states, and a step within
+``0 … steps``; anything else is refused with :class:`~macsplat_cli.errors.OutputPathError` naming the file and the
+first problem.
 
 A non-finite loss skips its step (counted in the metrics); ``max_bad_steps`` of them in a row stop the run with
 :class:`TrainingError`, the last good checkpoint intact.
@@ -19,12 +32,13 @@ from __future__ import annotations
 import contextlib
 import csv
 import dataclasses
-import itertools
 import json
 import logging
 import math
 import os
-import random
+import shutil
+import signal
+import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -40,9 +54,10 @@ from .._json import to_jsonable
 from ..errors import InputError, MacsplatError, OutputPathError
 from ..metrics import psnr, ssim
 from ..neural.predictor import PairPredictor, prediction_from_outputs
-from ..neural.predictor_io import PREDICTOR_FORMAT, predictor_config, save_predictor_checkpoint
+from ..neural.predictor_io import PREDICTOR_FORMAT, predictor_config
 from .loss import LossConfig, render_targets, training_loss
 from .model import trainable_parameters
+from .resume import check_training_checkpoint, read_training_checkpoint, rng_state, set_rng_state
 
 __all__ = ["TrainConfig", "TrainResult", "TrainingError", "Trainer", "distributed_context"]
 
@@ -114,11 +129,23 @@ class TrainConfig:
 
 @dataclass
 class TrainResult:
+    """What :meth:`Trainer.fit` did.
+
+    Attributes:
+        steps: the step reached.
+        best_psnr: the best finite validation PSNR so far (None: none yet).
+        skipped_steps: non-finite steps skipped so far.
+        seconds: wall time of this call.
+        history: the training rows of this call.
+        written: the files this call wrote (each once, in the order first written).
+    """
+
     steps: int
     best_psnr: float | None
     skipped_steps: int
     seconds: float
     history: list[dict[str, float]]
+    written: list[Path] = field(default_factory=list)
 
 
 # ============================================================================================= distributed
@@ -155,23 +182,45 @@ def _lr_factor(step: int, warmup: int, total: int) -> float:
     return 0.5 * (1.0 + math.cos(math.pi * min(1.0, progress)))
 
 
-def _rng_state() -> dict[str, Any]:
-    np_state = np.random.get_state()
-    return {
-        "torch": torch.get_rng_state(),
-        "numpy": torch.from_numpy(np_state[1].astype(np.int64)),
-        "numpy_pos": int(np_state[2]),
-        "numpy_gauss": (int(np_state[3]), float(np_state[4])),
-        "python": random.getstate(),
-    }
+class _WriteFailed(Exception):
+    """torch.save failed inside :func:`atomic_path` (carries the error out, past the removal of the temporary file)."""
 
 
-def _set_rng_state(state: dict[str, Any]) -> None:
-    torch.set_rng_state(state["torch"])
-    has_gauss, cached = state["numpy_gauss"]
-    np.random.set_state(("MT19937", state["numpy"].numpy().astype(np.uint32), state["numpy_pos"], has_gauss, cached))
-    version, internal, gauss = state["python"]
-    random.setstate((version, tuple(internal), gauss))
+_INTERRUPTS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM") if hasattr(signal, name))
+
+
+@contextlib.contextmanager
+def _interrupts_held() -> Iterator[None]:
+    """Hold SIGINT and SIGTERM back while inside, and deliver them on the way out (main thread only).
+
+    The handlers are swapped for one that only notes the signal (Python runs signal handlers in the main thread
+    whatever thread the OS picked, so this holds them for the whole process); the previous handlers are put back
+    and each noted signal is raised again, so Ctrl-C and SIGTERM act right after the block as they would have in it.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+    previous: dict[int, Any] = {}
+
+    def note(signum: int, frame: Any) -> None:
+        held.append(signum)
+
+    try:
+        for s in _INTERRUPTS:
+            if signal.getsignal(s) is not None:  # None: a handler installed outside Python, left alone
+                previous[s] = signal.signal(s, note)
+    except (ValueError, OSError):  # no signals here (an embedded interpreter)
+        for s, h in previous.items():
+            signal.signal(s, h)
+        previous.clear()
+    try:
+        yield
+    finally:
+        for s, h in previous.items():  # a signal pending here is noted first (signal.signal checks before swapping)
+            signal.signal(s, h)
+        for s in dict.fromkeys(held):
+            signal.raise_signal(s)
 
 
 class Trainer:
@@ -185,6 +234,10 @@ class Trainer:
         lpips: LPIPS model for the perceptual term (None: D-SSIM).
         run_info: what ``run.json`` records besides the loop's settings (data, model).
         on_step: called on rank 0 after each optimiser step with the step and its metrics.
+
+    Raises:
+        InputError: a bad setting, nothing to train, or fewer training pairs per process than ``config.batch``
+            (an epoch would hold no batch).
     """
 
     def __init__(
@@ -201,6 +254,12 @@ class Trainer:
         config.validate()
         self.config = config
         self.ctx = distributed_context(config.device)
+        per_process = len(train_data) // self.ctx.world_size
+        if per_process < config.batch:
+            raise InputError(
+                f"--batch {config.batch} is more than the {per_process} training pair(s) per process: an epoch would "
+                "hold no batch; lower --batch"
+            )
         self.device = torch.device(config.device, self.ctx.local_rank if config.device == "cuda" else None)
         self.predictor = predictor.to(self.device)
         self.train_data, self.val_data = train_data, val_data
@@ -226,9 +285,14 @@ class Trainer:
         self.batch_in_epoch = 0
         self.best_psnr: float | None = None
         self.skipped = 0
+        self.bad_in_a_row = 0
+        self.validated_at = 0  # the step of the last completed validation
         self.history: list[dict[str, float]] = []
+        self.written: list[Path] = []  # the files written by this process, each once, in order
         self.stop_after: int | None = None  # tests: simulate an interruption after this many steps
         self._tensorboard: Any = None  # a SummaryWriter when tensorboard is installed, False when not
+        self._position: dict[str, Any] = {}  # the data position and RNG at the last step boundary (_mark)
+        self._mark()
 
     # ------------------------------------------------------------------ files
     @property
@@ -239,7 +303,8 @@ class Trainer:
         """Create the run folder; refuse one holding another run unless ``resume`` or ``force``.
 
         Raises:
-            OutputPathError: the folder holds another run, cannot be written, or ``resume`` finds no checkpoint.
+            OutputPathError: the folder holds another run, cannot be written, or ``resume`` finds no checkpoint or
+                one that cannot be resumed (:mod:`.resume`).
         """
         run_json = self.out / "run.json"
         if resume:
@@ -254,68 +319,122 @@ class Trainer:
             )
         if self.ctx.is_main:
             check_writable(run_json)
-            self.out.mkdir(parents=True, exist_ok=True)
             doc = {"config": dataclasses.asdict(self.config), **self.run_info, "world_size": self.ctx.world_size}
-            with atomic_path(run_json) as tmp:
-                tmp.write_text(json.dumps(to_jsonable(doc), indent=2) + "\n")
-            (self.out / "metrics.csv").unlink(missing_ok=True)
+            try:
+                self.out.mkdir(parents=True, exist_ok=True)
+                with atomic_path(run_json) as tmp:
+                    tmp.write_text(json.dumps(to_jsonable(doc), indent=2) + "\n")
+                (self.out / "metrics.csv").unlink(missing_ok=True)
+            except OSError as e:
+                raise OutputPathError(f"{run_json}: the run folder could not be written ({e.strerror or e})") from None
         _barrier(self.ctx)  # the other processes start once rank 0 has accepted the folder
 
     def _meta(self) -> dict[str, Any]:
         return {"step": self.step, "best_psnr": self.best_psnr, "config": to_jsonable(dataclasses.asdict(self.config))}
 
     def save_checkpoint(self, name: str = "last.pt", *, training_state: bool = True) -> Path | None:
-        """Write a predictor checkpoint (with the training state for ``last.pt``) atomically (rank 0)."""
+        """Write a predictor checkpoint (with the training state for ``last.pt``) atomically (rank 0).
+
+        Raises:
+            OutputPathError: it could not be written (a full disk, a folder that went away); the previous file of that
+                name is intact and no partial file is left.
+        """
         if not self.ctx.is_main:
             return None
         path = self.out / name
+        payload = self._training_payload() if training_state else self._predictor_payload()
         try:
-            if not training_state:
-                return save_predictor_checkpoint(path, self.predictor, self._meta())
-            self._save_training_state(path)
-        except OSError as e:
+            with atomic_path(path) as tmp:
+                try:
+                    torch.save(payload, tmp)
+                except (OSError, RuntimeError) as e:  # torch's zip writer reports a failed write as RuntimeError
+                    why = self._write_failure(e, tmp, training_state)
+                    e.__traceback__ = None  # let go of torch's writer (and its open file) now
+                    raise _WriteFailed(why) from None
+        except _WriteFailed as e:
+            raise OutputPathError(
+                f"{path}: the checkpoint could not be written ({e}); the previous one is intact"
+            ) from None
+        except OSError as e:  # creating or renaming the temporary file
             raise OutputPathError(
                 f"{path}: the checkpoint could not be written ({e.strerror or e}); the previous one is intact"
             ) from None
+        if path not in self.written:
+            self.written.append(path)
         return path
 
-    def _save_training_state(self, path: Path) -> None:
-        payload = {
+    def _write_failure(self, e: BaseException, tmp: Path, training_state: bool) -> str:
+        """Why a checkpoint write failed, in words: OSError's own reason; else, when the disk lacks the room, the free
+        space (once the partial ``tmp`` is removed) against the checkpoint's size; else torch's first sentence."""
+        if isinstance(e, OSError):
+            return str(e.strerror or e)
+        tensors = list(self.predictor.state_dict().values())
+        if training_state:
+            tensors += [v for s in self.optimizer.state.values() for v in s.values() if isinstance(v, torch.Tensor)]
+        need = sum(t.numel() * t.element_size() for t in tensors)
+        with contextlib.suppress(OSError):
+            free = shutil.disk_usage(tmp.parent).free + tmp.stat().st_blocks * 512
+            if free < need:
+                return f"no space left: {free / 2**20:.1f} MiB free, about {need / 2**20:.1f} MiB needed"
+        first = (str(e).strip().splitlines() or [type(e).__name__])[0]
+        return f"the write failed: {first[:200]}"
+
+    def _predictor_payload(self) -> dict[str, Any]:
+        """``best.pt``: a predictor checkpoint (:func:`~macsplat_cli.neural.predictor_io.save_predictor_checkpoint`'s
+        layout, which ``load_pair_predictor`` reads)."""
+        return {
             "format": PREDICTOR_FORMAT,
             "version": 1,
             "config": predictor_config(self.predictor),
             "state_dict": {k: v.detach().cpu() for k, v in self.predictor.state_dict().items()},
             "meta": self._meta(),
+        }
+
+    def _training_payload(self) -> dict[str, Any]:
+        """``last.pt``: the predictor, the optimiser, scheduler and scaler, and the counters, data position and RNG
+        states of the last step boundary (:meth:`_mark`)."""
+        pos = self._position
+        return {
+            **self._predictor_payload(),
             "training": {
                 "optimizer": self.optimizer.state_dict(),
                 "scheduler": self.scheduler.state_dict(),
                 "scaler": self.scaler.state_dict(),
                 "step": self.step,
-                "epoch": self.epoch,
-                "batch_in_epoch": self.batch_in_epoch,
+                "epoch": pos["epoch"],
+                "batch_in_epoch": pos["batch_in_epoch"],
                 "best_psnr": self.best_psnr,
-                "skipped": self.skipped,
-                "rng": _rng_state(),
+                "skipped": pos["skipped"],
+                "bad_in_a_row": pos["bad_in_a_row"],
+                "validated_at": self.validated_at,
+                "rng": pos["rng"],
             },
         }
-        with atomic_path(path) as tmp:
-            torch.save(payload, tmp)
 
     def load_checkpoint(self, path: Path) -> None:
-        """Restore model, optimiser, scheduler, data position and RNG from a ``last.pt``."""
-        obj = torch.load(path, map_location="cpu", weights_only=True)
-        if not isinstance(obj, dict) or "training" not in obj:
-            raise OutputPathError(f"{path}: not a resumable macsplat training checkpoint")
-        if obj["config"] != predictor_config(self.predictor):
-            raise OutputPathError(f"{path}: its model configuration differs from this run's (--model/--init)")
-        self.predictor.load_state_dict(obj["state_dict"])
+        """Restore model, optimiser, scheduler, data position and RNG from a ``last.pt``, once all of it is checked.
+
+        Raises:
+            OutputPathError: the file cannot be read, or does not fit this run (:mod:`.resume`); nothing is restored.
+        """
+        obj = read_training_checkpoint(path)
+        state = check_training_checkpoint(
+            obj, path, model=self.predictor, optimizer=self.optimizer, scheduler=self.scheduler, scaler=self.scaler,
+            steps=self.config.steps,
+        )  # fmt: skip
         t = obj["training"]
-        self.optimizer.load_state_dict(t["optimizer"])
-        self.scheduler.load_state_dict(t["scheduler"])
-        self.scaler.load_state_dict(t["scaler"])
-        self.step, self.epoch, self.batch_in_epoch = t["step"], t["epoch"], t["batch_in_epoch"]
-        self.best_psnr, self.skipped = t["best_psnr"], t["skipped"]
-        _set_rng_state(t["rng"])
+        try:
+            self.predictor.load_state_dict(obj["state_dict"])
+            self.optimizer.load_state_dict(t["optimizer"])
+            self.scheduler.load_state_dict(dict(t["scheduler"]))
+            self.scaler.load_state_dict(t["scaler"])
+            set_rng_state(t["rng"])
+        except (RuntimeError, ValueError, TypeError, KeyError) as e:  # checked above: not expected
+            raise OutputPathError(f"{path}: cannot resume from it: {str(e).splitlines()[0][:200]}") from None
+        self.step, self.epoch, self.batch_in_epoch = state.step, state.epoch, state.batch_in_epoch
+        self.best_psnr, self.skipped, self.bad_in_a_row = state.best_psnr, state.skipped, state.bad_in_a_row
+        self.validated_at = state.validated_at
+        self._mark()
         logger.info("resumed %s at step %d (epoch %d, batch %d)", path, self.step, self.epoch, self.batch_in_epoch)
 
     def _log(self, row: dict[str, Any]) -> None:
@@ -330,16 +449,43 @@ class Trainer:
         path = self.out / "metrics.csv"
         fields = ["step", "kind", "loss", "photo", "mse", "perceptual", "mac", "matches", "lr", "seconds", "skipped",
                   "psnr", "ssim", "lpips"]  # fmt: skip
-        new = not path.exists()
-        with path.open("a", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
-            if new:
-                w.writeheader()
-            w.writerow(row)
+        try:
+            new = not path.exists()
+            with path.open("a", newline="") as f:
+                w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
+                if new:
+                    w.writeheader()
+                w.writerow(row)
+        except OSError as e:
+            raise OutputPathError(f"{path}: the metrics could not be written ({e.strerror or e})") from None
+        if path not in self.written:
+            self.written.append(path)
+
+    # ------------------------------------------------------------------ position
+    def _mark(self) -> None:
+        """Remember the state a checkpoint resumes from. Called where no step is half done — at the start and at the
+        end of each step or skipped step, with interruptions held back — so that an interruption anywhere else
+        resumes exactly (the batches of the step in flight are drawn again)."""
+        self._position = {
+            "epoch": self.epoch,
+            "batch_in_epoch": self.batch_in_epoch,
+            "skipped": self.skipped,
+            "bad_in_a_row": self.bad_in_a_row,
+            "rng": rng_state(),
+        }
+
+    def _rewind(self) -> None:
+        """Back to the last step boundary (after an interruption): data position, counters and RNG."""
+        pos = self._position
+        self.epoch, self.batch_in_epoch = pos["epoch"], pos["batch_in_epoch"]
+        self.skipped, self.bad_in_a_row = pos["skipped"], pos["bad_in_a_row"]
+        set_rng_state(pos["rng"])
+        self.optimizer.zero_grad(set_to_none=True)
 
     # ------------------------------------------------------------------ data
     def _batches(self) -> Iterator[dict[str, torch.Tensor]]:
-        """Batches from the current data position on, epoch after epoch (resume skips what was done)."""
+        """Batches from the current data position on, epoch after epoch (a resumed epoch starts at its next batch:
+        the sampler skips the samples already done, nothing is loaded for them)."""
         from .data import make_loader
 
         while True:
@@ -347,10 +493,9 @@ class Trainer:
             loader = make_loader(
                 self.train_data, batch_size=self.config.batch, workers=self.config.workers, shuffle=True,
                 seed=self.config.seed, rank=self.ctx.rank, world_size=self.ctx.world_size,
+                start_batch=self.batch_in_epoch,
             )  # fmt: skip
-            if hasattr(loader.sampler, "set_epoch"):
-                loader.sampler.set_epoch(self.epoch)
-            for batch in itertools.islice(loader, self.batch_in_epoch, None):
+            for batch in loader:
                 self.batch_in_epoch += 1
                 yield batch
             self.epoch += 1
@@ -370,9 +515,19 @@ class Trainer:
     # ------------------------------------------------------------------ validation
     @torch.no_grad()
     def validate(self) -> dict[str, float]:
-        """PSNR and SSIM of the rendered targets of every validation pair (full images)."""
+        """PSNR and SSIM of the rendered targets of every validation pair (full images).
+
+        The global RNG states are the same after as before (a validation never changes what training does next).
+        """
         from .data import make_loader
 
+        rng = rng_state()
+        try:
+            return self._validate(make_loader)
+        finally:
+            set_rng_state(rng)
+
+    def _validate(self, make_loader: Callable[..., Any]) -> dict[str, float]:
         self.predictor.eval()
         loader = make_loader(self.val_data, batch_size=1, workers=0, shuffle=False, seed=self.config.seed)
         psnrs, ssims, lpipss = [], [], []
@@ -393,14 +548,27 @@ class Trainer:
         out = {"psnr": float(np.mean(psnrs)), "ssim": float(np.mean(ssims))}
         return {**out, "lpips": float(np.mean(lpipss))} if lpipss else out
 
+    def _validation_due(self, step: int) -> bool:
+        cfg = self.config
+        return self.val_data is not None and ((cfg.val_every > 0 and step % cfg.val_every == 0) or step == cfg.steps)
+
     # ------------------------------------------------------------------ training
     def fit(self) -> TrainResult:
-        """Train until ``config.steps``; Ctrl-C writes ``last.pt`` and re-raises."""
+        """Train until ``config.steps``; Ctrl-C or SIGTERM writes ``last.pt`` (the last step boundary) and re-raises.
+
+        Raises:
+            KeyboardInterrupt: interrupted (``last.pt`` written; the trainer is back at the last step boundary).
+            TrainingError: the loss stayed non-finite for ``max_bad_steps`` steps.
+            OutputPathError: a file of the run folder could not be written.
+        """
         cfg = self.config
         t0 = time.perf_counter()
+        self.history = []
         batches = self._batches()
-        bad_in_a_row = 0
+        self._mark()
         try:
+            if self.step > 0 and self.validated_at < self.step and self._validation_due(self.step):
+                self._validate_and_keep_best()  # interrupted after its step, before its validation
             while self.step < cfg.steps:
                 if self.stop_after is not None and self.step >= self.stop_after:
                     raise KeyboardInterrupt
@@ -429,54 +597,70 @@ class Trainer:
                     terms_sum["loss"] = terms_sum.get("loss", 0.0) + float(terms.loss.detach()) / cfg.accumulate
                 finite = _all_ranks(finite, self.ctx, self.device)
                 if not finite:
-                    self.skipped += 1
-                    bad_in_a_row += 1
-                    self.optimizer.zero_grad(set_to_none=True)
-                    logger.warning("step %d: non-finite loss, step skipped (%d in a row)", self.step + 1, bad_in_a_row)
-                    if bad_in_a_row >= cfg.max_bad_steps:
+                    with _interrupts_held():  # a skipped step is done as a whole, or not at all
+                        self.skipped += 1
+                        self.bad_in_a_row += 1
+                        self.optimizer.zero_grad(set_to_none=True)
+                        self._mark()
+                    logger.warning(
+                        "step %d: non-finite loss, step skipped (%d in a row)", self.step + 1, self.bad_in_a_row
+                    )
+                    if self.bad_in_a_row >= cfg.max_bad_steps:
                         raise TrainingError(
-                            f"the loss was non-finite for {bad_in_a_row} steps in a row (step {self.step + 1}); "
+                            f"the loss was non-finite for {self.bad_in_a_row} steps in a row (step {self.step + 1}); "
                             f"stopped, the last good checkpoint is {self.out / 'last.pt'} (try a lower --lr)"
                         )
                     continue
-                bad_in_a_row = 0
-                if cfg.grad_clip > 0:
-                    self.scaler.unscale_(self.optimizer)
-                    torch.nn.utils.clip_grad_norm_(trainable_parameters(self.predictor), cfg.grad_clip)
-                self.scaler.step(self.optimizer)
-                self.scaler.update()
-                self.scheduler.step()
-                self.step += 1
-                row = {"step": self.step, "kind": "train", **terms_sum, "lr": self.scheduler.get_last_lr()[0],
-                       "seconds": time.perf_counter() - t_step, "skipped": self.skipped}  # fmt: skip
-                self.history.append(row)
-                self._log(row)
+                with _interrupts_held():  # the step is done as a whole, or not at all
+                    self.bad_in_a_row = 0
+                    if cfg.grad_clip > 0:
+                        self.scaler.unscale_(self.optimizer)
+                        torch.nn.utils.clip_grad_norm_(trainable_parameters(self.predictor), cfg.grad_clip)
+                    self.scaler.step(self.optimizer)
+                    self.scaler.update()
+                    self.scheduler.step()
+                    self.step += 1
+                    row = {"step": self.step, "kind": "train", **terms_sum, "lr": self.scheduler.get_last_lr()[0],
+                           "seconds": time.perf_counter() - t_step, "skipped": self.skipped}  # fmt: skip
+                    self.history.append(row)
+                    self._mark()
+                    self._log(row)
                 if self.on_step is not None and self.ctx.is_main:
                     self.on_step(self.step, row)
-                last = self.step == cfg.steps
-                if self.val_data is not None and ((cfg.val_every and self.step % cfg.val_every == 0) or last):
+                if self._validation_due(self.step):
                     self._validate_and_keep_best()
-                if (cfg.ckpt_every and self.step % cfg.ckpt_every == 0) or last:
+                if (cfg.ckpt_every and self.step % cfg.ckpt_every == 0) or self.step == cfg.steps:
                     self.save_checkpoint()
         except KeyboardInterrupt:
+            self._rewind()
             self.save_checkpoint()
             raise
         if self.val_data is None:
             self.save_checkpoint("best.pt", training_state=False)
         if self._tensorboard:
             self._tensorboard.flush()
-        return TrainResult(self.step, self.best_psnr, self.skipped, time.perf_counter() - t0, self.history)
+        return TrainResult(self.step, self.best_psnr, self.skipped, time.perf_counter() - t0, self.history,
+                           list(self.written))  # fmt: skip
 
     def _validate_and_keep_best(self) -> None:
+        """Validate; a finite PSNR above the best so far writes ``best.pt`` (a NaN one never counts)."""
         if not self.ctx.is_main:
             _barrier(self.ctx)
+            self.validated_at = self.step
             return
         metrics = self.validate()
-        self._log({"step": self.step, "kind": "val", **metrics})
         logger.info("step %d: validation PSNR %.2f dB, SSIM %.3f", self.step, metrics["psnr"], metrics["ssim"])
-        if self.best_psnr is None or metrics["psnr"] > self.best_psnr:
-            self.best_psnr = metrics["psnr"]
-            self.save_checkpoint("best.pt", training_state=False)
+        value = metrics["psnr"]
+        better = not math.isnan(value) and (self.best_psnr is None or value > self.best_psnr)
+        if better:
+            self.save_checkpoint("best.pt", training_state=False)  # written first: an interruption re-validates
+        elif math.isnan(value):
+            logger.warning("step %d: the validation PSNR is NaN: best.pt is not updated", self.step)
+        with _interrupts_held():
+            if better:
+                self.best_psnr = value
+            self.validated_at = self.step
+            self._log({"step": self.step, "kind": "val", **metrics})
         _barrier(self.ctx)
 
 
