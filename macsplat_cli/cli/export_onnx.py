@@ -120,14 +120,15 @@ def export_onnx_command(
                                    ("fusion", fusion)) if v is not None}  # fmt: skip
         from .._atomic import check_writable
 
-        check_writable(output)  # before loading gigabytes
-        if output.suffix.lower() != ".onnx":
-            raise InputError(f"-o {output}: the output must end in .onnx")
+        # before loading gigabytes: an output that is an input (the more precise message first), then writable
         check_no_clobber(
             [("-o", output), ("-o", output.with_name(output.name + ".data")),
              ("-o", output.with_name(output.stem + ".parity.json"))],
             [(_OPTION_OF[k] if k != "weights" or checkpoint is None else "--checkpoint", v) for k, v in files.items()],
         )  # fmt: skip
+        check_writable(output)
+        if output.suffix.lower() != ".onnx":
+            raise InputError(f"-o {output}: the output must end in .onnx")
         with StageProgress(disabled=state.quiet) as progress:
             progress.event(_STEPS["load"], "start")
             try:
