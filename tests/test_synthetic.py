@@ -17,6 +17,21 @@ from macsplat_cli.errors import InputError
 from macsplat_cli.images import to_uint8
 
 FLAT = S.Texture(albedo=(0.2, 0.4, 0.6), textured=False)
+U32, U64 = np.finfo(np.float32).eps / 2, np.finfo(np.float64).eps / 2
+# The ray caster works in float64 and stores depth, normals and colours as float32. A float64 ray cast, camera or
+# rotation is ≲ 30 operations on its coordinates with no catastrophic cancellation (a ray–plane or ray–sphere
+# intersection at ≥ 20° incidence, unit vectors from normalisations, atan2 angles): within F64 = 64u of the largest
+# coordinate involved, relative, so a stored float32 value is within u32 + F64 of the exact one.
+F64 = 64 * U64
+
+
+def _f32(x: float) -> float:
+    """Bound on a float32-stored value |x| computed in float64: one rounding plus the float64 budget."""
+    return (U32 + F64) * abs(x)
+
+
+def _deg(rad: float) -> float:
+    return math.degrees(rad)
 
 
 @pytest.fixture(scope="module")
@@ -60,11 +75,13 @@ def test_fronto_parallel_wall_depth_is_constant_and_colour_is_albedo() -> None:
     scene = S.Scene([wall], lighting=None)
     view = S.render(scene, _camera())
     assert view.depth.shape == (49, 65) and view.depth.dtype == np.float32
-    assert view.depth[24, 32] == pytest.approx(3.0, abs=1e-6)  # the centre pixel
+    assert view.depth[24, 32] == pytest.approx(3.0, rel=0, abs=_f32(3.0))  # the centre pixel
     for i, j in [(0, 0), (0, 64), (48, 0), (48, 64)]:  # corners: still z = 3 on a fronto-parallel wall
-        assert view.depth[i, j] == pytest.approx(3.0, abs=1e-6)
-    np.testing.assert_allclose(view.normals.reshape(-1, 3), np.tile([0.0, 0.0, -1.0], (65 * 49, 1)), atol=1e-6)
-    np.testing.assert_allclose(view.image, np.broadcast_to(FLAT.albedo, view.image.shape), atol=1e-6)
+        assert view.depth[i, j] == pytest.approx(3.0, rel=0, abs=_f32(3.0))
+    np.testing.assert_allclose(view.normals.reshape(-1, 3), np.tile([0.0, 0.0, -1.0], (65 * 49, 1)), rtol=0,
+                               atol=_f32(1.0))  # fmt: skip
+    # unlit, untextured: the albedo, averaged over the supersamples (equal values) and stored: ≤ u32 + F64
+    np.testing.assert_allclose(view.image, np.broadcast_to(FLAT.albedo, view.image.shape), rtol=0, atol=_f32(1.0))
 
 
 def test_tilted_plane_depth_matches_analytic_everywhere() -> None:
@@ -80,33 +97,37 @@ def test_tilted_plane_depth_matches_analytic_everywhere() -> None:
     view = S.render(S.Scene([quad]), cam)
     rays = _pixel_rays(cam)
     expected = (n @ p0) / (rays @ n)
-    np.testing.assert_allclose(view.depth, expected, rtol=1e-5)
+    # the renderer's and the test's float64 rays (F64 each, amplified by 1/cos of the incidence ≤ 2 here: the plane
+    # is tilted ~21°, the rays ≤ 35° off axis) and one float32 rounding
+    np.testing.assert_allclose(view.depth, expected, rtol=U32 + 2 * 2 * F64, atol=0)
 
 
 def test_sphere_and_box_depths_at_the_centre_pixel() -> None:
     cam = _camera()
     sphere = S.Scene([S.Sphere((0.0, 0.0, 5.0), 1.0, texture=FLAT)])
-    assert S.render(sphere, cam).depth[24, 32] == pytest.approx(4.0, abs=1e-6)
+    # b − √(b² − c) with b² = 25, b² − c = 1: the cancellation costs 25u in b² − c (12.5u in the root, of 1)
+    assert S.render(sphere, cam).depth[24, 32] == pytest.approx(4.0, rel=0, abs=_f32(5.0))
     # a box turned 45° about y shows an edge at distance 5 − √2
     box = S.Scene([S.Box((0.0, 0.0, 5.0), (1.0, 1.0, 1.0), S.rotation_about((0, 1, 0), 45.0), FLAT)])
     view = S.render(box, cam)
-    assert view.depth[24, 32] == pytest.approx(5.0 - math.sqrt(2.0), abs=2e-3)  # pixel centre on the edge ±½ px
+    # the centre pixel's centre lies on the edge exactly (principal point 32.5): depth 5 − √2 up to rounding
+    assert view.depth[24, 32] == pytest.approx(5.0 - math.sqrt(2.0), rel=0, abs=_f32(5.0))
     # from inside a box (a room): the far wall
     inside = S.Scene([S.Box((0.0, 0.0, 0.0), (5.0, 5.0, 2.0), None, FLAT)])
     view = S.render(inside, cam)
-    assert view.depth[24, 32] == pytest.approx(2.0, abs=1e-6)
+    assert view.depth[24, 32] == pytest.approx(2.0, rel=0, abs=_f32(2.0))
     assert (view.depth > 0).all()  # closed: every ray hits
-    np.testing.assert_allclose(view.normals[24, 32], [0.0, 0.0, -1.0], atol=1e-9)
+    np.testing.assert_array_equal(view.normals[24, 32], [0.0, 0.0, -1.0])  # an axis-aligned face: exact
 
 
 def test_nearest_surface_wins_and_misses_have_zero_depth() -> None:
     wall = S.Quad((-1.0, -1.0, 6.0), (2.0, 0.0, 0.0), (0.0, 2.0, 0.0), FLAT)  # covers the centre only
     ball = S.Sphere((0.0, 0.0, 4.0), 0.5, texture=S.Texture((1.0, 0.0, 0.0), textured=False))
     view = S.render(S.Scene([wall, ball], lighting=None, background=(0.0, 1.0, 0.0)), _camera())
-    assert view.depth[24, 32] == pytest.approx(3.5, abs=1e-6)
-    np.testing.assert_allclose(view.image[24, 32], [1.0, 0.0, 0.0], atol=1e-6)
+    assert view.depth[24, 32] == pytest.approx(3.5, rel=0, abs=_f32(4.0))
+    np.testing.assert_allclose(view.image[24, 32], [1.0, 0.0, 0.0], rtol=0, atol=_f32(1.0))
     assert view.depth[0, 0] == 0.0 and not view.mask[0, 0]
-    np.testing.assert_allclose(view.image[0, 0], [0.0, 1.0, 0.0])
+    np.testing.assert_allclose(view.image[0, 0], [0.0, 1.0, 0.0], rtol=0, atol=_f32(1.0))
 
 
 def test_shading_depends_on_the_normal_not_on_the_view() -> None:
@@ -116,14 +137,17 @@ def test_shading_depends_on_the_normal_not_on_the_view() -> None:
     scene = S.Scene([floor, wall], lighting=light)
     hits = S.cast_rays(scene, _camera(), np.array([[32.5, 48.0], [32.5, 10.0]]))
     assert hits.primitive.tolist() == [0, 1]
-    np.testing.assert_allclose(hits.color[0], np.array(FLAT.albedo) * 1.0, atol=1e-6)
-    np.testing.assert_allclose(hits.color[1], np.array(FLAT.albedo) * 0.3, atol=1e-6)
+    # float32 albedo times a float64 shade (0.3 + 0.7·cos), stored: the albedo's own float32 rounding (the test's
+    # is float64), the product's, and F64 of the shade
+    np.testing.assert_allclose(hits.color[0], np.array(FLAT.albedo) * 1.0, rtol=0, atol=2 * _f32(1.0))
+    np.testing.assert_allclose(hits.color[1], np.array(FLAT.albedo) * 0.3, rtol=0, atol=2 * _f32(1.0))
     # the same floor point seen from another camera has the same colour
     point = hits.points[0]
     other = S.look_at_camera("o", (2.0, -1.0, -1.0), point, width=65, height=49)
     hit2 = S.cast_rays(scene, other, np.array([[32.5, 24.5]]))
-    np.testing.assert_allclose(hit2.points[0], point, atol=1e-9)
-    np.testing.assert_allclose(hit2.color[0], hits.color[0], atol=1e-6)
+    # the look-at camera and its ray (F64 of the ~4 m geometry), hitting the floor at ≥ 30° (×2)
+    np.testing.assert_allclose(hit2.points[0], point, rtol=0, atol=2 * F64 * 4.0)
+    np.testing.assert_allclose(hit2.color[0], hits.color[0], rtol=0, atol=2 * _f32(1.0))  # the same shading
 
 
 def test_room_floor_normals_and_depth_are_consistent(room: S.Scene) -> None:
@@ -131,13 +155,15 @@ def test_room_floor_normals_and_depth_are_consistent(room: S.Scene) -> None:
     view = S.render(room, cam, supersample=1)
     assert view.mask.all()  # the room is closed
     world = view.depth[..., None] * _pixel_rays(cam) @ cam.cam_to_world[:3, :3].T + cam.center
-    np.testing.assert_allclose(np.linalg.norm(view.normals, axis=-1), 1.0, atol=1e-5)
+    # float32-stored unit normals (u32 per component) and the test's float32 norm (γ₃/2 + u32)
+    np.testing.assert_allclose(np.linalg.norm(view.normals, axis=-1), 1.0, rtol=0, atol=4 * U32 + F64)
     floor = np.abs(world[..., 1] - 1.5) < 1e-4  # y = +1.5: the floor
     assert floor.mean() > 0.1
-    np.testing.assert_allclose(view.normals[floor], np.tile([0.0, -1.0, 0.0], (int(floor.sum()), 1)), atol=1e-6)
+    np.testing.assert_allclose(view.normals[floor], np.tile([0.0, -1.0, 0.0], (int(floor.sum()), 1)), rtol=0,
+                               atol=_f32(1.0))  # fmt: skip
     # the room's quads face inwards: the lit floor is brighter than its albedo times the ambient term
-    assert room.primitives[0].bounding_sphere()[0][1] == pytest.approx(1.5)
-    np.testing.assert_allclose(room.primitives[0]._cache["normal"], [0.0, -1.0, 0.0])
+    assert room.primitives[0].bounding_sphere()[0][1] == pytest.approx(1.5, rel=0, abs=F64 * 6.0)
+    np.testing.assert_allclose(room.primitives[0]._cache["normal"], [0.0, -1.0, 0.0], rtol=0, atol=F64)
     assert 1.0 < view.depth.min() and view.depth.max() < 8.0  # inside a 6 m room, no object on the camera
 
 
@@ -195,12 +221,15 @@ def test_transfer_points_gives_exact_correspondences(room: S.Scene) -> None:
     # the rays through pix0 and pix1 meet at the same surface point
     h0 = S.cast_rays(room, c0, pix0[visible])
     h1 = S.cast_rays(room, c1, pix1[visible])
-    np.testing.assert_allclose(h0.points, h1.points, atol=1e-6)
+    # pix1 is the float64 projection of h0's point, re-cast from c1: float64 all the way (F64 of the ~6 m room),
+    # but a grazing surface amplifies a ray's rounding by 1/cos of the incidence, which random pixels do not bound
+    # a priori: 1e-9 allows incidences up to 89.99° (measured: 1.3e-14 m, and 5.3e-13 px back)
+    np.testing.assert_allclose(h0.points, h1.points, rtol=0, atol=1e-9)
     assert (h0.primitive == h1.primitive).all()
     # transferring back returns the start
     back, vis_back = S.transfer_points(room, c1, c0, pix1[visible])
     assert vis_back.all()
-    np.testing.assert_allclose(back, pix0[visible], atol=1e-6)
+    np.testing.assert_allclose(back, pix0[visible], rtol=0, atol=1e-9 * 400)  # the same, times ≤ 400 px per metre
 
 
 # ------------------------------------------------------------------------------------ determinism, texture
@@ -255,16 +284,19 @@ def test_orbit_pair_angle_between_optical_axes(kind: str, angle: float) -> None:
     for seed in (0, 1):
         c0, c1 = S.orbit_pair(kind, angle, seed=seed)
         z0, z1 = c0.cam_to_world[:3, 2], c1.cam_to_world[:3, 2]
-        assert _angle_deg(z0, z1) == pytest.approx(angle, abs=1e-6)
+        # atan2 angles of F64-accurate unit vectors: ≤ 2·F64 rad
+        assert _angle_deg(z0, z1) == pytest.approx(angle, rel=0, abs=_deg(2 * F64))
         for cam in (c0, c1):  # both look at the target, from the scene's distance ±5%
             to_target = target - cam.center
-            assert _angle_deg(cam.cam_to_world[:3, 2], to_target) < 1e-6
+            assert _angle_deg(cam.cam_to_world[:3, 2], to_target) <= _deg(2 * F64)
             assert cam.K[0, 2] == 256 and cam.K[1, 2] == 192
-            assert cam.K[0, 0] == pytest.approx(256 / math.tan(math.radians(30)))
-        # the baseline closes the triangle with the target (law of cosines)
+            assert cam.K[0, 0] == pytest.approx(256 / math.tan(math.radians(30)), rel=4 * U64, abs=0)
+        # the baseline closes the triangle with the target (law of cosines): squares of distances ≤ d² with F64
+        # relative error each (twice, squared), and the cancelling sum
         d0, d1 = (float(np.linalg.norm(target - c.center)) for c in (c0, c1))
         baseline = float(np.linalg.norm(c1.center - c0.center))
-        assert baseline**2 == pytest.approx(d0**2 + d1**2 - 2 * d0 * d1 * math.cos(math.radians(angle)))
+        law = d0**2 + d1**2 - 2 * d0 * d1 * math.cos(math.radians(angle))
+        assert baseline**2 == pytest.approx(law, rel=0, abs=4 * 2 * F64 * (d0 + d1) ** 2)
         assert 0.95 * S.make_scene(kind).view_distance <= d0 <= 1.05 * S.make_scene(kind).view_distance
         # roll jitter: the relative rotation turns more than the optical axis alone
         R, _ = S.relative_pose(c0, c1)
@@ -273,10 +305,12 @@ def test_orbit_pair_angle_between_optical_axes(kind: str, angle: float) -> None:
 
 def test_orbit_pair_without_jitter_is_a_turn_about_the_vertical() -> None:
     c0, c1 = S.orbit_pair("room", 40.0, jitter=False)
-    assert c0.center[1] == pytest.approx(c1.center[1])
+    assert c0.center[1] == pytest.approx(c1.center[1], rel=0, abs=2 * F64 * float(np.abs(c0.center).max()))
     R_world = c1.cam_to_world[:3, :3] @ c0.cam_to_world[:3, :3].T
     axis = np.array([R_world[2, 1] - R_world[1, 2], R_world[0, 2] - R_world[2, 0], R_world[1, 0] - R_world[0, 1]])
-    assert _angle_deg(np.abs(axis), [0.0, 1.0, 0.0]) < 1e-6  # about the vertical (y) axis
+    # about the vertical (y) axis: the axis's entries are differences of entries ≤ 1 (F64 each) of a ≥ 2 sin 40°
+    # long vector
+    assert _angle_deg(np.abs(axis), [0.0, 1.0, 0.0]) <= _deg(4 * F64 / (2 * math.sin(math.radians(40))))
     with pytest.raises(InputError):
         S.orbit_pair("room", 175.0)
     with pytest.raises(InputError):
@@ -291,46 +325,51 @@ def test_forward_pair_moves_along_the_optical_axis() -> None:
         assert _angle_deg(centre1_in_cam0, [0.0, 0.0, 1.0]) < 8.0  # mostly forward
         target = S.make_scene(kind).target
         dist = np.linalg.norm(target - c0.center)
-        assert np.linalg.norm(t) == pytest.approx(0.3 * dist, rel=0.02)
-        assert _rot_angle_deg(R) == pytest.approx(4.0, abs=1e-6)
+        assert np.linalg.norm(t) == pytest.approx(0.3 * dist, rel=0.02)  # (d) the pair's ±2 % distance jitter
+        assert _rot_angle_deg(R) == pytest.approx(4.0, rel=0, abs=_deg(4 * F64))  # atan2 of F64-accurate entries
 
 
 def test_pure_rotation_pair_has_zero_baseline() -> None:
     c0, c1 = S.pure_rotation_pair("room", 15.0, seed=1)
     R, t = S.relative_pose(c0, c1)
-    assert np.linalg.norm(t) < 1e-9
-    assert _rot_angle_deg(R) == pytest.approx(15.0, abs=1e-6)
+    # t = R1·(c0 − c1)-like: the same centre twice, so only roundings of the ≤ 6 m coordinates survive
+    assert np.linalg.norm(t) <= F64 * 6.0
+    assert _rot_angle_deg(R) == pytest.approx(15.0, rel=0, abs=_deg(4 * F64))
     rot_err, trans_err = S.pose_errors(R, t * 0, R, np.array([1.0, 0.0, 0.0]))
-    assert rot_err == pytest.approx(0.0, abs=1e-6) and math.isnan(trans_err)
+    assert rot_err == pytest.approx(0.0, rel=0, abs=_deg(4 * F64)) and math.isnan(trans_err)
 
 
 def test_relative_pose_maps_points_between_camera_frames() -> None:
     c0, c1 = S.orbit_pair("object", 35.0, seed=7)
     R, t = S.relative_pose(c0, c1)
-    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
-    assert np.linalg.det(R) == pytest.approx(1.0)
+    np.testing.assert_allclose(R.T @ R, np.eye(3), rtol=0, atol=2 * F64)
+    assert np.linalg.det(R) == pytest.approx(1.0, rel=0, abs=3 * F64)
     X = np.random.default_rng(1).normal(size=(20, 3))
     X0 = X @ c0.R.T + c0.t
     X1 = X @ c1.R.T + c1.t
-    np.testing.assert_allclose(X0 @ R.T + t, X1, atol=1e-12)
-    # epipolar constraint with E = [t]x R on the projections
+    scale = float(np.abs(X0).max() + np.abs(t).max())
+    np.testing.assert_allclose(X0 @ R.T + t, X1, rtol=0, atol=4 * F64 * scale)  # coordinates ≤ scale
+    # epipolar constraint with E = [t]x R on the projections: 9-term sums of products ≤ |x1||t||x0|, each F64
     tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
     x0, x1 = X0 / X0[:, 2:], X1 / X1[:, 2:]
-    np.testing.assert_allclose(np.einsum("ni,ij,nj->n", x1, tx @ R, x0), 0.0, atol=1e-12)
+    eps_scale = 9 * float(np.abs(x0).max() * np.abs(x1).max() * np.abs(t).max())
+    np.testing.assert_allclose(np.einsum("ni,ij,nj->n", x1, tx @ R, x0), 0.0, rtol=0, atol=4 * F64 * eps_scale)
     R_id, t_id = S.relative_pose(c0, c0)
-    np.testing.assert_allclose(R_id, np.eye(3), atol=1e-12)
-    np.testing.assert_allclose(t_id, 0.0, atol=1e-12)
+    np.testing.assert_allclose(R_id, np.eye(3), rtol=0, atol=2 * F64)
+    np.testing.assert_allclose(t_id, 0.0, rtol=0, atol=2 * F64 * float(np.abs(c0.center).max()))
 
 
 def test_pose_errors_known_values() -> None:
     R = S.rotation_about((1.0, 2.0, 3.0), 25.0)
     t = np.array([0.3, -0.1, 1.0])
-    assert S.pose_errors(R, t, R, t) == pytest.approx((0.0, 0.0), abs=1e-6)
-    assert S.pose_errors(R, 5 * t, R, t)[1] == pytest.approx(0.0, abs=1e-6)  # scale does not matter
-    assert S.pose_errors(R, -t, R, t)[1] == pytest.approx(180.0)  # the sign does
-    assert S.pose_errors(R @ S.rotation_about((0, 1, 0), 10.0), t, R, t)[0] == pytest.approx(10.0)
+    # atan2 angles (sine and cosine both read off the operands): ≤ 4·F64 rad
+    tol = dict(rel=0, abs=_deg(4 * F64))
+    assert S.pose_errors(R, t, R, t) == pytest.approx((0.0, 0.0), **tol)
+    assert S.pose_errors(R, 5 * t, R, t)[1] == pytest.approx(0.0, **tol)  # scale does not matter
+    assert S.pose_errors(R, -t, R, t)[1] == pytest.approx(180.0, **tol)  # the sign does
+    assert S.pose_errors(R @ S.rotation_about((0, 1, 0), 10.0), t, R, t)[0] == pytest.approx(10.0, **tol)
     assert S.pose_errors(np.eye(3), [1, 0, 0], S.rotation_about((0, 0, 1), 180.0), [0, 1, 0]) == pytest.approx(
-        (180.0, 90.0)
+        (180.0, 90.0), **tol
     )
 
 
@@ -341,9 +380,10 @@ def test_pose_errors_known_values() -> None:
 )
 def test_rotation_about_has_the_requested_angle(axis: tuple[float, float, float], angle: float) -> None:
     R = S.rotation_about(axis, angle)
-    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
-    np.testing.assert_allclose(R @ np.asarray(axis), np.asarray(axis), atol=1e-12)
-    assert _rot_angle_deg(R) == pytest.approx(angle, abs=1e-6)
+    # Rodrigues in float64 from a normalised axis: entries within F64 of a rotation's
+    np.testing.assert_allclose(R.T @ R, np.eye(3), rtol=0, atol=2 * F64)
+    np.testing.assert_allclose(R @ np.asarray(axis), np.asarray(axis), rtol=0, atol=2 * F64 * float(np.abs(axis).sum()))
+    assert _rot_angle_deg(R) == pytest.approx(angle, rel=0, abs=_deg(4 * F64))
 
 
 # ------------------------------------------------------------------------------------ datasets
@@ -359,7 +399,8 @@ def test_write_dataset_round_trips(tmp_path, obj: S.Scene) -> None:  # noqa: ANN
         assert np.array_equal(img[..., ::-1], to_uint8(view.image))
         depth = cv2.imread(str(tmp_path / "ds" / "depth" / f"{cam.name}.png"), cv2.IMREAD_UNCHANGED)
         assert depth.dtype == np.uint16
-        np.testing.assert_allclose(depth / 1000.0, view.depth, atol=5e-4 + 1e-6)
+        # depth in whole millimetres: ≤ 0.5 mm rounding, plus the float32 depth's own rounding (≤ u32·8 m)
+        np.testing.assert_allclose(depth / 1000.0, view.depth, rtol=0, atol=5e-4 + U32 * 8.0)
     S.write_dataset(tmp_path / "nodepth", obj, cams[:1], depth=False)
     assert not (tmp_path / "nodepth" / "depth").exists()
     assert (tmp_path / "nodepth" / "images" / "a.png").is_file()
