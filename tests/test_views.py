@@ -46,6 +46,14 @@ def _camera(name: str, width: int, height: int, fx: float, fy: float, cx: float,
     return Camera(name, width, height, np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), np.eye(4))
 
 
+# float64 intrinsics rescaled to the working size: f·(w/W) and (c)·(w/W) are 2 roundings on each side (the library's
+# and the test's expression), so rescaled entries agree to 4u relative; zeros and ones stay exact
+K_RTOL = 4 * np.finfo(np.float64).eps / 2
+# The test's EXIF focal uses a 43.27 mm full-frame diagonal; the library the exact √(36² + 24²) = 43.2666 mm:
+# 7.8e-5 relative, not rounding
+EXIF_RTOL = abs(43.27 / math.hypot(36.0, 24.0) - 1) + 4 * np.finfo(np.float64).eps / 2
+
+
 def _K(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
@@ -87,7 +95,9 @@ def test_working_size_properties(width: int, height: int, size: int) -> None:
     s = min(1.0, size / max(width, height))
     for side, original in ((w, width), (h, height)):
         # the nearest multiple of 16 (at least 16), or the one below when rounding up would upsample
-        nearest = abs(side - original * s) <= 8 + 1e-9 or (side == 16 and original * s < 16)
+        # (original·s is 2 roundings of a value ≤ size: ≤ 2·eps·original·s off the exact half-way point)
+        nearest = abs(side - original * s) <= 8 + 2 * np.finfo(float).eps * original * s
+        nearest = nearest or (side == 16 and original * s < 16)
         assert nearest or side == (original // 16) * 16
 
 
@@ -117,7 +127,7 @@ def test_intrinsics_file_one_shared_camera(tmp_path: Path, photos: list[Path]) -
     for v in views:
         assert (v.width, v.height) == (512, 352) and v.original_size == (1000, 700)
         assert v.intrinsics_source == "file"  # the file wins over --focal and EXIF
-        np.testing.assert_allclose(v.K, _K(1800.0 * sx, 1750.0 * sy, 990.0 * sx, 710.0 * sy), rtol=1e-12)
+        np.testing.assert_allclose(v.K, _K(1800.0 * sx, 1750.0 * sy, 990.0 * sx, 710.0 * sy), rtol=K_RTOL, atol=0)
 
 
 def test_intrinsics_file_cameras_matched_by_name(tmp_path: Path, photos: list[Path]) -> None:
@@ -127,8 +137,8 @@ def test_intrinsics_file_cameras_matched_by_name(tmp_path: Path, photos: list[Pa
     save_cameras(tmp_path / "cams.json", CameraSet([cam_b, cam_a]))
     va, vb = load_views(photos, ViewConfig(size=512, intrinsics=tmp_path / "cams.json"))
     sx, sy = 512 / 1000, 352 / 700
-    np.testing.assert_allclose(va.K, _K(900.0 * sx, 910.0 * sy, 510.0 * sx, 340.0 * sy), rtol=1e-12)
-    np.testing.assert_allclose(vb.K, _K(700.0 * sx, 700.0 * sy, 480.0 * sx, 360.0 * sy), rtol=1e-12)
+    np.testing.assert_allclose(va.K, _K(900.0 * sx, 910.0 * sy, 510.0 * sx, 340.0 * sy), rtol=K_RTOL, atol=0)
+    np.testing.assert_allclose(vb.K, _K(700.0 * sx, 700.0 * sy, 480.0 * sx, 360.0 * sy), rtol=K_RTOL, atol=0)
     assert va.intrinsics_source == vb.intrinsics_source == "file"
 
 
@@ -160,7 +170,7 @@ def test_intrinsics_file_that_fits_within_one_percent(tmp_path: Path, photos: li
     """A camera for a slightly cropped size (aspect within 1 %) is accepted and rescaled per axis."""
     save_cameras(tmp_path / "cams.json", CameraSet([_camera("c", 2000, 1396, 1500.0, 1500.0, 1000.0, 698.0)]))
     v = load_views(photos[:1], ViewConfig(size=512, intrinsics=tmp_path / "cams.json"))[0]
-    np.testing.assert_allclose(v.K, _K(1500 * 512 / 2000, 1500 * 352 / 1396, 256.0, 176.0), rtol=1e-12)
+    np.testing.assert_allclose(v.K, _K(1500 * 512 / 2000, 1500 * 352 / 1396, 256.0, 176.0), rtol=K_RTOL, atol=0)
 
 
 def test_intrinsics_file_principal_point_outside(tmp_path: Path, photos: list[Path]) -> None:
@@ -176,7 +186,7 @@ def test_focal_beats_exif(photos: list[Path]) -> None:
     sx, sy = 512 / 1000, 352 / 700
     for v in views:
         assert v.intrinsics_source == "focal"
-        np.testing.assert_allclose(v.K, _K(1234.0 * sx, 1234.0 * sy, 256.0, 176.0), rtol=1e-12)
+        np.testing.assert_allclose(v.K, _K(1234.0 * sx, 1234.0 * sy, 256.0, 176.0), rtol=K_RTOL, atol=0)
 
 
 @pytest.mark.parametrize("focal", [0.0, -5.0, math.nan, math.inf])
@@ -192,21 +202,21 @@ def test_exif_35mm_focal(photos: list[Path]) -> None:
     f = 28.0 * math.hypot(1000, 700) / 43.27
     for v in views:
         assert v.intrinsics_source == "exif"
-        np.testing.assert_allclose(v.K, _K(f * 512 / 1000, f * 352 / 700, 256.0, 176.0), rtol=1e-4)
+        np.testing.assert_allclose(v.K, _K(f * 512 / 1000, f * 352 / 700, 256.0, 176.0), rtol=EXIF_RTOL, atol=0)
 
 
 def test_prior_when_exif_is_ignored_or_absent(tmp_path: Path, photos: list[Path]) -> None:
     """``use_exif=False`` or no EXIF: 60° (``prior_fov_deg``) across the long side, landscape and portrait."""
     v = load_views(photos[:1], ViewConfig(size=512, use_exif=False))[0]
     f = 1000 / (2 * math.tan(math.radians(30)))
-    assert v.intrinsics_source == "prior" and f == pytest.approx(prior_focal(1000, 700))
-    np.testing.assert_allclose(v.K, _K(f * 512 / 1000, f * 352 / 700, 256.0, 176.0), rtol=1e-12)
+    assert v.intrinsics_source == "prior" and f == pytest.approx(prior_focal(1000, 700), rel=K_RTOL, abs=0)
+    np.testing.assert_allclose(v.K, _K(f * 512 / 1000, f * 352 / 700, 256.0, 176.0), rtol=K_RTOL, atol=0)
 
     portrait = _write_png(tmp_path / "p.png", _pattern(300, 400))
     v = load_views([portrait], ViewConfig(size=256, prior_fov_deg=50.0))[0]
     f = 400 / (2 * math.tan(math.radians(25)))
     assert v.intrinsics_source == "prior" and (v.width, v.height) == (192, 256)
-    np.testing.assert_allclose(v.K, _K(f * 192 / 300, f * 256 / 400, 96.0, 128.0), rtol=1e-12)
+    np.testing.assert_allclose(v.K, _K(f * 192 / 300, f * 256 / 400, 96.0, 128.0), rtol=K_RTOL, atol=0)
 
 
 def test_k_rescaling_is_exact_per_axis(tmp_path: Path) -> None:
@@ -220,7 +230,8 @@ def test_k_rescaling_is_exact_per_axis(tmp_path: Path) -> None:
     uv = np.array([[0.0, 0.0], [1000.0, 740.0], [500.0, 370.0], [0.5, 0.5], [999.5, 739.5]])
     rays = np.c_[uv, np.ones(len(uv))] @ np.linalg.inv(cam.K).T
     back = rays @ v.K.T
-    np.testing.assert_allclose(back[:, :2], uv * [512 / 1000, 384 / 740], atol=1e-9)
+    # a 3×3 inverse and two 3-term products of pixel coordinates ≤ 1000 (K well conditioned: f ≈ cx): ≤ γ₁₆·1000
+    np.testing.assert_allclose(back[:, :2], uv * [512 / 1000, 384 / 740], rtol=0, atol=16 * 1000 * np.finfo(float).eps)
 
 
 def test_views_carry_a_detail_image(tmp_path: Path) -> None:
@@ -246,7 +257,7 @@ def test_exif_orientation_6_loads_upright(tmp_path: Path) -> None:
     v = load_views([path], ViewConfig(size=512))[0]
     assert v.original_size == (96, 160) and (v.width, v.height) == (96, 160)
     f = 28.0 * math.hypot(96, 160) / 43.27
-    np.testing.assert_allclose(v.K, _K(f, f, 48.0, 80.0), rtol=1e-4)
+    np.testing.assert_allclose(v.K, _K(f, f, 48.0, 80.0), rtol=EXIF_RTOL, atol=0)
     assert v.intrinsics_source == "exif"
 
 
@@ -270,8 +281,8 @@ def test_grayscale_png(tmp_path: Path) -> None:
     path = _write_png(tmp_path / "g.png", gray)
     v = load_views([path], ViewConfig(size=512))[0]
     assert v.image.shape == (64, 96, 3)
-    for c in range(3):
-        np.testing.assert_allclose(v.image[..., c], gray / 255.0, atol=1e-6)
+    for c in range(3):  # u8/255 in float32 against float64: one float32 rounding of a value ≤ 1
+        np.testing.assert_allclose(v.image[..., c], gray / 255.0, rtol=0, atol=np.finfo(np.float32).eps / 2)
     assert v.mask.all()
 
 
@@ -286,7 +297,7 @@ def test_rgba_alpha_becomes_the_mask(tmp_path: Path) -> None:
     v = load_views([path], ViewConfig(size=512))[0]
     assert v.mask.dtype == bool and v.mask.shape == (64, 96)
     assert not v.mask[:, :48].any() and v.mask[:, 48:].all()
-    np.testing.assert_allclose(v.image, rgb / 255.0, atol=1e-6)
+    np.testing.assert_allclose(v.image, rgb / 255.0, rtol=0, atol=np.finfo(np.float32).eps / 2)  # as above
 
 
 def test_rgba_mask_is_resampled_to_the_working_size(tmp_path: Path) -> None:
