@@ -204,19 +204,20 @@ def _check_outputs(
 
     if output.suffix.lower() != ".ply":
         raise InputError(f"{output}: the scene is written as a .ply file")
+    views = _render_names(renders, num_renders)
+    outputs = [("-o", output), ("--cameras", cameras), ("--video", video), ("--report", report)]
+    # first: an output that is an input (also through a link) is named as such, not as "a link"
+    check_no_clobber([*outputs, *(("--renders", p) for p in views)], inputs)
     for p in (output, cameras, video, report):
         if p is not None:
             check_writable(p)
     if video is not None and video.suffix.lower() not in VIDEO_FORMATS:
         raise InputError(f"{video}: unsupported video format; use one of {', '.join(VIDEO_FORMATS)}")
-    views = _render_names(renders, num_renders)
     if renders is not None:
         if renders.exists() and not renders.is_dir():
             raise InputError(f"{renders}: exists and is not a folder")
         for p in views:  # an existing folder must be writable too, and hold no folder where a view goes
             check_writable(p)
-    outputs = [("-o", output), ("--cameras", cameras), ("--video", video), ("--report", report)]
-    check_no_clobber([*outputs, *(("--renders", p) for p in views)], inputs)
 
 
 def _render_names(renders: Path | None, num_renders: int) -> list[Path]:
