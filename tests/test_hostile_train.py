@@ -197,6 +197,25 @@ def test_the_summary_names_best_pt_only_when_it_was_written(data: Path, run2: Pa
     assert f"wrote {out / 'best.pt'}" not in summary, summary
 
 
+@pytest.mark.parametrize("kind", ["link", "fifo"])
+def test_resume_does_not_append_metrics_through_a_planted_link(
+    data: Path, run2: Path, tmp_path: Path, kind: str
+) -> None:
+    """A link (or FIFO) planted at ``metrics.csv`` is refused with exit 2; the link's target is not written."""
+    out = tmp_path / "run"
+    shutil.copytree(run2, out)
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious\n")
+    (out / "metrics.csv").unlink()
+    if kind == "link":
+        (out / "metrics.csv").symlink_to(victim)
+    else:
+        os.mkfifo(out / "metrics.csv")
+    code, err = _run([*_resume_args(data, out), "-q"])
+    assert code == 2 and len(_lines(err)) == 1 and "metrics.csv" in err, err
+    assert victim.read_text() == "precious\n"
+
+
 # ------------------------------------------------------------------------------------------------ 3. full disk
 def _trainer(data: Path, out: Path, steps: int, *, val: bool = False, batch: int = 1, **changes: Any) -> Trainer:
     sampling = PairSamplingConfig(size=SIZE, targets=1)

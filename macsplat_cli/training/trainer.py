@@ -38,12 +38,13 @@ import math
 import os
 import shutil
 import signal
+import stat
 import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import numpy as np
 import torch
@@ -310,6 +311,8 @@ class Trainer:
         if resume:
             if not (self.out / "last.pt").is_file():
                 raise OutputPathError(f"--resume {self.out}: no last.pt to resume from")
+            if self.ctx.is_main:
+                _check_appendable(self.out / "metrics.csv")  # before any work, not at the first step
             self.load_checkpoint(self.out / "last.pt")
             return
         if self.ctx.is_main and run_json.exists() and not force:
@@ -450,8 +453,8 @@ class Trainer:
         fields = ["step", "kind", "loss", "photo", "mse", "perceptual", "mac", "matches", "lr", "seconds", "skipped",
                   "psnr", "ssim", "lpips"]  # fmt: skip
         try:
-            new = not path.exists()
-            with path.open("a", newline="") as f:
+            with _open_for_append(path) as f:
+                new = f.tell() == 0
                 w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
                 if new:
                     w.writeheader()
@@ -662,6 +665,27 @@ class Trainer:
             self.validated_at = self.step
             self._log({"step": self.step, "kind": "val", **metrics})
         _barrier(self.ctx)
+
+
+def _check_appendable(path: Path) -> None:
+    """Refuse a ``path`` that exists and is a link or not a regular file (appending would write through it)."""
+    if path.is_symlink():
+        raise OutputPathError(f"{path}: is a symbolic link; macsplat appends only to regular files")
+    if path.exists() and not path.is_file():
+        raise OutputPathError(f"{path}: exists and is not a regular file; macsplat appends only to regular files")
+
+
+def _open_for_append(path: Path) -> TextIO:
+    """Open ``path`` to append text, refusing a link or anything but a regular file (a link planted at the name
+    would be written through). ``O_NOFOLLOW`` and ``O_NONBLOCK`` (a FIFO without a reader fails instead of blocking)
+    keep the refusal true when the name is swapped after :func:`_check_appendable`."""
+    _check_appendable(path)
+    flags = os.O_WRONLY | os.O_APPEND | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
+    fd = os.open(path, flags, 0o666)
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise OutputPathError(f"{path}: exists and is not a regular file; macsplat appends only to regular files")
+    return os.fdopen(fd, "a", newline="", encoding="utf-8")
 
 
 def _tensorboard_writer(folder: Path) -> Any:
