@@ -322,4 +322,19 @@ def write_video(path: str | os.PathLike[str], frames: Sequence[np.ndarray], fps:
                     writer.write(np.ascontiguousarray(f[..., ::-1]))
             finally:
                 writer.release()
+            _check_video(tmp, path, len(frames))
     return Path(path)
+
+
+def _check_video(tmp: Path, path: str | os.PathLike[str], n_frames: int) -> None:
+    """OpenCV's video writer ignores write errors (a full disk gives a truncated file without its index): read the
+    container back and require every frame. Raises OutputPathError otherwise."""
+    cap = cv2.VideoCapture(str(tmp))
+    try:
+        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) if cap.isOpened() else 0
+    finally:
+        cap.release()
+    if n != n_frames:
+        raise OutputPathError(
+            f"cannot write {path}: the video came out unreadable ({max(n, 0)} of {n_frames} frames; is the disk full?)"
+        )

@@ -37,7 +37,7 @@ from macsplat_cli.evaluation.bench import BenchSetting
 from macsplat_cli.evaluation.protocol import CaseResult, EvalConfig, EvalRun, ResultWriter
 from macsplat_cli.evaluation.reconstructors import BACKENDS
 from macsplat_cli.evaluation.splits import EvalCase, SplitConfig, between_targets
-from macsplat_cli.images import save_image
+from macsplat_cli.images import save_image, write_video
 from macsplat_cli.pipeline.run import Pipeline
 from macsplat_cli.ply import write_ply
 
@@ -394,6 +394,16 @@ def test_render_on_a_full_disk_is_one_line_and_leaves_nothing(
                  str(full_disk / "v.tif"), "-q"])  # fmt: skip
     line = _one_error_line(capsys.readouterr().err)
     assert code == 2 and "cannot write" in line and "No space left on device" in line, line
+    assert sorted(p.name for p in full_disk.iterdir()) == before
+
+
+def test_an_mp4_cut_short_by_a_full_disk_is_an_output_error(full_disk: Path) -> None:
+    """OpenCV's video writer ignores write errors: the truncated file (no index) must not be renamed into place."""
+    rng = np.random.default_rng(0)
+    frames = [(rng.random((128, 160, 3)) * 255).astype(np.uint8) for _ in range(20)]  # noise: ~100 KB of MPEG-4
+    before = sorted(p.name for p in full_disk.iterdir())
+    with pytest.raises(OutputPathError, match=r"cannot write .*v\.mp4: the video came out unreadable"):
+        write_video(full_disk / "v.mp4", frames)
     assert sorted(p.name for p in full_disk.iterdir()) == before
 
 
