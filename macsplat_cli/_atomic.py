@@ -261,3 +261,22 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
 def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
     """Write UTF-8 ``text`` to ``path`` atomically (``\\n`` line endings)."""
     return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def atomic_torch_save(path: str | os.PathLike[str], obj: object) -> Path:
+    """``torch.save(obj)`` to ``path`` atomically and return the path.
+
+    torch's zip writer reports a failed write (a full disk, a file-size limit) as ``RuntimeError`` ("unexpected
+    pos"), not ``OSError``: both become :class:`~macsplat_cli.errors.OutputPathError`, the temporary removed and an
+    existing ``path`` untouched.
+    """
+    import torch
+
+    with atomic_path(path) as tmp:
+        try:
+            torch.save(obj, tmp)
+        except RuntimeError as e:
+            first = (str(e).strip().splitlines() or [type(e).__name__])[0][:200]
+            e.__traceback__ = None  # let go of torch's writer (and its open file) now
+            raise OutputPathError(f"cannot write {path}: the write failed ({first})") from None
+    return Path(path)

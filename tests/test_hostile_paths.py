@@ -407,6 +407,38 @@ def test_an_mp4_cut_short_by_a_full_disk_is_an_output_error(full_disk: Path) -> 
     assert sorted(p.name for p in full_disk.iterdir()) == before
 
 
+@pytest.mark.parametrize("writer", ["save_fusion", "atomic_torch_save"])
+def test_a_torch_save_cut_short_is_an_output_error(tmp_path: Path, writer: str) -> None:
+    """torch reports a failed write as RuntimeError ("unexpected pos"): the library's checkpoint writers turn it
+    into OutputPathError and leave the previous file as it was (a file-size limit stands in for a full disk)."""
+    import resource
+    import signal
+
+    import torch
+
+    from macsplat_cli.neural.fusion import FusionConfig, ResidualSemanticFusion, save_fusion
+
+    out = tmp_path / "w.pth"
+    out.write_bytes(b"previous")
+    module = ResidualSemanticFusion(FusionConfig())
+    if writer == "save_fusion":
+        write = lambda: save_fusion(module, out)  # noqa: E731
+    else:
+        from macsplat_cli._atomic import atomic_torch_save
+
+        write = lambda: atomic_torch_save(out, {"state_dict": module.state_dict(), "x": torch.zeros(10_000)})  # noqa: E731
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    previous = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (4096, hard))
+    try:
+        with pytest.raises(OutputPathError, match=r"cannot write .*w\.pth"):
+            write()
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+        signal.signal(signal.SIGXFSZ, previous)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["w.pth"] and out.read_bytes() == b"previous"
+
+
 # ------------------------------------------------------------------------------ 4: reads outside the data set
 @pytest.mark.parametrize("how", ["absolute", "dotdot", "separator", "link-out"])
 def test_a_camera_name_cannot_reach_outside_the_data_set(

@@ -48,7 +48,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from macsplat_cli._atomic import atomic_path
+from macsplat_cli._atomic import atomic_torch_save
 from macsplat_cli._checks import check_shape
 from macsplat_cli.errors import ShapeError
 from macsplat_cli.neural._state_dict import StateDictError, check_state_dict_keys, log_sha256
@@ -248,9 +248,7 @@ def save_fusion(module: ResidualSemanticFusion, path: str | os.PathLike[str]) ->
         "config": dataclasses.asdict(module.config),
         "state_dict": {k: v.detach().cpu() for k, v in module.state_dict().items()},
     }
-    with atomic_path(path) as tmp:
-        torch.save(payload, tmp)
-    return Path(path)
+    return atomic_torch_save(path, payload)
 
 
 def load_fusion(path: str | os.PathLike[str], *, device: torch.device | str = "cpu") -> ResidualSemanticFusion:

@@ -23,7 +23,7 @@ from typing import Any
 
 import torch
 
-from .._atomic import atomic_path
+from .._atomic import atomic_torch_save
 from ..errors import InputError
 from ._state_dict import StateDictError, check_state_dict_keys, log_sha256
 from .backbone import MASt3RBackbone
@@ -101,9 +101,7 @@ def save_predictor_checkpoint(
         "state_dict": {k: v.detach().cpu() for k, v in predictor.state_dict().items()},
         "meta": dict(meta or {}),
     }
-    with atomic_path(path) as tmp:
-        torch.save(payload, tmp)
-    return Path(path)
+    return atomic_torch_save(path, payload)
 
 
 def _read(path: Path) -> Any:
