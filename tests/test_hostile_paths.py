@@ -292,10 +292,12 @@ def test_render_refuses_special_outputs_before_rendering(
     assert _snapshot(tmp_path) == before
 
 
+@pytest.mark.parametrize("which", ["graph", "parity", "data"])
 def test_export_onnx_refuses_a_special_output_before_loading(
-    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path, which: str
 ) -> None:
-    """``export-onnx -o`` a FIFO: exit 2 before the checkpoints load."""
+    """``export-onnx -o`` a FIFO, or a FIFO where its parity report or weights file goes: exit 2 before the
+    checkpoints load."""
     import macsplat_cli.neural.predictor as predictor
 
     loads: list[object] = []
@@ -306,11 +308,13 @@ def test_export_onnx_refuses_a_special_output_before_loading(
 
     monkeypatch.setattr(predictor, "load_pair_predictor", load)
     (tmp_path / "mast3r.pth").write_bytes(b"checkpoint")
-    out = _special("fifo", tmp_path / "predictor.onnx")
-    code = main(["export-onnx", "-o", str(out), "--weights", str(tmp_path / "mast3r.pth"), "-q"])
+    graph = tmp_path / "predictor.onnx"
+    name = {"graph": graph.name, "parity": "predictor.parity.json", "data": "predictor.onnx.data"}[which]
+    special = _special("fifo", tmp_path / name)
+    code = main(["export-onnx", "-o", str(graph), "--weights", str(tmp_path / "mast3r.pth"), "-q"])
     line = _one_error_line(capsys.readouterr().err)
-    assert code == 2 and "not a regular file" in line, line
-    assert loads == [] and stat.S_ISFIFO(out.lstat().st_mode)
+    assert code == 2 and "not a regular file" in line and name in line, line
+    assert loads == [] and stat.S_ISFIFO(special.lstat().st_mode)
 
 
 # ------------------------------------------------------------------------------ 3: write errors

@@ -121,12 +121,13 @@ def export_onnx_command(
         from .._atomic import check_writable
 
         # before loading gigabytes: an output that is an input (the more precise message first), then writable
+        written = [output, output.with_name(output.name + ".data"), output.with_name(output.stem + ".parity.json")]
         check_no_clobber(
-            [("-o", output), ("-o", output.with_name(output.name + ".data")),
-             ("-o", output.with_name(output.stem + ".parity.json"))],
+            [("-o", p) for p in written],
             [(_OPTION_OF[k] if k != "weights" or checkpoint is None else "--checkpoint", v) for k, v in files.items()],
-        )  # fmt: skip
-        check_writable(output)
+        )
+        for p in written:  # the weights file and the parity report beside the graph too
+            check_writable(p)
         if output.suffix.lower() != ".onnx":
             raise InputError(f"-o {output}: the output must end in .onnx")
         with StageProgress(disabled=state.quiet) as progress:
