@@ -216,6 +216,24 @@ def test_resume_does_not_append_metrics_through_a_planted_link(
     assert victim.read_text() == "precious\n"
 
 
+@pytest.mark.parametrize("name", ["run.json", "best.pt"])
+def test_a_link_at_an_output_of_a_new_run_is_refused_before_the_data_loads(
+    data: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, name: str
+) -> None:
+    import macsplat_cli.training.setup as setup
+
+    loads: list[object] = []
+    monkeypatch.setattr(setup, "load_training_data", lambda *a, **k: loads.append(a) or 1 / 0)
+    out = tmp_path / "run"
+    out.mkdir()
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious\n")
+    (out / name).symlink_to(victim)
+    code, err = _run(["train", "--data", data, "--out", out, "--steps", "2", "--force", *FAST, "-q"])
+    assert code == 2 and len(_lines(err)) == 1 and name in err and "symbolic link" in err, err
+    assert loads == [] and victim.read_text() == "precious\n"
+
+
 # ------------------------------------------------------------------------------------------------ 3. full disk
 def _trainer(data: Path, out: Path, steps: int, *, val: bool = False, batch: int = 1, **changes: Any) -> Trainer:
     sampling = PairSamplingConfig(size=SIZE, targets=1)

@@ -159,6 +159,10 @@ def _train(
         workers=workers, device=device, loss=LossConfig(mac_weight=mac_weight),
     )  # fmt: skip
     config.validate()
+    from .._atomic import check_writable
+
+    for name in ("run.json", "metrics.csv", "last.pt", "best.pt"):  # before the data and the model load
+        check_writable(out / name)
     lpips = None
     if lpips_weights is not None:
         from ..lpips import load_lpips
