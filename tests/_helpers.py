@@ -113,7 +113,8 @@ def assert_within(actual, expected, bound, what: str = "") -> None:  # noqa: ANN
     err = np.abs(a - e)
     bad = ~(err <= b)  # NaN fails too
     if bad.any():
-        i = np.unravel_index(int(np.argmax(np.where(bad, err / np.where(b > 0, b, np.finfo(float).tiny), -1.0))), a.shape)
+        ratio = np.where(bad, err / np.where(b > 0, b, np.finfo(float).tiny), -1.0)
+        i = np.unravel_index(int(np.argmax(ratio)), a.shape)
         raise AssertionError(
             f"{what}: {int(bad.sum())} of {a.size} elements exceed the bound; worst at {tuple(int(k) for k in i)}: "
             f"|{float(a[i])!r} − {float(e[i])!r}| = {err[i]:.3e} > {b[i]:.3e}"

@@ -95,7 +95,8 @@ def test_cat_select_and_covariance() -> None:
     expected = R @ torch.diag_embed(c.scales**2) @ R.transpose(-1, -2)
     # (b) (R·s)(R·s)ᵀ vs R·diag(s²)·Rᵀ with the same R: 3-term sums of products ≤ s² each (γ₃) plus the products'
     # roundings (2u), each side
-    torch.testing.assert_close(cov, expected, rtol=0, atol=2 * (gamma(3, torch.float32) + 2 * U32) * float(c.scales.max()) ** 2)
+    tol = 2 * (gamma(3, torch.float32) + 2 * U32) * float(c.scales.max()) ** 2
+    torch.testing.assert_close(cov, expected, rtol=0, atol=tol)
     assert torch.all(torch.linalg.eigvalsh(cov) > 0)
 
 
@@ -260,6 +261,7 @@ def test_pooled_averages_the_valid_pixels_of_each_block() -> None:
     assert p.size == (2, 2) and p.batch == 2
     assert p.valid[0].tolist() == [[True, True], [True, False]] and bool(p.valid[1].all())
     block = m.means[0, :2, :2][valid[0, :2, :2]]
+
     # float64 means of ≤ 4 values: avg_pool2d's masked sum and ÷ count (γ₅) against the test's mean (γ₄), of the
     # largest |value|; + log 2 one more rounding
     def tol(x: torch.Tensor) -> dict:

@@ -41,16 +41,17 @@ def _copy(tree: Path, tmp_path: Path) -> Path:
 
 
 def _check_poses(scene, layout: str) -> None:  # noqa: ANN001
-    """The files hold repr()s (exact); a COLMAP layout stores R as a quaternion: an R → q → R round trip (ROT_ROUND_TRIP
-    per entry, +16u for the truth's own orthogonality) and c = −Rᵀt from t = −Rc (that error times |c| twice, plus
-    2γ₃|c|); K is rescaled to the working size (2 roundings a side)."""
+    """The files hold repr()s (exact); a COLMAP layout stores R as a quaternion: an R → q → R round trip
+    (ROT_ROUND_TRIP per entry, +16u for the truth's own orthogonality) and c = −Rᵀt from t = −Rc (that error times |c|
+    twice, plus 2γ₃|c|); K is rescaled to the working size (2 roundings a side)."""
     u = np.finfo(np.float64).eps / 2
     truth = {Path(c.name).stem: c for c in scannetpp_cameras(scene.name, size=SIZE, layout=layout)}
     for f in scene.frames:
         true = truth[f.name]
         c = float(np.abs(true.center).sum())
         rot = (ROT_ROUND_TRIP + 16) * u
-        assert np.abs(f.camera.cam_to_world - true.cam_to_world).max() <= rot * (1 + 2 * c) + 2 * gamma(3, np.float64) * c
+        pose_tol = rot * (1 + 2 * c) + 2 * gamma(3, np.float64) * c
+        assert np.abs(f.camera.cam_to_world - true.cam_to_world).max() <= pose_tol
         assert np.abs(f.camera.K - true.K).max() <= 4 * u * np.abs(true.K).max()
         assert (f.camera.width, f.camera.height) == SIZE
 

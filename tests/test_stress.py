@@ -27,7 +27,6 @@ from macsplat_cli.pipeline.pose import estimate_pose
 from macsplat_cli.pipeline.types import Matches, View
 from macsplat_cli.render import render
 from macsplat_cli.rotations import quat_to_rotmat
-
 from macsplat_cli.sh import C0, C1
 
 from _helpers import gamma, pinhole, random_gaussians, unit_roundoff
@@ -41,6 +40,8 @@ def _sampled(x: torch.Tensor, width: int) -> float:
     2x/W − 1 and back (≤ 8u·W px), the map changes by ≤ 2·max|x| per px, and the blend is 3 roundings."""
     m = float(x.abs().max())
     return (8 * width * 2 + 3) * U32 * m
+
+
 PROPERTY = settings(
     max_examples=40, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow], database=None
 )
@@ -195,7 +196,8 @@ def test_mac_float32_agrees_with_float64(seed: int, m: int) -> None:
         "appearance": 2 * (_sampled(torch.ones(1), w) + 12 * max(_sampled(x.sh, w) for x in (a, b))),
     }
     cfg = MACConfig()
-    per["loss"] = cfg.lambda_pos * per["position"] + cfg.lambda_shape * per["shape"] + cfg.lambda_app * per["appearance"]
+    lam = (cfg.lambda_pos, cfg.lambda_shape, cfg.lambda_app)
+    per["loss"] = sum(w_ * per[t_] for w_, t_ in zip(lam, ("position", "shape", "appearance")))
     for term in ("loss", "position", "shape", "appearance"):
         tol = per[term] + gamma(m + 6, torch.float32) * abs(float(getattr(want, term)))
         torch.testing.assert_close(getattr(got, term).double(), getattr(want, term), rtol=0, atol=tol)
