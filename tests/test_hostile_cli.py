@@ -316,6 +316,12 @@ sys.exit(main(sys.argv[1:]))
 """
 
 
+def _default_signals() -> None:
+    """In the child before exec: SIGINT and SIGTERM at their defaults, as in a terminal."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 @pytest.mark.parametrize(("sig", "code"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)], ids=["SIGTERM", "SIGINT"])
 def test_signal_during_a_write_leaves_no_temporary_file(tmp_path: Path, sig: signal.Signals, code: int) -> None:
     """``kill``/``timeout`` (SIGTERM) mid-write: the partial file is removed, exit 143 (Ctrl-C: 130)."""
@@ -327,6 +333,7 @@ def test_signal_during_a_write_leaves_no_temporary_file(tmp_path: Path, sig: sig
     proc = subprocess.Popen(
         [sys.executable, str(script), "reconstruct", "a.png", "b.png", "-o", str(out / "x.ply")],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+        preexec_fn=_default_signals,  # a background pytest (``cmd &``) starts children with SIGINT ignored
     )  # fmt: skip
     try:
         assert proc.stdout is not None and proc.stdout.readline().strip() == "writing", proc.stderr

@@ -391,6 +391,8 @@ def test_ctrl_c_ends_a_long_run_in_the_library(tmp_path: Path) -> None:
             os.kill(os.getpid(), signal.SIGINT)
 
     timer = threading.Thread(target=interrupt, daemon=True)
+    # Ctrl-C's handler, whatever started pytest (a background ``cmd &`` starts it with SIGINT ignored)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     timer.start()
     t0 = time.monotonic()
     try:
@@ -400,6 +402,7 @@ def test_ctrl_c_ends_a_long_run_in_the_library(tmp_path: Path) -> None:
     finally:
         done.set()
         timer.join()
+        signal.signal(signal.SIGINT, previous)
     assert time.monotonic() - t0 < 1.5 + STOP_WITHIN_S
 
 
