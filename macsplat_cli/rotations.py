@@ -24,13 +24,31 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-__all__ = ["quat_multiply", "quat_to_rotmat", "quat_to_rotmat_np", "rotmat_to_quat", "rotmat_to_quat_np"]
+__all__ = [
+    "nearest_rotation",
+    "quat_multiply",
+    "quat_to_rotmat",
+    "quat_to_rotmat_np",
+    "rotmat_to_quat",
+    "rotmat_to_quat_np",
+]
 
 
 # ------------------------------------------------------------------------------------ NumPy
 def _norm(q: np.ndarray) -> np.ndarray:
     """Euclidean norms, rounded as ``np.linalg.norm`` rounds one vector (a dot product). [..., n] → [..., 1]"""
     return np.sqrt(q[..., None, :] @ q[..., :, None])[..., 0]
+
+
+def nearest_rotation(M: np.ndarray) -> np.ndarray:
+    """The rotation nearest to ``M`` in the Frobenius norm (``U diag(1, 1, ±1) Vᵀ`` of its SVD). [..., 3, 3] float64
+
+    Orthonormal to a few units of roundoff; for a matrix that is already a rotation to ~1e-9 (what OpenCV's
+    decompositions return) it moves each entry by about that much.
+    """
+    U, _, Vt = np.linalg.svd(np.asarray(M, np.float64))
+    Vt[..., 2, :] *= np.sign(np.linalg.det(U @ Vt))[..., None]  # a reflection becomes the nearest rotation
+    return U @ Vt
 
 
 def rotmat_to_quat_np(R: np.ndarray) -> np.ndarray:

@@ -344,3 +344,29 @@ def test_a_photo_and_its_mirror_image_are_refused(tmp_path: Path) -> None:
 
     with pytest.raises(ReconstructionError, match="mirror images of each other"):
         reconstruct([tmp_path / "a.png", tmp_path / "mirror.png"])
+
+
+def test_planar_pose_is_a_rotation_to_roundoff() -> None:
+    """A plane facing the camera, pure sideways motion, exact matches: the pose comes from the homography's
+    decomposition, whose rotations OpenCV returns orthonormal only to ~1e-9; the returned R must be a rotation to
+    roundoff: Levenberg–Marquardt multiplies ≤ 30 small rotations onto it (each product a dot of 3 terms: γ₃), after
+    the nearest-rotation projection (18u + 2γ₃, see test_rotations)."""
+    import cv2
+
+    w, h = 320, 240
+    rng = np.random.default_rng(0)
+    cv2.setRNGSeed(0)
+    K = np.array([[300.0, 0, w / 2], [0, 300.0, h / 2], [0, 0, 1]])
+    t = np.array([0.0, 0.5, 0.0])
+    X = np.c_[rng.uniform(-3, 3, (156, 2)), np.full(156, 6.0)]
+    p0, p1 = X @ K.T, (X + t) @ K.T
+    xy0, xy1 = p0[:, :2] / p0[:, 2:], p1[:, :2] / p1[:, 2:]
+    ok = np.all((xy0 >= 0) & (xy0 < (w, h)) & (xy1 >= 0) & (xy1 < (w, h)), axis=1)
+    xy0, xy1 = xy0[ok][:26], xy1[ok][:26]
+    view = View("v", Path("v.png"), np.zeros((h, w, 3), np.float32), np.ones((h, w), bool), K, (w, h), "file")
+    m = len(xy0)
+    geo = estimate_pose(view, view, Matches(xy0, xy1, np.ones(m, np.float32), np.arange(m), np.arange(m)))
+    u = np.finfo(np.float64).eps / 2
+    bound = 32 * 3 * u / (1 - 3 * u) + 18 * u
+    assert np.abs(geo.R @ geo.R.T - np.eye(3)).max() <= bound
+    assert abs(np.linalg.det(geo.R) - 1.0) <= bound

@@ -50,6 +50,7 @@ import torch
 
 from ..errors import NonFiniteError, ReconstructionError
 from ..metrics import angle_between_deg, rotation_angle_deg
+from ..rotations import nearest_rotation
 from .types import Matches, TwoViewGeometry, View
 
 __all__ = [
@@ -331,6 +332,14 @@ def _cheirality(E: np.ndarray, x0: np.ndarray, x1: np.ndarray) -> tuple[np.ndarr
     return best
 
 
+def _decompose_homography(Hn: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The (R, t) candidates of a normalised homography [3, 3], each R the nearest rotation to OpenCV's (its
+    rotations are orthonormal only to ~1e-9; Levenberg–Marquardt multiplies small rotations onto R and would keep
+    that defect in the returned pose)."""
+    _, Rs, ts, _ = cv2.decomposeHomographyMat(Hn, np.eye(3))
+    return [nearest_rotation(R) for R in Rs], list(ts)
+
+
 def _refine(
     R: np.ndarray,
     t: np.ndarray,
@@ -560,7 +569,7 @@ def _planar_check(
         return len(xy0), 0, 0.0, []
     off_plane = int(len(xy0) - hmask.sum())
     Hn = np.linalg.inv(K1) @ H @ K0
-    _, Rs, ts, _ = cv2.decomposeHomographyMat(Hn, np.eye(3))
+    Rs, ts = _decompose_homography(Hn)
     best, agreement = 0, math.inf
     rivals: list[tuple[np.ndarray, np.ndarray]] = []
     for Ri, ti in zip(Rs, ts):
@@ -828,7 +837,7 @@ def _planar_pose(
     x0n, x1n = _homog(xy0) @ Ki0.T, _homog(xy1) @ Ki1.T
     candidates: list[tuple[np.ndarray, np.ndarray]] = [(R, t)]
     agreement = math.inf
-    _, Rs, ts, _ = cv2.decomposeHomographyMat(Ki1 @ H @ K0s, np.eye(3))
+    Rs, ts = _decompose_homography(Ki1 @ H @ K0s)
     for Ri, ti in zip(Rs, ts):
         ti = ti.ravel()
         if np.linalg.norm(ti) < 1e-9:
