@@ -222,3 +222,44 @@ def orbit_views(kind: str, angle: float, w: int = 320, h: int = 240, seed: int =
         for i, (r, c) in enumerate(zip(renders, (cam0, cam1)))
     ]
     return views, geometry, [r.depth / baseline for r in renders]
+
+
+def run_cli(args: list) -> tuple[int, str, str]:  # noqa: ANN001 - paths or strings
+    """``macsplat ARGS`` in this process: (exit code, stdout, stderr)."""
+    import contextlib
+    import io
+
+    from macsplat_cli.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main([str(a) for a in args])
+    return code, out.getvalue(), err.getvalue()
+
+
+def one_error_line(err: str) -> str:
+    """The one ``error:`` line of a command's stderr (asserts there is exactly one)."""
+    lines = [ln for ln in err.splitlines() if ln.startswith("error:")]
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+def file_size_limit(n_bytes: int):  # noqa: ANN201 - a context manager
+    """Within it, writes past ``n_bytes`` in a file fail in this process (EFBIG), as on a full disk (SIGXFSZ
+    ignored meanwhile)."""
+    import contextlib
+    import resource
+    import signal
+
+    @contextlib.contextmanager
+    def limit():  # noqa: ANN202
+        soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+        previous = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (n_bytes, hard))
+        try:
+            yield
+        finally:
+            resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+            signal.signal(signal.SIGXFSZ, previous)
+
+    return limit()

@@ -12,11 +12,9 @@ full disk) the same way.
 from __future__ import annotations
 
 import contextlib
-import io
 import json
 import os
 import queue
-import resource
 import signal
 import subprocess
 import sys
@@ -30,7 +28,6 @@ import pytest
 import torch
 from onnx import TensorProto, helper
 
-from macsplat_cli.cli import main
 from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.errors import OutputPathError
 from macsplat_cli.images import save_image
@@ -42,6 +39,8 @@ from macsplat_cli.neural.onnx_runtime import OnnxPairPredictor
 from macsplat_cli.neural.predictor import PairPredictor
 from macsplat_cli.neural.predictor_io import save_predictor_checkpoint
 
+from _helpers import file_size_limit, one_error_line, run_cli
+
 SIZE = (96, 64)  # (W, H) of the photos, multiples of 16
 FOUR = ("pts3d", "conf", "desc", "desc_conf")
 REPO = Path(__file__).resolve().parents[1]
@@ -51,17 +50,6 @@ node of the slow graph below takes well under a second)."""
 
 
 # ------------------------------------------------------------------------------ helpers
-def _run(args: list[str | Path]) -> tuple[int, str, str]:
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        code = main([str(a) for a in args])
-    return code, out.getvalue(), err.getvalue()
-
-
-def _error_line(err: str) -> str:
-    lines = [ln for ln in err.splitlines() if ln.startswith("error:")]
-    assert len(lines) == 1, err
-    return lines[0]
 
 
 def _metadata(**changes: object) -> str:
@@ -165,7 +153,7 @@ def no_session(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def _reconstruct(pair: tuple[Path, Path], weights: Path, out: Path, *extra: str) -> tuple[int, str, str]:
-    return _run(["reconstruct", *pair, "-o", out, "--backend", "neural", "--weights", weights, *extra])
+    return run_cli(["reconstruct", *pair, "-o", out, "--backend", "neural", "--weights", weights, *extra])
 
 
 # ------------------------------------------------------------------------------ operators
@@ -247,7 +235,11 @@ def _local_function() -> onnx.ModelProto:
     ],
 )
 def test_operators_the_exporter_never_writes_are_refused_before_onnxruntime_sees_them(
-    build, message: str, pair: tuple[Path, Path], tmp_path: Path, no_session: None  # noqa: ANN001
+    build,
+    message: str,
+    pair: tuple[Path, Path],
+    tmp_path: Path,
+    no_session: None,  # noqa: ANN001
 ) -> None:
     """A ``Loop`` of 2⁶² iterations would hold the process (onnxruntime's ``run`` keeps the thread): nothing
     outside what the exporter writes reaches onnxruntime."""
@@ -255,7 +247,7 @@ def test_operators_the_exporter_never_writes_are_refused_before_onnxruntime_sees
     with pytest.raises(OnnxPredictorError, match=message.replace("(", r"\(").replace(")", r"\)")):
         OnnxPairPredictor(path)
     code, _, err = _reconstruct(pair, path, tmp_path / "s.ply")
-    assert code == 2 and message in _error_line(err), err
+    assert code == 2 and message in one_error_line(err), err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["hostile.onnx"]
 
 
@@ -272,8 +264,11 @@ def test_operators_the_exporter_never_writes_are_refused_before_onnxruntime_sees
         pytest.param({"config": {"backbone": {"img_size": 224}}}, "'config.backbone'", id="img-size-int"),
         pytest.param({"dynamic": "false"}, "'dynamic'", id="dynamic-string"),
         pytest.param({"desc_dim": 0}, "'desc_dim'", id="desc-dim-0"),
-        pytest.param({"fusion_enabled": True, "dino": {"name": "x", "patch_size": 0, "embed_dim": 8}}, "'dino'",
-                     id="dino-patch-0"),  # fmt: skip
+        pytest.param(
+            {"fusion_enabled": True, "dino": {"name": "x", "patch_size": 0, "embed_dim": 8}},
+            "'dino'",
+            id="dino-patch-0",
+        ),  # fmt: skip
         pytest.param({"network": {"x": 1}}, "'network'", id="network-object"),
         pytest.param({"sources": ["x"]}, "'sources'", id="sources-list"),
     ],
@@ -283,7 +278,7 @@ def test_metadata_of_the_wrong_type_or_range_is_exit_2_naming_the_field(
 ) -> None:
     path = _save(_model(_tail(), metadata=_metadata(**changes)), tmp_path / "meta.onnx")
     code, _, err = _reconstruct(pair, path, tmp_path / "s.ply")
-    line = _error_line(err)
+    line = one_error_line(err)
     assert code == 2 and f"metadata field {field}" in line, err
     assert not (tmp_path / "s.ply").exists()
 
@@ -302,14 +297,14 @@ def test_an_allocation_bomb_in_the_forward_is_exit_2(pair: tuple[Path, Path], tm
     with pytest.raises(OnnxPredictorError, match="the model failed to run: .*Expand"):
         predictor(torch.rand(1, 3, 64, 96), torch.rand(1, 3, 64, 96))
     code, _, err = _reconstruct(pair, path, tmp_path / "s.ply")
-    assert code == 2 and "the model failed to run" in _error_line(err), err
+    assert code == 2 and "the model failed to run" in one_error_line(err), err
     assert not (tmp_path / "s.ply").exists()
 
 
 def test_outputs_of_the_wrong_shape_are_exit_2(pair: tuple[Path, Path], tmp_path: Path) -> None:
     path = _save(_model(_tail()), tmp_path / "shapes.onnx")
     code, _, err = _reconstruct(pair, path, tmp_path / "s.ply")
-    assert code == 2 and "its output pts3d has shape [1, 3, 64, 96], expected [1, 2, 64, 96, 3]" in _error_line(err)
+    assert code == 2 and "its output pts3d has shape [1, 3, 64, 96], expected [1, 2, 64, 96, 3]" in one_error_line(err)
     assert not (tmp_path / "s.ply").exists()
 
 
@@ -344,7 +339,11 @@ def test_a_model_that_fails_prints_exactly_one_line(pair: tuple[Path, Path], tmp
     ],
 )
 def test_sigterm_ends_a_long_onnxruntime_call_within_seconds(
-    stage: str, build, marker: str, pair: tuple[Path, Path], tmp_path: Path  # noqa: ANN001
+    stage: str,
+    build,
+    marker: str,
+    pair: tuple[Path, Path],
+    tmp_path: Path,  # noqa: ANN001
 ) -> None:
     """onnxruntime's ``run`` and its session creation (constant folding) hold the thread that calls them: they
     happen in a worker thread, and the signal, handled in the main thread, ends the wait (and tells a run to
@@ -449,8 +448,8 @@ def test_export_onnx_into_a_folder_that_refuses_files_is_exit_2(tmp_path: Path) 
     """``/sys`` as root: ``os.access`` says writable, creating a file fails (EPERM). One line, exit 2."""
     best = save_predictor_checkpoint(tmp_path / "best.pt", PairPredictor(MASt3RBackbone(BackboneConfig.tiny())))
     target = Path("/sys/macsplat-hostile-test.onnx")
-    code, _, err = _run(["export-onnx", "--checkpoint", best, "-o", target, "--size", "96x64", "-q"])
-    assert code == 2 and "cannot write /sys/macsplat-hostile-test.onnx" in _error_line(err), err
+    code, _, err = run_cli(["export-onnx", "--checkpoint", best, "-o", target, "--size", "96x64", "-q"])
+    assert code == 2 and "cannot write /sys/macsplat-hostile-test.onnx" in one_error_line(err), err
     assert not target.exists()
 
 
@@ -476,22 +475,9 @@ class _StandIn(torch.nn.Module):
         return views[0], views[1]
 
 
-@contextlib.contextmanager
-def _disk_full_after(n_bytes: int):  # noqa: ANN202
-    """Writes past ``n_bytes`` in a file fail with EFBIG ("File too large"), as on a full disk."""
-    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
-    previous = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-    resource.setrlimit(resource.RLIMIT_FSIZE, (n_bytes, hard))
-    try:
-        yield
-    finally:
-        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
-        signal.signal(signal.SIGXFSZ, previous)
-
-
 def test_export_onto_a_full_disk_is_an_output_error_and_leaves_nothing(tmp_path: Path) -> None:
     predictor = PairPredictor(_StandIn()).eval()  # type: ignore[arg-type]
     out = tmp_path / "out" / "p.onnx"
-    with _disk_full_after(64 * 1024), pytest.raises(OutputPathError, match="cannot write .*p.onnx: File too large"):
+    with file_size_limit(64 * 1024), pytest.raises(OutputPathError, match="cannot write .*p.onnx: File too large"):
         export_onnx(predictor, out, ExportConfig(size=SIZE, dynamic=False))
     assert list(out.parent.iterdir()) == []  # no graph, no parity file, no temporary folder

@@ -41,7 +41,7 @@ from macsplat_cli.images import save_image, write_video
 from macsplat_cli.pipeline.run import Pipeline
 from macsplat_cli.ply import write_ply
 
-from _helpers import random_gaussians
+from _helpers import file_size_limit, random_gaussians
 
 IS_ROOT = os.geteuid() == 0
 
@@ -415,9 +415,6 @@ def test_an_mp4_cut_short_by_a_full_disk_is_an_output_error(full_disk: Path) -> 
 def test_a_torch_save_cut_short_is_an_output_error(tmp_path: Path, writer: str) -> None:
     """torch reports a failed write as RuntimeError ("unexpected pos"): the library's checkpoint writers turn it
     into OutputPathError and leave the previous file as it was (a file-size limit stands in for a full disk)."""
-    import resource
-    import signal
-
     import torch
 
     from macsplat_cli.neural.fusion import FusionConfig, ResidualSemanticFusion, save_fusion
@@ -431,15 +428,8 @@ def test_a_torch_save_cut_short_is_an_output_error(tmp_path: Path, writer: str) 
         from macsplat_cli._atomic import atomic_torch_save
 
         write = lambda: atomic_torch_save(out, {"state_dict": module.state_dict(), "x": torch.zeros(10_000)})  # noqa: E731
-    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
-    previous = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-    resource.setrlimit(resource.RLIMIT_FSIZE, (4096, hard))
-    try:
-        with pytest.raises(OutputPathError, match=r"cannot write .*w\.pth"):
-            write()
-    finally:
-        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
-        signal.signal(signal.SIGXFSZ, previous)
+    with file_size_limit(4096), pytest.raises(OutputPathError, match=r"cannot write .*w\.pth"):
+        write()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["w.pth"] and out.read_bytes() == b"previous"
 
 

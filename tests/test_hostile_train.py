@@ -21,7 +21,6 @@ import copy
 import dataclasses
 import io
 import os
-import resource
 import shutil
 import signal
 import subprocess
@@ -43,6 +42,8 @@ from macsplat_cli.training.data import PairSamplingConfig
 from macsplat_cli.training.model import ModelSpec, build_training_model, freeze_for_training
 from macsplat_cli.training.setup import load_training_data
 from macsplat_cli.training.trainer import TrainConfig, Trainer
+
+from _helpers import file_size_limit
 
 SIZE = (64, 48)
 FAST = ["--model", "tiny", "--init", "random", "--size", f"{SIZE[0]}x{SIZE[1]}", "--workers", "0"]
@@ -243,19 +244,6 @@ def _trainer(data: Path, out: Path, steps: int, *, val: bool = False, batch: int
     return Trainer(predictor, train_ds, val_ds if val else None, config)
 
 
-@contextlib.contextmanager
-def _file_size_limit(limit: int) -> Iterator[None]:
-    """Writes past ``limit`` bytes fail in this process (EFBIG), as on a full disk (SIGXFSZ ignored meanwhile)."""
-    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
-    previous = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-    resource.setrlimit(resource.RLIMIT_FSIZE, (limit, hard))
-    try:
-        yield
-    finally:
-        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
-        signal.signal(signal.SIGXFSZ, previous)
-
-
 def test_a_failed_torch_save_is_an_output_path_error_and_keeps_the_previous_checkpoint(
     data: Path, tmp_path: Path
 ) -> None:
@@ -264,7 +252,7 @@ def test_a_failed_torch_save_is_an_output_path_error_and_keeps_the_previous_chec
     trainer.prepare_run_folder(resume=False, force=False)
     trainer.save_checkpoint()
     before = _snapshot(tmp_path / "r")
-    with _file_size_limit(1 << 20), pytest.raises(OutputPathError) as e:  # last.pt is ~20 MB
+    with file_size_limit(1 << 20), pytest.raises(OutputPathError) as e:  # last.pt is ~20 MB
         trainer.save_checkpoint()
     assert str(tmp_path / "r" / "last.pt") in str(e.value) and "previous one is intact" in str(e.value)
     assert _snapshot(tmp_path / "r") == before  # no partial file, no temporary file

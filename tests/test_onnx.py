@@ -13,9 +13,7 @@ exports three times (fp32 with every module, fp16, int8) and shares the files.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import io
 import json
 from pathlib import Path
 
@@ -25,7 +23,6 @@ import pytest
 import torch
 from test_neural_pipeline import write_tiny_checkpoints
 
-from macsplat_cli.cli import main
 from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.engine import EngineConfig, Models, NeuralOptions, reconstruct
 from macsplat_cli.images import save_image
@@ -38,21 +35,10 @@ from macsplat_cli.neural.onnx_runtime import OnnxPairPredictor, read_predictor_i
 from macsplat_cli.neural.predictor import PairPredictor, load_pair_predictor
 from macsplat_cli.ply import read_ply
 
+from _helpers import one_error_line, run_cli
+
 SIZE = (96, 64)
 ACCEPT = "--accept-low-confidence"  # random weights: a pose the acceptance refuses, written anyway for the plumbing
-
-
-def _run(args: list[str | Path]) -> tuple[int, str, str]:
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        code = main([str(a) for a in args])
-    return code, out.getvalue(), err.getvalue()
-
-
-def _error_line(err: str) -> str:
-    lines = [ln for ln in err.splitlines() if ln.startswith("error:")]
-    assert len(lines) == 1, err
-    return lines[0]
 
 
 @pytest.fixture(scope="module")
@@ -80,7 +66,7 @@ def _all_args(ckpts: dict[str, Path]) -> list[str | Path]:
 def exported(ckpts: dict[str, Path], tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The CLI export of backbone + fusion + Gaussian head (dynamic size), traced at 96×64."""
     out = tmp_path_factory.mktemp("onnx") / "predictor.onnx"
-    code, stdout, err = _run(["export-onnx", *_all_args(ckpts), "-o", out, "--size", "96x64", "--json"])
+    code, stdout, err = run_cli(["export-onnx", *_all_args(ckpts), "-o", out, "--size", "96x64", "--json"])
     assert code == 0, err
     assert sorted(p.name for p in out.parent.iterdir()) == ["predictor.onnx", "predictor.parity.json"]
     doc = json.loads(stdout)
@@ -150,7 +136,7 @@ def test_onnxruntime_matches_torch_at_other_sizes_and_batches(
 
 def test_reconstruct_eval_bench_accept_the_onnx_file(exported: Path, pair: tuple[Path, Path], tmp_path: Path) -> None:
     a, b = pair
-    code, _, err = _run(["reconstruct", a, b, "-o", tmp_path / "s.ply", "--backend", "neural", "--weights", exported,
+    code, _, err = run_cli(["reconstruct", a, b, "-o", tmp_path / "s.ply", "--backend", "neural", "--weights", exported,
                          "--report", tmp_path / "r.json", "-q", ACCEPT])  # fmt: skip
     assert code == 0, err
     report = json.loads((tmp_path / "r.json").read_text())
@@ -159,9 +145,9 @@ def test_reconstruct_eval_bench_accept_the_onnx_file(exported: Path, pair: tuple
     assert report["neural"]["fusion"]["applied"] and len(read_ply(tmp_path / "s.ply")) == report["gaussians_written"]
     # options the file already fixes are refused, before any work
     for extra in (["--gaussian-head", exported], ["--precision", "bf16"]):
-        code, _, err = _run(["reconstruct", a, b, "-o", tmp_path / "t.ply", "--backend", "neural", "--weights",
+        code, _, err = run_cli(["reconstruct", a, b, "-o", tmp_path / "t.ply", "--backend", "neural", "--weights",
                              exported, *extra])  # fmt: skip
-        assert code == 2 and "ONNX predictor" in _error_line(err) and extra[0] in err
+        assert code == 2 and "ONNX predictor" in one_error_line(err) and extra[0] in err
     assert not (tmp_path / "t.ply").exists()
     # eval and bench load the file once and run it on every case
     data = tmp_path / "data"
@@ -170,11 +156,11 @@ def test_reconstruct_eval_bench_accept_the_onnx_file(exported: Path, pair: tuple
     syn.write_dataset(data, room, [dataclasses.replace(c, name=f"f{i}") for i, c in enumerate(cams)], supersample=1)
     common = ["--data", data, "--backend", "neural", "--weights", exported, "--max-pairs", "1", "--max-targets", "1",
               "-q", "--size", str(SIZE[0])]  # fmt: skip
-    code, _, err = _run(["eval", *common, "--out", tmp_path / "e"])
+    code, _, err = run_cli(["eval", *common, "--out", tmp_path / "e"])
     assert code == 0, err
     doc = json.loads((tmp_path / "e" / "results.json").read_text())
     assert doc["cases_done"] == doc["cases_total"] > 0 and all(c["status"] in ("ok", "failed") for c in doc["cases"])
-    code, _, err = _run(["bench", *common, "--refine", "0", "--out", tmp_path / "b"])
+    code, _, err = run_cli(["bench", *common, "--refine", "0", "--out", tmp_path / "b"])
     assert code == 0, err
     rows = json.loads((tmp_path / "b" / "bench.json").read_text())["rows"]
     assert [r["setting"]["backend"] for r in rows] == ["neural"] and (tmp_path / "b" / "bench.md").is_file()
@@ -268,8 +254,9 @@ def test_fp16_export_of_a_training_checkpoint_from_the_cli(
 
     best = save_predictor_checkpoint(tmp_path / "best.pt", load_pair_predictor(weights=ckpts["mast3r"]), {"step": 7})
     out = tmp_path / "p16.onnx"
-    code, _, err = _run(["export-onnx", "--checkpoint", best, "-o", out, "--size", "96x64", "--fp16", "--opset", "18",
-                         "-q"])  # fmt: skip
+    code, _, err = run_cli(
+        ["export-onnx", "--checkpoint", best, "-o", out, "--size", "96x64", "--fp16", "--opset", "18", "-q"]
+    )
     assert code == 0, err
     info = read_predictor_info(out)
     assert info.precision == "fp16" and info.parity["ok"] and info.opset == 18
@@ -280,8 +267,9 @@ def test_fp16_export_of_a_training_checkpoint_from_the_cli(
     fp16_weights = [t for t in onnx.load(str(out)).graph.initializer if t.data_type == onnx.TensorProto.FLOAT16]
     assert sum(np.prod(t.dims) for t in fp16_weights) > 0.9 * sum(p.numel() for p in load_pair_predictor(
         weights=ckpts["mast3r"]).parameters())  # fmt: skip
-    code, _, err = _run(["reconstruct", *pair, "-o", tmp_path / "s.ply", "--backend", "neural", "--weights", out, "-q",
-                         ACCEPT])  # fmt: skip
+    code, _, err = run_cli(
+        ["reconstruct", *pair, "-o", tmp_path / "s.ply", "--backend", "neural", "--weights", out, "-q", ACCEPT]
+    )
     assert code == 0, err
 
 
@@ -315,13 +303,13 @@ def test_export_bad_input_is_one_line_exit_2_and_writes_nothing(ckpts: dict[str,
         (["--weights", ckpts["mast3r"], "--checkpoint", ckpts["mast3r"]], "give one"),
     ]
     for args, message in cases:
-        code, _, err = _run(["export-onnx", "-o", out, *args])
-        assert code == 2 and message in _error_line(err), (args, err)
+        code, _, err = run_cli(["export-onnx", "-o", out, *args])
+        assert code == 2 and message in one_error_line(err), (args, err)
     (tmp_path / "afile").write_text("")
     for target, message in ((tmp_path / "afile" / "x.onnx", "is a file, not a folder"),
                             (tmp_path / "x.txt", "must end in .onnx"), (tmp_path, "is a directory")):  # fmt: skip
-        code, _, err = _run(["export-onnx", "--weights", ckpts["mast3r"], "-o", target])
-        assert code == 2 and message in _error_line(err), err
+        code, _, err = run_cli(["export-onnx", "--weights", ckpts["mast3r"], "-o", target])
+        assert code == 2 and message in one_error_line(err), err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]
 
 
@@ -355,9 +343,11 @@ def test_reconstruct_refuses_an_onnx_file_that_is_not_a_macsplat_predictor(
     for name, (content, message) in files.items():
         path = tmp_path / name
         path.write_bytes(content if isinstance(content, bytes) else content.SerializeToString())
-        code, _, err = _run(["reconstruct", *pair, "-o", tmp_path / "s.ply", "--backend", "neural", "--weights", path])
-        assert code == 2 and message in _error_line(err), (name, err)
-    code, _, err = _run(["reconstruct", *pair, "-o", tmp_path / "s.ply", "--backend", "neural", "--weights",
+        code, _, err = run_cli(
+            ["reconstruct", *pair, "-o", tmp_path / "s.ply", "--backend", "neural", "--weights", path]
+        )
+        assert code == 2 and message in one_error_line(err), (name, err)
+    code, _, err = run_cli(["reconstruct", *pair, "-o", tmp_path / "s.ply", "--backend", "neural", "--weights",
                          tmp_path / "none.onnx"])  # fmt: skip
-    assert code == 2 and "not found" in _error_line(err)
+    assert code == 2 and "not found" in one_error_line(err)
     assert not (tmp_path / "s.ply").exists()
