@@ -194,10 +194,16 @@ def test_two_gloo_processes_match_one_process_with_the_same_global_batch(data: P
     init = build_training_model(ModelSpec(model="tiny", init="random")).state_dict()
     changed = [k for k in a if not torch.equal(a[k], init[k])]
     assert changed, "the step changed nothing"
-    # One Adam step moves a weight by ~lr = 1e-3 whatever its gradient; where a gradient is near zero, the float32
-    # rounding of the two summation orders (one batch vs the all-reduce of two) shows up: within 5 % of one step.
-    for k in a:
-        torch.testing.assert_close(a[k], b[k], rtol=0, atol=5e-5)
+    # One Adam(W) step moves each weight by lr·g/(|g| + ε) (+ the same weight decay in both runs): at most lr, and
+    # for |g| ≫ ε nearly exactly lr whatever the rounding of g. Where a gradient is a sum that cancels to within
+    # its rounding (|g| ≲ γₙ·Σ|terms|), the two summation orders (one batch of 2 vs the all-reduce of two batches
+    # of 1) may give it any sign and size below that rounding, and Adam's normalisation turns that into any step in
+    # [−lr, lr]: no per-element bound exists there. So: every weight within one step plus rounding, and such
+    # elements rare (measured: 0 or 1 of 49,152 by CPU kernel set). Mixing up the samples would move most weights.
+    lr, diffs = 1e-3, torch.cat([(a[k].double() - b[k].double()).abs().flatten() for k in a])
+    scale = max(float(a[k].abs().max()) for k in a)
+    assert float(diffs.max()) <= 2 * lr + 4 * torch.finfo(torch.float32).eps * scale
+    assert int((diffs > 0.05 * lr).sum()) <= 1e-3 * diffs.numel(), int((diffs > 0.05 * lr).sum())
 
 
 def test_trains_on_a_scannetpp_tree_with_its_validation_split(tmp_path: Path) -> None:
