@@ -33,6 +33,7 @@ import pytest
 import torch
 
 import macsplat_cli.training.data as training_data
+import macsplat_cli.training.pairs as training_pairs
 from macsplat_cli.cameras import Camera, CameraSet, save_cameras
 from macsplat_cli.cli import main
 from macsplat_cli.datasets import synthetic as syn
@@ -384,7 +385,7 @@ def test_two_thousand_frames_build_the_sampler_without_listing_every_pair(
     Now the pairs are two int32 arrays and the targets are derived per sample: no TrainPair is built at all."""
     root = _many_frames(tmp_path / "many", 2000)
     built = {"n": 0}
-    real = training_data.TrainPair
+    real = training_pairs.TrainPair
 
     def counted(*args: Any, **kwargs: Any) -> Any:
         built["n"] += 1
@@ -392,6 +393,7 @@ def test_two_thousand_frames_build_the_sampler_without_listing_every_pair(
             raise AssertionError("more than 1000 candidate tuples materialised")
         return real(*args, **kwargs)
 
+    monkeypatch.setattr(training_pairs, "TrainPair", counted)  # where the pairs are built
     monkeypatch.setattr(training_data, "TrainPair", counted)
     train_ds, val_ds, info = load_training_data(root, sampling=PairSamplingConfig(size=(16, 16)), val_pairs=8)
     assert info["train_pairs"] > 10**6 and info["val_pairs"] == 8

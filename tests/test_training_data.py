@@ -269,7 +269,7 @@ def _brute_force_pairs(seen: np.ndarray, pair_ok: np.ndarray, both: bool) -> lis
 
 def test_compact_pairs_give_the_targets_of_the_listing_they_replace() -> None:
     """Random visibility: the pairs kept, their targets (in order), and the frames a subset names, as listed in full."""
-    from macsplat_cli.training.data import CandidatePairs, _TargetRule
+    from macsplat_cli.training.pairs import CandidatePairs, _TargetRule
 
     rng = np.random.default_rng(0)
     for trial in range(120):
