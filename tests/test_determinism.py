@@ -42,9 +42,12 @@ GAUSSIAN_RTOL = 1e-5
 # depths, so a rounding-level change reorders them (jittering the means by 1e-6 alone costs 38–40 dB here): 30 dB
 # (an RMS error of 3 % of the colour range) separates that from a different scene.
 RENDER_MIN_PSNR = 30.0
-# Thread counts a user's machine may run with; PORTABLE: the kernels of a CPU without AVX.
+# Thread counts a user's machine may run with, and kernel sets other than the machine's own.
 THREADS = [{"OMP_NUM_THREADS": "1"}, {"OMP_NUM_THREADS": "2"}, {"OMP_NUM_THREADS": "2", "NUMBA_NUM_THREADS": "1"}]
-PORTABLE = {"ATEN_CPU_CAPABILITY": "default", "MKL_ENABLE_INSTRUCTIONS": "SSE4_2"}
+KERNEL_SETS = {
+    "portable": {"ATEN_CPU_CAPABILITY": "default", "MKL_ENABLE_INSTRUCTIONS": "SSE4_2"},
+    "avx2": {"ATEN_CPU_CAPABILITY": "avx2", "MKL_ENABLE_INSTRUCTIONS": "AVX2"},
+}
 _KERNEL_VARS = ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "ATEN_CPU_CAPABILITY", "MKL_ENABLE_INSTRUCTIONS")
 
 
@@ -100,14 +103,16 @@ def _rotation_gap_deg(R0: np.ndarray, R1: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
-def test_other_kernel_set_agrees_to_the_stated_tolerance(run: Run) -> None:
-    """The portable kernels (no AVX, SSE4.2 MKL) give the same pose and the same scene to rounding."""
+@pytest.mark.parametrize("kernels", ["portable", "avx2"])
+def test_other_kernel_set_agrees_to_the_stated_tolerance(run: Run, kernels: str) -> None:
+    """Other kernel sets (portable: no AVX, SSE4.2 MKL; AVX2, the common laptop) give the same pose and the same
+    scene to rounding."""
     runs = {}
-    for key, env in (("threads1", THREADS[1]), ("portable", THREADS[1] | PORTABLE)):
+    for key, env in (("threads1", THREADS[1]), (kernels, THREADS[1] | KERNEL_SETS[kernels])):
         run(key, env)
         folder = run.root / key  # type: ignore[attr-defined]
         runs[key] = (load_cameras(folder / "s.cameras.json"), read_ply(folder / "s.ply"))
-    (cams0, g0), (cams1, g1) = runs["threads1"], runs["portable"]
+    (cams0, g0), (cams1, g1) = runs["threads1"], runs[kernels]
     c0, c1 = cams0[1], cams1[1]
     assert _rotation_gap_deg(c0.cam_to_world[:3, :3], c1.cam_to_world[:3, :3]) <= POSE_TOL_DEG
     t0, t1 = c0.cam_to_world[:3, 3], c1.cam_to_world[:3, 3]  # unit baselines: the gap is an angle in radians
