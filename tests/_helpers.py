@@ -263,3 +263,19 @@ def file_size_limit(n_bytes: int):  # noqa: ANN201 - a context manager
             signal.signal(signal.SIGXFSZ, previous)
 
     return limit()
+
+
+def render_pair(
+    folder, size: tuple[int, int], *, kind: str = "room", angle: float = 20.0, fov_deg: float = 50.0, seed: int = 0
+):  # noqa: ANN001, ANN201 - a folder path; returns (a.png, b.png)
+    """Two ray-traced views of a synthetic ``kind`` scene ``angle`` degrees apart, saved as ``a.png`` and
+    ``b.png`` in ``folder`` at ``size`` = (W, H)."""
+    from macsplat_cli.datasets import synthetic as syn
+    from macsplat_cli.images import save_image
+
+    scene = syn.make_scene(kind, seed)
+    cams = syn.orbit_pair(kind, angle, width=size[0], height=size[1], fov_deg=fov_deg)
+    paths = (folder / "a.png", folder / "b.png")
+    for p, c in zip(paths, cams):
+        save_image(p, syn.render(scene, c).image)
+    return paths

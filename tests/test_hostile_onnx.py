@@ -28,9 +28,7 @@ import pytest
 import torch
 from onnx import TensorProto, helper
 
-from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.errors import OutputPathError
-from macsplat_cli.images import save_image
 from macsplat_cli.neural import BackboneView, MASt3RBackbone
 from macsplat_cli.neural.config import BackboneConfig
 from macsplat_cli.neural.onnx_export import ExportConfig, export_onnx
@@ -39,7 +37,7 @@ from macsplat_cli.neural.onnx_runtime import OnnxPairPredictor
 from macsplat_cli.neural.predictor import PairPredictor
 from macsplat_cli.neural.predictor_io import save_predictor_checkpoint
 
-from _helpers import file_size_limit, one_error_line, run_cli
+from _helpers import file_size_limit, one_error_line, render_pair, run_cli
 
 SIZE = (96, 64)  # (W, H) of the photos, multiples of 16
 FOUR = ("pts3d", "conf", "desc", "desc_conf")
@@ -132,13 +130,7 @@ def _bomb_graph(path: Path) -> Path:
 
 @pytest.fixture(scope="module")
 def pair(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    root = tmp_path_factory.mktemp("pair")
-    scene = syn.make_scene("room", 0)
-    cams = syn.orbit_pair("room", 20, width=SIZE[0], height=SIZE[1], fov_deg=50.0)
-    paths = (root / "a.png", root / "b.png")
-    for p, c in zip(paths, cams):
-        save_image(p, syn.render(scene, c).image)
-    return paths
+    return render_pair(tmp_path_factory.mktemp("pair"), SIZE)
 
 
 @pytest.fixture

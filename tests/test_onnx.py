@@ -25,7 +25,6 @@ from test_neural_pipeline import write_tiny_checkpoints
 
 from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.engine import EngineConfig, Models, NeuralOptions, reconstruct
-from macsplat_cli.images import save_image
 from macsplat_cli.neural import BackboneView
 from macsplat_cli.neural._state_dict import sha256_file
 from macsplat_cli.neural.config import BackboneConfig
@@ -35,7 +34,7 @@ from macsplat_cli.neural.onnx_runtime import OnnxPairPredictor, read_predictor_i
 from macsplat_cli.neural.predictor import PairPredictor, load_pair_predictor
 from macsplat_cli.ply import read_ply
 
-from _helpers import one_error_line, run_cli
+from _helpers import one_error_line, render_pair, run_cli
 
 SIZE = (96, 64)
 ACCEPT = "--accept-low-confidence"  # random weights: a pose the acceptance refuses, written anyway for the plumbing
@@ -48,13 +47,7 @@ def ckpts(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
 @pytest.fixture(scope="module")
 def pair(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    root = tmp_path_factory.mktemp("pair")
-    scene = syn.make_scene("room", 0)
-    cams = syn.orbit_pair("room", 20, width=SIZE[0], height=SIZE[1], fov_deg=50.0)
-    paths = (root / "a.png", root / "b.png")
-    for p, c in zip(paths, cams):
-        save_image(p, syn.render(scene, c).image)
-    return paths
+    return render_pair(tmp_path_factory.mktemp("pair"), SIZE)
 
 
 def _all_args(ckpts: dict[str, Path]) -> list[str | Path]:
