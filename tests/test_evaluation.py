@@ -19,6 +19,7 @@ import pytest
 from macsplat_cli.cameras import Camera, CameraSet, save_cameras
 from macsplat_cli.datasets import nerfstudio_to_opencv, opencv_to_nerfstudio
 from macsplat_cli.datasets import synthetic as S
+from macsplat_cli.datasets.coverage import coverage_matrix, visibility_mask
 from macsplat_cli.errors import DatasetError, ReconstructionError
 from macsplat_cli.evaluation import (
     EvalCase,
@@ -43,7 +44,6 @@ from macsplat_cli.evaluation.bench import (
     pareto_front,
     run_bench,
 )
-from macsplat_cli.evaluation.coverage import coverage_matrix, visibility_mask
 from macsplat_cli.evaluation.metrics import depth_metrics, image_metrics, pose_auc
 from macsplat_cli.evaluation.protocol import target_camera
 from macsplat_cli.evaluation.reconstructors import BACKENDS

@@ -13,8 +13,8 @@ import torch
 import macsplat_cli.datasets.synthetic as S
 from macsplat_cli.cameras import Camera, CameraSet, save_cameras
 from macsplat_cli.datasets import EvalDataset, load_dataset
+from macsplat_cli.datasets.coverage import coverage_matrix
 from macsplat_cli.errors import DatasetError, InputError
-from macsplat_cli.evaluation.coverage import coverage_matrix
 from macsplat_cli.images import save_image
 from macsplat_cli.training.data import (
     PairDataset,

@@ -40,8 +40,9 @@ the file (and the camera).
 
 Modules: :mod:`.base` (the types, depth reading, validation), one module per layout
 (:mod:`.folder`, :mod:`.scannetpp`, :mod:`.co3d`, :mod:`.icl`), :mod:`.registry`
-(:func:`detect_layout`, :func:`load_dataset`), and :mod:`.synthetic` (ray-traced scenes with
-exact ground truth; imported on demand, not by this package).
+(:func:`detect_layout`, :func:`load_dataset`), :mod:`.coverage` (Splatt3R's visibility mask and the pairwise
+coverage of a scene with depth; torch) and :mod:`.synthetic` (ray-traced scenes with exact ground truth); the
+last two are imported on demand, not by this package.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Evaluation of two-view reconstruction: data sets, test splits, the protocol, metrics, baselines, benches.
 
-Layering: :mod:`macsplat_cli.datasets` (posed frames from a folder) → :mod:`.coverage` (Splatt3R's
-visibility mask and pairwise coverage) → :mod:`.splits` (test cases by coverage or view
+Layering: :mod:`macsplat_cli.datasets` (posed frames from a folder; :mod:`macsplat_cli.datasets.coverage`,
+Splatt3R's visibility mask and pairwise coverage) → :mod:`.splits` (test cases by coverage or view
 angle) → :mod:`.reconstructors` (what reconstructs a case: the engine with a backend, or the
 ground truth) → :mod:`.protocol` (measuring a case and a run, writing results) →
 :mod:`.bench` (a grid of settings and its Pareto front). :mod:`.metrics` and
@@ -14,7 +14,6 @@ from __future__ import annotations
 from ..datasets import EvalDataset, EvalScene, Frame, detect_layout, load_dataset
 from .baselines import PointsConfig, nearest_context, point_cloud, render_points
 from .bench import BenchRow, BenchSetting, bench_markdown, bench_plot, grid, pareto_front, run_bench
-from .coverage import coverage_matrix, visibility_mask
 from .metrics import depth_metrics, image_metrics, pose_auc, splatt3r_psnr
 from .protocol import CaseResult, EvalConfig, EvalRun, ResultWriter, evaluate, evaluate_case, summarize
 from .reconstructors import (
@@ -49,7 +48,6 @@ __all__ = [
     "SplitConfig",
     "bench_markdown",
     "bench_plot",
-    "coverage_matrix",
     "depth_metrics",
     "detect_layout",
     "evaluate",
@@ -69,5 +67,4 @@ __all__ = [
     "run_bench",
     "splatt3r_psnr",
     "summarize",
-    "visibility_mask",
 ]

@@ -18,7 +18,7 @@ Then
   ``size``, sides multiples of 16; the photo area-resized as the pipeline does; or at
   ``eval_size``), with the
   Splatt3R visibility mask of the target against both context views when the scene has
-  depth (:mod:`.coverage`), by :func:`.metrics.image_metrics`;
+  depth (:mod:`macsplat_cli.datasets.coverage`), by :func:`.metrics.image_metrics`;
 * baselines on the same targets (:mod:`.baselines`): ``points`` (the reconstruction's
   coloured points as opaque discs) and ``copy`` (the nearer context photo);
 * wall time of the reconstruction (refinement included).
@@ -68,7 +68,7 @@ from ..pipeline.run import Reconstruction
 from ..pipeline.views import MIN_IMAGE_SIDE, working_size
 from ..render import render_camera
 from .baselines import PointsConfig, nearest_context, point_cloud, render_points
-from .coverage import DEPTH_ATOL, DEPTH_RTOL, visibility_mask
+from ..datasets.coverage import DEPTH_ATOL, DEPTH_RTOL, visibility_mask
 from .metrics import AUC_THRESHOLDS_DEG, FAILED_POSE_ERROR_DEG, depth_metrics, image_metrics, pose_auc, pose_error_deg
 from .reconstructors import Reconstructor, ReconstructSettings
 from .splits import SPLITS, EvalCase

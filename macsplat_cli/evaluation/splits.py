@@ -2,7 +2,7 @@
 
 **By coverage** (scenes with depth; Splatt3R's protocol, reference notes §4.4–4.5): a pair
 ``(c0, c1)`` (``c0`` the lower frame index, the world frame) has overlap
-``coverage[c0, c1]`` (:func:`~.coverage.coverage_matrix`: the fraction of ``c1``'s pixels
+``coverage[c0, c1]`` (:func:`~macsplat_cli.datasets.coverage.coverage_matrix`: the fraction of ``c1``'s pixels
 visible in ``c0``). The splits' thresholds (φ, ψ) are (0.9, 0.9) close, (0.7, 0.7) medium,
 (0.5, 0.5) wide and (0.3, 0.3) very wide. A pair meets a split when its overlap is ≥ φ;
 its targets are the other frames ``f`` with ``max(coverage[c0, f], coverage[c1, f]) ≥ ψ``
@@ -40,9 +40,9 @@ import numpy as np
 from .._limits import read_json_file
 from ..cameras import Camera
 from ..datasets import EvalDataset, EvalScene
+from ..datasets.coverage import DEPTH_ATOL, DEPTH_RTOL, coverage_matrix
 from ..errors import DatasetError
 from ..metrics import angle_between_deg
-from .coverage import DEPTH_ATOL, DEPTH_RTOL, coverage_matrix
 
 __all__ = [
     "ANGLE_BINS_DEG",
@@ -284,7 +284,7 @@ def make_cases(
     that meets a split looks at the N frames for its targets, so O(N³) arithmetic, vectorised over
     the frames (N = 200 by angle: about 2 s on 2 CPU cores, where a loop over the frames took
     2.5 minutes), plus O(N²) memory for the pairwise distances (and rotation angles, by angle);
-    by coverage, :func:`~.coverage.coverage_matrix` adds N² visibility tests at ``coverage_size``,
+    by coverage, :func:`~macsplat_cli.datasets.coverage.coverage_matrix` adds N² visibility tests at ``coverage_size``,
     which dominate (about a minute at N = 200). The data set's files were checked when it was
     loaded (:func:`~macsplat_cli.datasets.load_dataset`, from the headers), and the CLI checks the
     frames' sizes before calling this, so bad input fails before this work starts.

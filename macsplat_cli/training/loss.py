@@ -29,6 +29,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from ..cameras import Camera
+from ..datasets.coverage import visibility_mask
 from ..gaussians import GaussianMaps
 from ..mac import MACConfig, mac_loss
 from ..metrics import ssim_map
@@ -178,9 +180,6 @@ def loss_masks(batch: dict[str, torch.Tensor]) -> torch.Tensor | None:
     Without it, Gaussians grow to cover what the context views never saw (Splatt3R's "w/o masking" ablation
     diverged).
     """
-    from ..cameras import Camera
-    from ..evaluation.coverage import visibility_mask
-
     tgt_depth, ctx_depth = batch["target_depth"].numpy(), batch["context_depth"].numpy()
     n, t, h, w = tgt_depth.shape
     if not all((tgt_depth[b, k] > 0).any() for b in range(n) for k in range(t)):

@@ -2,7 +2,7 @@
 
 **Candidate pairs** (:func:`candidate_pairs`, Splatt3R's sampling, reference notes §4.4). In a scene
 whose frames all have depth (or whose coverage matrix is given), ``coverage[a, b]`` is the fraction of
-frame ``b``'s pixels visible in frame ``a`` (:func:`~macsplat_cli.evaluation.coverage.coverage_matrix`,
+frame ``b``'s pixels visible in frame ``a`` (:func:`~macsplat_cli.datasets.coverage.coverage_matrix`,
 Splatt3R's visibility test). An *ordered* pair ``(a, b)`` is a candidate when
 ``lo ≤ coverage[a, b] ≤ hi`` (``PairSamplingConfig.coverage``; Splatt3R enumerates ``c1`` and draws
 ``c2`` with ``coverage[c1][c2] > φ``, so both orders of a pair are candidates when both directions meet
@@ -373,7 +373,7 @@ def candidate_pairs(
         config: the sampling settings.
         coverage: precomputed coverage matrices by scene name (``[N, N]``, ``[a, b]`` = fraction of
             ``b`` seen by ``a``, e.g. Splatt3R's ``coverage/<scene>.json``); other scenes with depth get
-            :func:`~macsplat_cli.evaluation.coverage.coverage_matrix` (at 128 px).
+            :func:`~macsplat_cli.datasets.coverage.coverage_matrix` (at 128 px).
         on_scene: progress callback ``(done, total)`` after each scene.
 
     Returns:
@@ -383,7 +383,7 @@ def candidate_pairs(
         DatasetError: no valid pair in the whole data set (naming it), or a given matrix of the wrong shape or
             with non-finite values.
     """
-    from ..evaluation.coverage import coverage_matrix  # the evaluation package is heavier; import on use
+    from ..datasets.coverage import coverage_matrix  # torch: imported on use
 
     coverage = coverage or {}
     parts: list[CandidatePairs] = []

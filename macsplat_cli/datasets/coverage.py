@@ -36,7 +36,7 @@ import torch
 import torch.nn.functional as F
 
 from ..cameras import Camera
-from ..datasets import EvalScene, resize_depth_nearest
+from .base import EvalScene, resize_depth_nearest
 
 __all__ = ["DEPTH_ATOL", "DEPTH_RTOL", "coverage_matrix", "visibility_mask", "visibility_masks"]
 
