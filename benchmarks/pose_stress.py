@@ -45,11 +45,11 @@ from types import ModuleType
 import cv2
 import numpy as np
 
-from macsplat_cli.datasets.synthetic.planar import H, K, W, planar_case, plane_matches, project
+from macsplat_cli.datasets.synthetic.planar import H, K, PlanarMatches, W, planar_case, project
 from macsplat_cli.errors import ReconstructionError
 from macsplat_cli.metrics import rotation_error_deg, translation_direction_error_deg
 from macsplat_cli.pipeline import pose as pose_module
-from macsplat_cli.pipeline.types import View
+from macsplat_cli.pipeline.types import Matches, View
 
 ROOT = Path(__file__).resolve().parents[1]
 FAMILIES = {"pure plane": None, "plane + 0 % off": 0.0, "plane + 3 % off": 0.03, "plane + 5 % off": 0.05,
@@ -58,6 +58,18 @@ FAMILIES = {"pure plane": None, "plane + 0 % off": 0.0, "plane + 3 % off": 0.03,
 
 def _view() -> View:
     return View("v", Path("v.png"), np.zeros((H, W, 3), np.float32), np.ones((H, W), bool), K, (W, H), "file")
+
+
+def plane_matches(xy0: np.ndarray, xy1: np.ndarray) -> Matches:
+    m = len(xy0)
+    return Matches(xy0, xy1, np.ones(m, np.float32), np.arange(m), np.arange(m))
+
+
+def _matches(p: PlanarMatches) -> Matches:
+    """The pipeline's matches of a planar case (the data sets build none: they sit below the pipeline)."""
+    m = plane_matches(p.xy0, p.xy1)
+    m.below_gate = plane_matches(p.below_gate.xy0, p.below_gate.xy1) if p.below_gate is not None else None
+    return m
 
 
 def _errors(R_est: np.ndarray, t_est: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[float, float]:
@@ -70,7 +82,8 @@ def planar(
     cfg = module.PoseConfig(**config)
     right = wrong = refused = 0
     for seed in range(seeds):
-        m, R, t = planar_case(seed, off, motion)
+        p, R, t = planar_case(seed, off, motion)
+        m = _matches(p)
         cv2.setRNGSeed(seed)
         try:
             g = module.estimate_pose(_view(), _view(), m, cfg)

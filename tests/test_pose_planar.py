@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import pytest
 
-from macsplat_cli.datasets.synthetic.planar import planar_case
+from macsplat_cli.datasets.synthetic.planar import PlanarMatches, planar_case
 from macsplat_cli.errors import ReconstructionError
 from macsplat_cli.metrics import rotation_error_deg, translation_direction_error_deg
 from macsplat_cli.pipeline.pose import PoseConfig, estimate_pose
@@ -36,6 +36,12 @@ def _view(K_: np.ndarray = K, source: IntrinsicsSource = "file", width: int = W,
 def _matches(xy0: np.ndarray, xy1: np.ndarray) -> Matches:
     n = len(xy0)
     return Matches(xy0, xy1, np.ones(n, np.float32), np.arange(n), np.arange(n))
+
+
+def _planar_matches(p: PlanarMatches) -> Matches:
+    m = _matches(p.xy0, p.xy1)
+    m.below_gate = _matches(p.below_gate.xy0, p.below_gate.xy1) if p.below_gate is not None else None
+    return m
 
 
 def _project(X: np.ndarray, R: np.ndarray, t: np.ndarray, K_: np.ndarray = K, size=(W, H)):
@@ -61,7 +67,8 @@ def _random_plane_case(seed: int, off: float | None) -> tuple[Matches, np.ndarra
     """benchmarks/pose_stress.py's ``random`` motion (rotation 0–20°, translation 0.5 over a plane 6 units away):
     200 plane matches (``off`` None), or a table-top with ``off`` of the points on objects, half of those below
     the confidence gate, plus outliers."""
-    return planar_case(seed, off, "random")
+    p, R, t = planar_case(seed, off, "random")
+    return _planar_matches(p), R, t
 
 
 def _table_pure_plane(seed: int) -> tuple[Matches, np.ndarray, np.ndarray]:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import subprocess
+import sys
 
 import cv2
 import numpy as np
@@ -13,6 +15,7 @@ from hypothesis import strategies as st
 
 from macsplat_cli.cameras import Camera, load_cameras
 from macsplat_cli.datasets import synthetic as S
+from macsplat_cli.datasets.synthetic import planar
 from macsplat_cli.errors import InputError
 from macsplat_cli.images import to_uint8
 
@@ -417,3 +420,23 @@ def test_invalid_inputs_raise_input_error() -> None:
         S.Box((0, 0, 0), (1, 0, 1))
     with pytest.raises(InputError):
         S.intrinsics(64, 48, 180.0)
+
+
+# ------------------------------------------------------------------------------------------------ planar cases
+def test_planar_cases_are_plain_arrays_from_below_the_pipeline() -> None:
+    """The planar stress cases come as ``planar.PlanarMatches`` (the data sets build no pipeline type): the original
+    family has no sub-gate matches, a table-top with objects has; every match lies on both images (to the noise);
+    importing the module loads nothing of the pipeline."""
+    plain, R, t = planar.planar_case(0, None)
+    assert isinstance(plain, planar.PlanarMatches) and plain.below_gate is None
+    assert plain.xy0.shape == plain.xy1.shape == (200, 2) and plain.xy0.dtype == np.float64
+    assert R.shape == (3, 3) and t.shape == (3,)
+    table, _, _ = planar.planar_case(8, 0.05, "table")
+    assert isinstance(table.below_gate, planar.PlanarMatches) and len(table.below_gate.xy0) >= 300
+    for xy in (plain.xy0, plain.xy1):
+        assert np.all((xy > -2) & (xy < (planar.W + 2, planar.H + 2)))  # projected inside, then 0.3 px of noise
+    code = (
+        "import sys; import macsplat_cli.datasets.synthetic.planar; "
+        "sys.exit(any(m.startswith('macsplat_cli.pipeline') for m in sys.modules))"
+    )
+    assert subprocess.run([sys.executable, "-c", code], timeout=120).returncode == 0

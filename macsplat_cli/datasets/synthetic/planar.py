@@ -3,18 +3,20 @@
 A tilted plane seen with a random motion (the original stress family, ~5° between the views) or a table photographed
 twice from above, optionally with objects on it whose matches partly fall below the confidence gate
 (``Matches.below_gate``), and outliers. Used by ``benchmarks/pose_stress.py`` and ``tests/test_pose_planar.py``.
+
+The matches are plain arrays (:class:`PlanarMatches`): the data sets sit below the pipeline, so the callers build
+the pipeline's ``Matches`` from them.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
-from ...pipeline.types import Matches
-
-__all__ = ["H", "K", "W", "plane_matches", "planar_case", "project"]
+__all__ = ["H", "K", "W", "PlanarMatches", "planar_case", "project"]
 
 W, H = 320, 240
 K = np.array([[300.0, 0, W / 2], [0, 300.0, H / 2], [0, 0, 1]])
@@ -29,9 +31,19 @@ def project(X: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np
     return xy0, xy1, ok
 
 
-def plane_matches(xy0: np.ndarray, xy1: np.ndarray) -> Matches:
-    m = len(xy0)
-    return Matches(xy0, xy1, np.ones(m, np.float32), np.arange(m), np.arange(m))
+@dataclass
+class PlanarMatches:
+    """The matches of one planar case, as plain arrays (a caller makes ``pipeline.types.Matches`` of them).
+
+    Attributes:
+        xy0: pixel positions in view 0 (pixel centres at +0.5). [M, 2] float64
+        xy1: the matching positions in view 1. [M, 2] float64
+        below_gate: the matches that fall below the confidence gate (their own ``xy0``/``xy1``), or None.
+    """
+
+    xy0: np.ndarray
+    xy1: np.ndarray
+    below_gate: PlanarMatches | None = None
 
 
 def _motion(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -78,7 +90,7 @@ def _table_top(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.nda
     return R, t, (Rc0, C0), table, np.array([0.0, 1.0, 0.0])
 
 
-def planar_case(seed: int, off: float | None, motion: str = "random") -> tuple[Matches, np.ndarray, np.ndarray]:
+def planar_case(seed: int, off: float | None, motion: str = "random") -> tuple[PlanarMatches, np.ndarray, np.ndarray]:
     """One planar case: (matches, possibly with ``below_gate``; true R; true t).
 
     ``motion``: ``"random"`` (the original: axis random, rotation 0–20°, translation 0.5 in a random direction,
@@ -99,7 +111,7 @@ def planar_case(seed: int, off: float | None, motion: str = "random") -> tuple[M
         xy0, xy1, ok = project(X, R, t)
         xy0, xy1 = xy0[ok][:200], xy1[ok][:200]
         xy0, xy1 = xy0 + rng.normal(0, 0.3, xy0.shape), xy1 + rng.normal(0, 0.3, xy1.shape)
-        return plane_matches(xy0, xy1), R, t
+        return PlanarMatches(xy0, xy1), R, t
     is_off = rng.uniform(size=len(X)) < off
     height = rng.uniform(0.1, 1.0, len(X))  # objects on the table (1 unit ≈ 20 cm on a 1.2 m table)
     X = np.where(is_off[:, None], X + height[:, None] * normal, X)
@@ -115,6 +127,4 @@ def planar_case(seed: int, off: float | None, motion: str = "random") -> tuple[M
     g1 = np.concatenate([g1, rng.uniform((0, 0), (W, H), (n_out, 2))])
     b0 = np.concatenate([xy0[~gated] + rng.normal(0, 0.6, ((~gated).sum(), 2)), rng.uniform((0, 0), (W, H), (300, 2))])
     b1 = np.concatenate([xy1[~gated] + rng.normal(0, 0.6, ((~gated).sum(), 2)), rng.uniform((0, 0), (W, H), (300, 2))])
-    m = plane_matches(g0, g1)
-    m.below_gate = plane_matches(b0, b1)
-    return m, R, t
+    return PlanarMatches(g0, g1, below_gate=PlanarMatches(b0, b1)), R, t
