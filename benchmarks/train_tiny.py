@@ -28,11 +28,12 @@ import torch
 from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.mac import MACConfig, mac_loss
 from macsplat_cli.neural.predictor import prediction_from_outputs
+from macsplat_cli.training.config import TrainConfig
 from macsplat_cli.training.data import PairSamplingConfig, make_loader
 from macsplat_cli.training.loss import LossConfig, sample_matches
 from macsplat_cli.training.model import ModelSpec, build_training_model, freeze_for_training
 from macsplat_cli.training.setup import load_training_data
-from macsplat_cli.training.trainer import TrainConfig, Trainer
+from macsplat_cli.training.trainer import Trainer
 
 
 def synthetic_data(root: Path, size: tuple[int, int]) -> Path:

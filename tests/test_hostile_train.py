@@ -39,10 +39,11 @@ from macsplat_cli.cli import main
 from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.errors import InputError, OutputPathError
 from macsplat_cli.images import save_image
+from macsplat_cli.training.config import TrainConfig
 from macsplat_cli.training.data import PairSamplingConfig
 from macsplat_cli.training.model import ModelSpec, build_training_model, freeze_for_training
 from macsplat_cli.training.setup import load_training_data
-from macsplat_cli.training.trainer import TrainConfig, Trainer
+from macsplat_cli.training.trainer import Trainer
 
 from _helpers import file_size_limit
 

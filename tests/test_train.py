@@ -28,10 +28,11 @@ from macsplat_cli.cli import main
 from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.errors import OutputPathError
 from macsplat_cli.neural.predictor import load_pair_predictor
+from macsplat_cli.training.config import TrainConfig
 from macsplat_cli.training.data import PairSamplingConfig
 from macsplat_cli.training.model import ModelSpec, build_training_model, freeze_for_training
 from macsplat_cli.training.setup import load_training_data
-from macsplat_cli.training.trainer import TrainConfig, Trainer, TrainingError
+from macsplat_cli.training.trainer import Trainer, TrainingError
 
 SIZE = (64, 48)
 FAST = ["--model", "tiny", "--init", "random", "--size", f"{SIZE[0]}x{SIZE[1]}", "--workers", "0", "-q"]

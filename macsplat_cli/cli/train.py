@@ -133,11 +133,12 @@ def _train(
 ) -> None:  # fmt: skip
     from ..errors import InputError
     from ..neural.predictor import resolve_device
+    from ..training.config import TrainConfig
     from ..training.data import PairSamplingConfig
     from ..training.loss import LossConfig
     from ..training.model import ModelSpec, build_training_model, freeze_for_training
     from ..training.setup import load_training_data
-    from ..training.trainer import TrainConfig, Trainer
+    from ..training.trainer import Trainer
 
     if model not in ("tiny", "full"):
         raise InputError(f"--model {model!r}: use tiny or full")
