@@ -34,8 +34,9 @@ from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.errors import DatasetError, OutputPathError, ReconstructionError
 from macsplat_cli.evaluation import evaluate, make_cases
 from macsplat_cli.evaluation.bench import BenchSetting
-from macsplat_cli.evaluation.protocol import CaseResult, EvalConfig, EvalRun, ResultWriter
 from macsplat_cli.evaluation.reconstructors import BACKENDS
+from macsplat_cli.evaluation.result_files import ResultWriter
+from macsplat_cli.evaluation.results import CaseResult, EvalConfig, EvalRun
 from macsplat_cli.evaluation.splits import EvalCase, SplitConfig, between_targets
 from macsplat_cli.images import save_image, write_video
 from macsplat_cli.pipeline.run import Pipeline

@@ -152,7 +152,7 @@ def _bench(
         grid,
         run_bench,
     )
-    from ..evaluation.protocol import ResultWriter
+    from ..evaluation.result_files import ResultWriter
 
     if metric not in METRICS:
         raise InputError(f"--metric {metric!r}: use one of {', '.join(METRICS)}")

@@ -216,7 +216,7 @@ def summary_tables(rows: list[dict[str, Any]], title: str) -> list[Any]:
     from rich import box
     from rich.table import Table
 
-    from ..evaluation.protocol import format_cell
+    from ..evaluation.summary import format_cell
 
     views = [
         ("split", "split", None), ("method", "method", None), ("cases", "cases", None), ("targets", "targets", None),
@@ -351,8 +351,9 @@ def _eval(
     from .._json import to_jsonable
     from ..errors import DatasetError
     from ..evaluation import EvalConfig, ReconstructSettings, ResultWriter, make_reconstructor
-    from ..evaluation.protocol import BASELINES, summarize
+    from ..evaluation.results import BASELINES
     from ..evaluation.splits import parse_splits
+    from ..evaluation.summary import summarize
     from ..lpips import load_lpips
 
     parse_splits(split)  # bad options fail before any work

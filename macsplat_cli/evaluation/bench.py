@@ -36,13 +36,17 @@ import cv2
 import numpy as np
 
 from .._atomic import atomic_write_bytes, atomic_write_text, check_folder, check_writable
+from .._json import to_jsonable
 from ..datasets import EvalDataset
 from ..engine import BACKENDS as ENGINE
 from ..engine import EngineConfig, Models, NeuralOptions, RefineOptions, load_models
 from ..errors import InputError, OutputPathError
-from .protocol import EvalConfig, EvalRun, ResultWriter, evaluate, format_cell, summarize, to_jsonable
+from .protocol import evaluate
 from .reconstructors import BACKENDS, Reconstructor, ReconstructSettings, make_reconstructor
+from .result_files import ResultWriter
+from .results import EvalConfig, EvalRun
 from .splits import EvalCase
+from .summary import format_cell, summarize
 
 __all__ = [
     "METRICS",

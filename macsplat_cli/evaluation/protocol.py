@@ -31,191 +31,42 @@ an **error**: recorded with its message, left out of every statistic, and the ru
 **A run** (:func:`evaluate`) first checks every case's context views against the pipeline's
 minimum photo size (:func:`check_context_sizes`, from the cameras, whose sizes the data set's
 loader matched to the image headers: no pixel is read), so such bad input stops the run before
-the first reconstruction; then it evaluates the cases in order. With a :class:`ResultWriter`,
+the first reconstruction; then it evaluates the cases in order. With a :class:`~.result_files.ResultWriter`,
 ``cases.jsonl``, ``results.json`` and ``results.csv`` are rewritten (atomically) after every case,
 so an interrupted run keeps everything it finished.
 
-**Summary** (:func:`summarize`): per split and method, image metrics averaged over targets
-(the reconstruction and ``points`` over the targets of successful cases, ``copy`` over
-the targets of all evaluated cases), median pose and focal errors over successful cases,
-AUC over successful and failed cases, depth metrics averaged over successful cases, and
-the mean reconstruction time.
+The summary and its tables are :mod:`.summary`'s, the files :mod:`.result_files`'; the settings and result
+types are in :mod:`.results`.
 """
 
 from __future__ import annotations
 
-import csv
-import io
-import json
 import logging
-import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, Literal
 
 import numpy as np
 import torch
 
-from .._atomic import atomic_write_text, check_folder, check_writable
-from .._json import to_jsonable
 from ..cameras import Camera
 from ..datasets import EvalDataset, EvalScene, resize_depth_nearest
-from ..errors import DatasetError, InputError, OutputPathError, ReconstructionError
+from ..datasets.coverage import visibility_mask
+from ..errors import DatasetError, InputError, ReconstructionError
 from ..metrics import rotation_error_deg, translation_direction_error_deg
 from ..pipeline.run import Reconstruction
 from ..pipeline.views import MIN_IMAGE_SIDE, working_size
 from ..render import render_camera
-from .baselines import PointsConfig, nearest_context, point_cloud, render_points
-from ..datasets.coverage import DEPTH_ATOL, DEPTH_RTOL, visibility_mask
-from .metrics import AUC_THRESHOLDS_DEG, FAILED_POSE_ERROR_DEG, depth_metrics, image_metrics, pose_auc, pose_error_deg
-from .reconstructors import Reconstructor, ReconstructSettings
-from .splits import SPLITS, EvalCase
+from .baselines import nearest_context, point_cloud, render_points
+from .metrics import depth_metrics, image_metrics
+from .reconstructors import Reconstructor
+from .result_files import ResultWriter
+from .results import CaseResult, EvalConfig, EvalRun, TargetResult
+from .splits import EvalCase
+from .summary import known_mean
 
-__all__ = [
-    "BASELINES",
-    "CaseResult",
-    "EvalConfig",
-    "EvalRun",
-    "ResultWriter",
-    "TargetResult",
-    "check_context_sizes",
-    "evaluate",
-    "evaluate_case",
-    "summarize",
-    "summary_markdown",
-    "target_camera",
-    "to_jsonable",
-]
+__all__ = ["check_context_sizes", "evaluate", "evaluate_case", "target_camera"]
 
 logger = logging.getLogger(__name__)
-
-BASELINES = ("points", "copy")
-Status = Literal["ok", "failed", "error"]
-
-
-@dataclass
-class EvalConfig:
-    """Args:
-    settings: working size and intrinsics mode, shared by every reconstructor.
-    eval_size: long side of the resolution at which targets are rendered and compared
-        (sides rounded to multiples of 16, like the working size); None: the working size.
-        Fix it to compare reconstructions made at different working sizes.
-    splatt3r_compatible: image metrics in Splatt3R's convention (mask-then-compare,
-        channel-summed masked PSNR; see :mod:`.metrics`).
-    baselines: which baselines to measure (subset of :data:`BASELINES`).
-    points: how the point-cloud baseline draws its discs.
-    depth_atol: absolute depth tolerance of the visibility mask (scene units).
-    depth_rtol: relative depth tolerance of the visibility mask.
-    background: colour behind the Gaussians and the discs (Splatt3R: black).
-    lpips: an LPIPS model (:func:`macsplat_cli.lpips.load_lpips`); None: no LPIPS.
-    """
-
-    settings: ReconstructSettings = field(default_factory=ReconstructSettings)
-    eval_size: int | None = None
-    splatt3r_compatible: bool = False
-    baselines: tuple[str, ...] = BASELINES
-    points: PointsConfig = field(default_factory=PointsConfig)
-    depth_atol: float = DEPTH_ATOL
-    depth_rtol: float = DEPTH_RTOL
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    lpips: torch.nn.Module | None = None
-
-
-@dataclass
-class TargetResult:
-    """Image metrics of one target view, per method (the reconstruction's name and the baselines')."""
-
-    index: int
-    name: str
-    size: tuple[int, int]
-    metrics: dict[str, dict[str, float]] = field(default_factory=dict)
-
-
-@dataclass
-class CaseResult:
-    """Everything measured on one case.
-
-    Attributes:
-        case: the case.
-        method: the reconstructor's name.
-        status: ``"ok"``, ``"failed"`` (ReconstructionError) or ``"error"`` (bad input).
-        error: the error message, if any.
-        time_s: wall time of the reconstruction.
-        rotation_error_deg: relative rotation error (NaN unless ok).
-        translation_error_deg: translation-direction error (NaN unless ok).
-        focal_error_pct: per context view, ``100 · (f_est / f_true − 1)``; None where the
-            intrinsics were given.
-        depth: depth metrics averaged over the two context views (empty without depth).
-        scale: the factor ``s`` from reconstruction units to scene units.
-        targets: per target, the image metrics.
-    """
-
-    case: EvalCase
-    method: str
-    status: Status = "ok"
-    error: str | None = None
-    time_s: float = math.nan
-    rotation_error_deg: float = math.nan
-    translation_error_deg: float = math.nan
-    focal_error_pct: list[float | None] = field(default_factory=lambda: [None, None])
-    depth: dict[str, float] = field(default_factory=dict)
-    scale: float = math.nan
-    targets: list[TargetResult] = field(default_factory=list)
-
-    @property
-    def pose_error_deg(self) -> float:
-        """``max(rotation, translation)`` error; 180° for a failure (NaN for an input error)."""
-        if self.status == "error":
-            return math.nan
-        if self.status == "failed":
-            return FAILED_POSE_ERROR_DEG
-        return pose_error_deg(self.rotation_error_deg, self.translation_error_deg)
-
-    def to_dict(self) -> dict[str, Any]:
-        return to_jsonable(
-            {
-                **self.case.to_dict(),
-                "method": self.method,
-                "status": self.status,
-                "error": self.error,
-                "time_s": self.time_s,
-                "rotation_error_deg": self.rotation_error_deg,
-                "translation_error_deg": self.translation_error_deg,
-                "pose_error_deg": self.pose_error_deg,
-                "focal_error_pct": self.focal_error_pct,
-                "depth": self.depth,
-                "scale": self.scale,
-                "targets": [
-                    {"index": t.index, "name": t.name, "size": list(t.size), "metrics": t.metrics} for t in self.targets
-                ],
-            }
-        )
-
-
-@dataclass
-class EvalRun:
-    """A run: its settings and the results so far."""
-
-    dataset: str
-    layout: str
-    method: str
-    config: EvalConfig
-    cases: list[EvalCase]
-    results: list[CaseResult] = field(default_factory=list)
-
-    @property
-    def complete(self) -> bool:
-        return len(self.results) == len(self.cases)
-
-    @property
-    def errors(self) -> list[CaseResult]:
-        return [r for r in self.results if r.status == "error"]
-
-    @property
-    def failures(self) -> list[CaseResult]:
-        return [r for r in self.results if r.status == "failed"]
 
 
 # ------------------------------------------------------------------------------------ one case
@@ -249,6 +100,11 @@ def _resize_to(depth: np.ndarray, width: int, height: int) -> np.ndarray:
     return resize_depth_nearest(depth, width, height) if depth.shape != (height, width) else depth
 
 
+_Target = tuple[TargetResult, np.ndarray, np.ndarray | None]
+"""A target's result (filled as measured), its photo at the compared size [H, W, 3] and its visibility mask [H, W]
+bool (None: no depth)."""
+
+
 def evaluate_case(
     scene: EvalScene, case: EvalCase, reconstructor: Reconstructor, config: EvalConfig | None = None
 ) -> CaseResult:
@@ -261,12 +117,34 @@ def evaluate_case(
         InputError: bad input met on the way (unreadable image or depth map).
     """
     cfg = config or EvalConfig()
+    gt = [scene.frames[c].camera for c in case.context]
+    res = CaseResult(case, reconstructor.name)
+    targets, has_depth = _targets_truth(scene, case, cfg)  # independent of the reconstruction
+    res.targets = [t[0] for t in targets]
+
+    t0 = time.perf_counter()
+    try:
+        rec: Reconstruction = reconstructor(scene, case, cfg.settings)
+    except ReconstructionError as e:
+        res.time_s = time.perf_counter() - t0
+        res.status, res.error = "failed", " ".join(str(e).split())
+        logger.info("%s: reconstruction failed: %s", case.key, res.error)
+        return res
+    res.time_s = time.perf_counter() - t0
+
+    ratios = _measure_pose(res, rec, gt)
+    if has_depth and rec.depths:
+        _measure_depth(res, rec, scene, case)
+    _measure_targets(res, rec, targets, scene, gt[0], ratios[0], cfg)
+    return res
+
+
+def _targets_truth(scene: EvalScene, case: EvalCase, cfg: EvalConfig) -> tuple[list[_Target], bool]:
+    """The ground truth of every target (photo, visibility mask) and the copy baseline's metrics; whether both
+    context views have depth."""
     size = cfg.eval_size or cfg.settings.size
     frames = scene.frames
     gt = [frames[c].camera for c in case.context]
-    res = CaseResult(case, reconstructor.name)
-
-    # ground truth of the targets, independent of the reconstruction
     ctx_cams_w = [_working_camera(frames[c].camera, size) for c in case.context]
     ctx_depth = [scene.depth(c, (cam.width, cam.height)) for c, cam in zip(case.context, ctx_cams_w)]
     known = [d for d in ctx_depth if d is not None]
@@ -295,19 +173,12 @@ def evaluate_case(
                 photo(near, wh), image, mask, splatt3r=cfg.splatt3r_compatible, lpips=cfg.lpips
             )
         targets.append((tr, image, mask))
-    res.targets = [t[0] for t in targets]
+    return targets, has_depth
 
-    t0 = time.perf_counter()
-    try:
-        rec: Reconstruction = reconstructor(scene, case, cfg.settings)
-    except ReconstructionError as e:
-        res.time_s = time.perf_counter() - t0
-        res.status, res.error = "failed", " ".join(str(e).split())
-        logger.info("%s: reconstruction failed: %s", case.key, res.error)
-        return res
-    res.time_s = time.perf_counter() - t0
 
-    # pose, focal length, scale
+def _measure_pose(res: CaseResult, rec: Reconstruction, gt: list[Camera]) -> list[tuple[float, float]]:
+    """Pose errors, the scale ``s`` and the focal errors into ``res``; the (fx, fy) estimated-to-true focal ratio
+    of each context view."""
     T_gt = gt[1].world_to_cam @ gt[0].cam_to_world
     g = rec.geometry
     res.rotation_error_deg = rotation_error_deg(g.R, T_gt[:3, :3])
@@ -321,23 +192,37 @@ def evaluate_case(
         ratios.append((K_est[k][0, 0] / K_true[0, 0], K_est[k][1, 1] / K_true[1, 1]))
         if v.intrinsics_source != "file":
             res.focal_error_pct[k] = 100.0 * (ratios[k][0] - 1.0)
+    return ratios
 
-    # depth of the context views
-    if has_depth and rec.depths:
-        per_view = []
-        for k, dm in enumerate(rec.depths):
-            h, w = dm.depth.shape
-            d_true = _resize_to(scene.depth(case.context[k]), w, h)  # type: ignore[arg-type]
-            est = np.where(dm.valid, dm.depth, 0.0)
-            per_view.append(depth_metrics(est, d_true, res.scale))
-        res.depth = {key: _mean([m[key] for m in per_view]) for key in per_view[0]}
 
-    # target views
+def _measure_depth(res: CaseResult, rec: Reconstruction, scene: EvalScene, case: EvalCase) -> None:
+    """Depth metrics of the context views' depth maps (at their own size, scaled by ``res.scale``) into ``res``."""
+    per_view = []
+    for k, dm in enumerate(rec.depths):
+        h, w = dm.depth.shape
+        d_true = _resize_to(scene.depth(case.context[k]), w, h)  # type: ignore[arg-type]
+        est = np.where(dm.valid, dm.depth, 0.0)
+        per_view.append(depth_metrics(est, d_true, res.scale))
+    res.depth = {key: known_mean([m[key] for m in per_view]) for key in per_view[0]}
+
+
+def _measure_targets(
+    res: CaseResult,
+    rec: Reconstruction,
+    targets: list[_Target],
+    scene: EvalScene,
+    context0: Camera,
+    focal_ratio: tuple[float, float],
+    cfg: EvalConfig,
+) -> None:
+    """Render every target from its true camera in the reconstruction's frame; its metrics (and the points
+    baseline's) into its :class:`TargetResult`."""
     points = point_cloud(rec.gaussians, cfg.points) if "points" in cfg.baselines else None
     for tr, image, mask in targets:
         cam = target_camera(
-            frames[tr.index].camera, gt[0], scale=res.scale, width=tr.size[0], height=tr.size[1], focal_ratio=ratios[0]
-        )
+            scene.frames[tr.index].camera, context0, scale=res.scale, width=tr.size[0], height=tr.size[1],
+            focal_ratio=focal_ratio,
+        )  # fmt: skip
         with torch.no_grad():
             out = render_camera(rec.gaussians, cam, background=cfg.background)
         pred = out.rgb.clamp(0.0, 1.0).cpu().numpy()
@@ -349,7 +234,6 @@ def evaluate_case(
             pm = image_metrics(rgb, image, mask, splatt3r=cfg.splatt3r_compatible, lpips=cfg.lpips)
             pm["alpha_coverage"] = float(covered.mean())
             tr.metrics["points"] = pm
-    return res
 
 
 # ------------------------------------------------------------------------------------ a run
@@ -423,229 +307,3 @@ def evaluate(
         if on_case is not None:
             on_case(i, case, res)
     return run
-
-
-# ------------------------------------------------------------------------------------ summary
-def _mean(values: Sequence[float]) -> float:
-    v = np.asarray([x for x in values if x is not None], np.float64)
-    v = v[~np.isnan(v)]
-    return float(v.mean()) if len(v) else math.nan
-
-
-def _median(values: Sequence[float | None]) -> float:
-    v = np.asarray([x for x in values if x is not None], np.float64)
-    v = v[~np.isnan(v)]
-    return float(np.median(v)) if len(v) else math.nan
-
-
-_IMAGE_KEYS = ("psnr", "ssim", "psnr_masked", "ssim_masked", "lpips")
-
-
-def _image_summary(results: Sequence[CaseResult], method: str) -> dict[str, float]:
-    per_target = [t.metrics[method] for r in results for t in r.targets if method in t.metrics]
-    out: dict[str, float] = {"targets": len(per_target)}
-    for key in _IMAGE_KEYS:
-        out[key] = _mean([m.get(key, math.nan) for m in per_target])
-    return out
-
-
-def summarize(run: EvalRun) -> list[dict[str, Any]]:
-    """One row per split (and ``all`` when there are several) and method; see the module docstring."""
-    splits = [s for s in SPLITS if any(r.case.split == s for r in run.results)]
-    splits += sorted({r.case.split for r in run.results} - set(SPLITS))
-    groups = [(s, [r for r in run.results if r.case.split == s]) for s in splits]
-    if len(groups) > 1:
-        groups.append(("all", list(run.results)))
-    rows = []
-    for split, results in groups:
-        evaluated = [r for r in results if r.status != "error"]
-        ok = [r for r in evaluated if r.status == "ok"]
-        row: dict[str, Any] = {
-            "split": split,
-            "method": run.method,
-            "cases": len(evaluated),
-            "failed": len(evaluated) - len(ok),
-            "errors": len(results) - len(evaluated),
-            **_image_summary(ok, run.method),
-            "rotation_error_deg": _median([r.rotation_error_deg for r in ok]),
-            "translation_error_deg": _median([r.translation_error_deg for r in ok]),
-            **pose_auc([r.pose_error_deg for r in evaluated], AUC_THRESHOLDS_DEG),
-            "focal_error_pct": _median([abs(f) for r in ok for f in r.focal_error_pct if f is not None]),
-            "depth_absrel": _mean([r.depth.get("absrel", math.nan) for r in ok]),
-            "depth_delta1": _mean([r.depth.get("delta1", math.nan) for r in ok]),
-            "time_s": _mean([r.time_s for r in evaluated]),
-        }
-        rows.append(row)
-        for base in run.config.baselines:
-            src = ok if base == "points" else evaluated
-            rows.append({"split": split, "method": base, "cases": len(src), **_image_summary(src, base)})
-    return rows
-
-
-def format_cell(v: Any, digits: int = 2) -> str:
-    """A table cell: floats to ``digits`` decimals, None/NaN/inf as "–"."""
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return "–"
-    return f"{v:.{digits}f}" if isinstance(v, float) else str(v)
-
-
-def summary_markdown(rows: Sequence[dict[str, Any]]) -> str:
-    """The summary as two Markdown tables: novel views per method, then pose, depth and time."""
-    views = (
-        ("psnr", "PSNR", 2),
-        ("ssim", "SSIM", 3),
-        ("psnr_masked", "masked PSNR", 2),
-        ("ssim_masked", "masked SSIM", 3),
-        ("lpips", "LPIPS", 3),
-    )
-    geo = (
-        ("rotation_error_deg", "rot err °", 2), ("translation_error_deg", "t err °", 2), ("auc@5", "AUC@5", 3),
-        ("auc@10", "AUC@10", 3), ("auc@20", "AUC@20", 3), ("focal_error_pct", "focal err %", 1),
-        ("depth_absrel", "AbsRel", 3), ("depth_delta1", "δ<1.25", 3), ("time_s", "time s", 2),
-    )  # fmt: skip
-    out = ["| split | method | cases | targets | " + " | ".join(h for _, h, _ in views) + " |"]
-    out.append("|---|---|---:|---:|" + "---:|" * len(views))
-    for r in rows:
-        cells = [r["split"], r["method"], str(r["cases"]), str(r.get("targets", "–"))]
-        out.append("| " + " | ".join(cells + [format_cell(r.get(k), d) for k, _, d in views]) + " |")
-    out += ["", "| split | ok / cases | " + " | ".join(h for _, h, _ in geo) + " |"]
-    out.append("|---|---:|" + "---:|" * len(geo))
-    for r in rows:
-        if "failed" in r:
-            cells = [r["split"], f"{r['cases'] - r['failed']} / {r['cases']}"]
-            out.append("| " + " | ".join(cells + [format_cell(r.get(k), d) for k, _, d in geo]) + " |")
-    return "\n".join(out) + "\n"
-
-
-# ------------------------------------------------------------------------------------ files
-CSV_COLUMNS = (
-    "scene", "split", "context_0", "context_1", "target", "target_name", "method", "status",
-    "psnr", "ssim", "psnr_masked", "ssim_masked", "lpips", "mask_fraction", "alpha_coverage",
-    "rotation_error_deg", "translation_error_deg", "pose_error_deg", "focal_error_pct_0", "focal_error_pct_1",
-    "depth_absrel", "depth_delta1", "time_s", "error",
-)  # fmt: skip
-
-
-def csv_rows(run: EvalRun) -> list[dict[str, Any]]:
-    """One row per (case, target, method); case-level fields on the reconstruction's rows."""
-    rows = []
-    methods = [run.method, *run.config.baselines]
-    for r in run.results:
-        c = r.case
-        base = {"scene": c.scene, "split": c.split, "context_0": c.context[0], "context_1": c.context[1]}
-        case_fields = {
-            "status": r.status,
-            "rotation_error_deg": r.rotation_error_deg,
-            "translation_error_deg": r.translation_error_deg,
-            "pose_error_deg": r.pose_error_deg,
-            "focal_error_pct_0": r.focal_error_pct[0],
-            "focal_error_pct_1": r.focal_error_pct[1],
-            "depth_absrel": r.depth.get("absrel"),
-            "depth_delta1": r.depth.get("delta1"),
-            "time_s": r.time_s,
-            "error": r.error,
-        }
-        if not r.targets:
-            rows.append({**base, "method": run.method, **case_fields})
-        for t in r.targets:
-            for m in methods:
-                metrics = t.metrics.get(m)
-                if m != run.method and metrics is None:
-                    continue
-                row = {**base, "target": t.index, "target_name": t.name, "method": m}
-                row.update(case_fields if m == run.method else {"status": r.status if m == "points" else "ok"})
-                row.update({k: v for k, v in (metrics or {}).items() if k in CSV_COLUMNS})
-                rows.append(row)
-    return rows
-
-
-def _fmt_csv(v: Any) -> Any:
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return ""
-    if isinstance(v, float):
-        return f"{v:.6g}"
-    return v
-
-
-class ResultWriter:
-    """Writes a run's results into a folder after every case.
-
-    Files: ``cases.jsonl`` (one JSON line per finished case), ``results.json`` (settings, summary
-    and every case), ``results.csv`` (one row per case, target and method) and ``summary.md`` (the
-    summary tables), each rewritten atomically after every case, and ``coverage/<scene>.json``
-    when coverage matrices are given.
-
-    ``cases.jsonl`` is rewritten whole rather than appended to: O(cases) per case, as for
-    ``results.json`` (which holds the same cases), and in exchange the file is whole at every
-    moment (a run killed mid-write leaves no half line) and is never opened in place, so a
-    symbolic link or device planted at its name is refused like at any output (:mod:`.._atomic`)
-    instead of being written through. ``coverage/`` may not be a link either.
-    """
-
-    FILES = ("cases.jsonl", "results.json", "results.csv", "summary.md")
-    """The files written into the folder (besides ``coverage/``)."""
-
-    def __init__(self, folder: str | Path, extra: dict[str, Any] | None = None) -> None:
-        self.folder = Path(folder)
-        self.extra = extra or {}
-        self.check(self.folder)
-        try:
-            self.folder.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise OutputPathError(f"cannot create {self.folder}: {e.strerror or e}") from None
-        self.jsonl = self.folder / "cases.jsonl"
-        self.json_path = self.folder / "results.json"
-        self.csv_path = self.folder / "results.csv"
-
-    @classmethod
-    def check(cls, folder: str | Path) -> None:
-        """Before any work: every file of :attr:`FILES` can be written (:func:`~.._atomic.check_writable`: no
-        link, device or folder at its name) and ``coverage/`` is not a link or a file.
-
-        Raises:
-            OutputPathError: naming the file.
-        """
-        folder = Path(folder)
-        for name in cls.FILES:
-            check_writable(folder / name)
-        check_folder(folder / "coverage")
-
-    def write_coverage(self, coverage: dict[str, np.ndarray], frames: dict[str, list[str]]) -> None:
-        for scene, cov in coverage.items():
-            doc = {"scene": scene, "frames": frames.get(scene, []), "coverage": np.round(cov, 5).tolist()}
-            name = scene.replace("/", "_").replace("\\", "_")  # one file directly in coverage/
-            atomic_write_text(check_folder(self.folder / "coverage") / f"{name}.json", json.dumps(doc) + "\n")
-
-    def start(self, run: EvalRun) -> None:
-        self.write(run)
-
-    def add(self, run: EvalRun, result: CaseResult) -> None:
-        self.write(run)
-
-    def write(self, run: EvalRun) -> None:
-        from dataclasses import asdict, replace
-
-        cases = [r.to_dict() for r in run.results]
-        atomic_write_text(self.jsonl, "".join(json.dumps(c) + "\n" for c in cases))
-        doc = {
-            "dataset": run.dataset,
-            "layout": run.layout,
-            "method": run.method,
-            "config": to_jsonable({**asdict(replace(run.config, lpips=None)), "lpips": run.config.lpips is not None}),
-            **to_jsonable(self.extra),
-            "complete": run.complete,
-            "cases_total": len(run.cases),
-            "cases_done": len(run.results),
-            "pending": [c.key for c in run.cases[len(run.results) :]],
-            "errors": [{"case": r.case.key, "error": r.error} for r in run.errors],
-            "summary": to_jsonable(summarize(run)),
-            "cases": cases,
-        }
-        atomic_write_text(self.json_path, json.dumps(doc, indent=1) + "\n")
-        buf = io.StringIO()
-        w = csv.DictWriter(buf, fieldnames=CSV_COLUMNS, extrasaction="ignore", lineterminator="\n")
-        w.writeheader()
-        for row in csv_rows(run):
-            w.writerow({k: _fmt_csv(v) for k, v in row.items()})
-        atomic_write_text(self.csv_path, buf.getvalue())
-        atomic_write_text(self.folder / "summary.md", summary_markdown(doc["summary"]))
