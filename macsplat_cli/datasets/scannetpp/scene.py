@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -76,10 +77,45 @@ def load_dslr_scene(
             ``raw_dslr``); the undistortion cache is added.
     """
     raw = raw_dslr if raw_dslr is not None and raw_dslr.is_dir() else dslr
-    ns_u = dslr / "nerfstudio" / "transforms_undistorted.json"
     ns = raw / "nerfstudio" / "transforms.json"
     if not ns.is_file():
         ns = dslr / "nerfstudio" / "transforms.json"
+    src = _dslr_source(dslr, raw, ns)
+    bad = _bad_frames(src, ns, raw)
+    names = _train_names(dslr, raw, src.train)
+    roots = [*(within if within is not None else (dslr, raw)), *([src.cache.root] if src.cache is not None else [])]
+    check_inside(src.source, roots, "the pose file")
+    frames = _dslr_frames(src, names, bad, roots)
+    logger.debug("scannetpp %s: %d DSLR frames from %s (%d marked is_bad)", scene_id, len(frames), src.source, len(bad))
+    return validate_scene(EvalScene(scene_id, frames, "metric"), dslr, roots=roots)
+
+
+@dataclass
+class _DslrSource:
+    """Where a scene's DSLR frames come from (:func:`load_dslr_scene`, items 1–3).
+
+    Attributes:
+        table: the poses by image name.
+        train: the frames the pose file lists.
+        source: the pose file read.
+        pinhole: whether the table's intrinsics are those of the images (else the toolkit's undistortion of the lens).
+        img_dir: the images' folder.
+        depth_dir: the depth maps' folder, or None.
+        cache: the undistortion cache of fisheye images, or None.
+    """
+
+    table: PoseTable
+    train: list[str]
+    source: Path
+    pinhole: bool
+    img_dir: Path
+    depth_dir: Path | None
+    cache: UndistortCache | None
+
+
+def _dslr_source(dslr: Path, raw: Path, ns: Path) -> _DslrSource:
+    """The images, depth maps and poses to read, in the order of preference of :func:`load_dslr_scene`."""
+    ns_u = dslr / "nerfstudio" / "transforms_undistorted.json"
     colmap = dslr / "colmap" if (dslr / "colmap").is_dir() else raw / "colmap"
     und_dir = _first_dir(dslr, _UNDISTORTED_IMAGES)
     dist_dir = dslr / "resized_images" if (dslr / "resized_images").is_dir() else None
@@ -102,26 +138,36 @@ def load_dslr_scene(
         raise DatasetError(
             f"{dslr}: no DSLR images: expected resized_undistorted_images/ (or undistorted_images/) or resized_images/"
         )
+    return _DslrSource(table, train, source, pinhole, img_dir, depth_dir, cache)
 
-    bad = {name for name, (_, _, b) in table.items() if b}
+
+def _bad_frames(src: _DslrSource, ns: Path, raw: Path) -> set[str]:
+    """The frames marked ``is_bad`` in the pose file read or in any other transforms file."""
+    bad = {name for name, (_, _, b) in src.table.items() if b}
     for other in (ns, raw / "nerfstudio" / "transforms.json"):
-        if other.is_file() and other != source:
+        if other.is_file() and other != src.source:
             other_table, _ = poses_from_transforms(read_json(other), other)
             bad |= {name for name, (_, _, b) in other_table.items() if b}
+    return bad
+
+
+def _train_names(dslr: Path, raw: Path, train: list[str]) -> list[str]:
+    """The ``train`` list of ``train_test_lists.json`` (in ``raw``, else ``dslr``), else the pose file's frames."""
     lists = raw / "train_test_lists.json"
     if not lists.is_file():
         lists = dslr / "train_test_lists.json"
-    if lists.is_file():
-        doc = read_json(lists)
-        if not isinstance(doc, dict) or not isinstance(doc.get("train"), list):
-            raise DatasetError(f"{lists}: expected a JSON object with a 'train' list")
-        names = [Path(str(n)).name for n in doc["train"]]
-    else:
-        names = train
+    if not lists.is_file():
+        return train
+    doc = read_json(lists)
+    if not isinstance(doc, dict) or not isinstance(doc.get("train"), list):
+        raise DatasetError(f"{lists}: expected a JSON object with a 'train' list")
+    return [Path(str(n)).name for n in doc["train"]]
 
+
+def _dslr_frames(src: _DslrSource, names: list[str], bad: set[str], roots: list[Path]) -> list[Frame]:
+    """The frames of ``names`` not in ``bad``, fisheye images undistorted through the cache (closed after)."""
+    source, table, img_dir, depth_dir, cache = src.source, src.table, src.img_dir, src.depth_dir, src.cache
     frames = []
-    roots = [*(within if within is not None else (dslr, raw)), *([cache.root] if cache is not None else [])]
-    check_inside(source, roots, "the pose file")
     try:
         for name in names:
             if name in bad:
@@ -136,13 +182,12 @@ def load_dslr_scene(
                 image, K = cache.image(check_inside(img_dir / name, roots, f"frame {stem!r}"), lens)
                 depth = cache.depth(check_inside(depth, roots, f"frame {stem!r}"), lens) if depth is not None else None
             else:
-                image, K = img_dir / name, (lens.K if pinhole else pinhole_K(lens))
+                image, K = img_dir / name, (lens.K if src.pinhole else pinhole_K(lens))
             frames.append(Frame(stem, image, _camera(stem, K, lens, c2w, source), depth, 1.0 / 1000.0))
     finally:
         if cache is not None:
             cache.close()
-    logger.debug("scannetpp %s: %d DSLR frames from %s (%d marked is_bad)", scene_id, len(frames), source, len(bad))
-    return validate_scene(EvalScene(scene_id, frames, "metric"), dslr, roots=roots)
+    return frames
 
 
 def _pose_intrinsic_imu(path: Path, rgb: Path) -> PoseTable:
