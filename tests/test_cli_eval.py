@@ -13,11 +13,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from test_evaluation import ORACLE, translated_camera, write_blank_dataset, write_plane_dataset
 
 from macsplat_cli.cli import main
 from macsplat_cli.datasets import synthetic as S
 from macsplat_cli.evaluation.reconstructors import BACKENDS
+
+from support.evaluation import ORACLE, translated_camera, write_blank_dataset, write_plane_dataset
 
 
 @pytest.fixture(scope="module")

@@ -1,8 +1,8 @@
 """The evaluation library: loaders, coverage and splits, metrics, baselines, the protocol, the bench.
 
-Data are generated here: a smoothly textured plane seen by cameras translated along x (so
-coverage and the visibility mask have closed forms), hand-built camera rigs, and small
-synthetic ScanNet++ / ICL-NUIM trees.
+Data are generated: a smoothly textured plane seen by cameras translated along x (so coverage and
+the visibility mask have closed forms; ``support.evaluation``, shared with ``test_cli_eval.py``), and
+here hand-built camera rigs and small synthetic ScanNet++ / ICL-NUIM trees.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import pytest
 
-from macsplat_cli.cameras import Camera, CameraSet, save_cameras
+from macsplat_cli.cameras import Camera
 from macsplat_cli.datasets import nerfstudio_to_opencv, opencv_to_nerfstudio
 from macsplat_cli.datasets import synthetic as S
 from macsplat_cli.datasets.coverage import coverage_matrix, visibility_mask
@@ -58,40 +58,17 @@ from macsplat_cli.metrics import (
 )
 from macsplat_cli.pipeline.gaussian_init import GaussianInitConfig
 
-W, H, Z = 96, 64, 3.0
-K = S.intrinsics(W, H, 60.0)
-PLANE_X = (0.0, 0.06, 0.09, 0.17, 0.81, 2.26)
-"""Camera x positions: every pair's coverage is ≥ 0.03 away from a split threshold."""
-
-
-class SmoothQuad(S.Quad):
-    """A quad with a slowly varying colour (periods of 2.5–3.9 m, i.e. ~70–110 px at 3 m).
-
-    Low frequencies keep the Gaussians' own blur far below 40 dB of error, while a one
-    pixel camera error still costs ~10 dB.
-    """
-
-    def surface(self, points: np.ndarray, face: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        du, dv = self._cache["dual"]
-        rel = points - self.origin[:, None]
-        u = (du[:, None] * rel).sum(0) * float(np.linalg.norm(self.edge_u))
-        v = (dv[:, None] * rel).sum(0) * float(np.linalg.norm(self.edge_v))
-        rgb = np.stack(
-            [
-                0.5 + 0.25 * np.sin(2 * np.pi * u / 3.0),
-                0.5 + 0.25 * np.sin(2 * np.pi * v / 2.55 + 1.0),
-                0.5 + 0.2 * np.sin(2 * np.pi * (u + v) / 3.9 + 2.0),
-            ],
-            1,
-        )
-        return np.repeat(self._cache["normal"][:, None], points.shape[1], axis=1), rgb.astype(np.float32)
-
-
-def translated_camera(name: str, x: float, yaw_deg: float = 0.0) -> Camera:
-    T = np.eye(4)
-    T[:3, :3] = S.rotation_about((0, 1, 0), yaw_deg)
-    T[0, 3] = x
-    return Camera(name, W, H, K, T)
+from support.evaluation import (
+    ORACLE,
+    PLANE_X,
+    H,
+    K,
+    W,
+    Z,
+    translated_camera,
+    write_blank_dataset,
+    write_plane_dataset,
+)
 
 
 def plane_coverage(xa: float, xb: float) -> float:
@@ -99,19 +76,9 @@ def plane_coverage(xa: float, xb: float) -> float:
     return 1.0 - abs(xb - xa) * K[0, 0] / Z / W
 
 
-def write_plane_dataset(root: Path, xs: tuple[float, ...] = PLANE_X) -> Path:
-    """A generic data set (synthetic.write_dataset) of the smooth plane: 96x64 images + depth."""
-    scene = S.Scene([SmoothQuad((-6.0, -4.0, Z), (12.0, 0.0, 0.0), (0.0, 8.0, 0.0))], lighting=None)
-    S.write_dataset(root, scene, [translated_camera(f"f{i}", x) for i, x in enumerate(xs)])
-    return root
-
-
 @pytest.fixture(scope="module")
 def plane(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return write_plane_dataset(tmp_path_factory.mktemp("plane") / "plane")
-
-
-ORACLE = OracleReconstructor(gaussians=GaussianInitConfig(footprint=0.4))
 
 
 # ------------------------------------------------------------------------------------ loaders
@@ -126,13 +93,6 @@ def test_generic_loader_reads_what_write_dataset_writes(plane: Path) -> None:
     assert d.shape == (H, W) and np.allclose(d, Z, atol=1e-3)  # 16-bit PNG in mm, a plane at 3 m
     assert scene.depth(0, (48, 32)).shape == (32, 48)
     assert scene.rgb(1, (48, 32)).shape == (32, 48, 3)
-
-
-def write_blank_dataset(root: Path, cams: list[Camera]) -> None:
-    (root / "images").mkdir(parents=True)
-    for c in cams:
-        save_image(root / "images" / f"{c.name}.png", np.zeros((c.height, c.width, 3), np.uint8))
-    save_cameras(root / "cameras.json", CameraSet(cams))
 
 
 def test_bad_datasets_name_the_file(tmp_path: Path) -> None:
