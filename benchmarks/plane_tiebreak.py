@@ -7,13 +7,13 @@ accurate is that pose?
 For each case (intrinsics given: the tie-break needs them) and each descriptor tier (the primary SIFT and the
 wide-baseline tier's affine-simulated SIFT), the tier's filtered matches give the dominant plane
 (``dominant_plane``), and ``plane_poses`` scores the plane's physical poses with the primary keypoints, as
-``Pipeline._plane_tiebreak`` does. Per case: the plane's share of the matches, each candidate's rotation error
-against the ground truth and its score (guided matches explained off the plane), whether the tie-break's guards
-(``plane_tiebreak_plane`` and half of the matches on the plane, ``plane_tiebreak_min``, ``plane_tiebreak_margin``)
-let the leader through, whether the leader is the candidate nearer the truth (the right side of the twofold
-ambiguity) and whether it is within 5°. The pose the pipeline would then re-estimate from the leader's guided
-matches stays near the leader (within ``guided_max_change_deg``), so a leader several degrees off is a pose
-several degrees off.
+``macsplat_cli.pipeline.pose.tiebreak.plane_tiebreak`` does. Per case: the plane's share of the matches, each
+candidate's rotation error against the ground truth and its score (guided matches explained off the plane), whether
+the tie-break's guards (``plane_tiebreak_plane`` and half of the matches on the plane, ``plane_tiebreak_min``,
+``plane_tiebreak_margin``) let the leader through, whether the leader is the candidate nearer the truth (the right
+side of the twofold ambiguity) and whether it is within 5°. The pose the pipeline would then re-estimate from the
+leader's guided matches stays near the leader (within ``guided_max_change_deg``), so a leader several degrees off is
+a pose several degrees off.
 
 Cases: the 24 CO3D apple pairs of ``pose_confidence.py`` (8–105°) and synthetic orbits (room, object; 20–90°;
 field of view 50°/75°; seeds 0, 1).
@@ -33,13 +33,8 @@ import pose_confidence as PC  # noqa: E402  (the cases and their preparation)
 from macsplat_cli.metrics import rotation_error_deg  # noqa: E402
 from macsplat_cli.pipeline.descriptors import SiftDescriptors  # noqa: E402
 from macsplat_cli.pipeline.matching import match_features  # noqa: E402
-from macsplat_cli.pipeline.run import (  # noqa: E402
-    ReconstructConfig,
-    dominant_plane,
-    plane_poses,
-    tiebreak_plane_ok,
-    tiebreak_winner_ok,
-)
+from macsplat_cli.pipeline.pose import dominant_plane, plane_poses, tiebreak_plane_ok, tiebreak_winner_ok  # noqa: E402
+from macsplat_cli.pipeline.run import ReconstructConfig  # noqa: E402
 from macsplat_cli.pipeline.views import load_views  # noqa: E402
 
 RIGHT_DEG = 5.0
@@ -63,8 +58,8 @@ def run(case: dict[str, Any], data: Path, tmp: Path) -> list[dict[str, Any]]:
     views = load_views(paths, cfg.views)
     primary = [SiftDescriptors(cfg.descriptors)(v) for v in views]
     rows = []
-    assert cfg.wide_descriptors is not None
-    for tier, sift_cfg in (("primary", None), ("wide", cfg.wide_descriptors)):
+    assert cfg.search.wide_descriptors is not None
+    for tier, sift_cfg in (("primary", None), ("wide", cfg.search.wide_descriptors)):
         feats = primary if sift_cfg is None else [SiftDescriptors(sift_cfg)(v) for v in views]
         m = match_features(feats[0], feats[1], cfg.matching)
         if len(m) < cfg.pose.min_inliers:
@@ -72,7 +67,7 @@ def run(case: dict[str, Any], data: Path, tmp: Path) -> list[dict[str, Any]]:
         plane = dominant_plane(m, cfg.pose)
         if plane is None:
             continue
-        poses = plane_poses(views, primary, m, *plane, cfg)
+        poses = plane_poses(views, primary, m, *plane, cfg.search, cfg.pose)
         rows.append(
             {
                 "tier": tier,
@@ -89,7 +84,8 @@ def verdict(row: dict[str, Any], cfg: ReconstructConfig) -> tuple[bool, bool, bo
     cands = row["candidates"]
     if not cands:
         return False, False, False
-    through = tiebreak_plane_ok(row["plane"], row["matches"], cfg) and tiebreak_winner_ok([s for _, s in cands], cfg)
+    scores = [s for _, s in cands]
+    through = tiebreak_plane_ok(row["plane"], row["matches"], cfg.search) and tiebreak_winner_ok(scores, cfg.search)
     nearer = all(cands[0][0] <= e for e, _ in cands[1:])
     return through, nearer, cands[0][0] < RIGHT_DEG
 

@@ -89,7 +89,7 @@ def flipped(data: Path, tmp: Path) -> None:
     for name, paths in cases:
         try:
             rec = reconstruct(paths, EngineConfig(quality="best"))
-            print(f"| {name} | {rec.geometry.info['flipped_triangles']:.3f} | accepted |")
+            print(f"| {name} | {rec.geometry.diagnostics['flipped_triangles']:.3f} | accepted |")
         except ReconstructionError as e:
             print(f"| {name} | – | refused: {str(e)[:70]} |")
 

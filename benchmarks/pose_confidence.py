@@ -36,9 +36,8 @@ from macsplat_cli.datasets import synthetic as S
 from macsplat_cli.errors import MacsplatError
 from macsplat_cli.images import save_image
 from macsplat_cli.metrics import rotation_error_deg, translation_direction_error_deg
-from macsplat_cli.pipeline import run as run_module
 from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig
-from macsplat_cli.pipeline.views import ViewConfig
+from macsplat_cli.pipeline.views import ViewConfig, load_views
 
 RIGHT_DEG = 5.0
 CO3D_PAIRS = [
@@ -65,42 +64,40 @@ class _StopAtDepth:
 
 
 def run_case(paths: list[Path], cfg: ReconstructConfig, R_gt: np.ndarray, t_gt: np.ndarray) -> dict[str, Any]:
-    if hasattr(cfg, "accept_low_confidence"):
+    if hasattr(cfg, "search"):
+        cfg.search.accept_low_confidence = True
+    elif hasattr(cfg, "accept_low_confidence"):  # a checkout before the pose search object (issue 24)
         cfg.accept_low_confidence = True
     stop = _StopAtDepth()
     pipe = Pipeline(cfg, depth=stop)
-    spent: list[float] = []
-    assess = getattr(run_module, "assess_pose", None)
-    if assess is not None:  # time the confidence alone (a checkout without it has no such function)
-
-        def timed_assess(*a: Any, **k: Any) -> Any:
-            t = time.perf_counter()
-            out = assess(*a, **k)
-            spent.append(time.perf_counter() - t)
-            return out
-
-        run_module.assess_pose = timed_assess  # type: ignore[attr-defined]
     t0 = time.perf_counter()
     try:
-        pipe.run(paths)
-    except _Stop:
-        pass
+        if hasattr(pipe, "search"):  # the pose search alone: nothing after the pose
+            result = pipe.search(load_views(paths, cfg.views))
+            g, conf = result.geometry, result.confidence
+            doubts = [d.message for d in result.doubts]
+            confidence, checks = (conf.score, dict(conf.checks)) if conf is not None else (None, {})
+            spent = conf.seconds if conf is not None else 0.0
+        else:
+            try:
+                pipe.run(paths)
+            except _Stop:
+                pass
+            g = stop.geometry
+            info = g.info
+            doubts, confidence = list(info.get("doubts", [])), info.get("confidence")
+            checks, spent = dict(info.get("confidence_checks", {})), 0.0
     except MacsplatError as e:
-        return {"failed": str(e), "time_s": time.perf_counter() - t0, "confidence_s": sum(spent)}
-    finally:
-        if assess is not None:
-            run_module.assess_pose = assess  # type: ignore[attr-defined]
-    g = stop.geometry
-    info = g.info
+        return {"failed": str(e), "time_s": time.perf_counter() - t0, "confidence_s": 0.0}
     return {
         "rot": rotation_error_deg(g.R, R_gt),
         "tdir": translation_direction_error_deg(g.t, t_gt),
-        "doubts": list(info.get("doubts", [])),
-        "confidence": info.get("confidence"),
-        "checks": dict(info.get("confidence_checks", {})),
+        "doubts": doubts,
+        "confidence": confidence,
+        "checks": checks,
         "inliers": len(g.inliers),
         "time_s": time.perf_counter() - t0,
-        "confidence_s": sum(spent),
+        "confidence_s": spent,
     }
 
 
@@ -252,8 +249,9 @@ def main() -> None:
         if case["angle"] < args.min_angle:
             continue
         if args.no_wide:
-            cfg.wide_descriptors = None  # type: ignore[attr-defined]
-            cfg.plane_tiebreak_margin = None  # type: ignore[attr-defined]
+            search = getattr(cfg, "search", cfg)  # a checkout before issue 24 has the fields on the config
+            search.wide_descriptors = None
+            search.plane_tiebreak_margin = None
         res = run_case(paths, cfg, R, t)
         results.append({"case": case, "result": res})
         msg = res.get("failed", "")[:70] or f"rot {res['rot']:.2f}° doubts {len(res['doubts'])}"

@@ -149,11 +149,11 @@ def focal_table(out: Path) -> None:
                     except ReconstructionError as e:
                         print(f"| {name} | refused: {str(e)[:50]} | | | | |")
                         continue
-                    i = g.info
+                    i = g.diagnostics
                     fit = i["focal_scale_fitted"] * views[0].K[0, 0] / f_true - 1
                     used = g.K0[0, 0] / f_true - 1
                     rot = syn.pose_errors(g.R, g.t, *truth)[0]
-                    flagged = bool(i.get("doubts"))
+                    flagged = bool(g.doubts)
                     unc = i["focal_rotation_uncertainty_deg"]
                     cells = f"{100 * fit:+.1f} % | {100 * used:+.1f} % | {rot:.2f} | {unc:.3f}"
                     print(f"| {name} | {cells} | {'yes' if flagged else ''} |", flush=True)

@@ -298,7 +298,7 @@ class CameraSet:
         convention: always ``"opencv"`` (class constant).
         pose_confidence: how far the estimated relative pose can be trusted, for the cameras a reconstruction
             wrote (``score`` in [0, 1] or None, ``checks``, ``doubts``, ``accepted_low_confidence``;
-            :func:`macsplat_cli.pipeline.run.pose_confidence`); None otherwise. Written as the file's
+            :meth:`macsplat_cli.pipeline.pose.PoseResult.camera_confidence`); None otherwise. Written as the file's
             ``"pose_confidence"`` entry when set, read back as it is (a JSON object).
     """
 

@@ -30,9 +30,9 @@ from macsplat_cli.engine import EngineConfig, Models, reconstruct
 from macsplat_cli.errors import NonFiniteError, ReconstructionError
 from macsplat_cli.neural import BackboneConfig, BackboneView
 from macsplat_cli.neural.predictor import PairPredictor
-from macsplat_cli.pipeline import run as run_module
-from macsplat_cli.pipeline.neural import pose_from_pointmap
-from macsplat_cli.pipeline.pose import PoseConfig, _robust_fit, estimate_pose, find_homography
+from macsplat_cli.pipeline.pose import PoseConfig, estimate_pose, find_homography, pose_from_pointmap
+from macsplat_cli.pipeline.pose import search as search_module
+from macsplat_cli.pipeline.pose.robust import robust_fit
 from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig, Reconstruction
 from macsplat_cli.pipeline.types import Matches, View
 from macsplat_cli.pipeline.views import ViewConfig
@@ -93,7 +93,7 @@ class UnrelatedDescriptors(OracleBackbone):
 def _neural(scene: Scene, predictor: torch.nn.Module, *, accept: bool = False) -> Reconstruction:
     """The scene's pair through the neural backend with ``predictor`` in place of MASt3R."""
     config = EngineConfig(backend="neural")
-    config.pipeline.accept_low_confidence = accept
+    config.pipeline.search.accept_low_confidence = accept
     models = Models(predictor=PairPredictor(predictor))  # type: ignore[arg-type]
     return reconstruct([scene.a, scene.b], config, models=models)
 
@@ -153,9 +153,10 @@ def test_exact_point_maps_with_unrelated_descriptors_fail_the_verified_match_min
 def test_exact_point_maps_are_accepted(scene: Scene) -> None:
     """A sensible neural pose (the true point maps of the pair) passes the same acceptance without a doubt."""
     rec = _neural(scene, OracleBackbone(scene))
-    info = rec.geometry.info
-    assert info["doubts"] == [] and not info.get("accepted_low_confidence")
-    assert info["confidence"] > 0.5 and "refit_rotation_deg" in info["confidence_checks"]
+    pose = rec.pose
+    assert pose is not None and pose.doubts == [] and not pose.accepted_low_confidence
+    conf = pose.confidence
+    assert conf is not None and conf.score > 0.5 and "refit_rotation_deg" in conf.checks
     assert syn.pose_errors(rec.geometry.R, rec.geometry.t, scene.R, scene.t)[0] < 0.05
 
 
@@ -167,10 +168,10 @@ def test_both_backends_call_the_one_acceptance(scene: Scene, monkeypatch: pytest
         pass
 
     def spy(v0: View, v1: View, geometry, pose, config, *, evidence=None):  # noqa: ANN001, ANN202
-        calls.append(str(geometry.info.get("method", "essential")))
+        calls.append(str(geometry.diagnostics.get("method", "essential")))
         raise Accepted
 
-    monkeypatch.setattr(run_module, "accept_pose", spy)
+    monkeypatch.setattr(search_module, "accept_pose", spy)
     with pytest.raises(Accepted):
         Pipeline(ReconstructConfig(views=ViewConfig(size=SIZE[0]))).run([scene.a, scene.b])
     with pytest.raises(Accepted):
@@ -293,14 +294,14 @@ def test_opencv_fits_run_within_their_preconditions() -> None:
         return cv2.findHomography(xa, xb, cv2.USAC_MAGSAC, 1.5, maxIters=2000)
 
     rep0, rep1 = np.r_[a, a[:10]], np.r_[b, b[:10]]
-    H2, m2 = _robust_fit(always_asserts_on_repeats, rep0, rep1, 4, "test")
+    H2, m2 = robust_fit(always_asserts_on_repeats, rep0, rep1, 4, "test")
     assert H2 is not None and m2 is not None and m2.shape == (70,)
     np.testing.assert_array_equal(m2[60:], m2[:10])  # each repeat flagged as its first occurrence
 
     def always_asserts(xa: np.ndarray, xb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         raise cv2.error("(-215:Assertion failed) !model.empty()")
 
-    assert _robust_fit(always_asserts, rep0, rep1, 4, "test") == (None, None)
+    assert robust_fit(always_asserts, rep0, rep1, 4, "test") == (None, None)
 
 
 @pytest.mark.parametrize("case", ["0 points", "5 points", "5 points x10", "one point x50", "one line", "NaN"])

@@ -37,13 +37,8 @@ from macsplat_cli.neural.dinov3 import DINOv3Config
 from macsplat_cli.neural.fusion import FusionConfig, ResidualSemanticFusion, save_fusion
 from macsplat_cli.neural.predictor import PairPredictor, load_pair_predictor
 from macsplat_cli.pipeline.matching import MatchConfig, match_features
-from macsplat_cli.pipeline.neural import (
-    NeuralPair,
-    ViewWarp,
-    estimate_focal_weiszfeld,
-    pose_from_pointmap,
-    sample_descriptors,
-)
+from macsplat_cli.pipeline.neural import NeuralPair, ViewWarp, estimate_focal_weiszfeld, sample_descriptors
+from macsplat_cli.pipeline.pose import pose_from_pointmap
 from macsplat_cli.pipeline.run import FilteredMatcher
 from macsplat_cli.pipeline.types import Features
 from macsplat_cli.ply import read_ply
@@ -126,7 +121,7 @@ ACCEPT = "--accept-low-confidence"  # random weights: a pose the acceptance refu
 
 def _accepting(config: EngineConfig) -> EngineConfig:
     """``config`` with ``accept_low_confidence`` (random weights give a pose the acceptance refuses)."""
-    config.pipeline.accept_low_confidence = True
+    config.pipeline.search.accept_low_confidence = True
     return config
 
 
@@ -333,7 +328,7 @@ def test_pipeline_with_given_intrinsics_keeps_them(scene: Scene, tmp_path: Path)
     config.pipeline.views = ViewConfig(intrinsics=tmp_path / "cams.json")
     rec = reconstruct([scene.a, scene.b], config, models=Models(predictor=PairPredictor(OracleBackbone(scene))))
     np.testing.assert_allclose(rec.geometry.K0, scene.cam0.K)
-    assert rec.geometry.info["focal_estimated"] is False
+    assert rec.geometry.focal_estimated is False
     assert syn.pose_errors(rec.geometry.R, rec.geometry.t, scene.R, scene.t)[0] < 0.05
 
 
@@ -681,7 +676,7 @@ def test_fusion_auto_skips_dinov3_while_matches_verify_and_runs_it_on_demand(
         always.run([scene.a, scene.b])
         assert len(calls) == 1
         fast = _accepting(EngineConfig(backend="neural", quality="fast"))
-        fast.pipeline.fallback_min_inliers = 0  # every pair verifies "enough": the fusion is never needed
+        fast.pipeline.search.fallback_min_inliers = 0  # every pair verifies "enough": the fusion is never needed
         skip = build_pipeline(fast, Models(predictor=predictor))
         rec_skip = skip.run([scene.a, scene.b])
         assert len(calls) == 1  # DINOv3 did not run
@@ -690,7 +685,7 @@ def test_fusion_auto_skips_dinov3_while_matches_verify_and_runs_it_on_demand(
         assert rep["applied"] is False and rep["policy"] == "auto" and "skipped" in rep["detail"]
         # the unfused pass gives the same geometry (the fusion only changes the descriptors)
         np.testing.assert_array_equal(skip.pair.last.pts3d, always.pair.last.pts3d)
-        fast.pipeline.fallback_min_inliers = 10**9  # never enough: the fusion runs once, on demand
+        fast.pipeline.search.fallback_min_inliers = 10**9  # never enough: the fusion runs once, on demand
         demand = build_pipeline(fast, Models(predictor=predictor))
         demand.run([scene.a, scene.b])
         assert len(calls) == 2

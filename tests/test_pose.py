@@ -101,12 +101,12 @@ def test_pose_with_known_intrinsics(scenes: dict[str, S.Scene], kind: str, angle
     assert np.linalg.norm(geo.t) == pytest.approx(1.0, abs=1e-9)
     assert np.linalg.det(geo.R) == pytest.approx(1.0, abs=1e-9)
     np.testing.assert_array_equal(geo.K0, cam0.K)  # given intrinsics are kept
-    assert geo.info["focal_estimated"] is False
+    assert geo.focal_estimated is False
     inl = geo.inliers.idx0
-    assert geo.inliers.counts["verified"] == len(inl) == geo.info["inliers"]
+    assert geo.inliers.counts["verified"] == len(inl) == geo.diagnostics["inliers"]
     assert np.mean(~bad[inl]) > 0.98  # precision: a few outliers may fall on their epipolar line by chance
     assert np.isin(np.flatnonzero(~bad), inl).mean() > 0.95  # recall
-    assert geo.info["median_parallax_deg"] > 1.0
+    assert geo.median_parallax_deg > 1.0
 
 
 @pytest.mark.parametrize("fov_deg", [45.0, 75.0])
@@ -121,7 +121,7 @@ def test_focal_is_estimated_from_general_motion(fov_deg: float) -> None:
     matches, _ = _corrupt(xy0, xy1, rng, noise=0.3, outliers=0.3)
     K_prior = _prior_K()
     geo = estimate_pose(_view("a", K_prior, "prior"), _view("b", K_prior, "prior"), matches)
-    assert geo.info["focal_estimated"] is True
+    assert geo.focal_estimated is True
     for K in (geo.K0, geo.K1):
         assert K[0, 0] == pytest.approx(K_true[0, 0], rel=0.03)
         assert K[1, 1] == pytest.approx(K_true[1, 1], rel=0.03)
@@ -139,7 +139,7 @@ def test_unobservable_focal_keeps_the_prior() -> None:
     matches, _ = _corrupt(xy0, xy1, rng, noise=0.3, outliers=0.3)
     K_prior = _prior_K()
     geo = estimate_pose(_view("a", K_prior, "prior"), _view("b", K_prior, "prior"), matches)
-    assert geo.info["focal_estimated"] is False
+    assert geo.focal_estimated is False
     np.testing.assert_array_equal(geo.K0, K_prior)
     np.testing.assert_array_equal(geo.K1, K_prior)
     rot_err, t_err = S.pose_errors(geo.R, geo.t, np.eye(3), t)
@@ -156,7 +156,7 @@ def test_estimate_focal_disabled_keeps_the_prior() -> None:
     geo = estimate_pose(
         _view("a", K_prior, "prior"), _view("b", K_prior, "prior"), _matches(xy0, xy1), PoseConfig(estimate_focal=False)
     )
-    assert geo.info["focal_estimated"] is False
+    assert geo.focal_estimated is False
     np.testing.assert_array_equal(geo.K0, K_prior)
 
 
@@ -225,7 +225,7 @@ def test_low_parallax_reports_no_baseline_with_the_count(scenes: dict[str, S.Sce
     cam0, cam1 = S.orbit_pair(scene, 10.0, width=W, height=H)
     xy0, xy1 = _scene_correspondences(scene, cam0, cam1, 300, np.random.default_rng(0))
     v0, v1 = _view("a", cam0.K, "file"), _view("b", cam1.K, "file")
-    parallax = estimate_pose(v0, v1, _matches(xy0, xy1)).info["median_parallax_deg"]
+    parallax = estimate_pose(v0, v1, _matches(xy0, xy1)).median_parallax_deg
     with pytest.raises(ReconstructionError, match=r"no baseline: the median parallax of the 300 verified matches"):
         estimate_pose(v0, v1, _matches(xy0, xy1), PoseConfig(min_parallax_deg=parallax + 1.0))
 
@@ -296,7 +296,7 @@ def test_small_working_sizes_scale_the_pixel_thresholds(size: int) -> None:
     config.pipeline.views.size = size
     rec = reconstruct([root / "left.jpg", root / "right.jpg"], config)
     assert abs(max(rec.report.images[0].working_size) - size) <= 8  # the working size asked for (multiple of 16)
-    assert rec.geometry.info["rotation_deg"] < 0.5 and rec.report.matches["verified"] > 1000
+    assert rec.geometry.diagnostics["rotation_deg"] < 0.5 and rec.report.matches["verified"] > 1000
 
 
 def test_flipped_fraction_tells_a_mirror_from_a_view_change() -> None:

@@ -3,7 +3,7 @@
 Unit tests run :func:`assess_pose` on exact synthetic correspondences (no rendering, no SIFT): a correct pose is
 trusted, a perturbed one is not, an unknown focal length on a wide object-centric orbit is flagged, a pose that is
 all rotation and no parallax is flagged. The pipeline tests render small orbit pairs: doubts that the pose stage
-puts in ``geometry.info["doubts"]`` are honoured, and ``macsplat reconstruct`` refuses a wrong wide pose with
+puts in ``geometry.doubts`` are honoured, and ``macsplat reconstruct`` refuses a wrong wide pose with
 exit code 3 and no file, or writes it with ``--accept-low-confidence`` and records the confidence in the report
 and the cameras file.
 """
@@ -26,9 +26,16 @@ from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.errors import ReconstructionError
 from macsplat_cli.images import save_image
 from macsplat_cli.metrics import rotation_error_deg
-from macsplat_cli.pipeline.pose import PoseConfig
-from macsplat_cli.pipeline.pose_confidence import ConfidenceConfig, PoseConfidence, assess_pose, refit_pose
-from macsplat_cli.pipeline.run import LOW_CONFIDENCE_HINT, Pipeline, ReconstructConfig
+from macsplat_cli.pipeline.pose import (
+    LOW_CONFIDENCE_HINT,
+    ConfidenceConfig,
+    PoseConfidence,
+    PoseConfig,
+    PoseSearchConfig,
+    assess_pose,
+    refit_pose,
+)
+from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig
 from macsplat_cli.pipeline.stages import EssentialPose
 from macsplat_cli.pipeline.types import Matches, TwoViewGeometry, View
 from macsplat_cli.pipeline.views import ViewConfig
@@ -73,9 +80,9 @@ def _orbit_geometry(
     parallax = np.degrees(np.arccos(np.clip(np.sum(
         (x0 @ R.T) / np.linalg.norm(x0, axis=1, keepdims=True) / np.linalg.norm(x1, axis=1, keepdims=True) * x1, 1
     ), -1, 1)))  # fmt: skip
-    info = {"median_parallax_deg": float(np.median(parallax))}
     t_unit = t / np.linalg.norm(t)
-    geometry = TwoViewGeometry(R, t_unit, cam0.K.copy(), cam1.K.copy(), matches, info)  # type: ignore[arg-type]
+    geometry = TwoViewGeometry(R, t_unit, cam0.K.copy(), cam1.K.copy(), matches)
+    geometry.median_parallax_deg = float(np.median(parallax))
     return geometry, cam0, cam1
 
 
@@ -120,10 +127,10 @@ def test_refit_pose_recovers_the_true_rotation() -> None:
     geometry, _, _ = _orbit_geometry(45)
     R_true = geometry.R.copy()
     start = _rotation(np.array([0.0, math.radians(5.0), 0.0])) @ R_true
-    R, t, r = refit_pose(start, geometry.t, geometry.K0, geometry.K1, geometry.inliers.xy0, geometry.inliers.xy1)
-    assert rotation_error_deg(R, R_true) < 0.2
-    assert np.median(np.abs(r)) < 0.5
-    assert np.linalg.norm(t) == pytest.approx(1.0)
+    fit = refit_pose(start, geometry.t, geometry.K0, geometry.K1, geometry.inliers.xy0, geometry.inliers.xy1)
+    assert rotation_error_deg(fit.R, R_true) < 0.2
+    assert np.median(np.abs(fit.residuals)) < 0.5
+    assert np.linalg.norm(fit.t) == pytest.approx(1.0)
 
 
 def test_unknown_focal_on_a_wide_object_orbit_is_flagged() -> None:
@@ -142,7 +149,7 @@ def test_unknown_focal_on_a_wide_object_orbit_is_flagged() -> None:
 def test_rotation_without_parallax_is_flagged() -> None:
     """A pose that is mostly rotation with little parallax (what a homography's matches give) is flagged."""
     geometry, cam0, cam1 = _orbit_geometry(60)
-    geometry.info["median_parallax_deg"] = 3.0
+    geometry.median_parallax_deg = 3.0
     conf = _assess(geometry, cam0, cam1)
     assert not conf.ok
     assert conf.checks["parallax_to_rotation"] < ConfidenceConfig().min_parallax_to_rotation
@@ -178,12 +185,12 @@ class _DoubtingPose:
 
     def __call__(self, v0: View, v1: View, matches: Matches, pair: object = None) -> TwoViewGeometry:
         geometry = self.inner(v0, v1, matches, pair)
-        geometry.info.setdefault("doubts", []).append(self.doubt)  # type: ignore[union-attr]
+        geometry.doubts.append(self.doubt)
         return geometry
 
 
 def test_pose_stage_doubts_are_honoured(pairs: dict[str, tuple[Path, Path, Path]]) -> None:
-    """A doubt in ``geometry.info["doubts"]`` refuses an otherwise good pair (one line, the hint); with
+    """A doubt in ``geometry.doubts`` refuses an otherwise good pair (one line, the hint); with
     ``accept_low_confidence`` the scene is built and the doubt recorded in the report and the cameras."""
     a, b, cams = pairs["easy"]
     views = ViewConfig(size=256, intrinsics=cams)
@@ -193,12 +200,14 @@ def test_pose_stage_doubts_are_honoured(pairs: dict[str, tuple[Path, Path, Path]
     assert msg.startswith(_DoubtingPose.doubt) and msg.endswith(f"({LOW_CONFIDENCE_HINT})") and "\n" not in msg
     assert err.value.exit_code == 3
 
-    rec = Pipeline(ReconstructConfig(views=views, accept_low_confidence=True), pose=_DoubtingPose()).run([a, b])
+    accepting = ReconstructConfig(views=views, search=PoseSearchConfig(accept_low_confidence=True))
+    rec = Pipeline(accepting, pose=_DoubtingPose()).run([a, b])
     assert rec.report.pose["doubts"] == [_DoubtingPose.doubt]
     assert rec.report.pose["accepted_low_confidence"] is True
     assert rec.report.pose["confidence"] > 0.5  # the independent checks themselves trust the pose
     pc = rec.cameras().pose_confidence
     assert pc is not None and pc["doubts"] == [_DoubtingPose.doubt] and pc["accepted_low_confidence"] is True
+    assert rec.pose is not None and [(d.check, d.message) for d in rec.pose.doubts] == [("pose", _DoubtingPose.doubt)]
 
 
 def _main_captured(args: list[str | Path]) -> tuple[int, str, str]:

@@ -103,7 +103,7 @@ def test_a_pure_plane_resolved_by_cheirality() -> None:
         _pose(m, OLD)
     g = _pose(m)
     assert _right(g, R, t)
-    assert g.info["planar_candidates"] >= 2 and len(g.inliers) >= 195
+    assert g.diagnostics["planar_candidates"] >= 2 and len(g.inliers) >= 195
 
 
 def test_a_tied_pure_plane_is_refused() -> None:
@@ -126,7 +126,8 @@ def test_matches_below_the_gate_resolve_the_plane(seed: int, off: float) -> None
         _pose(_matches(m.xy0, m.xy1), None, seed)
     g = _pose(m, None, seed)
     assert _right(g, R, t)
-    assert g.info["planar_evidence"] >= 8 and g.info["planar_matches_scored"] == len(m) + len(m.below_gate)
+    diag = g.diagnostics
+    assert diag["planar_evidence"] >= 8 and diag["planar_matches_scored"] == len(m) + len(m.below_gate)
     assert g.inliers.counts.get("verified") == len(g.inliers) <= len(m)  # the sub-gate matches stay out
 
 
@@ -175,13 +176,13 @@ def test_an_object_orbit_keeps_the_prior_focal_with_a_doubt() -> None:
     m, R, t, f_true = _orbit_case(45.0, 40.0)
     v = _prior_view()
     g = _pose(m, v=v)
-    assert g.info["focal_observable"] is False and g.info["focal_estimated"] is False
+    assert g.diagnostics["focal_observable"] is False and g.focal_estimated is False
     np.testing.assert_allclose(g.K0, v.K)
-    doubts = g.info["doubts"]
+    doubts = g.doubts
     assert isinstance(doubts, list) and len(doubts) == 1
     assert "focal length cannot be determined" in doubts[0] and "--focal" in doubts[0]
     assert "look at the same point" in doubts[0]
-    assert g.info["focal_axes_gap"] < 0.1
+    assert g.diagnostics["focal_axes_gap"] < 0.1
 
 
 def test_a_general_pair_self_calibrates_without_a_doubt() -> None:
@@ -196,7 +197,7 @@ def test_a_general_pair_self_calibrates_without_a_doubt() -> None:
     xy0, xy1 = xy0[ok][:500], xy1[ok][:500]
     m = _matches(xy0 + rng.normal(0, 0.3, xy0.shape), xy1 + rng.normal(0, 0.3, xy1.shape))
     g = _pose(m, v=_prior_view())
-    assert g.info["focal_observable"] is True and g.info["focal_estimated"] is True
-    assert "doubts" not in g.info
+    assert g.diagnostics["focal_observable"] is True and g.focal_estimated is True
+    assert g.doubts == []
     assert abs(g.K0[0, 0] / f_true - 1) < 0.03
     assert rotation_error_deg(g.R, R) < 0.5

@@ -641,7 +641,7 @@ def test_library_custom_pose_backend_replaces_the_stage(cli_pair: Pair) -> None:
         def __call__(self, v0: View, v1: View, matches: Matches, pair: object = None) -> TwoViewGeometry:
             self.calls += 1
             geometry = self.inner(v0, v1, matches, pair)
-            geometry.info["recorded"] = True
+            geometry.diagnostics["recorded"] = True
             return geometry
 
     pose = RecordingPose()

@@ -19,8 +19,10 @@ from macsplat_cli.images import save_image
 from macsplat_cli.metrics import rotation_error_deg
 from macsplat_cli.pipeline.descriptors import SiftConfig, SiftDescriptors
 from macsplat_cli.pipeline.matching import match_features
-from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig, dominant_plane
-from macsplat_cli.pipeline.types import Features
+from macsplat_cli.pipeline.pose import PoseSearchConfig, dominant_plane
+from macsplat_cli.pipeline.pose.tiebreak import plane_tiebreak
+from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig
+from macsplat_cli.pipeline.types import Features, Matches, TwoViewGeometry, View
 from macsplat_cli.pipeline.views import ViewConfig, load_views
 
 W, H = 512, 384
@@ -56,34 +58,41 @@ def table_pair(tmp_path_factory: pytest.TempPathFactory):
     return cfg, views, feats, m.subset(on_table), R, t
 
 
+def _tiebreak(
+    pipe: Pipeline, views: list[View], feats: list[Features], matches: Matches
+) -> tuple[TwoViewGeometry, list[int]] | None:
+    """The plane tie-break with ``pipe``'s pose stage and settings."""
+    return plane_tiebreak(views, feats, matches, None, pipe.search.pose, pipe.config.search, pipe.config.pose)
+
+
 def test_plane_matches_alone_are_ambiguous_and_the_tiebreak_finds_the_true_pose(table_pair) -> None:
     cfg, views, feats, plane, R, _ = table_pair
     assert len(plane) >= 40
     pipe = Pipeline(cfg)
     # the old chain's pose stage on these matches: refused (one plane, two poses) or off; never the answer here
     try:
-        g_old = pipe.pose(views[0], views[1], plane, None)
-        old_ok = rotation_error_deg(g_old.R, R) < 5.0 and not g_old.info.get("doubts")
+        g_old = pipe.search.pose(views[0], views[1], plane, None)
+        old_ok = rotation_error_deg(g_old.R, R) < 5.0 and not g_old.doubts
     except ReconstructionError:
         old_ok = False
-    g = pipe._plane_tiebreak(views, feats, plane, None)
-    assert g is not None
+    tied = _tiebreak(pipe, views, feats, plane)
+    assert tied is not None
+    g, scores = tied
     assert rotation_error_deg(g.R, R) < 2.0
-    scores = g.info["plane_tiebreak"]
-    assert scores[0] >= cfg.plane_tiebreak_min
-    assert len(scores) == 1 or scores[0] >= cfg.plane_tiebreak_margin * scores[1]
+    assert scores[0] >= cfg.search.plane_tiebreak_min
+    assert len(scores) == 1 or scores[0] >= cfg.search.plane_tiebreak_margin * scores[1]
     assert not old_ok or len(g.inliers) > len(plane)  # the tie-break adds the scene off the plane
 
 
 def test_tiebreak_refuses_without_a_clear_winner(table_pair) -> None:
     cfg, views, feats, plane, _, _ = table_pair
-    g = Pipeline(cfg)._plane_tiebreak(views, feats, plane, None)
-    assert g is not None and len(g.info["plane_tiebreak"]) == 2  # the plane's two physical poses were scored
+    tied = _tiebreak(Pipeline(cfg), views, feats, plane)
+    assert tied is not None and len(tied[1]) == 2  # the plane's two physical poses were scored
     for strict in (
-        ReconstructConfig(views=cfg.views, plane_tiebreak_margin=1e6),  # no winner by that margin
-        ReconstructConfig(views=cfg.views, plane_tiebreak_min=10**6),  # too little support
+        PoseSearchConfig(plane_tiebreak_margin=1e6),  # no winner by that margin
+        PoseSearchConfig(plane_tiebreak_min=10**6),  # too little support
     ):
-        assert Pipeline(strict)._plane_tiebreak(views, feats, plane, None) is None
+        assert _tiebreak(Pipeline(ReconstructConfig(views=cfg.views, search=strict)), views, feats, plane) is None
 
 
 def test_tiebreak_is_not_diluted_by_the_planes_own_matches(table_pair) -> None:
@@ -92,8 +101,8 @@ def test_tiebreak_is_not_diluted_by_the_planes_own_matches(table_pair) -> None:
     matches fell to a tie here)."""
     cfg, views, feats, plane, R, _ = table_pair
     pipe = Pipeline(cfg)
-    g = pipe._plane_tiebreak(views, feats, plane, None)
-    assert g is not None
+    tied = _tiebreak(pipe, views, feats, plane)
+    assert tied is not None
     fit = dominant_plane(plane, cfg.pose)  # the tie-break's own estimate of the plane
     assert fit is not None
     Hm = fit[0]
@@ -109,10 +118,10 @@ def test_tiebreak_is_not_diluted_by_the_planes_own_matches(table_pair) -> None:
         return Features(np.r_[f.xy, xy], np.r_[f.desc, desc], np.r_[f.conf, np.ones(n, np.float32)])
 
     more = [extend(feats[0], xy0), extend(feats[1], xy1)]
-    g_more = pipe._plane_tiebreak(views, more, plane, None)
-    assert g_more is not None
-    assert rotation_error_deg(g_more.R, R) < 2.0
-    s, s_more = g.info["plane_tiebreak"], g_more.info["plane_tiebreak"]
+    tied_more = _tiebreak(pipe, views, more, plane)
+    assert tied_more is not None
+    assert rotation_error_deg(tied_more[0].R, R) < 2.0
+    s, s_more = tied[1], tied_more[1]
     assert len(s_more) == len(s) and all(abs(a - b) <= 0.02 * a + 5 for a, b in zip(s, s_more)), (s, s_more)
 
 
@@ -121,8 +130,8 @@ def test_wide_tier_only_runs_when_the_chain_gives_no_pose(table_pair, monkeypatc
     cfg, views, _, _, _, _ = table_pair
     pipe = Pipeline(ReconstructConfig(views=cfg.views))
     calls = []
-    assert pipe.wide_descriptors is not None
-    monkeypatch.setattr(pipe, "_wide", lambda *a, **k: calls.append(1) or (None, [], None, None))
+    assert pipe.search.wide is not None
+    monkeypatch.setattr(pipe.search, "_wide", lambda *a, **k: calls.append(1))
 
     class Stop(Exception):
         pass

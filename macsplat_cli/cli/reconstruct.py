@@ -147,6 +147,7 @@ def reconstruct_command(
     with command_context(ctx, verbose, quiet) as state:
         from ..engine import WORKING_SIZE, EngineConfig, RefineOptions
         from ..pipeline.background import BackgroundConfig
+        from ..pipeline.pose import PoseSearchConfig
         from ..pipeline.run import ReconstructConfig
         from ..pipeline.views import ViewConfig
 
@@ -158,7 +159,7 @@ def reconstruct_command(
             budget=budget,
             pipeline=ReconstructConfig(
                 views=ViewConfig(size=size, intrinsics=intrinsics, focal=focal),
-                accept_low_confidence=accept_low_confidence,
+                search=PoseSearchConfig(accept_low_confidence=accept_low_confidence),
                 background=BackgroundConfig(enabled=far_layer),
             ),
             conf_threshold=conf_threshold,

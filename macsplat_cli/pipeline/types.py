@@ -8,7 +8,7 @@ stage                 input → output                             module
 images/intrinsics     paths → :class:`View` ×2                   ``views.py``
 descriptors           :class:`View` → :class:`Features`          ``descriptors.py``
 filtered matching     :class:`Features` ×2 → :class:`Matches`    ``matching.py``
-pose                  :class:`Matches` → :class:`TwoViewGeometry`  ``pose.py``
+pose                  :class:`Matches` → :class:`TwoViewGeometry`  ``pose/``
 dense geometry        views + geometry → :class:`DepthMap` ×2    ``depth.py``
 Gaussian prediction   views + geometry + depths → GaussianMaps   ``gaussian_init.py``
 ====================  =========================================  ======================
@@ -21,13 +21,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
 from ..cameras import Camera
 
-__all__ = ["DepthMap", "Features", "IntrinsicsSource", "Matches", "TwoViewGeometry", "View"]
+__all__ = ["DepthMap", "Features", "FocalEvidence", "IntrinsicsSource", "Matches", "TwoViewGeometry", "View"]
 
 IntrinsicsSource = Literal["file", "focal", "exif", "prior", "estimated"]
 """Where a view's K came from: ``--intrinsics`` file, ``--focal``, EXIF 35 mm focal,
@@ -142,6 +142,11 @@ class Matches:
         return out
 
 
+FocalEvidence = Literal["pointmap"]
+"""What, besides the matches, a pose stage measured a prior view's focal length on (the neural backend: Weiszfeld
+on the network's point map); the acceptance then does not ask the matches for the focal."""
+
+
 @dataclass
 class TwoViewGeometry:
     """The relative pose of two calibrated views. World = camera 0; ``|t| = 1`` (relative scale).
@@ -151,10 +156,16 @@ class TwoViewGeometry:
     Attributes:
         R: rotation of camera 1 relative to camera 0. [3, 3] float64
         t: translation, unit norm. [3] float64
-        K0: intrinsics of view 0 (refined when they were estimated). [3, 3]
+        K0: intrinsics of view 0 (self-calibrated when ``focal_estimated``). [3, 3]
         K1: intrinsics of view 1. [3, 3]
         inliers: the geometrically verified matches.
-        info: diagnostics for the report (residuals, parallax, focal estimation, ...).
+        diagnostics: measurements for the report only (residuals, RANSAC and planar counts, focal estimation, ...);
+            never read to decide anything.
+        doubts: the pose stage's own reasons to doubt the pose, one user-facing line each (the acceptance refuses
+            a doubted pose unless told to accept it).
+        focal_estimated: ``K0``/``K1`` replace the prior's focal of the views that had only the prior.
+        focal_evidence: what besides the matches the focal was measured on; None: the matches only (or none).
+        median_parallax_deg: the median parallax of the verified matches (°), when measured.
     """
 
     R: np.ndarray
@@ -162,7 +173,11 @@ class TwoViewGeometry:
     K0: np.ndarray
     K1: np.ndarray
     inliers: Matches
-    info: dict[str, float | int | str | bool] = field(default_factory=dict)
+    diagnostics: dict[str, Any] = field(default_factory=dict)
+    doubts: list[str] = field(default_factory=list)
+    focal_estimated: bool = False
+    focal_evidence: FocalEvidence | None = None
+    median_parallax_deg: float | None = None
 
     def cam_to_world(self, view: int) -> np.ndarray:
         """Camera-to-world transform of ``view`` (0 or 1) in the camera-0 world. [4, 4]"""

@@ -2,13 +2,14 @@
 
 * :mod:`.stages`: the ``pair`` stage (the :class:`~macsplat_cli.neural.predictor.PairPredictor`'s one pass
   per pair) and the descriptor, pose, depth and Gaussian stages that read its output;
-* :mod:`.geometry`: focal length (Weiszfeld) and pose (PnP) from point maps, descriptor sampling;
+* :mod:`.geometry`: focal length (Weiszfeld) from point maps, descriptor sampling (the pose from the point map,
+  PnP, is in :mod:`..pose.pnp`);
 * :mod:`.warp`: a view's working pixels ↔ the network grid.
 """
 
 from __future__ import annotations
 
-from .geometry import PnPResult, estimate_focal_weiszfeld, pixel_grid, pose_from_pointmap, sample_descriptors
+from .geometry import estimate_focal_weiszfeld, pixel_grid, sample_descriptors
 from .stages import (
     NetworkPair,
     NeuralConfig,
@@ -31,13 +32,11 @@ __all__ = [
     "NeuralGaussians",
     "NeuralPair",
     "NeuralPose",
-    "PnPResult",
     "ViewWarp",
     "estimate_focal_weiszfeld",
     "neural_reconstruct_config",
     "neural_stages",
     "pixel_grid",
-    "pose_from_pointmap",
     "refine_matches",
     "sample_descriptors",
 ]

@@ -12,7 +12,7 @@ descriptors    the 24-d MASt3R descriptors (fused with DINOv3 features when ``--
 matching       the shared :class:`~..stages.FilteredMatcher` (reciprocal NN, ``c0·c1 > τ``), unchanged
 pose           focal length of view 0 from its own point map (Weiszfeld), unless intrinsics were given;
                camera 1 from view 1's pixels and their 3-D points in camera 0 (PnP + RANSAC); metric;
-               accepted as the classical pose is (:func:`~..pose_confidence.accept_pose`, in the pipeline)
+               accepted as the classical pose is (:func:`~..pose.accept_pose`, in the pose search)
 depth          z of each view's point map in its own camera frame; confidence from ``conf``
 gaussians      the Splatt3R head's per-pixel Gaussians, or the classical surfels from that depth
 =============  ==========================================================================================
@@ -56,11 +56,11 @@ from ...metrics import angle_between_deg, rotation_angle_deg
 from ...neural.predictor import PairPredictor, prediction_from_outputs, resolve_device
 from ...rotations import quat_multiply, rotmat_to_quat_np
 from ..matching import MatchConfig
-from ..pose import fundamental_from_pose, sampson_distance
+from ..pose import fundamental_from_pose, pose_from_pointmap, sampson_distance
 from ..run import ReconstructConfig
 from ..stages import DepthGaussians, FilteredMatcher
 from ..types import DepthMap, Features, Matches, TwoViewGeometry, View
-from .geometry import estimate_focal_weiszfeld, pixel_grid, pose_from_pointmap, sample_descriptors
+from .geometry import estimate_focal_weiszfeld, pixel_grid, sample_descriptors
 from .warp import ViewWarp
 
 __all__ = [
@@ -103,14 +103,14 @@ class NeuralConfig:
             distance (pixels at a 512-px long side, at least 1.5 px) of its pixel in view 1, after
             :func:`refine_matches` moved that pixel to the best descriptor within the sampling cell.
         min_pnp_inlier_ratio: below this share of the confident pixels agreeing with the PnP pose, the network's
-            point maps are not one rigid scene seen by two cameras: the pose is doubted (``info["doubts"]``; refused
-            unless ``--accept-low-confidence``, as every doubt of :func:`~..pose_confidence.accept_pose`).
+            point maps are not one rigid scene seen by two cameras: the pose is doubted (``geometry.doubts``; refused
+            unless ``--accept-low-confidence``, as every doubt of :func:`~..pose.accept_pose`).
         precision: ``"fp32"``, or ``"bf16"`` (autocast: matrix products in bfloat16, 1.8× faster on
             a CPU with AVX512-BF16 in ``benchmarks/bench_neural.py``; accuracy with the official
             weights unmeasured).
         fusion: ``"always"``: the semantic fusion (DINOv3 + fusion MLP) runs with the network pass;
             ``"auto"``: it is skipped while the backbone's own descriptors verify enough matches
-            (:attr:`~..run.ReconstructConfig.fallback_min_inliers`), and runs on demand otherwise, as the
+            (:attr:`~..pose.PoseSearchConfig.fallback_min_inliers`), and runs on demand otherwise, as the
             descriptor fallback. Only with DINOv3/fusion weights and a torch predictor (an ONNX file has the
             fusion inside its graph).
     """
@@ -150,8 +150,7 @@ def neural_reconstruct_config(config: ReconstructConfig | None = None) -> Recons
     confidence exceeds 1.001).
     """
     c = dataclasses.replace(config) if config is not None else ReconstructConfig()
-    c.fallback_descriptors = None
-    c.guided_band_px = None
+    c.search = dataclasses.replace(c.search, fallback_descriptors=None, guided_band_px=None)
     c.matching = MatchConfig(conf_threshold=1.0, ratio_confidence=False, max_block_elems=c.matching.max_block_elems)
     return c
 
@@ -446,9 +445,6 @@ class NeuralPose:
             f1 = float(K0[0, 0]) * max(v1.width, v1.height) / max(v0.width, v0.height)
             K1[0, 0] = K1[1, 1] = f1
             estimated = True
-        info["focal_estimated"] = estimated
-        if estimated:
-            info["focal_evidence"] = "pointmap"  # not the matches: the acceptance does not ask them for the focal
 
         K1n = pred.warps[1].K_net(K1)
         sel = np.flatnonzero(ok[1].reshape(-1))
@@ -492,15 +488,16 @@ class NeuralPose:
             pnp_median_reprojection_px=pnp.median_error_px,
             inliers=len(inl),
             median_sampson_px=sampson,
-            median_parallax_deg=parallax,
             rotation_deg=rotation_angle_deg(R),
             translation_norm=float(np.linalg.norm(t)),
             scale="metric",
         )
-        if doubts:
-            info["doubts"] = doubts  # type: ignore[assignment]
         logger.debug("neural pose: %s", info)
-        return TwoViewGeometry(R=R, t=t, K0=K0, K1=K1, inliers=inl, info=info)
+        return TwoViewGeometry(
+            R=R, t=t, K0=K0, K1=K1, inliers=inl, diagnostics=info, doubts=doubts, focal_estimated=estimated,
+            # the focal was measured on the point map, not the matches: the acceptance does not ask them for it
+            focal_evidence="pointmap" if estimated else None, median_parallax_deg=parallax,
+        )  # fmt: skip
 
     @staticmethod
     def _verify(

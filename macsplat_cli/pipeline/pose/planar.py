@@ -1,0 +1,260 @@
+"""The pose of a planar scene (issue 14): a plane seen from two views fits two relative poses.
+
+When a homography explains ``planar_fraction`` of the verified matches, the essential matrix's pose and the poses
+of the homography's decomposition compete: those that explain as many verified matches contend, and all the
+matches decide — the verified ones and those below the confidence gate (``Matches.below_gate``): a pose wins with
+matches it explains (in front of both cameras) that the other refutes (behind a camera: the plane's wrong pose often
+puts part of it there; or far off its epipolar lines: points off the plane). Tied evidence is refused.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ...camera_math import scale_focal
+from ...errors import ReconstructionError
+from ...metrics import angle_between_deg, rotation_angle_deg
+from ..types import Matches
+from .config import PoseConfig
+from .geometry import MIN_TRANSLATION, decompose_homography, epipolar_fit, homog, parallax_deg, same_pose, support
+from .refit import POSE_LM, refit_pose
+from .robust import find_homography
+
+__all__ = ["PlanarVerdict", "ambiguous", "planar_check", "planar_pose", "resolve_planar"]
+
+DIRECTION_WEIGHT = 3
+"""In ``planar_agreement_deg`` a translation-direction difference counts a third of a rotation difference (the
+direction of a short baseline is the less determined)."""
+
+
+def ambiguous(n_final: int, rival: int, evidence: tuple[int, int] | None = None) -> ReconstructionError:
+    """The refusal of a plane's two tied poses."""
+    more = f"; no other matches tell them apart ({evidence[0]} against {evidence[1]})" if evidence is not None else ""
+    return ReconstructionError(
+        f"pose is ambiguous: the {n_final} verified matches lie on one plane, and two different relative "
+        f"poses explain them ({rival} and {n_final} matches){more}: photograph more of the scene's depth"
+    )
+
+
+def _candidates(
+    R: np.ndarray, t: np.ndarray, H: np.ndarray, s: float, K0: np.ndarray, K1: np.ndarray, unknown: tuple[bool, bool],
+    xy0: np.ndarray, xy1: np.ndarray, cfg: PoseConfig,
+) -> tuple[list[tuple[np.ndarray, np.ndarray]], float]:  # fmt: skip
+    """The essential matrix's pose ``(R, t)`` and the distinct poses of ``H``'s decomposition that explain
+    ``min_inliers`` gated matches, each refined on those; and how far ``(R, t)`` is from the nearest decomposition
+    (``planar_agreement_deg``)."""
+    K0s = scale_focal(K0, s) if unknown[0] else K0
+    K1s = scale_focal(K1, s) if unknown[1] else K1
+    candidates: list[tuple[np.ndarray, np.ndarray]] = [(R, t)]
+    agreement = math.inf
+    Rs, ts = decompose_homography(np.linalg.inv(K1s) @ H @ K0s)
+    for Ri, ti in zip(Rs, ts):
+        ti = ti.ravel()
+        if np.linalg.norm(ti) < MIN_TRANSLATION:
+            continue
+        ti = ti / np.linalg.norm(ti)
+        agreement = min(agreement, max(rotation_angle_deg(Ri @ R.T), angle_between_deg(ti, t) / DIRECTION_WEIGHT))
+        sup = support(Ri, ti, K0s, K1s, xy0, xy1, cfg.threshold_px)
+        if sup.sum() < cfg.min_inliers:
+            continue
+        if cfg.refine:
+            fit = refit_pose(
+                Ri, ti, K0, K1, xy0[sup], xy1[sup], scale_px=cfg.threshold_px, schedule=POSE_LM, log_focal=s,
+                unknown=unknown,
+            )  # fmt: skip
+            collapsed = any(same_pose(fit.R, fit.t, Rc, tc, cfg.same_pose_deg) for Rc, tc in candidates)
+            if not (collapsed and not any(same_pose(Ri, ti, Rc, tc, cfg.same_solution_deg) for Rc, tc in candidates)):
+                Ri, ti = fit.R, fit.t
+            # else: refined, a distinct decomposition slid onto another candidate (the planar valley: a plane with
+            # little rotation fits a range of translations). It stays as it was, a rival the evidence must beat
+        if not any(same_pose(Ri, ti, Rc, tc, cfg.same_pose_deg) for Rc, tc in candidates):
+            candidates.append((Ri, ti))
+    return candidates, agreement
+
+
+def _usable(
+    candidates: list[tuple[np.ndarray, np.ndarray]], masks: list[np.ndarray], gated: list[int], x0n: np.ndarray,
+    x1n: np.ndarray, cfg: PoseConfig,
+) -> list[int]:  # fmt: skip
+    """The candidates (indices, best supported first) with a median parallax of ``min_parallax_deg``, one per
+    solution: the same solution twice (the essential matrix's and a decomposition's, a few degrees apart) is no
+    ambiguity, the better supported stands for both. A wrong essential matrix on a plane can look like a rotation;
+    a true rotation keeps the essential pose and is refused for its baseline."""
+    parallax = [
+        float(np.median(parallax_deg(Rc, x0n[m], x1n[m]))) if m.any() else 0.0 for (Rc, _), m in zip(candidates, masks)
+    ]
+    usable: list[int] = []
+    for k in sorted(range(len(candidates)), key=lambda k: -gated[k]):
+        if parallax[k] >= cfg.min_parallax_deg and not any(
+            same_pose(*candidates[k], *candidates[j], cfg.same_solution_deg) for j in usable
+        ):
+            usable.append(k)
+    return usable
+
+
+def _all_matches(xy0: np.ndarray, xy1: np.ndarray, below_gate: Matches | None) -> tuple[np.ndarray, np.ndarray]:
+    """The gated matches and those below the gate (when finite). [M', 2] ×2"""
+    if below_gate is None or not len(below_gate):
+        return xy0, xy1
+    if not (np.isfinite(below_gate.xy0).all() and np.isfinite(below_gate.xy1).all()):
+        return xy0, xy1
+    all0 = np.concatenate([xy0, below_gate.xy0.astype(np.float64)])
+    all1 = np.concatenate([xy1, below_gate.xy1.astype(np.float64)])
+    return all0, all1
+
+
+def planar_pose(
+    R: np.ndarray, t: np.ndarray, H: np.ndarray, s: float, K0: np.ndarray, K1: np.ndarray, unknown: tuple[bool, bool],
+    xy0: np.ndarray, xy1: np.ndarray, below_gate: Matches | None, info: dict, cfg: PoseConfig,
+) -> tuple[np.ndarray, np.ndarray, bool]:  # fmt: skip
+    """The relative pose of a pair whose matches ``xy0, xy1`` [M, 2] lie mostly on one plane (module docstring).
+
+    Candidates (:func:`_candidates`) that explain ``planar_contend`` of the best support on the gated matches
+    contend; when more than one does, all the matches (gated and ``below_gate``) decide (:func:`resolve_planar`).
+
+    Returns:
+        ``(R, t, changed)``: the winner, and whether it differs from the given pose.
+
+    Raises:
+        ReconstructionError: the contenders are tied on all the evidence.
+    """
+    K0s = scale_focal(K0, s) if unknown[0] else K0
+    K1s = scale_focal(K1, s) if unknown[1] else K1
+    Ki0, Ki1 = np.linalg.inv(K0s), np.linalg.inv(K1s)
+    x0n, x1n = homog(xy0) @ Ki0.T, homog(xy1) @ Ki1.T
+    candidates, agreement = _candidates(R, t, H, s, K0, K1, unknown, xy0, xy1, cfg)
+    masks = [support(Rc, tc, K0s, K1s, xy0, xy1, cfg.threshold_px) for Rc, tc in candidates]
+    gated = [int(m.sum()) for m in masks]
+    usable = _usable(candidates, masks, gated, x0n, x1n, cfg)
+    info.update(
+        planar_candidates=len(candidates),
+        planar_gated_support=",".join(map(str, gated)),
+        planar_rival_inliers=max(gated[1:], default=0),
+        planar_agreement_deg=agreement,
+    )
+    if not usable:
+        return R, t, False
+    top = max(gated[k] for k in usable)
+    contenders = [k for k in usable if gated[k] >= cfg.planar_contend * top]
+    all0, all1 = xy0, xy1
+    if len(contenders) > 1:
+        all0, all1 = _all_matches(xy0, xy1, below_gate)
+        verdict = resolve_planar([candidates[k] for k in contenders], K0s, K1s, all0, all1, cfg)
+        info.update(
+            planar_support=",".join(map(str, verdict.support)),
+            planar_evidence=verdict.exclusive[0],
+            planar_counter_evidence=verdict.exclusive[1],
+            planar_matches_scored=len(all0),
+        )
+        if verdict.winner is None:
+            ranked = sorted((gated[k] for k in contenders), reverse=True)
+            raise ambiguous(ranked[0], ranked[1], verdict.exclusive)
+        winner = contenders[verdict.winner]
+    else:
+        winner = contenders[0]
+    info["planar_resolved"] = "essential" if winner == 0 else "homography"
+    if winner == 0:
+        return R, t, False
+    R, t = candidates[winner]
+    sup = support(R, t, K0s, K1s, all0, all1, cfg.threshold_px)
+    if cfg.refine:
+        fit = refit_pose(
+            R, t, K0, K1, all0[sup], all1[sup], scale_px=cfg.threshold_px, schedule=POSE_LM, log_focal=s,
+            unknown=unknown,
+        )  # fmt: skip
+        R, t = fit.R, fit.t
+    return R, t, True
+
+
+@dataclass
+class PlanarVerdict:
+    """The outcome of :func:`resolve_planar`: the index of the winning candidate (None: tied), each candidate's
+    support over all the matches, and (evidence, counter-evidence) of the best candidate's closest duel."""
+
+    winner: int | None
+    support: list[int]
+    exclusive: tuple[int, int]
+
+
+def resolve_planar(
+    candidates: list[tuple[np.ndarray, np.ndarray]],
+    K0: np.ndarray,
+    K1: np.ndarray,
+    xy0: np.ndarray,
+    xy1: np.ndarray,
+    cfg: PoseConfig,
+) -> PlanarVerdict:
+    """Tell a plane's relative poses apart by the evidence the plane does not give.
+
+    Every candidate explains the plane's matches equally well; what separates them is the matches off the plane
+    (which only the true pose explains) and cheirality (the wrong pose of a plane puts part of it behind a
+    camera). Each candidate is scored by the matches it explains with positive depth among ``xy0, xy1`` (all
+    matches: the verified ones, the rest of the gated ones and those below the confidence gate). The best wins
+    when, against every other candidate, the matches it explains (within ``threshold_px``, in front) and the
+    other refutes (behind a camera, or beyond ``planar_refute_factor · threshold_px``) number at least
+    ``planar_min_evidence`` and ``planar_evidence_ratio`` times the converse; else the candidates are tied.
+    Matches near the threshold of either count for neither: noise there is not evidence.
+
+    Returns:
+        the verdict; ``exclusive`` is (evidence, counter-evidence) of the closest duel.
+    """
+    fits = [epipolar_fit(R, t, K0, K1, xy0, xy1) for R, t in candidates]
+    explained = [(d < cfg.threshold_px) & front for d, front in fits]
+    refuted = [(d > cfg.planar_refute_factor * cfg.threshold_px) | ~front for d, front in fits]
+    supports = [int(m.sum()) for m in explained]
+    order = np.argsort(supports, kind="stable")[::-1]
+    if len(candidates) < 2:
+        return PlanarVerdict(int(order[0]) if candidates else None, supports, (0, 0))
+    # the best must win every duel: matches it explains and the other refutes, against the converse
+    worst: tuple[int, int] | None = None
+    for k in order[1:]:
+        a = int((explained[order[0]] & refuted[k]).sum())
+        b = int((explained[k] & refuted[order[0]]).sum())
+        if worst is None or a - cfg.planar_evidence_ratio * b < worst[0] - cfg.planar_evidence_ratio * worst[1]:
+            worst = (a, b)
+    assert worst is not None
+    won = worst[0] >= cfg.planar_min_evidence and worst[0] >= cfg.planar_evidence_ratio * worst[1]
+    return PlanarVerdict(int(order[0]) if won else None, supports, worst)
+
+
+def planar_check(
+    R: np.ndarray, t: np.ndarray, K0: np.ndarray, K1: np.ndarray, xy0: np.ndarray, xy1: np.ndarray, cfg: PoseConfig
+) -> tuple[int, int, float, list[tuple[np.ndarray, np.ndarray]]]:
+    """How the verified matches relate to their dominant plane (the check with ``planar_resolve`` off).
+
+    The homography is fitted robustly (MAGSAC++) to the verified matches: a least-squares fit through the few
+    off-plane matches missed the ambiguity of a wide pair whose matches lie almost all on one wall.
+
+    Returns:
+        ``(off_plane, rival, agreement_deg, rivals)``: matches off the plane's homography; the most matches
+        that a relative pose other than ``(R, t)`` among the homography's decompositions explains (a plane has
+        two physical ones); how far ``(R, t)`` is from the nearest decomposition (max of rotation and
+        translation-direction/3 differences, °); and those other poses ``(R, t)`` (unit ``t``), distinct from
+        each other, that explain at least one match.
+    """
+    H, hmask = find_homography(xy0, xy1, cfg.homography_factor * cfg.threshold_px, cfg.max_iters)
+    if H is None or hmask is None:
+        return len(xy0), 0, 0.0, []
+    off_plane = int(len(xy0) - hmask.sum())
+    Hn = np.linalg.inv(K1) @ H @ K0
+    Rs, ts = decompose_homography(Hn)
+    best, agreement = 0, math.inf
+    rivals: list[tuple[np.ndarray, np.ndarray]] = []
+    for Ri, ti in zip(Rs, ts):
+        ti = ti.ravel()
+        if np.linalg.norm(ti) < MIN_TRANSLATION:
+            continue
+        ti = ti / np.linalg.norm(ti)
+        dr = rotation_angle_deg(Ri @ R.T)
+        dt = angle_between_deg(ti, t)
+        agreement = min(agreement, max(dr, dt / DIRECTION_WEIGHT))
+        if dr < cfg.same_pose_deg[0] and dt < cfg.same_pose_deg[1]:
+            continue  # the same pose
+        n_ok = int(support(Ri, ti, K0, K1, xy0, xy1, cfg.threshold_px).sum())
+        best = max(best, n_ok)
+        if n_ok > 0 and not any(same_pose(Ri, ti, Rr, tr, cfg.same_pose_deg) for Rr, tr in rivals):
+            rivals.append((Ri, ti))
+    return off_plane, best, agreement, rivals

@@ -1,0 +1,147 @@
+"""What stage 4 hands on: the accepted pose (:class:`PoseResult`), its acceptance (:class:`PoseConfidence`) and the
+doubts (:class:`Doubt`), typed. The report's ``pose`` section and the cameras file's ``pose_confidence`` are built
+from these fields.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from ..types import Features, Matches, TwoViewGeometry, View
+
+__all__ = ["Doubt", "DoubtCheck", "PoseConfidence", "PoseResult", "Tier"]
+
+Tier = Literal["primary", "fallback", "wide", "wide+plane-tiebreak"]
+"""The descriptor tier whose matches gave the pose: the primary descriptors, the fallback, the wide-baseline tier,
+or the plane tie-break after the wide tier (its matches guided along the winning plane pose, primary features)."""
+
+WIDE_TIERS: tuple[Tier, ...] = ("wide", "wide+plane-tiebreak")
+"""The tiers the report names (``descriptors_tier``)."""
+
+DoubtCheck = Literal["pose", "support", "spread", "parallax", "refit", "focal"]
+"""Who doubts: the pose stage itself (either backend), the support minimum (verified matches), or a check of
+:func:`~.confidence.assess_pose` (match spread, parallax over rotation, the re-fit, the focal length)."""
+
+
+@dataclass(frozen=True)
+class Doubt:
+    """One reason to doubt a pose.
+
+    Attributes:
+        check: who raised it.
+        message: one user-facing line (the first doubt's is the one a refusal names).
+    """
+
+    check: DoubtCheck
+    message: str
+
+    def __str__(self) -> str:
+        return self.message
+
+
+@dataclass
+class PoseConfidence:
+    """The outcome of :func:`~.confidence.assess_pose` or :func:`~.confidence.accept_pose`.
+
+    Attributes:
+        score: the smallest check score, in [0, 1]; 0.5 at a threshold.
+        ok: no doubt.
+        doubts: one per failed check, in order.
+        checks: the measurements, by name.
+        seconds: time spent.
+    """
+
+    score: float
+    ok: bool
+    doubts: list[Doubt] = field(default_factory=list)
+    checks: dict[str, float] = field(default_factory=dict)
+    seconds: float = 0.0
+
+    @property
+    def reasons(self) -> list[str]:
+        """The doubts' messages."""
+        return [d.message for d in self.doubts]
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready: score, ok, reasons, checks."""
+        return {"score": self.score, "ok": self.ok, "reasons": self.reasons, "checks": dict(self.checks)}
+
+
+@dataclass
+class PoseResult:
+    """Stage 4's output (:class:`~.search.PoseSearch`).
+
+    Attributes:
+        geometry: the accepted relative pose and its verified matches.
+        views: the two views for the later stages: a view whose prior focal the pose estimated is a new
+            :class:`View` (``intrinsics_source="estimated"``, the geometry's ``K``); the others are the given ones.
+        tier: the descriptor tier that gave the pose.
+        features: the features the pose's matches index. [Features] ×2
+        evidence: the tier's filtered matches, on which the pose was first estimated and which the confidence
+            checks fit (not the guided ones, which the pose itself selected).
+        guided: the epipolar-guided re-matching replaced the tier's pose.
+        plane_tiebreak: the plane's candidate poses' scores, best first, when the tie-break gave the pose.
+        confidence: the acceptance's checks; None when they are off (``PoseSearchConfig.confidence``).
+        doubts: every doubt, in order: the pose stage's, the support minimum's, the checks'.
+        accepted_low_confidence: there are doubts, and the scene is built anyway.
+    """
+
+    geometry: TwoViewGeometry
+    views: list[View]
+    tier: Tier
+    features: list[Features]
+    evidence: Matches
+    guided: bool = False
+    plane_tiebreak: list[int] | None = None
+    confidence: PoseConfidence | None = None
+    doubts: list[Doubt] = field(default_factory=list)
+    accepted_low_confidence: bool = False
+
+    @property
+    def fallback_used(self) -> bool:
+        """A fallback tier's matches were kept."""
+        return self.tier != "primary"
+
+    @property
+    def inlier_ratio(self) -> float | None:
+        """Verified / candidate matches, as the pose stage reported it."""
+        return self.geometry.diagnostics.get("inlier_ratio")
+
+    def report(self) -> dict[str, Any]:
+        """The report's ``pose`` section: the pose stage's diagnostics and typed fields, the tier, the acceptance.
+
+        ``descriptors_tier`` and ``plane_tiebreak`` describe the tier's pose: they are left out when the guided
+        re-matching replaced it (as the report has always done).
+        """
+        g = self.geometry
+        out = dict(g.diagnostics)
+        out["focal_estimated"] = g.focal_estimated
+        if g.focal_evidence is not None:
+            out["focal_evidence"] = g.focal_evidence
+        if g.median_parallax_deg is not None:
+            out["median_parallax_deg"] = g.median_parallax_deg
+        if not self.guided:
+            if self.plane_tiebreak is not None:
+                out["plane_tiebreak"] = list(self.plane_tiebreak)
+            if self.tier in WIDE_TIERS:
+                out["descriptors_tier"] = self.tier
+        if self.confidence is not None:
+            out["confidence"] = self.confidence.score
+            out["confidence_checks"] = self.confidence.checks
+        out["doubts"] = [d.message for d in self.doubts]
+        if self.accepted_low_confidence:
+            out["accepted_low_confidence"] = True
+        return out
+
+    def camera_confidence(self) -> dict[str, Any] | None:
+        """The cameras file's ``pose_confidence`` (None when the pose was not assessed and has no doubts):
+        ``score`` (None when not assessed), ``checks``, ``doubts`` and ``accepted_low_confidence``."""
+        if self.confidence is None and not self.doubts:
+            return None
+        return {
+            "score": self.confidence.score if self.confidence is not None else None,
+            "checks": dict(self.confidence.checks) if self.confidence is not None else {},
+            "doubts": [d.message for d in self.doubts],
+            "accepted_low_confidence": self.accepted_low_confidence,
+        }

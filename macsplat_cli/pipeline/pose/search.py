@@ -1,0 +1,250 @@
+"""Stage 4 as one object: the search for a relative pose and its acceptance (:class:`PoseSearch`).
+
+1. Descriptor tiers: the primary descriptors → matching → pose; when they verify fewer than
+   ``fallback_min_inliers`` matches (or fail), the fallback descriptors, kept when they verify more; when neither
+   gives a pose, the wide-baseline descriptors, and when their pose fails, the plane tie-break
+   (:func:`~.tiebreak.plane_tiebreak`).
+2. Guided re-matching: with fewer than ``guided_below`` verified matches, every keypoint is matched again along
+   the pose's epipolar lines and the pose re-estimated, kept if it verifies more and stays near.
+3. Acceptance (:func:`~.confidence.accept_pose`): the pose stage's doubts, the support minimum and the checks; a
+   doubted pose is refused unless ``accept_low_confidence``.
+4. The views whose prior focal the pose estimated become new, self-calibrated :class:`View` objects.
+
+Measured: benchmarks/history/pose.md.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from ...errors import ReconstructionError
+from ...metrics import rotation_error_deg, translation_direction_error_deg
+from ..matching import guided_matches
+from ..types import Features, Matches, TwoViewGeometry, View
+from .confidence import accept_pose
+from .config import PoseConfig, PoseSearchConfig
+from .geometry import fundamental_from_pose
+from .result import Doubt, PoseConfidence, PoseResult, Tier
+from .tiebreak import plane_tiebreak
+
+if TYPE_CHECKING:
+    from ..stages import DescribeStage, MatchStage, PoseStage
+
+__all__ = ["LOW_CONFIDENCE_HINT", "PoseSearch", "StageTimer", "calibrated_views"]
+
+logger = logging.getLogger(__name__)
+
+LOW_CONFIDENCE_HINT = "use --accept-low-confidence to write the scene anyway"
+"""Appended to a refusal for low pose confidence."""
+
+StageTimer = Callable[[str, Callable[[], Any]], Any]
+"""``timed(stage, fn)``: runs ``fn()`` as the named stage (progress events, wall time) and returns its result."""
+
+
+def _untimed(stage: str, fn: Callable[[], Any]) -> Any:
+    return fn()
+
+
+@dataclass
+class _Attempt:
+    """One tier's outcome: its pose (None: failed, ``failure`` says why), the features its matches index and its
+    filtered matches."""
+
+    geometry: TwoViewGeometry | None
+    failure: ReconstructionError | None
+    features: list[Features]
+    matches: Matches
+    tier: Tier
+    plane_tiebreak: list[int] | None = None
+
+
+def calibrated_views(views: list[View], geometry: TwoViewGeometry) -> list[View]:
+    """The views for the later stages: a view with the prior's focal, when the pose estimated it, as a new
+    :class:`View` (``intrinsics_source="estimated"``, the geometry's ``K``); the given views are left as they are."""
+    if not geometry.focal_estimated:
+        return list(views)
+    Ks = (geometry.K0, geometry.K1)
+    return [
+        dataclasses.replace(v, intrinsics_source="estimated", K=Ks[k]) if v.intrinsics_source == "prior" else v
+        for k, v in enumerate(views)
+    ]
+
+
+class PoseSearch:
+    """Stage 4: descriptor tiers, plane tie-break, guided re-matching and acceptance (module docstring).
+
+    Args:
+        config: the search's settings.
+        pose_config: the pose stage's thresholds (the support minimum, the plane's homography).
+        describe: the primary descriptors (``(views, pair) → [Features]×2``).
+        match: the matcher (``(f0, f1) → Matches``).
+        pose: the pose stage (``(v0, v1, matches, pair) → TwoViewGeometry``).
+        fallback: the fallback descriptors, or None.
+        wide: the wide-baseline descriptors, or None.
+    """
+
+    def __init__(
+        self, config: PoseSearchConfig, pose_config: PoseConfig, *, describe: DescribeStage, match: MatchStage,
+        pose: PoseStage, fallback: DescribeStage | None = None, wide: DescribeStage | None = None,
+    ) -> None:  # fmt: skip
+        self.config = config
+        self.pose_config = pose_config
+        self.describe = describe
+        self.match = match
+        self.pose = pose
+        self.fallback = fallback
+        self.wide = wide
+
+    def __call__(self, views: list[View], pair: Any = None, timed: StageTimer | None = None) -> PoseResult:
+        """The accepted pose of the two ``views`` (``pair``: the network pass, for backends that have one).
+
+        Raises:
+            ReconstructionError: no tier gives a pose (the first failure that stands says why), or the pose is
+                doubted and ``accept_low_confidence`` is off.
+        """
+        timed = timed or _untimed
+        found = self._tiers(views, pair, timed)
+        assert found.geometry is not None
+        geometry, guided = self._guided(views, found.features, found.geometry, pair, timed)
+        confidence = self._accept(views, geometry, found.matches, timed)
+        assessed = self.config.confidence is not None
+        return PoseResult(
+            geometry=geometry,
+            views=calibrated_views(views, geometry),
+            tier=found.tier,
+            features=found.features,
+            evidence=found.matches,
+            guided=guided,
+            plane_tiebreak=found.plane_tiebreak,
+            confidence=confidence if assessed else None,
+            doubts=list(confidence.doubts),
+            accepted_low_confidence=bool(confidence.doubts),
+        )
+
+    # ------------------------------------------------------------------------------------------- the tiers
+    def _try_pose(
+        self, views: list[View], matches: Matches, pair: Any, timed: StageTimer, stage: str
+    ) -> tuple[TwoViewGeometry | None, ReconstructionError | None]:
+        try:
+            return timed(stage, lambda: self.pose(views[0], views[1], matches, pair)), None
+        except ReconstructionError as e:
+            return None, e
+
+    def _chain(
+        self, views: list[View], pair: Any, timed: StageTimer, describe: DescribeStage, tier: Tier, suffix: str
+    ) -> _Attempt:
+        """Descriptors → matching → pose with ``describe``, its stages named with ``suffix``."""
+        feats = timed(f"descriptors{suffix}", lambda: describe(views, pair))
+        matches = timed(f"matching{suffix}", lambda: self.match(feats[0], feats[1]))
+        geometry, failure = self._try_pose(views, matches, pair, timed, f"pose{suffix}")
+        return _Attempt(geometry, failure, feats, matches, tier)
+
+    def _tiers(self, views: list[View], pair: Any, timed: StageTimer) -> _Attempt:
+        """The first tier that gives a pose (module docstring, 1).
+
+        Raises:
+            ReconstructionError: none does: the fallback tier's failure when it ran, else the primary's (the wide
+                tier's is only logged).
+        """
+        c = self.config
+        best = primary = self._chain(views, pair, timed, self.describe, "primary", "")
+        n_verified = len(best.geometry.inliers) if best.geometry is not None else 0
+        if self.fallback is not None and n_verified < c.fallback_min_inliers:
+            logger.debug("%d verified matches (< %d): retrying with %s", n_verified, c.fallback_min_inliers,
+                         self.fallback.name)  # fmt: skip
+            alt = self._chain(views, pair, timed, self.fallback, "fallback", " (fallback)")
+            if alt.geometry is not None and len(alt.geometry.inliers) > n_verified:
+                best = alt
+            elif best.geometry is None:
+                best = dataclasses.replace(best, failure=alt.failure or best.failure)
+        if self.wide is not None and best.geometry is None:
+            wide = self._wide(views, primary.features, pair, timed)
+            if wide.geometry is not None:  # else the chain's own failure stands (the tier's is logged)
+                best = wide
+            else:
+                logger.debug("wide-baseline tier: %s", wide.failure)
+        if best.geometry is None:
+            assert best.failure is not None
+            raise best.failure
+        return best
+
+    def _wide(self, views: list[View], primary: list[Features], pair: Any, timed: StageTimer) -> _Attempt:
+        """The second fallback tier: wide-baseline descriptors, matching and pose; when that pose fails, the
+        plane's poses ranked by dense consistency (on the primary features)."""
+        c = self.config
+        assert self.wide is not None
+        logger.debug("still too few verified matches: retrying with %s", self.wide.name)
+        att = self._chain(views, pair, timed, self.wide, "wide", " (wide)")
+        if att.geometry is not None and len(att.geometry.inliers) < c.wide_min_inliers:
+            failure = ReconstructionError(
+                f"pose could not be estimated: {len(att.geometry.inliers)} verified matches, need at least "
+                f"{c.wide_min_inliers} at a wide baseline"
+            )
+            att = dataclasses.replace(att, geometry=None, failure=failure)
+        if att.geometry is not None or c.plane_tiebreak_margin is None:
+            return att
+        tied = timed(
+            "pose (plane tie-break)",
+            lambda: plane_tiebreak(views, primary, att.matches, pair, self.pose, c, self.pose_config),
+        )
+        if tied is None:
+            return att
+        return _Attempt(tied[0], None, primary, att.matches, "wide+plane-tiebreak", tied[1])
+
+    # ------------------------------------------------------------------------------------------- refinement
+    def _guided(
+        self, views: list[View], feats: list[Features], geometry: TwoViewGeometry, pair: Any, timed: StageTimer
+    ) -> tuple[TwoViewGeometry, bool]:
+        """Epipolar-guided re-matching under the pose (module docstring, 2). Returns the pose kept and whether it
+        is the guided one."""
+        c = self.config
+        if c.guided_band_px is None or len(geometry.inliers) >= c.guided_below:
+            return geometry, False
+        if geometry.doubts:
+            # matches picked within the band of a doubtful pose (e.g. one built on the prior's focal) agree with
+            # it: they cannot confirm it, and a refit would drop the pose stage's doubt
+            return geometry, False
+        band = c.guided_band_px
+        F = fundamental_from_pose(geometry.R, geometry.t, geometry.K0, geometry.K1)
+        guided = timed(
+            "matching (guided)", lambda: guided_matches(feats[0], feats[1], F, band_px=band, ratio=c.guided_ratio)
+        )
+        guided.counts = {**geometry.inliers.counts, **guided.counts}
+        guided.counts.pop("verified", None)
+        refined, _ = self._try_pose(views, guided, pair, timed, "pose (guided)")
+        if (
+            refined is not None
+            and len(refined.inliers) > len(geometry.inliers)
+            and rotation_error_deg(refined.R, geometry.R) <= c.guided_max_change_deg[0]
+            and translation_direction_error_deg(refined.t, geometry.t) <= c.guided_max_change_deg[1]
+        ):
+            return refined, True
+        return geometry, False
+
+    # ------------------------------------------------------------------------------------------- acceptance
+    def _accept(
+        self, views: list[View], geometry: TwoViewGeometry, evidence: Matches, timed: StageTimer
+    ) -> PoseConfidence:
+        """The acceptance of the final pose (module docstring, 3), on the views as loaded (a view with the prior's
+        focal has an unknown focal length) and ``evidence``, the tier's filtered matches.
+
+        Raises:
+            ReconstructionError: the pose is doubted and ``accept_low_confidence`` is off.
+        """
+        c = self.config
+        conf: PoseConfidence = timed(
+            "pose confidence",
+            lambda: accept_pose(views[0], views[1], geometry, self.pose_config, c.confidence, evidence=evidence),
+        )
+        doubts: list[Doubt] = conf.doubts
+        if doubts and not c.accept_low_confidence:
+            raise ReconstructionError(f"{doubts[0].message} ({LOW_CONFIDENCE_HINT})")
+        if doubts:
+            logger.warning(
+                "the pose may be wrong, the scene is written anyway (--accept-low-confidence): %s", doubts[0].message
+            )
+        return conf
