@@ -23,10 +23,10 @@ import pytest
 import torch
 from test_neural_pipeline import write_tiny_checkpoints
 
+from macsplat_cli._state_dict import sha256_file
 from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.engine import EngineConfig, Models, NeuralOptions, reconstruct
 from macsplat_cli.neural import BackboneView
-from macsplat_cli.neural._state_dict import sha256_file
 from macsplat_cli.neural.config import BackboneConfig
 from macsplat_cli.neural.onnx_export import ExportConfig, export_onnx
 from macsplat_cli.neural.onnx_format import ALLOWED_OPS, METADATA_KEY, ParityError, check_graph

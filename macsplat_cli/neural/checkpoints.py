@@ -41,8 +41,7 @@ import torch
 from torch import nn
 
 from .._limits import read_json_file
-from ._safetensors import read_safetensors
-from ._state_dict import StateDictError, check_state_dict_keys, log_sha256, sha256_file
+from .._state_dict import StateDictError, check_state_dict_keys, log_sha256, read_safetensors, sha256_file
 from .backbone import MASt3RBackbone
 from .config import BackboneConfig, GaussianHeadConfig, ModelConfigError
 from .gaussian_head import GaussianHead
@@ -306,7 +305,7 @@ def check_state_dict(
     Raises:
         CheckpointError: a key has the wrong shape (always), or, with ``strict``, a key is unknown or a
             model key is missing. The message names the first bad key in file order and both shapes
-            (the check every loader shares, :func:`._state_dict.check_state_dict_keys`).
+            (the check every loader shares, :func:`macsplat_cli._state_dict.check_state_dict_keys`).
     """
     expected = {k: v.shape for k, v in module.state_dict(keep_vars=True).items()}
     return check_state_dict_keys(

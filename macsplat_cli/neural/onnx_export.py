@@ -39,8 +39,8 @@ from torch import nn
 
 from .. import __version__
 from .._atomic import check_writable
+from .._state_dict import sha256_file
 from ..errors import InputError, MacsplatError, OutputPathError
-from ._state_dict import sha256_file
 from .onnx_format import (
     INPUT_NAMES,
     MAX_SIDE,

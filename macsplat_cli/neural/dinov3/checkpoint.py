@@ -17,8 +17,8 @@ from pathlib import Path
 import torch
 
 from ..._limits import read_json_file
-from .._safetensors import read_safetensors as _read_safetensors
-from .._state_dict import StateDictError, check_state_dict_keys, log_sha256
+from ..._state_dict import StateDictError, check_state_dict_keys, log_sha256
+from ..._state_dict import read_safetensors as _read_safetensors
 from ..config import ModelConfigError
 from .config import DINOV3_PRESETS, SAT493M_MEAN, SAT493M_STD, DINOv3Config
 from .model import DINOv3Encoder, rope_periods
@@ -91,7 +91,7 @@ class DINOv3WeightsNotFoundError(DINOv3CheckpointError, FileNotFoundError):
 
 
 def read_safetensors(path: str | os.PathLike[str]) -> dict[str, torch.Tensor]:
-    """Read a ``.safetensors`` file into CPU tensors (:func:`._safetensors.read_safetensors`).
+    """Read a ``.safetensors`` file into CPU tensors (:func:`macsplat_cli._state_dict.read_safetensors`).
 
     Raises:
         DINOv3CheckpointError: the file is truncated or its header is malformed.
