@@ -28,10 +28,11 @@ from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.engine import EngineConfig, Models, NeuralOptions, reconstruct
 from macsplat_cli.neural import BackboneView
 from macsplat_cli.neural.config import BackboneConfig
+from macsplat_cli.neural.loading import load_pair_predictor
 from macsplat_cli.neural.onnx_export import ExportConfig, export_onnx
 from macsplat_cli.neural.onnx_format import ALLOWED_OPS, METADATA_KEY, ParityError, check_graph
 from macsplat_cli.neural.onnx_runtime import OnnxPairPredictor, read_predictor_info
-from macsplat_cli.neural.predictor import PairPredictor, load_pair_predictor
+from macsplat_cli.neural.predictor import PairPredictor
 from macsplat_cli.ply import read_ply
 
 from _helpers import one_error_line, render_pair, run_cli

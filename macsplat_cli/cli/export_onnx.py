@@ -99,10 +99,11 @@ def export_onnx_command(
     --weights predictor.onnx[/]."""
     with command_context(ctx, verbose, quiet) as state:
         from ..errors import InputError
+        from ..neural.loading import load_pair_predictor
         from ..neural.onnx_export import ExportConfig, export_onnx
         from ..neural.onnx_format import ParityError
         from ..neural.onnx_runtime import is_onnx_file
-        from ..neural.predictor import MISSING_WEIGHTS_HELP, load_pair_predictor
+        from ..neural.predictor import MISSING_WEIGHTS_HELP
 
         if checkpoint is not None and weights is not None:
             raise InputError("--checkpoint and --weights both name the backbone: give one")
