@@ -29,7 +29,8 @@ from macsplat_cli.cli import main
 from macsplat_cli.errors import CameraFileError, ImageReadError, InputError, PlyFormatError
 from macsplat_cli.images import load_image, save_image
 from macsplat_cli.neural.checkpoints import CheckpointError, read_mast3r_checkpoint
-from macsplat_cli.neural.config import BackboneConfig, ModelConfigError, parse_constructor_string
+from macsplat_cli.neural.config import BackboneConfig
+from macsplat_cli.neural.constructor import ModelConfigError, parse_constructor_string
 from macsplat_cli.neural.dinov3 import DINOv3CheckpointError, DINOv3Config, load_dinov3
 from macsplat_cli.neural.fusion import (
     FusionCheckpointError,

@@ -19,7 +19,8 @@ from .checkpoints import (
     read_splatt3r_checkpoint,
     sha256_file,
 )
-from .config import BackboneConfig, GaussianHeadConfig, ModelConfigError, parse_constructor_string
+from .config import BackboneConfig, GaussianHeadConfig
+from .constructor import ModelConfigError, parse_constructor_string
 from .gaussian_head import GaussianHead
 from .rope import RoPE2D, patch_positions
 

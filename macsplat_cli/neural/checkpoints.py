@@ -43,7 +43,8 @@ from torch import nn
 from .._limits import read_json_file
 from .._state_dict import StateDictError, check_state_dict_keys, log_sha256, read_safetensors, sha256_file
 from .backbone import MASt3RBackbone
-from .config import BackboneConfig, GaussianHeadConfig, ModelConfigError
+from .config import BackboneConfig, GaussianHeadConfig
+from .constructor import ModelConfigError
 from .gaussian_head import GaussianHead
 
 __all__ = [

@@ -19,7 +19,7 @@ import torch
 from ..._limits import read_json_file
 from ..._state_dict import StateDictError, check_state_dict_keys, log_sha256
 from ..._state_dict import read_safetensors as _read_safetensors
-from ..config import ModelConfigError
+from ..constructor import ModelConfigError
 from .config import DINOV3_PRESETS, SAT493M_MEAN, SAT493M_STD, DINOv3Config
 from .model import DINOv3Encoder, rope_periods
 
