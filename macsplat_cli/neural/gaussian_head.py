@@ -41,8 +41,9 @@ from .._checks import check_shape
 from ..errors import ShapeError
 from ..gaussians import GaussianMaps
 from ..sh import rgb_to_sh0
-from .backbone import BackboneView, DPTAdapter
+from .backbone import BackboneView
 from .config import BackboneConfig, GaussianHeadConfig
+from .dpt import DPTAdapter
 
 __all__ = ["GaussianDPT", "GaussianHead"]
 
