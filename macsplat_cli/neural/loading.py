@@ -11,12 +11,13 @@ import logging
 from pathlib import Path
 
 from ..errors import InputError
-from .checkpoints import CheckpointNotFoundError, load_mast3r, load_splatt3r
+from .checkpoints import CheckpointNotFoundError, load_mast3r
 from .dinov3 import load_dinov3
 from .fusion import load_fusion
 from .gaussian_head import GaussianHead
 from .predictor import MISSING_WEIGHTS_HELP, PairPredictor, check_fusion_files
 from .predictor_io import is_predictor_checkpoint, load_predictor_checkpoint
+from .splatt3r import load_splatt3r
 
 __all__ = ["load_pair_predictor"]
 
