@@ -70,6 +70,7 @@ def build_predictor(model: str) -> Any:
 
 
 def export(model: str, workdir: Path, size: tuple[int, int], fp16: bool) -> dict[str, Path]:
+    from macsplat_cli.datasets.synthetic.sample import sample_pair
     from macsplat_cli.neural.onnx_export import ExportConfig, export_onnx
 
     files = {"fp32": workdir / f"{model}_fp32.onnx", "int8": workdir / f"{model}_int8.onnx"}
@@ -82,7 +83,7 @@ def export(model: str, workdir: Path, size: tuple[int, int], fp16: bool) -> dict
         pred = pred if pred is not None else build_predictor(model)
         cfg = ExportConfig(size=size, fp16=precision == "fp16", quantize="int8" if precision == "int8" else None)
         t0 = time.perf_counter()
-        r = export_onnx(pred, path, cfg)
+        r = export_onnx(pred, path, cfg, sample=sample_pair(size))
         worst = r.parity.worst
         print(f"exported {path.name}: {r.bytes / 1e6:,.0f} MB in {time.perf_counter() - t0:.0f} s "
               f"({', '.join(f'{k} {v:.0f} s' for k, v in r.seconds.items())}); parity worst {worst['output']} "
@@ -95,7 +96,8 @@ def _cell(args: argparse.Namespace) -> dict[str, Any]:
     """Run in a fresh process: load, warm up, time; peak RSS of this process."""
     import numpy as np
 
-    from macsplat_cli.neural.onnx_format import compare_outputs, sample_pair
+    from macsplat_cli.datasets.synthetic.sample import sample_pair
+    from macsplat_cli.neural.onnx_format import compare_outputs
 
     torch.set_num_threads(args.threads)
     imgs = sample_pair(tuple(args.size))
@@ -147,7 +149,7 @@ def _cell(args: argparse.Namespace) -> dict[str, Any]:
 def _reference(model: str, size: tuple[int, int], path: Path) -> None:
     import numpy as np
 
-    from macsplat_cli.neural.onnx_format import sample_pair
+    from macsplat_cli.datasets.synthetic.sample import sample_pair
 
     if path.exists():
         return

@@ -224,7 +224,8 @@ def _load_models(config: EngineConfig) -> Models:
     t0 = time.perf_counter()
     models = Models()
     if config.backend == "neural":
-        from .neural.predictor import load_pair_predictor, resolve_device
+        from .neural.loading import load_pair_predictor
+        from .neural.predictor import resolve_device
 
         files = config.neural.files()
         if config.neural.is_onnx:

@@ -26,8 +26,8 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from ._state_dict import StateDictError, check_state_dict_keys, log_sha256
 from .errors import InputError
-from .neural._state_dict import StateDictError, check_state_dict_keys, log_sha256
 
 __all__ = ["LPIPS", "LPIPSWeightsError", "load_lpips"]
 
@@ -123,7 +123,7 @@ def load_lpips(path: str | Path) -> LPIPS:
 
     Raises:
         LPIPSWeightsError: missing files, or a key missing or of the wrong shape (the first
-            such key is named with both shapes; :func:`.neural._state_dict.check_state_dict_keys`).
+            such key is named with both shapes; :func:`._state_dict.check_state_dict_keys`).
     """
     path = Path(path)
     if path.is_dir():

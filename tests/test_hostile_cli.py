@@ -182,7 +182,7 @@ def test_export_onnx_refuses_to_overwrite_a_checkpoint(
     capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
     """``export-onnx -o`` that is (a link to) a checkpoint: exit 2 before the checkpoints load."""
-    import macsplat_cli.neural.predictor as predictor
+    import macsplat_cli.neural.loading as loading
 
     loads: list[object] = []
 
@@ -190,7 +190,7 @@ def test_export_onnx_refuses_to_overwrite_a_checkpoint(
         loads.append(files)
         raise RuntimeError("loaded")
 
-    monkeypatch.setattr(predictor, "load_pair_predictor", load)
+    monkeypatch.setattr(loading, "load_pair_predictor", load)
     weights = tmp_path / "mast3r.pth"
     weights.write_bytes(b"checkpoint")
     out = _link("sym", weights, tmp_path / "predictor.onnx")

@@ -22,14 +22,15 @@ import torch
 from test_neural_checkpoints import TINY, random_state_dict, save_pth
 
 from macsplat_cli._limits import MAX_JSON_BYTES, MAX_RENDER_SIDE, check_render_size, json_depth, read_json_file
+from macsplat_cli._state_dict import read_safetensors
 from macsplat_cli.camera_formats import read_colmap_text, read_nerfstudio
 from macsplat_cli.cameras import Camera, CameraSet, load_cameras, save_cameras
 from macsplat_cli.cli import main
 from macsplat_cli.errors import CameraFileError, ImageReadError, InputError, PlyFormatError
 from macsplat_cli.images import load_image, save_image
-from macsplat_cli.neural._safetensors import read_safetensors
 from macsplat_cli.neural.checkpoints import CheckpointError, read_mast3r_checkpoint
-from macsplat_cli.neural.config import BackboneConfig, ModelConfigError, parse_constructor_string
+from macsplat_cli.neural.config import BackboneConfig
+from macsplat_cli.neural.constructor import ModelConfigError, parse_constructor_string
 from macsplat_cli.neural.dinov3 import DINOv3CheckpointError, DINOv3Config, load_dinov3
 from macsplat_cli.neural.fusion import (
     FusionCheckpointError,

@@ -28,7 +28,8 @@ import pytest
 import torch
 from onnx import TensorProto, helper
 
-from macsplat_cli.errors import OutputPathError
+from macsplat_cli.datasets.synthetic.sample import sample_pair
+from macsplat_cli.errors import InputError, OutputPathError
 from macsplat_cli.neural import BackboneView, MASt3RBackbone
 from macsplat_cli.neural.config import BackboneConfig
 from macsplat_cli.neural.onnx_export import ExportConfig, export_onnx
@@ -471,5 +472,28 @@ def test_export_onto_a_full_disk_is_an_output_error_and_leaves_nothing(tmp_path:
     predictor = PairPredictor(_StandIn()).eval()  # type: ignore[arg-type]
     out = tmp_path / "out" / "p.onnx"
     with file_size_limit(64 * 1024), pytest.raises(OutputPathError, match="cannot write .*p.onnx: File too large"):
-        export_onnx(predictor, out, ExportConfig(size=SIZE, dynamic=False))
+        export_onnx(predictor, out, ExportConfig(size=SIZE, dynamic=False), sample=sample_pair(SIZE))
     assert list(out.parent.iterdir()) == []  # no graph, no parity file, no temporary folder
+
+
+@pytest.mark.parametrize(
+    "sample",
+    [
+        "size",  # the sample at another size than the export's
+        "dtype",  # float64 images
+        "one",  # a single view
+    ],
+)
+def test_a_sample_pair_that_does_not_fit_the_export_is_refused_before_any_work(tmp_path: Path, sample: str) -> None:
+    predictor = PairPredictor(_StandIn()).eval()  # type: ignore[arg-type]
+    good = sample_pair(SIZE)
+    bad = {
+        "size": sample_pair((SIZE[0] + 16, SIZE[1])),
+        "dtype": tuple(t.double() for t in good),
+        "one": good[:1],
+    }[sample]
+    out = tmp_path / "out" / "p.onnx"
+    with pytest.raises(InputError, match=r"sample pair must be two float32 \[1, 3, 64, 96\] tensors"):
+        export_onnx(predictor, out, ExportConfig(size=SIZE, dynamic=False), sample=bad)  # type: ignore[arg-type]
+    assert not out.parent.exists()
+    assert [tuple(t.shape) for t in good] == [(1, 3, 64, 96)] * 2 and all(t.dtype == torch.float32 for t in good)

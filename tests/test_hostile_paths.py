@@ -299,7 +299,7 @@ def test_export_onnx_refuses_a_special_output_before_loading(
 ) -> None:
     """``export-onnx -o`` a FIFO, or a FIFO where its parity report or weights file goes: exit 2 before the
     checkpoints load."""
-    import macsplat_cli.neural.predictor as predictor
+    import macsplat_cli.neural.loading as loading
 
     loads: list[object] = []
 
@@ -307,7 +307,7 @@ def test_export_onnx_refuses_a_special_output_before_loading(
         loads.append(files)
         raise RuntimeError("loaded")
 
-    monkeypatch.setattr(predictor, "load_pair_predictor", load)
+    monkeypatch.setattr(loading, "load_pair_predictor", load)
     (tmp_path / "mast3r.pth").write_bytes(b"checkpoint")
     graph = tmp_path / "predictor.onnx"
     name = {"graph": graph.name, "parity": "predictor.parity.json", "data": "predictor.onnx.data"}[which]

@@ -21,6 +21,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from macsplat_cli._state_dict import StateDictError, check_state_dict_keys, log_sha256, sha256_file
 from macsplat_cli.errors import InputError
 from macsplat_cli.lpips import LPIPSWeightsError
 from macsplat_cli.neural import (
@@ -35,7 +36,6 @@ from macsplat_cli.neural import (
     load_mast3r,
     load_splatt3r,
 )
-from macsplat_cli.neural._state_dict import StateDictError, check_state_dict_keys, log_sha256, sha256_file
 from macsplat_cli.neural.dinov3 import DINOv3CheckpointError
 from macsplat_cli.neural.fusion import (
     FusionCheckpointError,

@@ -35,7 +35,8 @@ from macsplat_cli.images import save_image
 from macsplat_cli.neural import BackboneConfig, BackboneView, GaussianHead, MASt3RBackbone
 from macsplat_cli.neural.dinov3 import DINOv3Config
 from macsplat_cli.neural.fusion import FusionConfig, ResidualSemanticFusion, save_fusion
-from macsplat_cli.neural.predictor import PairPredictor, load_pair_predictor
+from macsplat_cli.neural.loading import load_pair_predictor
+from macsplat_cli.neural.predictor import PairPredictor
 from macsplat_cli.pipeline.matching import MatchConfig, match_features
 from macsplat_cli.pipeline.neural import NeuralPair, ViewWarp, estimate_focal_weiszfeld, sample_descriptors
 from macsplat_cli.pipeline.pose import pose_from_pointmap

@@ -23,15 +23,17 @@ import pytest
 import torch
 from test_neural_pipeline import write_tiny_checkpoints
 
+from macsplat_cli._state_dict import sha256_file
 from macsplat_cli.datasets import synthetic as syn
+from macsplat_cli.datasets.synthetic.sample import sample_pair
 from macsplat_cli.engine import EngineConfig, Models, NeuralOptions, reconstruct
 from macsplat_cli.neural import BackboneView
-from macsplat_cli.neural._state_dict import sha256_file
 from macsplat_cli.neural.config import BackboneConfig
+from macsplat_cli.neural.loading import load_pair_predictor
 from macsplat_cli.neural.onnx_export import ExportConfig, export_onnx
 from macsplat_cli.neural.onnx_format import ALLOWED_OPS, METADATA_KEY, ParityError, check_graph
 from macsplat_cli.neural.onnx_runtime import OnnxPairPredictor, read_predictor_info
-from macsplat_cli.neural.predictor import PairPredictor, load_pair_predictor
+from macsplat_cli.neural.predictor import PairPredictor
 from macsplat_cli.ply import read_ply
 
 from _helpers import one_error_line, render_pair, run_cli
@@ -213,7 +215,7 @@ def _exact_predictor(size: tuple[int, int], noise: float = 0.0) -> PairPredictor
 def test_the_onnx_path_writes_the_same_scene_as_the_torch_path(pair: tuple[Path, Path], tmp_path: Path) -> None:
     predictor = _exact_predictor(SIZE)
     path = tmp_path / "exact.onnx"
-    result = export_onnx(predictor, path, ExportConfig(size=SIZE, dynamic=False))
+    result = export_onnx(predictor, path, ExportConfig(size=SIZE, dynamic=False), sample=sample_pair(SIZE))
     assert result.parity.ok and not result.info.dynamic and read_predictor_info(path).size == SIZE
     config = EngineConfig(backend="neural", quality="best")  # every pixel's Gaussian, not the compacted scene
     ref = reconstruct(list(pair), config, models=Models(predictor=predictor))
@@ -233,7 +235,9 @@ def test_the_onnx_path_writes_the_same_scene_as_the_torch_path(pair: tuple[Path,
 def test_a_failed_parity_check_keeps_no_file(tmp_path: Path) -> None:
     path = tmp_path / "out" / "exact.onnx"
     with pytest.raises(ParityError, match="parity check failed") as e:
-        export_onnx(_exact_predictor(SIZE, noise=0.1), path, ExportConfig(size=SIZE, dynamic=False))
+        export_onnx(
+            _exact_predictor(SIZE, noise=0.1), path, ExportConfig(size=SIZE, dynamic=False), sample=sample_pair(SIZE)
+        )
     assert e.value.exit_code == 3 and e.value.report is not None and not e.value.report.ok
     assert list(path.parent.iterdir()) == []  # no graph, no weights, no parity file, no temporary folder
 
@@ -268,7 +272,9 @@ def test_fp16_export_of_a_training_checkpoint_from_the_cli(
 
 def test_int8_export_is_smaller_and_reports_its_parity(ckpts: dict[str, Path], tmp_path: Path) -> None:
     predictor = load_pair_predictor(weights=ckpts["mast3r"])
-    result = export_onnx(predictor, tmp_path / "p8.onnx", ExportConfig(size=SIZE, quantize="int8"))
+    result = export_onnx(
+        predictor, tmp_path / "p8.onnx", ExportConfig(size=SIZE, quantize="int8"), sample=sample_pair(SIZE)
+    )
     assert result.info.precision == "int8" and result.parity.ok and result.info.dynamic
     ops = {n.op_type for n in onnx.load(str(result.path)).graph.node}
     assert ops & {"DynamicQuantizeLinear", "MatMulInteger", "DynamicQuantizeMatMul"}

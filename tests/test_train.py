@@ -27,7 +27,7 @@ import torch
 from macsplat_cli.cli import main
 from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.errors import OutputPathError
-from macsplat_cli.neural.predictor import load_pair_predictor
+from macsplat_cli.neural.loading import load_pair_predictor
 from macsplat_cli.training.config import TrainConfig
 from macsplat_cli.training.data import PairSamplingConfig
 from macsplat_cli.training.model import ModelSpec, build_training_model, freeze_for_training

@@ -98,11 +98,13 @@ def export_onnx_command(
     The file runs in place of the checkpoints: [bold]macsplat reconstruct A B -o s.ply --backend neural
     --weights predictor.onnx[/]."""
     with command_context(ctx, verbose, quiet) as state:
+        from ..datasets.synthetic.sample import sample_pair
         from ..errors import InputError
+        from ..neural.loading import load_pair_predictor
         from ..neural.onnx_export import ExportConfig, export_onnx
         from ..neural.onnx_format import ParityError
         from ..neural.onnx_runtime import is_onnx_file
-        from ..neural.predictor import MISSING_WEIGHTS_HELP, load_pair_predictor
+        from ..neural.predictor import MISSING_WEIGHTS_HELP
 
         if checkpoint is not None and weights is not None:
             raise InputError("--checkpoint and --weights both name the backbone: give one")
@@ -150,7 +152,9 @@ def export_onnx_command(
                 sources = {
                     ("checkpoint" if k == "weights" and checkpoint is not None else k): v for k, v in files.items()
                 }
-                result = export_onnx(predictor, output, config, sources=sources, on_step=on_step)
+                result = export_onnx(
+                    predictor, output, config, sample=sample_pair(config.size), sources=sources, on_step=on_step
+                )
             except BaseException as e:
                 if current:
                     progress.event(_STEPS[current.pop()], "fail")

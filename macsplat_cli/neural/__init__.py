@@ -14,14 +14,13 @@ from .checkpoints import (
     LoadReport,
     check_state_dict,
     load_mast3r,
-    load_splatt3r,
     read_mast3r_checkpoint,
-    read_splatt3r_checkpoint,
-    sha256_file,
 )
-from .config import BackboneConfig, GaussianHeadConfig, ModelConfigError, parse_constructor_string
+from .config import BackboneConfig, GaussianHeadConfig
+from .constructor import ModelConfigError, parse_constructor_string
 from .gaussian_head import GaussianHead
 from .rope import RoPE2D, patch_positions
+from .splatt3r import load_splatt3r, read_splatt3r_checkpoint
 
 __all__ = [
     "BackboneConfig",
@@ -43,5 +42,4 @@ __all__ = [
     "patch_positions",
     "read_mast3r_checkpoint",
     "read_splatt3r_checkpoint",
-    "sha256_file",
 ]

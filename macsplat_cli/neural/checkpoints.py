@@ -1,4 +1,4 @@
-"""Load official MASt3R and Splatt3R checkpoints into :class:`MASt3RBackbone` / :class:`GaussianHead`.
+"""Load official MASt3R checkpoints into :class:`MASt3RBackbone`; what every official checkpoint loader shares.
 
 Supported layouts (see ``models/mast3r.md`` and ``models/splatt3r.md``):
 
@@ -9,9 +9,8 @@ Supported layouts (see ``models/mast3r.md`` and ``models/splatt3r.md``):
   ``{"enc_embed_dim": 1024, ..., "depth_mode": ["exp", -Infinity, Infinity]}``; a ``{"model": "AsymmetricMASt3R(...)"}``
   form is read too) plus ``model.safetensors`` (or ``pytorch_model.bin``). safetensors stores each shared tensor
   once, so the aliased ``…dpt.scratch.layer_rn.{i}`` / ``layer{i+1}_rn`` keys may appear under one name only.
-* **Splatt3R Lightning ``.ckpt``** — ``state_dict`` with ``encoder.`` + MASt3R keys and
-  ``encoder.downstream_head{1,2}.gaussian_dpt.dpt.*``; ``lpips_criterion.*`` (its training loss) and
-  ``decoder.*`` are ignored.
+* **Splatt3R Lightning ``.ckpt``** — read by :mod:`.splatt3r` with this module's safe reading and strict
+  checks.
 
 Files are read with ``torch.load(weights_only=True)``: only tensors and plain containers are built.
 ``argparse.Namespace`` (the ``args`` of a ``.pth``) is allow-listed. Training metadata that names other
@@ -41,11 +40,10 @@ import torch
 from torch import nn
 
 from .._limits import read_json_file
-from ._safetensors import read_safetensors
-from ._state_dict import StateDictError, check_state_dict_keys, log_sha256, sha256_file
+from .._state_dict import StateDictError, check_state_dict_keys, log_sha256, read_safetensors
 from .backbone import MASt3RBackbone
-from .config import BackboneConfig, GaussianHeadConfig, ModelConfigError
-from .gaussian_head import GaussianHead
+from .config import BackboneConfig
+from .constructor import ModelConfigError
 
 __all__ = [
     "INERT_GLOBAL_PREFIXES",
@@ -53,12 +51,11 @@ __all__ = [
     "CheckpointFormat",
     "CheckpointNotFoundError",
     "LoadReport",
+    "build_and_load",
     "check_state_dict",
     "load_mast3r",
-    "load_splatt3r",
     "read_mast3r_checkpoint",
-    "read_splatt3r_checkpoint",
-    "sha256_file",
+    "tensor_dict",
     "torch_load_restricted",
 ]
 
@@ -68,22 +65,14 @@ CheckpointFormat = Literal["mast3r-pth", "mast3r-hf", "splatt3r-ckpt"]
 
 MAST3R_FILE = "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth"
 MAST3R_HF_REPO = "https://huggingface.co/naver/MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric"
-SPLATT3R_FILE = "epoch=19-step=1200.ckpt"
-SPLATT3R_HF_REPO = "https://huggingface.co/brandonsmart/splatt3r_v1.0"
 _MAST3R_HINT = (
     f"macsplat needs the MASt3R checkpoint {MAST3R_FILE} (or a Hugging Face folder with config.json + "
     f"model.safetensors), from {MAST3R_HF_REPO} or the naver/mast3r README; licence CC BY-NC-SA 4.0, "
     "non-commercial use only (see models/mast3r.md)"
 )
-_SPLATT3R_HINT = (
-    f"macsplat needs the Splatt3R checkpoint {SPLATT3R_FILE} from {SPLATT3R_HF_REPO}; licence CC BY-NC 4.0, "
-    "non-commercial use only (see models/splatt3r.md)"
-)
 
 # Keys the model has but a checkpoint may lack: CroCo's pre-training mask token (unused at inference).
 _OPTIONAL_KEYS = ("mask_token",)
-_SPLATT3R_IGNORED_PREFIXES = ("lpips_criterion.", "decoder.")
-
 INERT_GLOBAL_PREFIXES = (
     "omegaconf.",
     "typing.",
@@ -243,7 +232,8 @@ def torch_load_restricted(path: Path, *, what: str) -> Any:
 
 
 # ============================================================================================= state-dict checks
-def _tensor_dict(obj: Any, path: Path, what: str) -> dict[str, torch.Tensor]:
+def tensor_dict(obj: Any, path: Path, what: str) -> dict[str, torch.Tensor]:
+    """``obj`` as a state dict (string keys, tensor values); else :class:`CheckpointError` naming ``what``."""
     if not isinstance(obj, Mapping):
         raise CheckpointError(f"{what} {path}: expected a state dict (a mapping), got {type(obj).__name__}", path=path)
     for k, v in obj.items():
@@ -306,7 +296,7 @@ def check_state_dict(
     Raises:
         CheckpointError: a key has the wrong shape (always), or, with ``strict``, a key is unknown or a
             model key is missing. The message names the first bad key in file order and both shapes
-            (the check every loader shares, :func:`._state_dict.check_state_dict_keys`).
+            (the check every loader shares, :func:`macsplat_cli._state_dict.check_state_dict_keys`).
     """
     expected = {k: v.shape for k, v in module.state_dict(keep_vars=True).items()}
     return check_state_dict_keys(
@@ -321,7 +311,7 @@ def check_state_dict(
     )
 
 
-def _build_and_load(
+def build_and_load(
     factory: Any, sd: dict[str, torch.Tensor], *, path: Path, strict: bool, key_prefix: str = ""
 ) -> tuple[nn.Module, tuple[str, ...], tuple[str, ...], list[str]]:
     """Build the module on ``meta``, check ``sd`` against it, then load the file's tensors in place (no copy)."""
@@ -413,18 +403,18 @@ def read_mast3r_checkpoint(
             raw: Any = _read_safetensors(weights)
         else:
             raw = torch_load_restricted(weights, what="MASt3R weights")
-        return _tensor_dict(raw, weights, "MASt3R weights"), cfg, "mast3r-hf", weights
+        return tensor_dict(raw, weights, "MASt3R weights"), cfg, "mast3r-hf", weights
 
     ckpt = torch_load_restricted(path, what="MASt3R checkpoint")
     if isinstance(ckpt, Mapping) and "model" in ckpt:
-        sd = _tensor_dict(ckpt["model"], path, "MASt3R checkpoint")
+        sd = tensor_dict(ckpt["model"], path, "MASt3R checkpoint")
         args = ckpt.get("args")
     elif isinstance(ckpt, Mapping) and "state_dict" in ckpt:
         raise CheckpointError(
             f"{path} looks like a Lightning checkpoint (it has 'state_dict'); load it with load_splatt3r", path=path
         )
     else:
-        sd = _tensor_dict(ckpt, path, "MASt3R checkpoint")
+        sd = tensor_dict(ckpt, path, "MASt3R checkpoint")
         args = None
     if config is not None:
         cfg = config
@@ -457,7 +447,7 @@ def load_mast3r(
     """
     sd, cfg, fmt, weights = read_mast3r_checkpoint(path, config=config)
     digest = log_sha256(weights, logger, "MASt3R weights")
-    model, missing, unexpected, notes = _build_and_load(lambda: MASt3RBackbone(cfg), sd, path=weights, strict=strict)
+    model, missing, unexpected, notes = build_and_load(lambda: MASt3RBackbone(cfg), sd, path=weights, strict=strict)
     for note in notes:
         logger.debug("%s: %s", weights.name, note)
     if unexpected:
@@ -465,108 +455,3 @@ def load_mast3r(
     report = LoadReport(Path(path), fmt, missing, unexpected, (), tuple(notes), digest)
     assert isinstance(model, MASt3RBackbone)
     return model.eval(), report
-
-
-# ============================================================================================= Splatt3R
-def read_splatt3r_checkpoint(
-    path: Path | str,
-) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor], tuple[str, ...], tuple[str, ...]]:
-    """Split a Splatt3R Lightning checkpoint's ``state_dict``.
-
-    Returns ``(backbone_sd, gaussian_sd, ignored_keys, other_keys)``: MASt3R keys and
-    ``downstream_head{1,2}.gaussian_dpt.*`` keys with the ``encoder.`` prefix removed, the ignored
-    LPIPS/renderer keys, and keys of no known group.
-    """
-    path = Path(path)
-    if not path.exists():
-        raise CheckpointNotFoundError(f"Splatt3R checkpoint not found: {path}. {_SPLATT3R_HINT}", path=path)
-    if path.is_dir():
-        raise CheckpointError(f"{path} is a folder; give the Splatt3R .ckpt file itself. {_SPLATT3R_HINT}", path=path)
-    ckpt = torch_load_restricted(path, what="Splatt3R checkpoint")
-    if not isinstance(ckpt, Mapping) or "state_dict" not in ckpt:
-        raise CheckpointError(
-            f"{path} is not a Lightning checkpoint (no 'state_dict' entry); a MASt3R .pth loads with load_mast3r",
-            path=path,
-        )
-    sd = _tensor_dict(ckpt["state_dict"], path, "Splatt3R checkpoint")
-    backbone: dict[str, torch.Tensor] = {}
-    gaussian: dict[str, torch.Tensor] = {}
-    ignored: list[str] = []
-    other: list[str] = []
-    for k, v in sd.items():
-        if k.startswith("encoder."):
-            key = k[len("encoder.") :]
-            (gaussian if ".gaussian_dpt." in key else backbone)[key] = v
-        elif k.startswith(_SPLATT3R_IGNORED_PREFIXES):
-            ignored.append(k)
-        else:
-            other.append(k)
-    if ignored:
-        logger.debug("%s: %d LPIPS/renderer key(s) ignored", path.name, len(ignored))
-    return backbone, gaussian, tuple(ignored), tuple(other)
-
-
-def load_splatt3r(
-    path: Path | str,
-    *,
-    backbone_config: BackboneConfig | None = None,
-    head_config: GaussianHeadConfig | None = None,
-    strict: bool = True,
-) -> tuple[MASt3RBackbone, GaussianHead, LoadReport]:
-    """Build the frozen MASt3R backbone and the Gaussian head from a Splatt3R ``.ckpt`` (eval mode, CPU).
-
-    Args:
-        path: the Lightning checkpoint.
-        backbone_config: architecture; default: the released MASt3R size built as Splatt3R does
-            (``head_type='gaussian_head'``, ``desc_conf_mode=('exp', 1, inf)``: it omits that argument).
-            The checkpoint's own config is an OmegaConf object, which is not read.
-        head_config: default: ``K`` (SH coefficients per channel) from the shape of the head's last
-            convolution, offsets on.
-        strict: as :func:`load_mast3r`; keys outside ``encoder.``, ``lpips_criterion.`` and ``decoder.``
-            count as unexpected.
-    """
-    path = Path(path)
-    backbone_sd, gaussian_sd, ignored, other = read_splatt3r_checkpoint(path)
-    if other and strict:
-        raise CheckpointError(
-            f"{path}: unexpected key {other[0]!r} (not under 'encoder.', 'lpips_criterion.' or 'decoder.')",
-            path=path,
-            key=other[0],
-            file_shape=None,
-            unexpected_keys=other,
-        )
-    if not gaussian_sd:
-        raise CheckpointError(
-            f"{path} has no 'encoder.downstream_head1.gaussian_dpt.*' weights: not a Splatt3R checkpoint", path=path
-        )
-    digest = log_sha256(path, logger, "Splatt3R checkpoint")
-    bcfg = backbone_config or BackboneConfig(head_type="gaussian_head", desc_conf_mode=("exp", 1.0, float("inf")))
-    if head_config is None:
-        last = gaussian_sd.get("downstream_head1.gaussian_dpt.dpt.head.4.weight")
-        n = int(last.shape[0]) if last is not None else 14
-        if (n - 11) % 3 or (n - 11) // 3 not in (1, 4, 9, 16):
-            raise CheckpointError(
-                f"{path}: gaussian_dpt predicts {n} channels, which is not 11 + 3·K for K in (1, 4, 9, 16)",
-                path=path,
-                key="encoder.downstream_head1.gaussian_dpt.dpt.head.4.weight",
-                file_shape=tuple(last.shape) if last is not None else None,
-            )
-        head_config = GaussianHeadConfig(sh_coeffs=(n - 11) // 3)
-    hcfg = head_config
-    backbone, b_missing, b_unexp, notes = _build_and_load(
-        lambda: MASt3RBackbone(bcfg), backbone_sd, path=path, strict=strict, key_prefix="encoder."
-    )
-    head, h_missing, h_unexp, h_notes = _build_and_load(
-        lambda: GaussianHead(bcfg, hcfg), gaussian_sd, path=path, strict=strict, key_prefix="encoder."
-    )
-    report = LoadReport(
-        path,
-        "splatt3r-ckpt",
-        missing_keys=tuple("encoder." + k for k in (*b_missing, *h_missing)),
-        unexpected_keys=tuple("encoder." + k for k in (*b_unexp, *h_unexp)) + other,
-        ignored_keys=ignored,
-        notes=tuple(notes + h_notes),
-        sha256=digest,
-    )
-    assert isinstance(backbone, MASt3RBackbone) and isinstance(head, GaussianHead)
-    return backbone.eval(), head.eval(), report

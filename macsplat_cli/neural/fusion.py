@@ -50,8 +50,8 @@ from torch import nn
 
 from macsplat_cli._atomic import atomic_torch_save
 from macsplat_cli._checks import check_shape
+from macsplat_cli._state_dict import StateDictError, check_state_dict_keys, log_sha256
 from macsplat_cli.errors import ShapeError
-from macsplat_cli.neural._state_dict import StateDictError, check_state_dict_keys, log_sha256
 from macsplat_cli.neural.dinov3 import DINOv3Encoder
 
 __all__ = [

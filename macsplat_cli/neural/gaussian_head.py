@@ -4,7 +4,7 @@ Written from ``shared/reference/mast3r_splatt3r.md`` §3.2 (no upstream code). T
 mirrors Splatt3R's checkpoint: ``downstream_head{1,2}.gaussian_dpt.dpt.*`` (the same DPT structure
 as the point-map DPT, hooks ``(0, 6, 9, 12)``, with ``11 + 3K`` output channels). In a Splatt3R
 Lightning checkpoint these keys carry an ``encoder.`` prefix, which
-:func:`~macsplat_cli.neural.checkpoints.load_splatt3r` strips.
+:func:`~macsplat_cli.neural.splatt3r.load_splatt3r` strips.
 
 Per-pixel channel layout of the DPT output: ``[offset 3 | scale 3 | rotation 4 | sh 3·K | opacity 1]``.
 Activations:
@@ -41,8 +41,9 @@ from .._checks import check_shape
 from ..errors import ShapeError
 from ..gaussians import GaussianMaps
 from ..sh import rgb_to_sh0
-from .backbone import BackboneView, DPTAdapter
+from .backbone import BackboneView
 from .config import BackboneConfig, GaussianHeadConfig
+from .dpt import DPTAdapter
 
 __all__ = ["GaussianDPT", "GaussianHead"]
 

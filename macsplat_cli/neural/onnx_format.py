@@ -45,7 +45,6 @@ __all__ = [
     "check_graph",
     "compare_outputs",
     "expected_output_names",
-    "sample_pair",
 ]
 
 FORMAT = "macsplat-pair-predictor"
@@ -335,18 +334,6 @@ def _check_metadata(doc: dict[str, Any], source: str) -> None:
 
 
 # ============================================================================================= parity
-def sample_pair(size: tuple[int, int], seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
-    """A deterministic, photo-like pair at ``size = (W, H)``: a ray-traced room seen from two cameras
-    15° apart (texture, edges, depth), so that the network sees what it was trained on. ``[1, 3, H, W]`` each."""
-    from ..datasets import synthetic as syn
-
-    w, h = size
-    scene = syn.make_scene("room", seed)
-    cams = syn.orbit_pair("room", 15, width=w, height=h, fov_deg=60.0)
-    imgs = [torch.from_numpy(np.ascontiguousarray(syn.render(scene, c).image, np.float32)) for c in cams]
-    return tuple(im.permute(2, 0, 1)[None].clamp(0, 1).contiguous() for im in imgs)  # type: ignore[return-value]
-
-
 @dataclass
 class ParityReport:
     """onnxruntime against the fp32 torch predictor on one sample pair, per output.

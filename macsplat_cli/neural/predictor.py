@@ -10,8 +10,9 @@ wraps the output tuple into a :class:`PairPrediction`.
 Input convention: RGB in [0, 1], ``[B, 3, H, W]``, ``H`` and ``W`` multiples of 16, both views the
 same size. Outputs are per view, stacked on dim 1 (``[B, 2, …]``), in **view 0's camera frame**.
 
-:func:`load_pair_predictor` builds one from the user's official checkpoints (MASt3R, Splatt3R,
-DINOv3) and macsplat fusion weights, checking that they fit each other before any work.
+:func:`~.loading.load_pair_predictor` builds one from the user's official checkpoints (MASt3R, Splatt3R,
+DINOv3) and macsplat fusion weights; :func:`check_fusion_files` and :func:`resolve_device` check the options
+that choose them before any file is read.
 """
 
 from __future__ import annotations
@@ -27,9 +28,9 @@ from .._checks import check_shape
 from ..errors import InputError, ShapeError
 from ..gaussians import GaussianMaps
 from .backbone import MASt3RBackbone
-from .checkpoints import MAST3R_FILE, MAST3R_HF_REPO, CheckpointNotFoundError, load_mast3r, load_splatt3r
-from .dinov3 import DINOv3Encoder, load_dinov3
-from .fusion import ResidualSemanticFusion, fuse_descriptors, load_fusion
+from .checkpoints import MAST3R_FILE, MAST3R_HF_REPO
+from .dinov3 import DINOv3Encoder
+from .fusion import ResidualSemanticFusion, fuse_descriptors
 from .gaussian_head import GaussianHead
 
 __all__ = [
@@ -38,7 +39,7 @@ __all__ = [
     "PairPrediction",
     "PairPredictor",
     "check_fusion_files",
-    "load_pair_predictor",
+    "prediction_from_outputs",
     "resolve_device",
 ]
 
@@ -259,7 +260,7 @@ def prediction_from_outputs(outputs: tuple[torch.Tensor, ...] | list[torch.Tenso
     return PairPrediction(pts3d, conf, desc, desc_conf, gaussians)  # type: ignore[arg-type]
 
 
-# ============================================================================================= loading
+# ============================================================================================= options
 def resolve_device(name: str) -> torch.device:
     """``"cpu"`` or ``"cuda"`` (the latter only when CUDA is usable).
 
@@ -290,72 +291,3 @@ def check_fusion_files(dino: Path | str | None, fusion: Path | str | None) -> No
             f"{given} needs {other} too: semantic fusion uses the DINOv3 encoder (--dino) and the trained fusion "
             "weights (--fusion); give both, or neither to skip the fusion"
         )
-
-
-def load_pair_predictor(
-    *,
-    weights: Path | str | None = None,
-    gaussian_head: Path | str | None = None,
-    dino: Path | str | None = None,
-    fusion: Path | str | None = None,
-) -> PairPredictor:
-    """The predictor from the user's checkpoints, on the CPU in eval mode (move it with ``.to(device)``).
-
-    * ``weights`` (MASt3R ``.pth`` or Hugging Face folder): the backbone; or a macsplat checkpoint
-      (``macsplat train``'s ``.pt``, :mod:`.predictor_io`), which holds the whole predictor.
-    * ``gaussian_head`` (Splatt3R ``.ckpt``): the Gaussian head. A Splatt3R checkpoint holds its
-      frozen MASt3R too, so it alone is enough; with ``weights`` as well, the backbone comes from
-      ``weights`` (its architecture, from its ``args``, also sizes the head) and only the head is taken
-      from the Splatt3R file (Splatt3R trained its head on the released MASt3R weights, frozen).
-    * ``dino`` and ``fusion`` go together: semantic fusion needs both the DINOv3 encoder and the
-      trained fusion weights.
-
-    Raises:
-        CheckpointNotFoundError: neither ``weights`` nor ``gaussian_head`` (the message says which
-            file is needed and where to get it), or a file that does not exist.
-        CheckpointError / DINOv3CheckpointError / FusionCheckpointError: a file that does not fit.
-        InputError: ``dino`` without ``fusion`` (or the reverse), widths that do not match.
-    """
-    if weights is None and gaussian_head is None:
-        raise CheckpointNotFoundError(MISSING_WEIGHTS_HELP)
-    check_fusion_files(dino, fusion)
-    from .predictor_io import is_predictor_checkpoint, load_predictor_checkpoint
-
-    if weights is not None and is_predictor_checkpoint(weights):
-        others = [flag for flag, v in (("--gaussian-head", gaussian_head), ("--dino", dino), ("--fusion", fusion)) if v]
-        if others:
-            raise InputError(
-                f"{weights} is a macsplat checkpoint: it carries its own Gaussian head, DINOv3 and fusion weights; "
-                f"drop {', '.join(others)}"
-            )
-        predictor, meta = load_predictor_checkpoint(weights)
-        logger.info(
-            "macsplat checkpoint %s (%s)", weights, ", ".join(f"{k} {v}" for k, v in meta.items() if k == "step")
-        )
-        return predictor
-    head: GaussianHead | None = None
-    if weights is not None:
-        backbone, _ = load_mast3r(weights)
-        if gaussian_head is not None:
-            _, head, _ = load_splatt3r(
-                gaussian_head, backbone_config=backbone.config.replace(head_type="gaussian_head")
-            )
-    else:
-        assert gaussian_head is not None
-        backbone, head, _ = load_splatt3r(gaussian_head)
-    encoder = fusion_module = None
-    if dino is not None and fusion is not None:
-        encoder, fusion_module = load_dinov3(dino), load_fusion(fusion)
-        try:
-            predictor = PairPredictor(backbone, head, encoder, fusion_module)
-        except InputError as e:
-            raise InputError(f"{fusion} does not fit {dino} and the backbone: {e}") from None
-    else:
-        predictor = PairPredictor(backbone, head)
-    logger.info(
-        "neural backend: MASt3R %.0fM parameters%s%s",
-        sum(p.numel() for p in backbone.parameters()) / 1e6,
-        ", Splatt3R Gaussian head" if head is not None else "",
-        f", DINOv3 {encoder.config.name} fusion" if encoder is not None else "",
-    )
-    return predictor.eval()

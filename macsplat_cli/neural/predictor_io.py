@@ -24,8 +24,8 @@ from typing import Any
 import torch
 
 from .._atomic import atomic_torch_save
+from .._state_dict import StateDictError, check_state_dict_keys, log_sha256
 from ..errors import InputError
-from ._state_dict import StateDictError, check_state_dict_keys, log_sha256
 from .backbone import MASt3RBackbone
 from .config import BackboneConfig, GaussianHeadConfig
 from .dinov3 import DINOv3Config, DINOv3Encoder

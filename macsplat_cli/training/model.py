@@ -89,7 +89,7 @@ def build_training_model(spec: ModelSpec) -> PairPredictor:
         return predictor
     if spec.init != "weights":
         raise InputError(f"--init {spec.init!r}: use random or weights")
-    from ..neural.predictor import load_pair_predictor
+    from ..neural.loading import load_pair_predictor
     from ..neural.predictor_io import is_predictor_checkpoint
 
     if spec.weights is not None and is_predictor_checkpoint(spec.weights):

@@ -17,9 +17,9 @@ from pathlib import Path
 import torch
 
 from ..._limits import read_json_file
-from .._safetensors import read_safetensors as _read_safetensors
-from .._state_dict import StateDictError, check_state_dict_keys, log_sha256
-from ..config import ModelConfigError
+from ..._state_dict import StateDictError, check_state_dict_keys, log_sha256
+from ..._state_dict import read_safetensors as _read_safetensors
+from ..constructor import ModelConfigError
 from .config import DINOV3_PRESETS, SAT493M_MEAN, SAT493M_STD, DINOv3Config
 from .model import DINOv3Encoder, rope_periods
 
@@ -91,7 +91,7 @@ class DINOv3WeightsNotFoundError(DINOv3CheckpointError, FileNotFoundError):
 
 
 def read_safetensors(path: str | os.PathLike[str]) -> dict[str, torch.Tensor]:
-    """Read a ``.safetensors`` file into CPU tensors (:func:`._safetensors.read_safetensors`).
+    """Read a ``.safetensors`` file into CPU tensors (:func:`macsplat_cli._state_dict.read_safetensors`).
 
     Raises:
         DINOv3CheckpointError: the file is truncated or its header is malformed.
@@ -262,21 +262,7 @@ def infer_dinov3_config(state_dict: Mapping[str, torch.Tensor], *, num_heads: in
     swiglu = "blocks.0.mlp.w1.weight" in state_dict
     first_ffn = "blocks.0.mlp.w1" if swiglu else "blocks.0.mlp.fc1"
     hidden = int(_need(state_dict, f"{first_ffn}.weight", "FFN").shape[0])
-    periods = state_dict.get("rope_embed.periods")
-    rope_base = _DEFAULT_ROPE_BASE
-    if periods is not None and periods.dim() == 1 and periods.numel() > 0:
-        head_dim = 4 * int(periods.numel())
-        heads = c // head_dim if c % head_dim == 0 else 0
-        rope_base = rope_base_from_periods(periods)
-    elif num_heads:
-        if not isinstance(num_heads, int) or isinstance(num_heads, bool):
-            raise DINOv3CheckpointError(f"num_attention_heads={num_heads!r} is not a whole number", key=None)
-        heads = num_heads
-    else:
-        heads = _HEADS_BY_WIDTH.get(c, c // 64)
-        logger.warning("the DINOv3 weights do not give the head count: assuming %d heads for width %d", heads, c)
-    if heads <= 0 or c % heads != 0 or (c // heads) % 4 != 0:
-        raise DINOv3CheckpointError(f"cannot infer the DINOv3 head count for width {c}", key="rope_embed.periods")
+    heads, rope_base = _heads_and_rope_base(state_dict, c, num_heads)
     untie = "local_cls_norm.weight" in state_dict
     try:
         base = DINOv3Config(
@@ -296,6 +282,33 @@ def infer_dinov3_config(state_dict: Mapping[str, torch.Tensor], *, num_heads: in
         )
     except ModelConfigError as e:
         raise DINOv3CheckpointError(f"the weights describe an unsupported DINOv3 variant: {e}", key=None) from None
+    return _named(base, untie)
+
+
+def _heads_and_rope_base(state_dict: Mapping[str, torch.Tensor], c: int, num_heads: int | None) -> tuple[int, float]:
+    """The head count and the RoPE base of a width-``c`` ViT: from ``rope_embed.periods`` when the file has
+    them, else ``num_heads``, else the released models' head count for that width (and the default base)."""
+    periods = state_dict.get("rope_embed.periods")
+    rope_base = _DEFAULT_ROPE_BASE
+    if periods is not None and periods.dim() == 1 and periods.numel() > 0:
+        head_dim = 4 * int(periods.numel())
+        heads = c // head_dim if c % head_dim == 0 else 0
+        rope_base = rope_base_from_periods(periods)
+    elif num_heads:
+        if not isinstance(num_heads, int) or isinstance(num_heads, bool):
+            raise DINOv3CheckpointError(f"num_attention_heads={num_heads!r} is not a whole number", key=None)
+        heads = num_heads
+    else:
+        heads = _HEADS_BY_WIDTH.get(c, c // 64)
+        logger.warning("the DINOv3 weights do not give the head count: assuming %d heads for width %d", heads, c)
+    if heads <= 0 or c % heads != 0 or (c // heads) % 4 != 0:
+        raise DINOv3CheckpointError(f"cannot infer the DINOv3 head count for width {c}", key="rope_embed.periods")
+    return heads, rope_base
+
+
+def _named(base: DINOv3Config, untie: bool) -> DINOv3Config:
+    """``base`` (named ``custom``) under its preset's name when it is one (an untied ViT-L: the SAT-493M model,
+    with its normalisation), else ``custom-{width}d-{depth}x{heads}h-{ffn}{hidden}[-rope{base}]``."""
     for name, preset in DINOV3_PRESETS.items():
         if name == "tiny":
             continue
@@ -312,9 +325,9 @@ def infer_dinov3_config(state_dict: Mapping[str, torch.Tensor], *, num_heads: in
                     image_std=SAT493M_STD,
                 )
             return dataclasses.replace(base, name=f"{name}-untied")
-    ffn = "swiglu" if swiglu else "mlp"
-    rope = f"-rope{rope_base:g}" if rope_base != _DEFAULT_ROPE_BASE else ""
-    return dataclasses.replace(base, name=f"custom-{c}d-{depth}x{heads}h-{ffn}{hidden}{rope}")
+    c, depth, heads, hidden = base.embed_dim, base.depth, base.num_heads, base.ffn_hidden_dim
+    rope = f"-rope{base.rope_base:g}" if base.rope_base != _DEFAULT_ROPE_BASE else ""
+    return dataclasses.replace(base, name=f"custom-{c}d-{depth}x{heads}h-{base.ffn}{hidden}{rope}")
 
 
 def _not_found(what: Path, detail: str = "") -> DINOv3WeightsNotFoundError:
@@ -401,45 +414,13 @@ def load_dinov3(
             keys, and both shapes).
     """
     p = Path(path)
-    if not p.exists():
-        raise _not_found(p)
-    hf_config: dict = {}
-    if p.is_dir():
-        sd, hf_config = _read_hf_folder(p)
-    else:
-        sd = _read_file(p)
-    layout = "official"
-    if any(k.startswith("embeddings.") for k in sd):
-        layout = "huggingface"
-        try:
-            sd = hf_to_official(sd)
-        except DINOv3CheckpointError as e:
-            raise DINOv3CheckpointError(f"{p}: {e}", key=e.key, file_shape=e.file_shape) from None
+    sd, hf_config, layout = _read_weights(p)
     try:
         cfg = config or infer_dinov3_config(sd, num_heads=hf_config.get("num_attention_heads"))
     except DINOv3CheckpointError as e:
         raise DINOv3CheckpointError(f"{p}: {e}", key=e.key) from None
     if config is None and hf_config:
-        width = hf_config.get("hidden_size", cfg.embed_dim)
-        if width != cfg.embed_dim:
-            raise DINOv3CheckpointError(
-                f"{p}: config.json says hidden_size {width} but the weights have width {cfg.embed_dim}",
-                key="embeddings.cls_token",
-            )
-        act = "silu" if cfg.ffn == "swiglu" else "gelu"
-        if hf_config.get("hidden_act", act) != act:
-            raise DINOv3CheckpointError(
-                f"{p}: config.json hidden_act {hf_config['hidden_act']!r} is not supported "
-                f"(DINOv3 uses {act!r} with a {cfg.ffn} FFN)"
-            )
-        try:
-            cfg = dataclasses.replace(
-                cfg,
-                norm_eps=float(hf_config.get("layer_norm_eps", cfg.norm_eps)),
-                rope_base=float(hf_config.get("rope_theta", cfg.rope_base)),
-            )
-        except (TypeError, ValueError) as e:  # ModelConfigError is a ValueError
-            raise DINOv3CheckpointError(f"{p}: config.json: unsupported layer_norm_eps or rope_theta: {e}") from None
+        cfg = _with_hf_config(cfg, hf_config, p)
     if layout == "huggingface" and "rope_embed.periods" not in sd:
         sd["rope_embed.periods"] = rope_periods(cfg.head_dim, cfg.rope_base)
 
@@ -456,3 +437,48 @@ def load_dinov3(
     n_params = sum(t.numel() for t in encoder.parameters())
     logger.info("loaded DINOv3 %s (%s layout, %.1fM parameters) from %s", cfg.name, layout, n_params / 1e6, p)
     return encoder
+
+
+def _read_weights(p: Path) -> tuple[dict[str, torch.Tensor], dict, str]:
+    """``(official-layout state dict, the folder's config.json or {}, "official" | "huggingface")``."""
+    if not p.exists():
+        raise _not_found(p)
+    hf_config: dict = {}
+    if p.is_dir():
+        sd, hf_config = _read_hf_folder(p)
+    else:
+        sd = _read_file(p)
+    layout = "official"
+    if any(k.startswith("embeddings.") for k in sd):
+        layout = "huggingface"
+        try:
+            sd = hf_to_official(sd)
+        except DINOv3CheckpointError as e:
+            raise DINOv3CheckpointError(f"{p}: {e}", key=e.key, file_shape=e.file_shape) from None
+    return sd, hf_config, layout
+
+
+def _with_hf_config(cfg: DINOv3Config, hf_config: dict, p: Path) -> DINOv3Config:
+    """The inferred ``cfg`` checked against a Hugging Face ``config.json`` (width, activation), with its
+    ``layer_norm_eps`` and ``rope_theta``."""
+    width = hf_config.get("hidden_size", cfg.embed_dim)
+    if width != cfg.embed_dim:
+        raise DINOv3CheckpointError(
+            f"{p}: config.json says hidden_size {width} but the weights have width {cfg.embed_dim}",
+            key="embeddings.cls_token",
+        )
+    act = "silu" if cfg.ffn == "swiglu" else "gelu"
+    if hf_config.get("hidden_act", act) != act:
+        raise DINOv3CheckpointError(
+            f"{p}: config.json hidden_act {hf_config['hidden_act']!r} is not supported "
+            f"(DINOv3 uses {act!r} with a {cfg.ffn} FFN)"
+        )
+    try:
+        cfg = dataclasses.replace(
+            cfg,
+            norm_eps=float(hf_config.get("layer_norm_eps", cfg.norm_eps)),
+            rope_base=float(hf_config.get("rope_theta", cfg.rope_base)),
+        )
+    except (TypeError, ValueError) as e:  # ModelConfigError is a ValueError
+        raise DINOv3CheckpointError(f"{p}: config.json: unsupported layer_norm_eps or rope_theta: {e}") from None
+    return cfg

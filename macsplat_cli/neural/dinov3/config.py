@@ -6,7 +6,7 @@ import math
 from dataclasses import dataclass
 from typing import Literal
 
-from ..config import ModelConfigError
+from ..constructor import ModelConfigError
 
 __all__ = [
     "DINOV3_PRESETS",
@@ -42,7 +42,7 @@ class DINOv3Config:
     """Hyper-parameters of a DINOv3 ViT.
 
     Sizes are bounded (depth ≤ 64, width ≤ 8192, ≤ 256 heads, FFN ≤ 32768, patch 8–64, ≤ 64 registers):
-    invalid or out-of-range values raise :class:`~macsplat_cli.neural.config.ModelConfigError`
+    invalid or out-of-range values raise :class:`~macsplat_cli.neural.constructor.ModelConfigError`
     (an ``InputError`` and a ``ValueError``).
 
     Args:
