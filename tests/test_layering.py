@@ -84,9 +84,6 @@ freely (still without cycles)."""
 INDEPENDENT_LAYERS = (2, 4)
 
 KNOWN: dict[str, str] = {
-    "upward: datasets.synthetic.planar → pipeline.types": "issue 24 item 4: the data sets stop using pipeline types",
-    "sideways: training.loss → evaluation.coverage": "issue 24 item 4: coverage moves to the data sets",
-    "sideways: training.pairs → evaluation.coverage": "issue 24 item 4: coverage moves to the data sets",
     "private: compact → render._constants": "issue 24 item 3: the compact stage moves into pipeline/",
 }
 """Violations other work items of issue 24 remove, each with the item that removes it. Empty once they land."""
