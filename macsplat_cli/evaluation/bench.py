@@ -37,9 +37,10 @@ import numpy as np
 
 from .._atomic import atomic_write_bytes, atomic_write_text, check_folder, check_writable
 from ..datasets import EvalDataset
-from ..engine import BACKENDS as ENGINE
-from ..engine import EngineConfig, Models, NeuralOptions, RefineOptions, load_models
+from ..engine import EngineConfig, Models, NeuralOptions, load_models
 from ..errors import InputError, OutputPathError
+from ..pipeline.refine import RefineConfig
+from ..presets import BACKENDS as ENGINE
 from .protocol import EvalConfig, EvalRun, ResultWriter, evaluate, format_cell, summarize, to_jsonable
 from .reconstructors import BACKENDS, Reconstructor, ReconstructSettings, make_reconstructor
 from .splits import EvalCase
@@ -287,7 +288,7 @@ def run_bench(
             quality=s.quality,
         )
         if s.backend not in models:  # the networks load once per backend
-            models[s.backend] = load_models(config.replace(refine=RefineOptions())) if s.backend in ENGINE else Models()
+            models[s.backend] = load_models(config.replace(refine=RefineConfig())) if s.backend in ENGINE else Models()
         recon = make_reconstructor(config, models[s.backend])
         cfg = EvalConfig(
             settings=ReconstructSettings(size=s.size, intrinsics=intrinsics),  # type: ignore[arg-type]
