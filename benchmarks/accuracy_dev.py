@@ -34,12 +34,13 @@ import numpy as np
 import torch
 
 from macsplat_cli.cameras import Camera, CameraSet, save_cameras
-from macsplat_cli.engine import EngineConfig, RefineOptions, reconstruct
+from macsplat_cli.engine import EngineConfig, reconstruct
 from macsplat_cli.errors import MacsplatError
 from macsplat_cli.metrics import psnr, rotation_error_deg, ssim, translation_direction_error_deg
 from macsplat_cli.pipeline.background import BackgroundConfig
 from macsplat_cli.pipeline.depth import DepthConfig
 from macsplat_cli.pipeline.gaussian_init import GaussianInitConfig
+from macsplat_cli.pipeline.refine import RefineConfig
 from macsplat_cli.pipeline.run import ReconstructConfig
 from macsplat_cli.pipeline.views import ViewConfig, working_size
 from macsplat_cli.render import render_camera
@@ -142,7 +143,7 @@ def run_case(
     speckle: bool = True,
 ) -> dict:  # fmt: skip
     f0, f1 = frames[pair[0]], frames[pair[1]]
-    cfg = ReconstructConfig(views=ViewConfig(size=size))
+    cfg = ReconstructConfig(views=ViewConfig())
     if before:  # the settings before issue 15
         cfg.depth = DepthConfig(
             fill_lambda=400.0, snap_edges=False, fuse=False, slanted_iters=0, colour_tol=0.0, speckle_size=0.0
@@ -162,7 +163,7 @@ def run_case(
         cfg.views.intrinsics = tmp
     t0 = time.perf_counter()
     try:
-        rec = reconstruct([f0.path, f1.path], EngineConfig(pipeline=cfg, refine=RefineOptions(steps=refine)))
+        rec = reconstruct([f0.path, f1.path], EngineConfig(size=size, pipeline=cfg, refine=RefineConfig(steps=refine)))
     except MacsplatError as e:
         return {"failed": str(e), "time_s": time.perf_counter() - t0}
     dt = time.perf_counter() - t0

@@ -71,11 +71,10 @@ def main() -> None:
     from macsplat_cli.ply import write_ply
 
     config = None
-    if args.quality:  # as the CLI builds it: the preset's working size
-        from macsplat_cli.engine import WORKING_SIZE, EngineConfig
+    if args.quality:  # as the CLI builds it (the engine applies the preset's working size)
+        from macsplat_cli.engine import EngineConfig
 
         config = EngineConfig(quality=args.quality)
-        config.pipeline.views.size = WORKING_SIZE[args.quality]
     reconstruct(images, config)  # warm-up (kernels from the default cache location)
     runs = []
     for _ in range(args.repeat):

@@ -1,4 +1,4 @@
-"""Scene compaction (``macsplat_cli.compact``): Gaussians, PLY size, render time and held-out PSNR per preset.
+"""Scene compaction (``macsplat_cli.pipeline.compact``): Gaussians, PLY size, render time and held-out PSNR per preset.
 
     python benchmarks/compact_gaussians.py --data ../shared/data               # dev scenes + synthetic + example
     python benchmarks/compact_gaussians.py --data ../shared/data --only synthetic --json out.json
@@ -38,15 +38,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import accuracy_dev as dev  # noqa: E402  (the dev scenes' loaders and target placement)
 
 from macsplat_cli.cameras import Camera, CameraSet, save_cameras  # noqa: E402
-from macsplat_cli.compact import PRESETS, CompactConfig, compact_reconstruction  # noqa: E402
 from macsplat_cli.datasets import synthetic as syn  # noqa: E402
 from macsplat_cli.engine import EngineConfig, reconstruct  # noqa: E402
 from macsplat_cli.gaussians import Gaussians  # noqa: E402
 from macsplat_cli.images import save_image  # noqa: E402
 from macsplat_cli.metrics import psnr  # noqa: E402
+from macsplat_cli.pipeline.compact import compact_reconstruction  # noqa: E402
 from macsplat_cli.pipeline.run import ReconstructConfig, Reconstruction  # noqa: E402
 from macsplat_cli.pipeline.views import ViewConfig, working_size  # noqa: E402
 from macsplat_cli.ply import write_ply  # noqa: E402
+from macsplat_cli.presets import QUALITIES, compact_config  # noqa: E402
 from macsplat_cli.render import render_camera  # noqa: E402
 
 SIZE = 512
@@ -68,7 +69,7 @@ class Case:
 
 
 def _config(intrinsics: Path | None) -> EngineConfig:
-    return EngineConfig(pipeline=ReconstructConfig(views=ViewConfig(size=SIZE, intrinsics=intrinsics)))
+    return EngineConfig(size=SIZE, pipeline=ReconstructConfig(views=ViewConfig(intrinsics=intrinsics)))
 
 
 def dev_case(data: Path, scene: str, name: str, pair: tuple[int, int], tmp: Path) -> Case:
@@ -134,7 +135,7 @@ def measure(case: Case, presets: list[str], repeats: int, budget: int | None, tm
     scenes: dict[str, Gaussians] = {"full": full}
     rows: dict[str, dict] = {"full": {"compact_s": 0.0}}
     for p in presets:
-        g, report = compact_reconstruction(case.rec, CompactConfig.preset(p, budget=budget))
+        g, report = compact_reconstruction(case.rec, compact_config(p, budget=budget))
         scenes[p] = g
         rows[p] = {"compact_s": report.seconds, "report": report.to_dict()}
     for name, g in scenes.items():
@@ -185,7 +186,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=None, help="the shared data folder (../shared/data); none: skip")
     ap.add_argument("--only", default="", help="run only cases whose name contains this")
-    ap.add_argument("--presets", default=",".join(PRESETS), help="comma-separated presets")
+    ap.add_argument("--presets", default=",".join(QUALITIES), help="comma-separated presets")
     ap.add_argument("--budget", type=int, default=None, help="also cap every preset at this many Gaussians")
     ap.add_argument("--repeats", type=int, default=5, help="render rounds (the minimum is reported)")
     ap.add_argument("--json", type=Path, help="also write all results as JSON")

@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from macsplat_cli import engine
+from macsplat_cli import presets
 from macsplat_cli.datasets import synthetic as syn
-from macsplat_cli.engine import WORKING_SIZE, EngineConfig, reconstruct
+from macsplat_cli.engine import EngineConfig, reconstruct
 from macsplat_cli.errors import ReconstructionError
 from macsplat_cli.images import save_image
 
@@ -56,14 +56,13 @@ def fast_sift(tmp: Path) -> None:
             paths, truth, _ = _pair(tmp, kind, angle, 60.0)
             cells = []
             for quality, sift in (("balanced", None), ("fast", None), ("fast", (512, 4000))):
-                config = EngineConfig(quality=quality)
-                config.pipeline.views.size = WORKING_SIZE[quality]
-                saved = engine.FAST_SIFT
-                engine.FAST_SIFT = sift or saved
+                config = EngineConfig(quality=quality)  # the preset's working size
+                saved = presets.FAST_SIFT
+                presets.FAST_SIFT = sift or saved
                 try:
                     cells.append(_errors(paths, truth, config))
                 finally:
-                    engine.FAST_SIFT = saved
+                    presets.FAST_SIFT = saved
             print(f"| {kind} {angle}° | " + " | ".join(cells) + " |")
 
 

@@ -30,9 +30,9 @@ from macsplat_cli.engine import EngineConfig, reconstruct
 from macsplat_cli.gaussians import Gaussians
 from macsplat_cli.images import save_image
 from macsplat_cli.metrics import psnr, ssim
+from macsplat_cli.pipeline.refine import AUTO_STEPS, RefineConfig, refine
 from macsplat_cli.pipeline.run import ReconstructConfig
 from macsplat_cli.pipeline.views import ViewConfig, working_size
-from macsplat_cli.refine import RefineConfig, refine
 from macsplat_cli.render import render_camera
 
 MODES = {
@@ -164,7 +164,7 @@ def real_rows(data: Path, steps: int, scale: int) -> list[list[str]]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, help="the shared dev data folder; omit for synthetic scenes only")
-    ap.add_argument("--steps", type=int, default=RefineConfig().steps)
+    ap.add_argument("--steps", type=int, default=AUTO_STEPS)
     ap.add_argument("--scale", type=int, default=RefineConfig().scale)
     ap.add_argument("--dense-mac", action="store_true", help="also MAC over dense depth-consistent pixel pairs")
     ap.add_argument("--real-only", action="store_true", help="skip the synthetic scenes")

@@ -1,10 +1,12 @@
 """The engine: the one place that assembles a reconstruction.
 
-``reconstruct(images, config) -> Reconstruction`` loads the models a configuration needs, builds
-the pipeline's stages (classical, or neural around a :class:`~macsplat_cli.neural.predictor.PairPredictor`),
-runs them, refines the Gaussians when asked, and fills the typed report. ``macsplat reconstruct``,
-``eval``, ``bench`` and the benchmarks all go through it; they only map their options to an
-:class:`EngineConfig` and write files.
+``reconstruct(images, config) -> Reconstruction`` loads the models a configuration needs, turns the configuration
+into every stage's settings once (:func:`~macsplat_cli.presets.configure`), builds the pipeline's stages
+(classical, or neural around a :class:`~macsplat_cli.neural.predictor.PairPredictor`), runs them, refines the
+Gaussians when asked (stage 7), compacts them (stage 8), and the report gets each stage's section as it finishes.
+:func:`render_path` renders the novel views along the path between the two cameras. ``macsplat reconstruct``,
+``eval``, ``bench`` and the benchmarks all go through it; they only map their options to an :class:`EngineConfig`
+and write files.
 
 Loading is separate (:func:`load_models`) so that a caller reconstructing many pairs — the
 evaluation, the bench grid — loads the networks once::
@@ -25,36 +27,43 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
+
+import numpy as np
 
 from .errors import InputError
+from .pipeline.refine import RefineConfig
 from .pipeline.run import Pipeline, ReconstructConfig, Reconstruction, StageEvent, count_gaussians
-from .report import RefineReport
+from .pipeline.views import ViewConfig
+from .presets import (
+    BACKENDS,
+    DEVICES,
+    PRECISIONS,
+    Backend,
+    Device,
+    Precision,
+    Quality,
+    StageSettings,
+    assert_never,
+    check_choice,
+    check_quality,
+    configure,
+)
 
 __all__ = [
-    "BACKENDS",
-    "QUALITIES",
-    "WORKING_SIZE",
     "EngineConfig",
     "Models",
     "NeuralOptions",
-    "RefineOptions",
     "build_pipeline",
     "load_models",
     "reconstruct",
+    "render_path",
 ]
 
 logger = logging.getLogger(__name__)
 
-BACKENDS = ("classical", "neural")
-"""The reconstruction backends (``--backend``)."""
-QUALITIES = ("fast", "balanced", "best")
-"""The ``--quality`` presets."""
-WORKING_SIZE = {"fast": 384, "balanced": 512, "best": 512}
-"""The working long side each preset uses when the caller does not set one (``--size``)."""
-FAST_SIFT = (640, 8000)
-"""``--quality fast``, classical backend: SIFT's detection size and most keypoints (the defaults: 768, 8000)."""
 RefineEvent = Callable[[int, dict[str, float]], None]
+T = TypeVar("T")
 
 
 @dataclass
@@ -75,8 +84,8 @@ class NeuralOptions:
     gaussian_head: Path | None = None
     dino: Path | None = None
     fusion: Path | None = None
-    device: str = "cpu"
-    precision: str = "fp32"
+    device: Device = "cpu"
+    precision: Precision = "fp32"
 
     def files(self) -> dict[str, Path]:
         """The files given, by role (``weights``, ``gaussian_head``, ``dino``, ``fusion``)."""
@@ -97,63 +106,48 @@ class NeuralOptions:
 
 
 @dataclass
-class RefineOptions:
-    """Test-time refinement (``--refine``): ``steps`` 0 is off; ``scale`` the resolution divisor;
-    ``use_mac`` False is the "w/o MAC" ablation; ``lpips_weights`` adds LPIPS to the loss."""
-
-    steps: int = 0
-    scale: int = 2
-    use_mac: bool = True
-    lpips_weights: Path | None = None
-
-
-@dataclass
 class EngineConfig:
-    """Everything a reconstruction depends on.
+    """Everything a reconstruction depends on: the user's choices, turned into every stage's settings by
+    :meth:`settings` (:func:`~macsplat_cli.presets.configure`).
 
     Args:
         backend: ``"classical"`` (no learned weights) or ``"neural"``.
-        quality: ``"fast"``, ``"balanced"`` or ``"best"``: how much of the scene's redundancy the
-            compaction removes (:meth:`~macsplat_cli.compact.CompactConfig.preset`); ``"fast"`` also detects
-            SIFT on a smaller image (:data:`FAST_SIFT`) and leaves out the depth's slanted-plane refinement
-            (``DepthConfig.slanted_iters``). The CLI picks the working size from it when ``--size``
-            is not given (:data:`WORKING_SIZE`).
+        quality: ``"fast"``, ``"balanced"`` or ``"best"``: the working size when ``size`` is None, how light the
+            stages are and how much of the scene's redundancy the compaction removes (:mod:`macsplat_cli.presets`).
         budget: at most this many Gaussians in the scene (None: no limit).
-        pipeline: the stages' settings (working size and intrinsics in ``pipeline.views``).
+        size: the working images' long side (``--size``); None: the quality's
+            (:func:`~macsplat_cli.presets.working_size`). ``pipeline.views.size`` is not read: leave it as it is.
+        pipeline: the stages' settings to start from (intrinsics in ``pipeline.views``).
         conf_threshold: τ of the filtered matching; None: the backend's default (0.04 classical, 1 neural).
         neural: the neural backend's files and device.
-        refine: test-time refinement.
+        refine: test-time refinement (``steps`` 0: off).
     """
 
-    backend: str = "classical"
+    backend: Backend = "classical"
     pipeline: ReconstructConfig = field(default_factory=ReconstructConfig)
     conf_threshold: float | None = None
     neural: NeuralOptions = field(default_factory=NeuralOptions)
-    refine: RefineOptions = field(default_factory=RefineOptions)
-    quality: str = "balanced"
+    refine: RefineConfig = field(default_factory=RefineConfig)
+    quality: Quality = "balanced"
     budget: int | None = None
+    size: int | None = None
 
     def validate(self, *, files: bool = True) -> None:
-        """Usage errors, before any work (``files=False``: the models are given, no checkpoint is needed).
+        """Usage errors, before any work (``files=False``: the models are given, no checkpoint is needed). Only the
+        values are checked here; whether the machine has CUDA is checked when the models load (:func:`load_models`).
 
         Raises:
-            InputError: an unknown backend, device or precision; neural options with the classical
+            InputError: an unknown backend, quality, device or precision; neural options with the classical
                 backend; the neural backend without weights; ``dino`` without ``fusion`` (or the reverse);
-                LPIPS weights without refinement; a bad threshold or refinement setting.
+                LPIPS weights without refinement; a bad size, threshold, budget or refinement setting.
         """
-        from .neural.predictor import MISSING_WEIGHTS_HELP, check_fusion_files, resolve_device
-
-        name = self.backend
-        if name not in BACKENDS:
-            raise InputError(f"--backend {self.backend!r}: use {' or '.join(BACKENDS)}")
+        check_choice("--backend", self.backend, BACKENDS)
         n = self.neural
-        if n.device not in ("cpu", "cuda"):
-            raise InputError(f"--device {n.device!r}: use cpu or cuda")
-        if n.precision not in ("fp32", "bf16"):
-            raise InputError(f"--precision {n.precision!r}: use fp32 or bf16")
-        if name == "classical" and n.given:
+        check_choice("--device", n.device, DEVICES)
+        check_choice("--precision", n.precision, PRECISIONS)
+        if self.backend == "classical" and n.given:
             raise InputError(f"{', '.join(n.given)} only apply to --backend neural")
-        onnx = name == "neural" and self.neural.is_onnx
+        onnx = self.backend == "neural" and n.is_onnx
         if onnx:
             others = [flag for flag in n.given if flag in ("--gaussian-head", "--dino", "--fusion", "--precision")]
             if others:
@@ -161,33 +155,53 @@ class EngineConfig:
                     f"{n.weights} is an ONNX predictor: it holds its own Gaussian head and fusion and computes in the "
                     f"precision it was exported with (export-onnx --fp16/--quantize); drop {', '.join(others)}"
                 )
-            from .neural.onnx_runtime import ort_providers
-
-            ort_providers(n.device)  # CUDA asked for where onnxruntime has no CUDA provider
-        elif name == "neural":
-            resolve_device(n.device)  # CUDA asked for where there is none
-        if name == "neural" and files and not onnx:
-            if n.weights is None and n.gaussian_head is None:
-                raise InputError(MISSING_WEIGHTS_HELP)
-            check_fusion_files(n.dino, n.fusion)
+        if self.backend == "neural" and files and not onnx:
+            _check_neural_files(n)
         if self.conf_threshold is not None and not (math.isfinite(self.conf_threshold) and self.conf_threshold >= 0):
             raise InputError(f"--conf-threshold {self.conf_threshold}: give a finite number ≥ 0")
-        if self.quality not in QUALITIES:
-            raise InputError(f"--quality {self.quality!r}: use {', '.join(QUALITIES)}")
+        check_quality(self.quality)
         if self.budget is not None and (isinstance(self.budget, bool) or not isinstance(self.budget, int)
                                         or self.budget < 1):  # fmt: skip
             raise InputError(f"--budget {self.budget!r}: give a positive number of Gaussians")
-        r = self.refine
-        if r.steps < 0:
-            raise InputError(f"--refine {r.steps}: give a number of steps (0 = off) or 'auto'")
-        if not 1 <= r.scale <= 4:
-            raise InputError(f"--refine-scale {r.scale}: use 1 to 4")
-        if r.lpips_weights is not None and r.steps == 0:
-            raise InputError("--lpips-weights is used by the refinement: add --refine STEPS or --refine auto")
+        if self.size is not None and self.size < 1:
+            raise InputError(f"--size {self.size}: give a positive number of pixels")
+        if self.pipeline.views.size != ViewConfig.size:
+            raise InputError(
+                f"pipeline.views.size {self.pipeline.views.size}: set the working size with EngineConfig.size (--size)"
+            )
+        _check_refine(self.refine)
+
+    def settings(self) -> StageSettings:
+        """Every stage's settings: the quality preset, the backend and the overrides applied once."""
+        return configure(
+            self.quality, self.backend, pipeline=self.pipeline, size=self.size, conf_threshold=self.conf_threshold,
+            budget=self.budget, refine=self.refine, precision=self.neural.precision,
+        )  # fmt: skip
 
     def replace(self, **changes: Any) -> EngineConfig:
         """A deep copy with some fields replaced (configs are mutable; runs never share one)."""
         return dataclasses.replace(copy.deepcopy(self), **changes)
+
+
+def _check_neural_files(n: NeuralOptions) -> None:
+    """The neural backend's files as given (not read): weights or a Gaussian head; DINOv3 and fusion together."""
+    if n.weights is None and n.gaussian_head is None:
+        from .neural.predictor import MISSING_WEIGHTS_HELP  # the loader's own message, imported to raise it
+
+        raise InputError(MISSING_WEIGHTS_HELP)
+    if (n.dino is None) != (n.fusion is None):
+        from .neural.predictor import check_fusion_files  # the loader's own message, imported to raise it
+
+        check_fusion_files(n.dino, n.fusion)
+
+
+def _check_refine(r: RefineConfig) -> None:
+    if r.steps < 0:
+        raise InputError(f"--refine {r.steps}: give a number of steps (0 = off) or 'auto'")
+    if not 1 <= r.scale <= 4:
+        raise InputError(f"--refine-scale {r.scale}: use 1 to 4")
+    if r.lpips_weights is not None and r.steps == 0:
+        raise InputError("--lpips-weights is used by the refinement: add --refine STEPS or --refine auto")
 
 
 @dataclass
@@ -208,19 +222,37 @@ class Models:
 
 
 def load_models(config: EngineConfig) -> Models:
-    """Load (and check) every file the configuration names; the configuration is validated first.
+    """Load (and check) every file the configuration names; the configuration is validated first, then the
+    machine (CUDA for ``--device cuda``).
 
     Raises:
-        InputError: a usage error (:meth:`EngineConfig.validate`).
+        InputError: a usage error (:meth:`EngineConfig.validate`), or ``--device cuda`` where torch (or onnxruntime,
+            for an ONNX predictor) has no CUDA.
         CheckpointNotFoundError, CheckpointError, DINOv3CheckpointError, FusionCheckpointError,
         LPIPSWeightsError: a missing file, or one that does not fit.
     """
     config.validate()
+    _check_device(config)
     return _load_models(config)
 
 
+def _check_device(config: EngineConfig) -> None:
+    """``--device cuda`` where the neural backend's runtime has no CUDA: the usage error, before any file is read."""
+    if config.backend != "neural":
+        return
+    n = config.neural
+    if n.is_onnx:
+        from .neural.onnx_runtime import ort_providers
+
+        ort_providers(n.device)  # CUDA asked for where onnxruntime has no CUDA provider
+    else:
+        from .neural.predictor import resolve_device
+
+        resolve_device(n.device)  # CUDA asked for where there is none
+
+
 def _load_models(config: EngineConfig) -> Models:
-    """:func:`load_models` for a configuration already validated."""
+    """:func:`load_models` for a configuration already validated (and its device checked)."""
     t0 = time.perf_counter()
     models = Models()
     if config.backend == "neural":
@@ -245,32 +277,48 @@ def _load_models(config: EngineConfig) -> Models:
 
 def build_pipeline(config: EngineConfig, models: Models) -> Pipeline:
     """The pipeline of a (validated) configuration, its stages around the loaded models."""
-    pipe_cfg = copy.deepcopy(config.pipeline)
-    if config.backend == "neural":
-        from .pipeline.neural import NeuralConfig, neural_reconstruct_config, neural_stages
+    return _build_pipeline(config, config.settings(), models)
+
+
+def _build_pipeline(config: EngineConfig, settings: StageSettings, models: Models) -> Pipeline:
+    backend = config.backend
+    if backend == "classical":
+        return Pipeline(settings.pipeline)
+    if backend == "neural":
+        from .pipeline.neural import neural_stages
 
         if models.predictor is None:
             raise ValueError("the neural backend needs models.predictor (load_models)")
-        pipe_cfg = neural_reconstruct_config(pipe_cfg)
-        if config.conf_threshold is not None:
-            pipe_cfg.matching.conf_threshold = config.conf_threshold
-        # --quality fast: DINOv3 and the fusion run only when the backbone's descriptors verify too few matches
-        fusion = "auto" if config.quality == "fast" else "always"
-        neural = NeuralConfig(precision=config.neural.precision, fusion=fusion)  # type: ignore[arg-type]
         # onnxruntime takes and returns CPU arrays whatever its provider; torch runs where it was asked to
         device = "cpu" if config.neural.is_onnx else config.neural.device
-        stages = neural_stages(models.predictor, pipe_cfg, neural, device)
-        return Pipeline(pipe_cfg, scale="metric", **stages)
-    if config.conf_threshold is not None:
-        pipe_cfg.matching.conf_threshold = config.conf_threshold
-    if config.quality == "fast":  # SIFT on a smaller image (4,000 keypoints at 512 px cost pose accuracy at 45°)
-        d = pipe_cfg.descriptors
-        pipe_cfg.descriptors = dataclasses.replace(
-            d, detect_size=min(d.detect_size, FAST_SIFT[0]), max_keypoints=min(d.max_keypoints, FAST_SIFT[1])
-        )
-        # no slanted-plane PatchMatch in the depth: 0.15 s at 1 MP for ±0.3 dB
-        pipe_cfg.depth = dataclasses.replace(pipe_cfg.depth, slanted_iters=0)
-    return Pipeline(pipe_cfg)
+        stages = neural_stages(models.predictor, settings.pipeline, settings.neural, device)
+        return Pipeline(settings.pipeline, scale="metric", **stages)
+    assert_never(backend)
+
+
+def _stage(notify: StageEvent, name: str, fn: Callable[[], T]) -> T:
+    """``fn()`` between the stage's ``start`` and ``end`` events (``fail`` when it raises)."""
+    notify(name, "start")
+    try:
+        out = fn()
+    except BaseException:
+        notify(name, "fail")
+        raise
+    notify(name, "end")
+    return out
+
+
+def _models_for(config: EngineConfig, models: Models | None, notify: StageEvent) -> Models:
+    """The given models (the configuration checked against them), or the configuration's, loaded as the
+    ``"weights"`` stage when there is something to load."""
+    if models is not None:
+        config.validate(files=False)
+        return models
+    config.validate()
+    _check_device(config)  # before the weights stage starts: a usage error, not a failed stage
+    if config.backend == "neural" or config.refine.lpips_weights is not None:
+        return _stage(notify, "weights", lambda: _load_models(config))
+    return _load_models(config)
 
 
 def reconstruct(
@@ -292,8 +340,8 @@ def reconstruct(
         on_refine_step: called after each refinement step with the step and its loss terms.
 
     Returns:
-        The :class:`~macsplat_cli.pipeline.run.Reconstruction`, its typed report filled (``neural`` and
-        ``refine`` sections when they apply).
+        The :class:`~macsplat_cli.pipeline.run.Reconstruction`, its typed report filled (``neural``,
+        ``refine`` and ``compact`` sections when they apply).
 
     Raises:
         InputError: bad settings, photos or intrinsics.
@@ -301,34 +349,25 @@ def reconstruct(
     """
     config = config or EngineConfig()
     notify = on_stage or (lambda stage, event: None)
-    if models is None:
-        config.validate()
-        needs_loading = config.backend == "neural" or config.refine.lpips_weights is not None
-        if needs_loading:
-            notify("weights", "start")
-        try:
-            models = _load_models(config)  # validated above, before any stage event
-        except BaseException:
-            if needs_loading:
-                notify("weights", "fail")
-            raise
-        if needs_loading:
-            notify("weights", "end")
-    else:
-        config.validate(files=False)
-    pipeline = build_pipeline(config, models)
+    models = _models_for(config, models, notify)
+    settings = config.settings()
+    pipeline = _build_pipeline(config, settings, models)
     rec = pipeline.run(images, on_stage=on_stage)
     if config.backend == "neural":
-        predictor = models.predictor
-        rec.report.backends["network"] = f"{predictor.network_name()} on {config.neural.device}"
-        rec.report.backends["fusion"] = predictor.fusion_name()
-        rec.report.neural = {**pipeline.pair.report(), "files": dict(models.files), "load_s": models.load_s}
-        fusion = rec.report.neural["fusion"]
-        if fusion.get("policy") == "auto" and fusion["applied"]:  # it ran on demand: were its matches better?
-            fusion["matches_kept"] = "fused" if rec.report.fallback_used else "unfused (the fused ones verified fewer)"
-    if config.refine.steps > 0:
-        rec = _refine(rec, config.refine, models, notify, on_refine_step)
-    return _compact(rec, config, notify)
+        _add_network(rec, pipeline, config, models)
+    if settings.refine.steps > 0:
+        rec = _refine(rec, settings.refine, models, notify, on_refine_step)
+    return _compact(rec, settings, config.budget, notify)
+
+
+def _add_network(rec: Reconstruction, pipeline: Pipeline, config: EngineConfig, models: Models) -> None:
+    """The neural backend's section of the report: the network, its pass and what the fusion did."""
+    predictor = models.predictor
+    section = {**pipeline.pair.report(), "files": dict(models.files), "load_s": models.load_s}  # type: ignore[union-attr]
+    fusion = section["fusion"]
+    if fusion.get("policy") == "auto" and fusion["applied"]:  # it ran on demand: were its matches better?
+        fusion["matches_kept"] = "fused" if rec.report.fallback_used else "unfused (the fused ones verified fewer)"
+    rec.report.add_network(f"{predictor.network_name()} on {config.neural.device}", predictor.fusion_name(), section)
 
 
 def _layer_size(rec: Reconstruction) -> int:
@@ -337,62 +376,53 @@ def _layer_size(rec: Reconstruction) -> int:
     return len(layer) if layer is not None else 0
 
 
-def _compact(rec: Reconstruction, config: EngineConfig, notify: StageEvent) -> Reconstruction:
-    """The scene without what it does not need (``quality``, ``budget``), reported step by step."""
-    from .compact import CompactConfig, compact_reconstruction
+def _refine(
+    rec: Reconstruction, config: RefineConfig, models: Models, notify: StageEvent, on_step: RefineEvent | None
+) -> Reconstruction:
+    """Stage 7 on the pipeline's maps; the refined maps replace them."""
+    from .pipeline.refine import check_scale, refine_reconstruction
+
+    check_scale(rec.maps, config.scale)  # a usage error, before the stage starts
+    out, section = _stage(
+        notify, "refine", lambda: refine_reconstruction(rec, config, lpips=models.lpips, on_step=on_step)
+    )
+    rec.report.add_refine(section, count_gaussians(out.maps) + _layer_size(rec))
+    return dataclasses.replace(rec, maps=out.maps)
+
+
+def _compact(rec: Reconstruction, settings: StageSettings, budget: int | None, notify: StageEvent) -> Reconstruction:
+    """Stage 8: the scene without what it does not need (``quality``, ``budget``), reported step by step."""
+    from .pipeline.compact import compact_reconstruction
 
     n_layer = _layer_size(rec)
-    budget, background = config.budget, rec.background
+    background, compact = rec.background, settings.compact
     if budget is not None and n_layer:
         if n_layer * 2 > budget:  # the far layer would take most of a small budget: the scene needs it more
             logger.info("--budget %d: the far background layer (%d Gaussians) is left out", budget, n_layer)
             background, n_layer = None, 0
         else:  # --budget bounds what is written: the layer counts
-            budget -= n_layer
-    notify("compact", "start")
-    try:
-        gaussians, compact_report = compact_reconstruction(rec, CompactConfig.preset(config.quality, budget=budget))
-    except BaseException:
-        notify("compact", "fail")
-        raise
-    notify("compact", "end")
-    report = copy.copy(rec.report)
-    report.compact = compact_report.to_dict()
-    report.gaussians = len(gaussians) + n_layer
-    report.add_time("compact", compact_report.seconds)
-    logger.info("compaction (%s): %s", config.quality, compact_report.summary())
-    return dataclasses.replace(rec, report=report, compacted=gaussians, background=background)
+            compact = dataclasses.replace(compact, budget=budget - n_layer)
+    gaussians, report = _stage(notify, "compact", lambda: compact_reconstruction(rec, compact))
+    rec.report.add_compact(report.to_dict(), report.seconds, len(gaussians) + n_layer)
+    logger.info("compaction (%s): %s", compact.name, report.summary())
+    return dataclasses.replace(rec, compacted=gaussians, background=background)
 
 
-def _refine(
-    rec: Reconstruction, options: RefineOptions, models: Models, notify: StageEvent, on_step: RefineEvent | None
-) -> Reconstruction:
-    from .refine import RefineConfig, refine
+def render_path(rec: Reconstruction, n: int) -> list[np.ndarray]:
+    """``n`` novel views of the scene along the path between the two cameras (both included), at the working size.
 
-    h, w = rec.maps[0].size
-    f = options.scale
-    if any(m.size[0] % f or m.size[1] % f for m in rec.maps):
-        raise InputError(f"--refine-scale {f}: the working size {w}x{h} is not divisible by it")
-    cfg = RefineConfig(steps=options.steps, scale=f, use_mac=options.use_mac)
-    notify("refine", "start")
-    try:
-        out = refine(rec.views, rec.geometry, rec.maps, cfg, depths=rec.depths, lpips=models.lpips, on_step=on_step)
-    except BaseException:
-        notify("refine", "fail")
-        raise
-    notify("refine", "end")
-    report = copy.copy(rec.report)
-    report.refine = RefineReport(
-        steps=out.steps,
-        max_steps=options.steps,
-        stopped_early=out.stopped_early,
-        seconds=out.seconds,
-        scale=f,
-        mac=options.use_mac,
-        lpips=models.lpips is not None,
-        loss_first=out.history[0],
-        loss_last=out.history[-1],
-    )
-    report.add_time("refine", out.seconds)
-    report.gaussians = count_gaussians(out.maps) + _layer_size(rec)
-    return dataclasses.replace(rec, maps=out.maps, report=report)
+    The cameras' rotations are slerped and their centres and intrinsics interpolated
+    (:func:`~macsplat_cli.trajectory.interpolate_cameras`); each view is rendered on the scene's device.
+
+    Returns:
+        ``n`` images ``[H, W, 3] uint8`` (what ``--renders`` and ``--video`` write).
+    """
+    import torch
+
+    from .images import to_uint8
+    from .render import render_camera
+    from .trajectory import interpolate_cameras
+
+    path = interpolate_cameras(list(rec.cameras(original_size=False)), n)
+    with torch.no_grad():
+        return [to_uint8(render_camera(rec.gaussians, cam).rgb) for cam in path]

@@ -290,6 +290,17 @@ class GaussianMaps(_Parameters):
             return self.valid
         return torch.ones(self.means.shape[:3], dtype=torch.bool, device=self.device)
 
+    def cam_to_world_or_identity(self, dtype: torch.dtype | None = None) -> torch.Tensor:
+        """``cam_to_world``, or the identity when it is None (the maps are in the world frame). [B, 4, 4]
+
+        Args:
+            dtype: the dtype wanted, on the maps' device; None: ``cam_to_world`` as stored (float64 for the identity).
+        """
+        if self.cam_to_world is not None:
+            return self.cam_to_world if dtype is None else self.cam_to_world.to(device=self.device, dtype=dtype)
+        eye = torch.eye(4, dtype=torch.float64 if dtype is None else dtype, device=self.device)
+        return eye.expand(self.batch, 4, 4)
+
     # ------------------------------------------------------------------ conversion
     def to_gaussians(self) -> Gaussians:
         """The valid pixels' Gaussians of all ``B`` views, in the world frame (view 0's pixels first, row-major).

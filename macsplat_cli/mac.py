@@ -14,11 +14,9 @@ per-pixel parameter maps) are compared in world space:
   isotropic Gaussians. Raw covariances use ``torch.linalg.eigvalsh``: its gradient,
   ``V·diag(ḡ)·Vᵀ``, stays finite and correct for repeated eigenvalues (only
   *eigenvector* gradients divide by eigenvalue gaps), and its values are accurate to
-  ~1e-16·‖Σ‖. (A trigonometric closed form was measured too: near repeated roots it
-  loses accuracy — a needle Gaussian's two equal 1e-12 eigenvalues came out as ±1.7e-6 —
-  and needs clamping to keep gradients finite.) No method resolves eigenvalues below
-  ~1e-16·‖Σ‖ from a covariance's entries, so prefer scales and rotations for very flat
-  Gaussians;
+  ~1e-16·‖Σ‖ (a trigonometric closed form loses accuracy near repeated roots; measured:
+  benchmarks/history/refine.md). No method resolves eigenvalues below ~1e-16·‖Σ‖ from a
+  covariance's entries, so prefer scales and rotations for very flat Gaussians;
 * appearance: ``L_app = |α¹ − α²| + ‖c¹ − c²‖₁`` (opacity and all SH coefficients; the maps hold
   opacity logits, and ``α = sigmoid(logit)`` is taken per pixel before sampling).
 
@@ -122,15 +120,6 @@ def _log_eigs(
     return torch.log(lam.clamp_min(torch.finfo(lam.dtype).tiny))
 
 
-def _cam_to_world(given: torch.Tensor | None, maps: GaussianMaps) -> torch.Tensor:
-    """The transforms to use: ``given``, else the maps' own (in their dtype), else the identity. [B, 4, 4]"""
-    if given is not None:
-        return given
-    if maps.cam_to_world is not None:
-        return maps.cam_to_world.to(device=maps.device, dtype=maps.dtype)
-    return torch.eye(4, dtype=maps.dtype, device=maps.device).expand(maps.batch, 4, 4)
-
-
 @dataclass
 class MACLoss:
     """The loss and its weighted terms (each term is its confidence-weighted mean)."""
@@ -180,32 +169,12 @@ def mac_loss(
         and its three weighted terms.
     """
     cfg = config or MACConfig()
-    cam_to_world1 = _cam_to_world(cam_to_world1, view1)
-    cam_to_world2 = _cam_to_world(cam_to_world2, view2)
+    # the transforms to use: the given ones, else the maps' own (in their dtype), else the identity
+    cam_to_world1 = cam_to_world1 if cam_to_world1 is not None else view1.cam_to_world_or_identity(view1.dtype)
+    cam_to_world2 = cam_to_world2 if cam_to_world2 is not None else view2.cam_to_world_or_identity(view2.dtype)
     cov1, cov2 = covariances if covariances is not None else (None, None)
     if check_inputs:
-        check_shape(xy1, ("M", 2), "xy1")
-        m = xy1.shape[0]
-        check_shape(xy2, (m, 2), "xy2")
-        check_shape(batch, (m,), "batch")
-        check_shape(weights, (m,), "weights")
-        bsz = view1.means.shape[0]
-        check_shape(cam_to_world1, (bsz, 4, 4), "cam_to_world1")
-        check_shape(cam_to_world2, (bsz, 4, 4), "cam_to_world2")
-        if view2.means.shape[0] != bsz:
-            raise InputError(f"view1 has {bsz} maps but view2 has {view2.means.shape[0]}")
-        for name, t in (("xy1", xy1), ("xy2", xy2), ("weights", weights)):
-            check_finite(t, name)
-        check_finite(cam_to_world1, "cam_to_world1")
-        check_finite(cam_to_world2, "cam_to_world2")
-        view1.check_finite()
-        view2.check_finite()
-        for name, cov, maps in (("covariances[0]", cov1, view1), ("covariances[1]", cov2, view2)):
-            if cov is not None:
-                check_shape(cov, (bsz, *maps.size, 3, 3), name)
-                check_finite(cov, name)
-        if m and (bool((weights < 0).any()) or int(batch.min()) < 0 or int(batch.max()) >= bsz):
-            raise InputError("match weights must be ≥ 0 and batch indices within the batch")
+        _check_inputs(view1, view2, xy1, xy2, batch, weights, (cam_to_world1, cam_to_world2), (cov1, cov2))
     batch = batch.long()
     R1, t1 = cam_to_world1[batch, :3, :3], cam_to_world1[batch, :3, 3]
     R2, t2 = cam_to_world2[batch, :3, :3], cam_to_world2[batch, :3, 3]
@@ -235,3 +204,35 @@ def mac_loss(
     pos, shape, app = (w * l_pos).sum() / norm, (w * l_shape).sum() / norm, (w * l_app).sum() / norm
     loss = cfg.lambda_pos * pos + cfg.lambda_shape * shape + cfg.lambda_app * app
     return MACLoss(loss=loss, position=pos, shape=shape, appearance=app, matches=int(xy1.shape[0]))
+
+
+def _check_inputs(
+    view1: GaussianMaps, view2: GaussianMaps, xy1: torch.Tensor, xy2: torch.Tensor, batch: torch.Tensor,
+    weights: torch.Tensor, cam_to_world: tuple[torch.Tensor, torch.Tensor],
+    covariances: tuple[torch.Tensor | None, torch.Tensor | None],
+) -> None:  # fmt: skip
+    """:func:`mac_loss`'s ``check_inputs``: shapes, finiteness, weights ≥ 0 and batch indices in range."""
+    cam_to_world1, cam_to_world2 = cam_to_world
+    cov1, cov2 = covariances
+    check_shape(xy1, ("M", 2), "xy1")
+    m = xy1.shape[0]
+    check_shape(xy2, (m, 2), "xy2")
+    check_shape(batch, (m,), "batch")
+    check_shape(weights, (m,), "weights")
+    bsz = view1.means.shape[0]
+    check_shape(cam_to_world1, (bsz, 4, 4), "cam_to_world1")
+    check_shape(cam_to_world2, (bsz, 4, 4), "cam_to_world2")
+    if view2.means.shape[0] != bsz:
+        raise InputError(f"view1 has {bsz} maps but view2 has {view2.means.shape[0]}")
+    for name, t in (("xy1", xy1), ("xy2", xy2), ("weights", weights)):
+        check_finite(t, name)
+    check_finite(cam_to_world1, "cam_to_world1")
+    check_finite(cam_to_world2, "cam_to_world2")
+    view1.check_finite()
+    view2.check_finite()
+    for name, cov, maps in (("covariances[0]", cov1, view1), ("covariances[1]", cov2, view2)):
+        if cov is not None:
+            check_shape(cov, (bsz, *maps.size, 3, 3), name)
+            check_finite(cov, name)
+    if m and (bool((weights < 0).any()) or int(batch.min()) < 0 or int(batch.max()) >= bsz):
+        raise InputError("match weights must be ≥ 0 and batch indices within the batch")

@@ -1,9 +1,11 @@
 """The run report of a reconstruction: typed sections, one ``to_json()``.
 
-The pipeline fills :class:`RunReport` (inputs, per-stage backends and times, matches, pose, depth);
-the engine adds the ``neural`` section (the network's pass), ``refine`` (test-time refinement) and,
-after writing, ``gaussians_written`` and ``outputs``. ``to_json()`` gives the JSON document that
-``macsplat reconstruct --report/--json`` writes (sections that do not apply are left out).
+The report is written in one place, as the stages finish: the pipeline creates :class:`RunReport` (inputs,
+per-stage backends and times, matches, pose, depth, Gaussians) and every later step adds its section through
+the report's own ``add_*`` methods — the network's pass (:meth:`RunReport.add_network`), the refinement
+(:meth:`RunReport.add_refine`), the compaction (:meth:`RunReport.add_compact`) and, once the files are written,
+:meth:`RunReport.add_outputs`. ``to_json()`` gives the JSON document that ``macsplat reconstruct --report/--json``
+writes (sections that do not apply are left out).
 """
 
 from __future__ import annotations
@@ -102,6 +104,31 @@ class RunReport:
         times = {k: v for k, v in self.times_s.items() if k != "total"}
         times[stage] = seconds
         self.times_s = {**times, "total": sum(times.values())}
+
+    def add_network(self, network: str, fusion: str | None, section: dict[str, Any]) -> None:
+        """The neural backend's pass: the ``network`` and ``fusion`` backends and the ``neural`` section."""
+        self.backends["network"] = network
+        self.backends["fusion"] = fusion
+        self.neural = section
+
+    def add_refine(self, refine: RefineReport, gaussians: int) -> None:
+        """The refinement's section and time; ``gaussians``: the scene's count after it."""
+        self.refine = refine
+        self.add_time("refine", refine.seconds)
+        self.gaussians = gaussians
+
+    def add_compact(self, compact: dict[str, Any], seconds: float, gaussians: int) -> None:
+        """The compaction's section (:meth:`~macsplat_cli.pipeline.compact.CompactReport.to_dict`) and time;
+        ``gaussians``: the scene's count after it."""
+        self.compact = compact
+        self.gaussians = gaussians
+        self.add_time("compact", seconds)
+
+    def add_outputs(self, outputs: dict[str, Any], *, gaussians_written: int | None = None) -> None:
+        """Role → path of each written file, and the Gaussians the PLY holds (when it was written)."""
+        if gaussians_written is not None:
+            self.gaussians_written = gaussians_written
+        self.outputs = {k: str(v) for k, v in outputs.items()}
 
     def to_json(self) -> dict[str, Any]:
         """The report as plain JSON values (sections that do not apply left out; NaN → null)."""

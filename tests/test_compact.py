@@ -1,4 +1,4 @@
-"""Scene compaction (:mod:`macsplat_cli.compact`) on ray-traced pairs with exact depth.
+"""Scene compaction (:mod:`macsplat_cli.pipeline.compact`) on ray-traced pairs with exact depth.
 
 The per-pixel Gaussians come from the pipeline's own Gaussian stage (``gaussians_from_depth``) fed with
 the ray-traced depth, so every test runs in a fraction of a second and knows the true surface: a wall
@@ -18,13 +18,14 @@ import pytest
 import torch
 
 from macsplat_cli.cameras import Camera
-from macsplat_cli.compact import CompactConfig, CompactReport, compact, compact_reconstruction
 from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.errors import InputError
 from macsplat_cli.gaussians import GaussianMaps
 from macsplat_cli.metrics import psnr
+from macsplat_cli.pipeline.compact import CompactConfig, CompactReport, compact, compact_reconstruction
 from macsplat_cli.pipeline.gaussian_init import gaussians_from_depth
 from macsplat_cli.pipeline.types import DepthMap, Matches, TwoViewGeometry, View
+from macsplat_cli.presets import compact_config
 from macsplat_cli.render import render_camera
 
 W, H = 160, 120
@@ -87,7 +88,7 @@ def _render(g, cam: Camera) -> np.ndarray:  # noqa: ANN001
 
 def _only(**on: object) -> CompactConfig:
     """Every optional step off, then ``on``."""
-    cfg = CompactConfig.preset("best")
+    cfg = compact_config("best")
     return dataclasses.replace(cfg, name="test", **on)
 
 
@@ -112,11 +113,12 @@ def test_dedup_merges_the_surface_both_views_see(pair: Pair) -> None:
     assert int((moved > 1e-6).sum()) > 0.5 * n0
     assert float(moved.max()) < 0.02 * 5.0  # within the depth tolerance at the farthest depth
     # each merged view-1 Gaussian is close to the view-0 Gaussian that absorbed it
-    from macsplat_cli.compact import _project, _views
+    from macsplat_cli.camera_math import project_points
+    from macsplat_cli.pipeline.compact.state import view_states
 
-    v0 = _views(pair.maps[:1], pair.cameras[:1], None)[0]
+    v0 = view_states(pair.maps[:1], pair.cameras[:1], None)[0]
     X1 = pair.maps[1].to_gaussians().means.double()
-    col, row, z, inside = _project(X1, v0)
+    col, row, z, inside = project_points(X1, torch.linalg.inv(v0.c2w), v0.K, v0.size)
     d = (g.means[:n0].double()[row * W + col] - X1).norm(dim=1)
     assert float(d[inside].median()) < 2.0 * foot
 
@@ -177,7 +179,7 @@ def test_budget_is_exact_and_keeps_the_important_gaussians(pair: Pair) -> None:
 
 def test_best_preset_renders_the_same_picture(pair: Pair) -> None:
     full = _full(pair)
-    g, report = compact(pair.maps, pair.cameras, CompactConfig.preset("best"))
+    g, report = compact(pair.maps, pair.cameras, compact_config("best"))
     assert len(g) == len(full) == report.before == report.after
     for a, b in zip(g.tensors(), full.tensors()):
         assert torch.equal(a, b)  # the very same Gaussians as the maps' own conversion
@@ -187,13 +189,13 @@ def test_best_preset_renders_the_same_picture(pair: Pair) -> None:
 
 def test_balanced_keeps_the_novel_view_and_removes_most_gaussians(pair: Pair) -> None:
     full = _full(pair)
-    g, report = compact(pair.maps, pair.cameras, CompactConfig.preset("balanced"), images=pair.images)
+    g, report = compact(pair.maps, pair.cameras, compact_config("balanced"), images=pair.images)
     g.check_finite()
     assert report.ratio >= 3.0
     p_full = psnr(_render(full, pair.novel), pair.novel_image)
     p_cmp = psnr(_render(g, pair.novel), pair.novel_image)
     assert p_cmp >= p_full - PSNR_LOSS_DB, (p_full, p_cmp)
-    _, rep_fast = compact(pair.maps, pair.cameras, CompactConfig.preset("fast"))
+    _, rep_fast = compact(pair.maps, pair.cameras, compact_config("fast"))
     assert rep_fast.after < report.after
 
 
@@ -202,7 +204,7 @@ def test_non_finite_and_invisible_gaussians_are_removed(pair: Pair) -> None:
     m.means[0, 5, 7] = float("nan")
     m.log_scales[0, 9, 9, 1] = float("inf")
     m.opacity_logits[0, 20, 30] = -20.0  # opacity 2e-9: the renderer culls it
-    g, report = compact([m], pair.cameras[:1], CompactConfig.preset("best"))
+    g, report = compact([m], pair.cameras[:1], compact_config("best"))
     g.check_finite()
     assert report.before - report.after == 3
     assert report.steps[0].name == "prune_opacity" and report.steps[0].after == report.before - 3
@@ -223,7 +225,7 @@ def test_sh_bands_that_do_not_matter_are_dropped(pair: Pair) -> None:
     assert g.sh_degree >= 1
     padded = torch.zeros_like(sh)
     padded[..., :4, :] = loud[..., :4, :]  # degree 1 stored as degree 3
-    g, report = compact([dataclasses.replace(m, sh=padded)], pair.cameras[:1], CompactConfig.preset("best"))
+    g, report = compact([dataclasses.replace(m, sh=padded)], pair.cameras[:1], compact_config("best"))
     assert g.sh_degree == 1 and report.after == report.before
 
 
@@ -238,9 +240,20 @@ def test_report_and_inputs(pair: Pair) -> None:
     with pytest.raises(InputError):
         compact(pair.maps, pair.cameras[:1])
     with pytest.raises(InputError):
-        CompactConfig.preset("ultra")
+        compact_config("ultra")
     with pytest.raises(InputError):
         compact(pair.maps, pair.cameras, CompactConfig(max_block=3))
+
+
+def test_compact_config_is_the_one_home_of_the_quality_presets() -> None:
+    """Every quality has its compaction settings; the name is reported, the budget passed through."""
+    assert compact_config("balanced") == CompactConfig()
+    fast, best = compact_config("fast", budget=10), compact_config("best")
+    assert (fast.name, fast.max_block, fast.prune_occluded, fast.subpixel_px) == ("fast", 16, False, 0.0)
+    assert fast.budget == 10
+    assert (best.name, best.adaptive, best.dedup, best.prune_floaters, best.sh) == ("best", False, False, False, "zero")
+    with pytest.raises(InputError, match="--quality 'ultra': use fast, balanced, best"):
+        compact_config("ultra")  # type: ignore[arg-type]
 
 
 def test_pooled_maps_use_rescaled_cameras(pair: Pair) -> None:
@@ -256,15 +269,13 @@ def test_pooled_maps_use_rescaled_cameras(pair: Pair) -> None:
 def test_compact_reconstruction_on_an_engine_run(tmp_path: Path) -> None:
     from macsplat_cli.engine import EngineConfig, reconstruct
     from macsplat_cli.images import save_image
-    from macsplat_cli.pipeline.run import ReconstructConfig, count_gaussians
-    from macsplat_cli.pipeline.views import ViewConfig
+    from macsplat_cli.pipeline.run import count_gaussians
 
     scene = syn.make_scene("room", 5)
     cams = syn.orbit_pair("room", 12.0, width=192, height=144, fov_deg=60.0)
     for name, c in zip(("a.png", "b.png"), cams):
         save_image(tmp_path / name, syn.render(scene, c).image)
-    rec = reconstruct([tmp_path / "a.png", tmp_path / "b.png"], EngineConfig(
-        pipeline=ReconstructConfig(views=ViewConfig(size=192))))  # fmt: skip
+    rec = reconstruct([tmp_path / "a.png", tmp_path / "b.png"], EngineConfig(size=192))
     g, report = compact_reconstruction(rec)
     assert report.before == count_gaussians(rec.maps) and len(g) == report.after < 0.7 * report.before
     assert math.isfinite(report.ratio)

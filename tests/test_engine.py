@@ -9,6 +9,7 @@
 from __future__ import annotations
 
 import contextlib
+import copy
 import dataclasses
 import io
 import json
@@ -24,11 +25,12 @@ from macsplat_cli import engine
 from macsplat_cli.cameras import CameraSet, load_cameras, save_cameras
 from macsplat_cli.cli import main
 from macsplat_cli.datasets import synthetic as syn
-from macsplat_cli.engine import EngineConfig, Models, NeuralOptions, RefineOptions, load_models, reconstruct
+from macsplat_cli.engine import EngineConfig, Models, NeuralOptions, load_models, reconstruct, render_path
 from macsplat_cli.errors import InputError
 from macsplat_cli.evaluation import EngineReconstructor, ReconstructSettings
 from macsplat_cli.gaussians import Gaussians
 from macsplat_cli.images import save_image
+from macsplat_cli.pipeline.refine import RefineConfig
 from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig, count_gaussians
 from macsplat_cli.pipeline.views import ViewConfig
 from macsplat_cli.ply import read_ply
@@ -51,21 +53,23 @@ def pair(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path]:
 
 def _config(cams: Path, steps: int = 0) -> EngineConfig:
     return EngineConfig(
-        pipeline=ReconstructConfig(views=ViewConfig(size=SIZE[0], intrinsics=cams)),
-        refine=RefineOptions(steps=steps, scale=4),
+        size=SIZE[0],
+        pipeline=ReconstructConfig(views=ViewConfig(intrinsics=cams)),
+        refine=RefineConfig(steps=steps, scale=4),
     )
 
 
 def test_engine_without_refinement_is_the_pipeline_then_the_compaction(pair: tuple[Path, Path, Path]) -> None:
     """The engine's maps are the pipeline's; its scene is their compaction at the configured quality."""
-    from macsplat_cli.compact import CompactConfig, compact_reconstruction
+    from macsplat_cli.pipeline.compact import compact_reconstruction
+    from macsplat_cli.presets import compact_config
 
     rec = reconstruct(pair[:2], _config(pair[2]))
-    ref = Pipeline(_config(pair[2]).pipeline).run(pair[:2])
+    ref = Pipeline(_config(pair[2]).settings().pipeline).run(pair[:2])
     for m, r in zip(rec.maps, ref.maps):
         for a, b in zip(m.tensors(), r.tensors()):
             assert torch.equal(a, b)
-    expected, _ = compact_reconstruction(ref, CompactConfig.preset("balanced"))
+    expected, _ = compact_reconstruction(ref, compact_config("balanced"))
     assert ref.background is not None and ref.background.gaussians is not None  # the far layer, not compacted
     expected = Gaussians.cat([expected, ref.background.gaussians])
     for a, b in zip(rec.gaussians.tensors(), expected.tensors()):
@@ -95,7 +99,7 @@ def test_cli_and_evaluation_build_the_same_refined_scene(pair: tuple[Path, Path,
         frames=[SimpleNamespace(image=p, camera=c) for p, c in zip(pair[:2], load_cameras(pair[2]))]
     )
     case = SimpleNamespace(context=(0, 1))
-    recon = EngineReconstructor(EngineConfig(refine=RefineOptions(steps=3, scale=4)))
+    recon = EngineReconstructor(EngineConfig(refine=RefineConfig(steps=3, scale=4)))
     rec = recon(scene, case, ReconstructSettings(size=SIZE[0], intrinsics="given"))  # type: ignore[arg-type]
     assert rec.report.refine is not None and rec.report.refine.steps == cli_report["refine"]["steps"]
     assert rec.report.refine.scale == cli_report["refine"]["scale"] == 4
@@ -115,9 +119,12 @@ def test_cli_and_evaluation_build_the_same_refined_scene(pair: tuple[Path, Path,
         ({"neural": NeuralOptions(precision="fp8")}, "--precision 'fp8'"),
         ({"backend": "neural"}, "needs the MASt3R checkpoint"),
         ({"backend": "neural", "neural": NeuralOptions(weights=Path("m.pth"), dino=Path("d.pth"))}, "--dino needs"),
-        ({"refine": RefineOptions(steps=0, lpips_weights=Path("vgg"))}, "--lpips-weights is used by the refinement"),
-        ({"refine": RefineOptions(steps=-1)}, "--refine -1"),
-        ({"refine": RefineOptions(steps=2, scale=5)}, "--refine-scale 5"),
+        ({"refine": RefineConfig(steps=0, lpips_weights=Path("vgg"))}, "--lpips-weights is used by the refinement"),
+        ({"refine": RefineConfig(steps=-1)}, "--refine -1"),
+        ({"refine": RefineConfig(steps=2, scale=5)}, "--refine-scale 5"),
+        ({"neural": NeuralOptions(device="tpu")}, "--device 'tpu': use cpu or cuda"),
+        ({"backend": "neural", "neural": NeuralOptions(weights=Path("m.onnx"), dino=Path("d"))}, "drop --dino"),
+        ({"pipeline": ReconstructConfig(views=ViewConfig(size=256))}, "set the working size with EngineConfig.size"),
         ({"quality": "ultra"}, "--quality 'ultra': use fast, balanced, best"),
         ({"budget": 0}, "--budget 0"),
         ({"budget": -5}, "--budget -5"),
@@ -164,7 +171,8 @@ def test_report_is_strict_json(pair: tuple[Path, Path, Path]) -> None:
 
 def test_fast_preset_leaves_out_the_slanted_refinement_and_detects_sift_smaller() -> None:
     """``--quality fast`` configures the classical stages for speed; the other presets keep the defaults."""
-    from macsplat_cli.engine import FAST_SIFT, EngineConfig, Models, build_pipeline
+    from macsplat_cli.engine import EngineConfig, Models, build_pipeline
+    from macsplat_cli.presets import FAST_SIFT
 
     fast = build_pipeline(EngineConfig(quality="fast"), Models()).config
     balanced = build_pipeline(EngineConfig(), Models()).config
@@ -172,3 +180,68 @@ def test_fast_preset_leaves_out_the_slanted_refinement_and_detects_sift_smaller(
     assert (fast.descriptors.detect_size, fast.descriptors.max_keypoints) == FAST_SIFT
     assert balanced.descriptors.detect_size > FAST_SIFT[0]
     assert dataclasses.replace(fast.depth, slanted_iters=balanced.depth.slanted_iters) == balanced.depth
+
+
+def test_validation_imports_no_backend_to_check_the_values() -> None:
+    """The values are checked with the names of :mod:`macsplat_cli.presets`: no network module is loaded for it."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "from macsplat_cli.engine import EngineConfig, NeuralOptions\n"
+        "from pathlib import Path\n"
+        "EngineConfig(backend='neural', quality='fast', neural=NeuralOptions(weights=Path('m.onnx'))).validate()\n"
+        "EngineConfig(backend='neural', neural=NeuralOptions(weights=Path('m.pth'), device='cuda')).validate()\n"
+        "print(sorted(m for m in sys.modules if m.startswith(('macsplat_cli.neural', 'onnxruntime'))))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA is available here")
+def test_cuda_is_checked_when_the_models_load_before_the_weights_stage(pair: tuple[Path, Path, Path]) -> None:
+    """``--device cuda`` without CUDA: the same usage error, raised by the loading, before any stage event."""
+    config = EngineConfig(backend="neural", neural=NeuralOptions(weights=Path("m.pth"), device="cuda"))
+    config.validate()  # the values are fine
+    calls = []
+    for run in (
+        lambda: load_models(config),
+        lambda: reconstruct(pair[:2], config, on_stage=lambda s, e: calls.append(s)),
+    ):
+        with pytest.raises(InputError, match="--device cuda: CUDA is not available"):
+            run()
+    assert calls == []
+
+
+def test_settings_apply_the_presets_once_and_leave_the_config_alone() -> None:
+    """``EngineConfig.settings()``: the working size, τ, the fast stages and the compaction from one call; the
+    configuration itself is not modified (τ goes down once, nothing is written back)."""
+    config = EngineConfig(quality="fast", conf_threshold=0.1, budget=500)
+    before = copy.deepcopy(config)
+    s = config.settings()
+    assert s.pipeline.views.size == 384 and s.pipeline.matching.conf_threshold == 0.1
+    assert s.pipeline.depth.slanted_iters == 0 and s.compact.name == "fast" and s.compact.budget == 500
+    assert s.neural is None and s.refine.steps == 0
+    assert config == before
+    assert EngineConfig(quality="best", size=256).settings().pipeline.views.size == 256
+    neural = EngineConfig(backend="neural", quality="fast").settings()
+    assert neural.pipeline.matching.conf_threshold == 1.0 and not neural.pipeline.matching.ratio_confidence
+    assert neural.pipeline.search.fallback_descriptors is None and neural.pipeline.search.guided_band_px is None
+    assert neural.neural is not None and neural.neural.fusion == "auto"
+    assert EngineConfig(backend="neural", conf_threshold=2.0).settings().pipeline.matching.conf_threshold == 2.0
+    assert EngineConfig(backend="neural", quality="best").settings().neural.fusion == "always"
+
+
+def test_render_path_renders_the_novel_views_in_one_call(pair: tuple[Path, Path, Path]) -> None:
+    """The library's novel views are the CLI's (``--renders``): the path between the cameras, 8-bit."""
+    from macsplat_cli.images import to_uint8
+    from macsplat_cli.render import render_camera
+    from macsplat_cli.trajectory import interpolate_cameras
+
+    rec = reconstruct(pair[:2], _config(pair[2]))
+    views = render_path(rec, 3)
+    assert len(views) == 3 and views[0].shape == (SIZE[1], SIZE[0], 3) and views[0].dtype == np.uint8
+    cams = interpolate_cameras(list(rec.cameras(original_size=False)), 3)
+    with torch.no_grad():
+        assert np.array_equal(views[1], to_uint8(render_camera(rec.gaussians, cams[1]).rgb))

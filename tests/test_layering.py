@@ -68,13 +68,6 @@ LAYERS: dict[str, tuple[int, str]] = {
 }
 """Home (path under ``macsplat_cli``, dotted, a package or a module) → (layer, why it sits there)."""
 
-MOVING: dict[str, tuple[int, str]] = {
-    "refine": (3, "issue 24 item 3 moves it to pipeline/refine.py"),
-    "compact": (3, "issue 24 item 3 moves it to pipeline/compact/"),
-}
-"""Modules that still sit where issue 24 moves them from, with the layer of their new home (emptied when
-they land)."""
-
 PEERS: dict[tuple[str, str], str] = {
     ("evaluation", "engine"): "eval and bench reconstruct through the engine",
 }
@@ -203,11 +196,11 @@ def _targets(node: ast.Import | ast.ImportFrom, source: str, is_package: bool, m
 
 
 def _home(module: str) -> str | None:
-    """The entry of :data:`LAYERS` or :data:`MOVING` that holds ``module`` (longest prefix)."""
+    """The entry of :data:`LAYERS` that holds ``module`` (longest prefix)."""
     parts = module.split(".")
     while parts:
         name = ".".join(parts)
-        if name in LAYERS or name in MOVING:
+        if name in LAYERS:
             return name
         parts.pop()
     return None
@@ -216,7 +209,7 @@ def _home(module: str) -> str | None:
 def _layer(module: str) -> int:
     home = _home(module)
     assert home is not None, module
-    return (LAYERS.get(home) or MOVING[home])[0]
+    return LAYERS[home][0]
 
 
 def _private_package(module: str) -> str | None:
@@ -351,8 +344,6 @@ def test_the_parser_sees_every_kind_of_import(tmp_path: Path) -> None:
 def test_every_module_has_a_layer(graph: tuple[set[str], list[Edge]]) -> None:
     modules, _ = graph
     assert [m for m in sorted(modules) if _home(m) is None] == []
-    assert not set(LAYERS) & set(MOVING)
-    assert [m for m in MOVING if m not in modules] == [], "moved: remove it from MOVING"
 
 
 def test_no_import_points_up_sideways_or_into_a_private_module(graph: tuple[set[str], list[Edge]]) -> None:

@@ -292,8 +292,7 @@ def test_small_working_sizes_scale_the_pixel_thresholds(size: int) -> None:
     from macsplat_cli.engine import EngineConfig, reconstruct
 
     root = Path(__file__).resolve().parents[1] / "examples" / "motorcycle"
-    config = EngineConfig(quality="best")
-    config.pipeline.views.size = size
+    config = EngineConfig(quality="best", size=size)
     rec = reconstruct([root / "left.jpg", root / "right.jpg"], config)
     assert abs(max(rec.report.images[0].working_size) - size) <= 8  # the working size asked for (multiple of 16)
     assert rec.geometry.diagnostics["rotation_deg"] < 0.5 and rec.report.matches["verified"] > 1000

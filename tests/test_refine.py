@@ -19,9 +19,9 @@ from macsplat_cli.errors import InputError
 from macsplat_cli.gaussians import GaussianMaps
 from macsplat_cli.images import save_image
 from macsplat_cli.mac import MACConfig, mac_loss
+from macsplat_cli.pipeline.refine import RefineConfig, refine
 from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig, Reconstruction
 from macsplat_cli.pipeline.views import ViewConfig
-from macsplat_cli.refine import RefineConfig, refine
 
 # ------------------------------------------------------------------------------ refinement
 SIZE = (256, 192)

@@ -1,13 +1,17 @@
-"""Options shared by several commands, declared once: the neural backend's files and device."""
+"""Options shared by several commands, declared once: the neural backend's files and device.
+
+Like every CLI module, this one imports the library only inside functions: ``macsplat --help`` loads no torch.
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from ..engine import NeuralOptions
+if TYPE_CHECKING:
+    from ..engine import NeuralOptions
 
 __all__ = [
     "AcceptLowConfidenceOpt",
@@ -68,6 +72,8 @@ def neural_options(
     precision: str,
 ) -> NeuralOptions:  # fmt: skip
     """The options as the engine takes them (checked by :meth:`~macsplat_cli.engine.EngineConfig.validate`)."""
+    from ..engine import NeuralOptions
+
     return NeuralOptions(
         weights=weights, gaussian_head=gaussian_head, dino=dino, fusion=fusion,
         device=device.strip().lower(), precision=precision.strip().lower(),

@@ -161,12 +161,11 @@ def _bench(
         raise InputError(f"--backend {unknown[0]!r}: available: {', '.join(sorted(BACKENDS))}")
     if any(s < 64 for s in sizes) or any(r < 0 for r in steps) or any(t is not None and t < 0 for t in taus):
         raise InputError("--size must be ≥ 64, --refine ≥ 0 and --conf-threshold ≥ 0")
-    from ..engine import QUALITIES
+    from ..presets import check_quality
 
     qualities = [q.strip().lower() for q in qualities]
-    bad = [q for q in qualities if q not in QUALITIES]
-    if bad:
-        raise InputError(f"--quality {bad[0]!r}: use {', '.join(QUALITIES)}")
+    for q in qualities:
+        check_quality(q)
     if neural.given and "neural" not in backends:
         raise InputError(f"{', '.join(neural.given)} only apply to --backend neural")
     if "neural" in backends:  # usage errors (no weights, --dino without --fusion, ...) before any work

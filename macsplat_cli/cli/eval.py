@@ -59,11 +59,12 @@ def engine_config(
     quality: str = "balanced",
 ) -> EngineConfig:  # fmt: skip
     """The engine settings of ``eval``/``bench`` (the working size and intrinsics come per case)."""
-    from ..engine import EngineConfig, NeuralOptions, RefineOptions
+    from ..engine import EngineConfig, NeuralOptions
+    from ..pipeline.refine import RefineConfig
 
     return EngineConfig(
-        backend=backend.strip().lower(), conf_threshold=conf_threshold, neural=neural or NeuralOptions(),
-        refine=RefineOptions(steps=refine), quality=quality.strip().lower(),
+        backend=backend.strip().lower(), conf_threshold=conf_threshold, neural=neural or NeuralOptions(),  # type: ignore[arg-type]
+        refine=RefineConfig(steps=refine), quality=quality.strip().lower(),  # type: ignore[arg-type]
     )  # fmt: skip
 
 

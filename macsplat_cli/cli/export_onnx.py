@@ -98,72 +98,16 @@ def export_onnx_command(
     The file runs in place of the checkpoints: [bold]macsplat reconstruct A B -o s.ply --backend neural
     --weights predictor.onnx[/]."""
     with command_context(ctx, verbose, quiet) as state:
-        from ..datasets.synthetic.sample import sample_pair
-        from ..errors import InputError
-        from ..neural.loading import load_pair_predictor
-        from ..neural.onnx_export import ExportConfig, export_onnx
-        from ..neural.onnx_format import ParityError
-        from ..neural.onnx_runtime import is_onnx_file
-        from ..neural.predictor import MISSING_WEIGHTS_HELP
+        from ..neural.onnx_export import ExportConfig
 
-        if checkpoint is not None and weights is not None:
-            raise InputError("--checkpoint and --weights both name the backbone: give one")
-        source = checkpoint if checkpoint is not None else weights
-        if is_onnx_file(source):
-            raise InputError(f"{source} is already an ONNX file: export from the torch checkpoints")
-        if source is None and gaussian_head is None:
-            raise InputError(MISSING_WEIGHTS_HELP.replace("--backend neural needs", "export-onnx needs"))
+        files = _sources(weights, checkpoint, gaussian_head, dino, fusion)
         config = ExportConfig(
             size=parse_size(size), opset=opset, fp16=fp16, quantize=quantize.strip().lower() if quantize else None,
             dynamic=not fixed_size, tolerance=tolerance,
         )  # fmt: skip
         config.validate()
-        files = {k: v for k, v in (("weights", source), ("gaussian_head", gaussian_head), ("dino", dino),
-                                   ("fusion", fusion)) if v is not None}  # fmt: skip
-        from .._atomic import check_writable
-
-        # before loading gigabytes: an output that is an input (the more precise message first), then writable
-        written = [output, output.with_name(output.name + ".data"), output.with_name(output.stem + ".parity.json")]
-        check_no_clobber(
-            [("-o", p) for p in written],
-            [(_OPTION_OF[k] if k != "weights" or checkpoint is None else "--checkpoint", v) for k, v in files.items()],
-        )
-        for p in written:  # the weights file and the parity report beside the graph too
-            check_writable(p)
-        if output.suffix.lower() != ".onnx":
-            raise InputError(f"-o {output}: the output must end in .onnx")
-        with StageProgress(disabled=state.quiet) as progress:
-            progress.event(_STEPS["load"], "start")
-            try:
-                predictor = load_pair_predictor(**files)
-            except BaseException:
-                progress.event(_STEPS["load"], "fail")
-                raise
-            progress.event(_STEPS["load"], "end")
-            current: list[str] = []
-
-            def on_step(name: str) -> None:
-                if current:
-                    progress.event(_STEPS[current.pop()], "end")
-                progress.event(_STEPS[name], "start")
-                current.append(name)
-
-            try:
-                sources = {
-                    ("checkpoint" if k == "weights" and checkpoint is not None else k): v for k, v in files.items()
-                }
-                result = export_onnx(
-                    predictor, output, config, sample=sample_pair(config.size), sources=sources, on_step=on_step
-                )
-            except BaseException as e:
-                if current:
-                    progress.event(_STEPS[current.pop()], "fail")
-                if isinstance(e, ParityError) and e.report is not None:
-                    progress.progress.stop()
-                    err_console.print(_parity_table(e.report))
-                raise
-            if current:
-                progress.event(_STEPS[current.pop()], "end")
+        _check_outputs(output, files, checkpoint is not None)
+        result = _export(output, config, files, checkpoint is not None, quiet=state.quiet)
         if not state.quiet:
             _summary(result)
         if json_out:
@@ -172,6 +116,81 @@ def export_onnx_command(
             doc = {"files": [str(p) for p in result.files], "bytes": result.bytes, "seconds": result.seconds,
                    "metadata": to_jsonable(result.info)}  # fmt: skip
             out_console.print_json(json.dumps(doc, allow_nan=False))
+
+
+def _sources(
+    weights: Path | None, checkpoint: Path | None, gaussian_head: Path | None, dino: Path | None, fusion: Path | None
+) -> dict[str, Path]:
+    """The torch checkpoints to export, by role (``weights``: ``--weights`` or ``--checkpoint``)."""
+    from ..errors import InputError
+    from ..neural.onnx_runtime import is_onnx_file
+    from ..neural.predictor import MISSING_WEIGHTS_HELP
+
+    if checkpoint is not None and weights is not None:
+        raise InputError("--checkpoint and --weights both name the backbone: give one")
+    source = checkpoint if checkpoint is not None else weights
+    if is_onnx_file(source):
+        raise InputError(f"{source} is already an ONNX file: export from the torch checkpoints")
+    if source is None and gaussian_head is None:
+        raise InputError(MISSING_WEIGHTS_HELP.replace("--backend neural needs", "export-onnx needs"))
+    return {k: v for k, v in (("weights", source), ("gaussian_head", gaussian_head), ("dino", dino),
+                              ("fusion", fusion)) if v is not None}  # fmt: skip
+
+
+def _check_outputs(output: Path, files: dict[str, Path], from_checkpoint: bool) -> None:
+    """Before loading gigabytes: an output that is an input (the more precise message first), then writable."""
+    from .._atomic import check_writable
+    from ..errors import InputError
+
+    written = [output, output.with_name(output.name + ".data"), output.with_name(output.stem + ".parity.json")]
+    check_no_clobber(
+        [("-o", p) for p in written],
+        [(_OPTION_OF[k] if k != "weights" or not from_checkpoint else "--checkpoint", v) for k, v in files.items()],
+    )
+    for p in written:  # the weights file and the parity report beside the graph too
+        check_writable(p)
+    if output.suffix.lower() != ".onnx":
+        raise InputError(f"-o {output}: the output must end in .onnx")
+
+
+def _export(output: Path, config: Any, files: dict[str, Path], from_checkpoint: bool, *, quiet: bool) -> Any:
+    """Load the predictor and export it, one progress line per step; a failed parity check prints its table."""
+    from ..datasets.synthetic.sample import sample_pair
+    from ..neural.loading import load_pair_predictor
+    from ..neural.onnx_export import export_onnx
+    from ..neural.onnx_format import ParityError
+
+    with StageProgress(disabled=quiet) as progress:
+        progress.event(_STEPS["load"], "start")
+        try:
+            predictor = load_pair_predictor(**files)
+        except BaseException:
+            progress.event(_STEPS["load"], "fail")
+            raise
+        progress.event(_STEPS["load"], "end")
+        current: list[str] = []
+
+        def on_step(name: str) -> None:
+            if current:
+                progress.event(_STEPS[current.pop()], "end")
+            progress.event(_STEPS[name], "start")
+            current.append(name)
+
+        try:
+            sources = {("checkpoint" if k == "weights" and from_checkpoint else k): v for k, v in files.items()}
+            result = export_onnx(
+                predictor, output, config, sample=sample_pair(config.size), sources=sources, on_step=on_step
+            )
+        except BaseException as e:
+            if current:
+                progress.event(_STEPS[current.pop()], "fail")
+            if isinstance(e, ParityError) and e.report is not None:
+                progress.progress.stop()
+                err_console.print(_parity_table(e.report))
+            raise
+        if current:
+            progress.event(_STEPS[current.pop()], "end")
+    return result
 
 
 def _summary(result: Any) -> None:

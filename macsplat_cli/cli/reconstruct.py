@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
+from ..presets import BACKENDS, QUALITIES
 from ._app import app
 from ._common import (
     QuietOpt,
@@ -34,8 +35,85 @@ from ._options import (
 
 if TYPE_CHECKING:
     from ..engine import EngineConfig
+    from ..pipeline.run import Reconstruction
 
 logger = logging.getLogger("macsplat_cli.cli.reconstruct")
+
+
+CamerasOpt = Annotated[
+    Path | None, typer.Option("--cameras", help="Where to write the estimated cameras [default: <stem>.cameras.json].")
+]
+RendersOpt = Annotated[
+    Path | None, typer.Option("--renders", help="Folder for novel views along the path between the cameras.")
+]
+NumRendersOpt = Annotated[int, typer.Option("--num-renders", min=2, help="Number of novel views.")]
+VideoOpt = Annotated[Path | None, typer.Option("--video", help="Also write the novel views as .mp4 or .gif.")]
+ReportOpt = Annotated[Path | None, typer.Option("--report", help="Write the run report (JSON) here.")]
+JsonOpt = Annotated[bool, typer.Option("--json", help="Print the report as JSON on stdout.")]
+SizeOpt = Annotated[
+    int | None,
+    typer.Option(
+        "--size", min=64, help="Long side of the working images (multiple of 16) [default: 384 fast, else 512]."
+    ),
+]
+QualityOpt = Annotated[
+    str,
+    typer.Option(
+        "--quality",
+        metavar="|".join(QUALITIES),
+        help="How much the scene is compacted (merged, pruned) and how light the stages are; best: lossless.",
+    ),
+]
+BudgetOpt = Annotated[
+    int | None, typer.Option("--budget", min=1, metavar="N", help="At most N Gaussians in the scene.")
+]
+IntrinsicsOpt = Annotated[
+    Path | None, typer.Option("--intrinsics", help="Camera file (cameras schema) with the photos' intrinsics.")
+]
+FocalOpt = Annotated[float | None, typer.Option("--focal", help="Focal length in pixels of the original photos.")]
+ConfThresholdOpt = Annotated[
+    float | None,
+    typer.Option(
+        "--conf-threshold",
+        help="τ: keep matches whose joint confidence c0·c1 exceeds it [default: 0.04; 1 with --backend neural].",
+    ),
+]
+FarLayerOpt = Annotated[
+    bool,
+    typer.Option(
+        "--far-layer/--no-far-layer",
+        help="Surround the scene with a far background layer extended from the photos' borders, so views past "
+        "both photos show no empty band; --no-far-layer leaves those pixels to the renderer's --background.",
+    ),
+]
+RefineOpt = Annotated[
+    str,
+    typer.Option(
+        "--refine",
+        metavar="STEPS",
+        help="Refine the Gaussians on the two photos (+ MAC loss) for up to STEPS steps; 'auto' = 50. 0 = off.",
+    ),
+]
+RefineScaleOpt = Annotated[
+    int, typer.Option("--refine-scale", min=1, max=4, help="Refine at 1/N resolution (2: ~4x faster per step).")
+]
+NoMacOpt = Annotated[bool, typer.Option("--no-mac", help="Refine without the MAC loss (ablation).")]
+LpipsWeightsOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--lpips-weights",
+        metavar="PATH",
+        help="Add LPIPS to the refinement's loss: a folder with torchvision's vgg16-*.pth and LPIPS v0.1 vgg.pth.",
+    ),
+]
+BackendOpt = Annotated[
+    str,
+    typer.Option(
+        "--backend",
+        metavar="|".join(BACKENDS),
+        help="classical: no learned weights (default); neural: MASt3R point maps and descriptors (--weights).",
+    ),
+]
 
 
 @app.command("reconstruct")
@@ -44,84 +122,25 @@ def reconstruct_command(
     image_a: Annotated[Path, typer.Argument(metavar="A", help="First photo (defines the world frame).")],
     image_b: Annotated[Path, typer.Argument(metavar="B", help="Second photo.")],
     output: Annotated[Path, typer.Option("--output", "-o", help="The Gaussian scene to write (.ply).")],
-    cameras: Annotated[
-        Path | None,
-        typer.Option("--cameras", help="Where to write the estimated cameras [default: <stem>.cameras.json]."),
-    ] = None,
-    renders: Annotated[
-        Path | None, typer.Option("--renders", help="Folder for novel views along the path between the cameras.")
-    ] = None,
-    num_renders: Annotated[int, typer.Option("--num-renders", min=2, help="Number of novel views.")] = 10,
-    video: Annotated[Path | None, typer.Option("--video", help="Also write the novel views as .mp4 or .gif.")] = None,
-    report: Annotated[Path | None, typer.Option("--report", help="Write the run report (JSON) here.")] = None,
-    json_out: Annotated[bool, typer.Option("--json", help="Print the report as JSON on stdout.")] = False,
-    size: Annotated[
-        int | None,
-        typer.Option(
-            "--size", min=64, help="Long side of the working images (multiple of 16) [default: 384 fast, else 512]."
-        ),
-    ] = None,
-    quality: Annotated[
-        str,
-        typer.Option(
-            "--quality",
-            metavar="fast|balanced|best",
-            help="How much the scene is compacted (merged, pruned) and how light the stages are; best: lossless.",
-        ),
-    ] = "balanced",
-    budget: Annotated[
-        int | None, typer.Option("--budget", min=1, metavar="N", help="At most N Gaussians in the scene.")
-    ] = None,
-    intrinsics: Annotated[
-        Path | None, typer.Option("--intrinsics", help="Camera file (cameras schema) with the photos' intrinsics.")
-    ] = None,
-    focal: Annotated[
-        float | None, typer.Option("--focal", help="Focal length in pixels of the original photos.")
-    ] = None,
-    conf_threshold: Annotated[
-        float | None,
-        typer.Option(
-            "--conf-threshold",
-            help="τ: keep matches whose joint confidence c0·c1 exceeds it [default: 0.04; 1 with --backend neural].",
-        ),
-    ] = None,
+    cameras: CamerasOpt = None,
+    renders: RendersOpt = None,
+    num_renders: NumRendersOpt = 10,
+    video: VideoOpt = None,
+    report: ReportOpt = None,
+    json_out: JsonOpt = False,
+    size: SizeOpt = None,
+    quality: QualityOpt = "balanced",
+    budget: BudgetOpt = None,
+    intrinsics: IntrinsicsOpt = None,
+    focal: FocalOpt = None,
+    conf_threshold: ConfThresholdOpt = None,
     accept_low_confidence: AcceptLowConfidenceOpt = False,
-    far_layer: Annotated[
-        bool,
-        typer.Option(
-            "--far-layer/--no-far-layer",
-            help="Surround the scene with a far background layer extended from the photos' borders, so views past "
-            "both photos show no empty band; --no-far-layer leaves those pixels to the renderer's --background.",
-        ),
-    ] = True,
-    refine: Annotated[
-        str,
-        typer.Option(
-            "--refine",
-            metavar="STEPS",
-            help="Refine the Gaussians on the two photos (+ MAC loss) for up to STEPS steps; 'auto' = 50. 0 = off.",
-        ),
-    ] = "0",
-    refine_scale: Annotated[
-        int, typer.Option("--refine-scale", min=1, max=4, help="Refine at 1/N resolution (2: ~4x faster per step).")
-    ] = 2,
-    no_mac: Annotated[bool, typer.Option("--no-mac", help="Refine without the MAC loss (ablation).")] = False,
-    lpips_weights: Annotated[
-        Path | None,
-        typer.Option(
-            "--lpips-weights",
-            metavar="PATH",
-            help="Add LPIPS to the refinement's loss: a folder with torchvision's vgg16-*.pth and LPIPS v0.1 vgg.pth.",
-        ),
-    ] = None,
-    backend: Annotated[
-        str,
-        typer.Option(
-            "--backend",
-            metavar="classical|neural",
-            help="classical: no learned weights (default); neural: MASt3R point maps and descriptors (--weights).",
-        ),
-    ] = "classical",
+    far_layer: FarLayerOpt = True,
+    refine: RefineOpt = "0",
+    refine_scale: RefineScaleOpt = 2,
+    no_mac: NoMacOpt = False,
+    lpips_weights: LpipsWeightsOpt = None,
+    backend: BackendOpt = "classical",
     weights: WeightsOpt = None,
     dino: DinoOpt = None,
     fusion: FusionOpt = None,
@@ -145,41 +164,64 @@ def reconstruct_command(
       macsplat reconstruct a.jpg b.jpg -o scene.ply --backend neural --weights mast3r.pth
     """
     with command_context(ctx, verbose, quiet) as state:
-        from ..engine import WORKING_SIZE, EngineConfig, RefineOptions
-        from ..pipeline.background import BackgroundConfig
-        from ..pipeline.pose import PoseSearchConfig
-        from ..pipeline.run import ReconstructConfig
-        from ..pipeline.views import ViewConfig
-
-        quality = quality.strip().lower()
-        size = size if size is not None else WORKING_SIZE.get(quality, 512)
-        config = EngineConfig(
-            backend=backend.strip().lower(),
-            quality=quality,
-            budget=budget,
-            pipeline=ReconstructConfig(
-                views=ViewConfig(size=size, intrinsics=intrinsics, focal=focal),
-                search=PoseSearchConfig(accept_low_confidence=accept_low_confidence),
-                background=BackgroundConfig(enabled=far_layer),
-            ),
-            conf_threshold=conf_threshold,
-            neural=neural_options(weights, gaussian_head, dino, fusion, device, precision),
-            refine=RefineOptions(
-                steps=_refine_steps(refine), scale=refine_scale, use_mac=not no_mac, lpips_weights=lpips_weights
-            ),
-        )
+        config = reconstruct_config(
+            size=size, quality=quality, budget=budget, intrinsics=intrinsics, focal=focal,
+            conf_threshold=conf_threshold, accept_low_confidence=accept_low_confidence, far_layer=far_layer,
+            refine=refine, refine_scale=refine_scale, no_mac=no_mac, lpips_weights=lpips_weights, backend=backend,
+            weights=weights, dino=dino, fusion=fusion, gaussian_head=gaussian_head, device=device, precision=precision,
+        )  # fmt: skip
         _reconstruct(
             [image_a, image_b], config, output=output, cameras=cameras, renders=renders, num_renders=num_renders,
             video=video, report=report, json_out=json_out, quiet=state.quiet,
         )  # fmt: skip
 
 
+def reconstruct_config(
+    *, size: int | None = None, quality: str = "balanced", budget: int | None = None, intrinsics: Path | None = None,
+    focal: float | None = None, conf_threshold: float | None = None, accept_low_confidence: bool = False,
+    far_layer: bool = True, refine: str = "0", refine_scale: int = 2, no_mac: bool = False,
+    lpips_weights: Path | None = None, backend: str = "classical", weights: Path | None = None,
+    dino: Path | None = None, fusion: Path | None = None, gaussian_head: Path | None = None, device: str = "cpu",
+    precision: str = "fp32",
+) -> EngineConfig:  # fmt: skip
+    """``reconstruct``'s options (the command's defaults) as the engine takes them, one field each: the presets
+    apply in the engine (:meth:`~macsplat_cli.engine.EngineConfig.settings`), the values are checked by
+    :meth:`~macsplat_cli.engine.EngineConfig.validate`.
+
+    Raises:
+        InputError: ``--refine`` is neither a number of steps nor ``auto``.
+    """
+    from ..engine import EngineConfig
+    from ..pipeline.background import BackgroundConfig
+    from ..pipeline.pose import PoseSearchConfig
+    from ..pipeline.refine import RefineConfig
+    from ..pipeline.run import ReconstructConfig
+    from ..pipeline.views import ViewConfig
+
+    return EngineConfig(  # the choices are checked by EngineConfig.validate
+        backend=backend.strip().lower(),  # type: ignore[arg-type]
+        quality=quality.strip().lower(),  # type: ignore[arg-type]
+        budget=budget,
+        size=size,
+        pipeline=ReconstructConfig(
+            views=ViewConfig(intrinsics=intrinsics, focal=focal),
+            search=PoseSearchConfig(accept_low_confidence=accept_low_confidence),
+            background=BackgroundConfig(enabled=far_layer),
+        ),
+        conf_threshold=conf_threshold,
+        neural=neural_options(weights, gaussian_head, dino, fusion, device, precision),
+        refine=RefineConfig(
+            steps=_refine_steps(refine), scale=refine_scale, use_mac=not no_mac, lpips_weights=lpips_weights
+        ),
+    )
+
+
 def _refine_steps(text: str) -> int:
     from ..errors import InputError
-    from ..refine import RefineConfig
+    from ..pipeline.refine import AUTO_STEPS
 
     if text.strip().lower() == "auto":
-        return RefineConfig().steps
+        return AUTO_STEPS
     try:
         steps = int(text)
     except ValueError:
@@ -248,9 +290,9 @@ def _reconstruct(
             on_stage=progress.event,
             on_refine_step=lambda i, terms: progress.refine_step(i, steps, terms),
         )
-        written = _write_outputs(result, output, cameras, renders, num_renders, video, progress)
+        written, n_written = _write_outputs(result, output, cameras, renders, num_renders, video, progress)
 
-    result.report.outputs = {k: str(v) for k, v in written.items()}
+    result.report.add_outputs(written, gaussians_written=n_written)
     doc = result.report.to_json()
     if report is not None:
         from .._atomic import atomic_write_text
@@ -262,30 +304,27 @@ def _reconstruct(
         _summary(doc, written)
 
 
-def _write_outputs(result, output, cameras, renders, num_renders, video, progress) -> dict[str, Any]:  # noqa: ANN001
-    import torch
-
+def _write_outputs(
+    result: Reconstruction, output: Path, cameras: Path, renders: Path | None, num_renders: int, video: Path | None,
+    progress: StageProgress,
+) -> tuple[dict[str, Path], int]:  # fmt: skip
+    """The files: the scene, the cameras, and the novel views (:func:`~macsplat_cli.engine.render_path`) as images
+    and a video. Returns role → path of each file written, and the Gaussians the PLY holds."""
     from ..cameras import save_cameras
-    from ..images import save_image, to_uint8, write_video
+    from ..engine import render_path
+    from ..images import save_image, write_video
     from ..ply import write_ply
-    from ..render import render_camera
-    from ..trajectory import interpolate_cameras
 
-    written: dict[str, Any] = {}
+    written: dict[str, Path] = {}
     progress.event("write", "start")
-    result.report.gaussians_written = write_ply(output, result.gaussians)
+    n_written = write_ply(output, result.gaussians)
     written["scene"] = output
     save_cameras(cameras, result.cameras())
     written["cameras"] = cameras
     progress.event("write", "end")
     if renders is not None or video is not None:
         progress.event("renders", "start")
-        work_cams = result.cameras(original_size=False)
-        path = interpolate_cameras(list(work_cams), num_renders)
-        frames = []
-        with torch.no_grad():
-            for cam in path:
-                frames.append(to_uint8(render_camera(result.gaussians, cam).rgb))
+        frames = render_path(result, num_renders)
         if renders is not None:
             renders.mkdir(parents=True, exist_ok=True)
             for name, f in zip(_render_names(renders, len(frames)), frames):
@@ -295,7 +334,7 @@ def _write_outputs(result, output, cameras, renders, num_renders, video, progres
             write_video(video, frames)
             written["video"] = video
         progress.event("renders", "end")
-    return written
+    return written, n_written
 
 
 _TIERS = {

@@ -153,17 +153,37 @@ def _render(
     device: str,
     quiet: bool,
 ) -> None:
-    import torch
-
-    from .._atomic import check_writable
-    from ..cameras import load_cameras
-    from ..errors import InputError, OutputPathError
-    from ..images import DEPTH_FORMATS, VIDEO_FORMATS, check_image_path, save_depth, save_image, to_uint8, write_video
     from ..ply import read_ply
-    from ..render import render_camera
-    from ..trajectory import interpolate_cameras
 
     # ---- validate everything before any work, so bad input fails fast and writes nothing
+    frame_files = _check_outputs(scene, camera_file, output, path, depth, video)
+    _check_device(backend, device)
+
+    t0 = time.perf_counter()
+    gaussians = read_ply(scene).to(device)
+    targets, n_cams = _targets(camera_file, view, path, width, height)
+    t_load = time.perf_counter() - t0
+    logger.debug("loaded %d Gaussians (SH degree %d) and %d camera(s)", len(gaussians), gaussians.sh_degree, n_cams)
+    _check_video_memory(targets, video)
+    t0 = time.perf_counter()
+    written, n_visible = _render_targets(
+        gaussians, targets, output, frame_files, depth, video, fps, background, backend, single=path is None,
+        quiet=quiet,
+    )  # fmt: skip
+    t_render = time.perf_counter() - t0
+
+    if not quiet:
+        _summary(scene, len(gaussians), targets, n_visible, t_load, t_render, written, backend)
+
+
+def _check_outputs(
+    scene: Path, camera_file: Path, output: Path | None, path: int | None, depth: Path | None, video: Path | None
+) -> list[Path]:
+    """Every file the command will write checked (formats, clobbering, writability); returns the ``--path`` frames."""
+    from .._atomic import check_writable
+    from ..errors import InputError
+    from ..images import DEPTH_FORMATS, VIDEO_FORMATS, check_image_path
+
     writes: list[Path] = []  # every file written, checked by check_writable after the clobber check
     if path is None:
         if output is None:
@@ -193,46 +213,77 @@ def _render(
     check_no_clobber([*single, *(("-o", f) for f in frame_files)], [("SCENE.ply", scene), ("--pose", camera_file)])
     for f in [*writes, *frame_files]:  # links, devices, unwritable folders (an existing frame folder too)
         check_writable(f)
+    return frame_files
+
+
+def _check_device(backend: str, device: str) -> None:
+    import torch
+
+    from ..errors import InputError
+
     if device == "cuda" and not torch.cuda.is_available():
         raise InputError("--device cuda: this PyTorch has no CUDA device")
     if backend == "gsplat" and device != "cuda":
         raise InputError("--backend gsplat renders on a CUDA device: add --device cuda")
 
-    t0 = time.perf_counter()
-    gaussians = read_ply(scene).to(device)
+
+def _targets(
+    camera_file: Path, view: int, path: int | None, width: int | None, height: int | None
+) -> tuple[list, int]:  # fmt: skip
+    """The cameras to render (one view of the file, or ``path`` views along it) and the number in the file."""
+    from ..cameras import load_cameras
+    from ..errors import InputError
+    from ..trajectory import interpolate_cameras
+
     cams = load_cameras(camera_file)
     if path is None:
         if view >= len(cams):
             raise InputError(f"{camera_file}: --view {view} is out of range (the file has {len(cams)} camera(s))")
-        targets = [_resized(cams[view], width, height)]
-    else:
-        w = width or (round(height * cams[0].width / cams[0].height) if height else None)
-        h = height or (round(width * cams[0].height / cams[0].width) if width else None)
-        targets = interpolate_cameras(list(cams), path, width=w, height=h)
-    t_load = time.perf_counter() - t0
-    logger.debug("loaded %d Gaussians (SH degree %d) and %d camera(s)", len(gaussians), gaussians.sh_degree, len(cams))
+        return [_resized(cams[view], width, height)], len(cams)
+    w = width or (round(height * cams[0].width / cams[0].height) if height else None)
+    h = height or (round(width * cams[0].height / cams[0].width) if width else None)
+    return interpolate_cameras(list(cams), path, width=w, height=h), len(cams)
 
-    if video is not None:  # the video's frames are held in memory until it is encoded
-        need = sum(c.width * c.height * 3 for c in targets)
-        if need > MAX_VIDEO_BYTES:
-            raise InputError(
-                f"--video: {len(targets)} frames of {targets[0].width}x{targets[0].height} would hold "
-                f"{need / 2**30:.1f} GiB in memory (at most {MAX_VIDEO_BYTES / 2**30:.0f} GiB): "
-                "use fewer --path views or a smaller --width/--height"
-            )
-    # Frames are written as they are rendered (each file atomically); only a video keeps them, as 8-bit images.
+
+def _check_video_memory(targets: list, video: Path | None) -> None:
+    """The video's frames are held in memory until it is encoded: at most :data:`MAX_VIDEO_BYTES`."""
+    from ..errors import InputError
+
+    if video is None:
+        return
+    need = sum(c.width * c.height * 3 for c in targets)
+    if need > MAX_VIDEO_BYTES:
+        raise InputError(
+            f"--video: {len(targets)} frames of {targets[0].width}x{targets[0].height} would hold "
+            f"{need / 2**30:.1f} GiB in memory (at most {MAX_VIDEO_BYTES / 2**30:.0f} GiB): "
+            "use fewer --path views or a smaller --width/--height"
+        )
+
+
+def _render_targets(
+    gaussians, targets: list, output: Path | None, frame_files: list[Path], depth: Path | None,  # noqa: ANN001
+    video: Path | None, fps: float, background: tuple[float, float, float], backend: str, *, single: bool,
+    quiet: bool,
+) -> tuple[list[Path], list[int]]:  # fmt: skip
+    """Render every target and write it as it is rendered (each file atomically); only a video keeps the frames,
+    as 8-bit images. Returns the files written and the Gaussians visible in each view."""
+    import torch
+
+    from ..errors import OutputPathError
+    from ..images import save_depth, save_image, to_uint8, write_video
+    from ..render import render_camera
+
     written, images, n_visible = [], [], []
-    if path is not None and output is not None:
+    if not single and output is not None:
         try:
             output.mkdir(parents=True, exist_ok=True)
         except OSError as e:
             raise OutputPathError(f"cannot create folder {output}: {e.strerror or e}") from None
-    t0 = time.perf_counter()
     with _progress(len(targets), quiet or len(targets) == 1) as advance, torch.no_grad():
         for k, cam in enumerate(targets):
             out = render_camera(gaussians, cam, background=background, backend=backend)
             n_visible.append(int(out.visible.numel()))
-            if path is None:
+            if single:
                 written.append(save_image(output, out.rgb))  # type: ignore[arg-type]
                 if depth is not None:
                     written.append(save_depth(depth, out.depth))
@@ -245,10 +296,7 @@ def _render(
             advance()
     if video is not None:
         written.append(write_video(video, images, fps=fps))
-    t_render = time.perf_counter() - t0
-
-    if not quiet:
-        _summary(scene, len(gaussians), targets, n_visible, t_load, t_render, written, backend)
+    return written, n_visible
 
 
 def _resized(cam, width: int | None, height: int | None):  # noqa: ANN001, ANN202

@@ -131,7 +131,6 @@ def _train(
     no_dino: bool, mac_weight: float, lpips_weights: Path | None, train_backbone: bool, device: str, resume: bool,
     force: bool, quiet: bool,
 ) -> None:  # fmt: skip
-    from ..errors import InputError
     from ..neural.predictor import resolve_device
     from ..training.config import TrainConfig
     from ..training.data import PairSamplingConfig
@@ -140,19 +139,7 @@ def _train(
     from ..training.setup import load_training_data
     from ..training.trainer import Trainer
 
-    if model not in ("tiny", "full"):
-        raise InputError(f"--model {model!r}: use tiny or full")
-    if init not in ("weights", "random"):
-        raise InputError(f"--init {init!r}: use weights or random")
-    if init == "weights" and weights is None and gaussian_head is None:
-        raise InputError(
-            "--init weights needs --weights (MASt3R) or --gaussian-head (Splatt3R); or train from scratch with "
-            "--init random (--model tiny trains in minutes on a CPU)"
-        )
-    if resume and force:
-        raise InputError("--resume and --force contradict each other: give one")
-    if not (mac_weight >= 0 and mac_weight == mac_weight):
-        raise InputError(f"--mac-weight {mac_weight}: give a number ≥ 0")
+    _check_options(model, init, weights is not None or gaussian_head is not None, resume, force, mac_weight)
     resolve_device(device)
     config = TrainConfig(
         out=out, steps=steps, batch=batch, accumulate=accumulate, lr=lr, weight_decay=weight_decay, warmup=warmup,
@@ -206,6 +193,25 @@ def _train(
         result = trainer.fit()
     if not quiet and trainer.ctx.is_main:
         err_console.print(escape(_summary(result, out)), highlight=False, soft_wrap=True)
+
+
+def _check_options(model: str, init: str, has_weights: bool, resume: bool, force: bool, mac_weight: float) -> None:
+    """The options' values and combinations, before anything is read."""
+    from ..errors import InputError
+
+    if model not in ("tiny", "full"):
+        raise InputError(f"--model {model!r}: use tiny or full")
+    if init not in ("weights", "random"):
+        raise InputError(f"--init {init!r}: use weights or random")
+    if init == "weights" and not has_weights:
+        raise InputError(
+            "--init weights needs --weights (MASt3R) or --gaussian-head (Splatt3R); or train from scratch with "
+            "--init random (--model tiny trains in minutes on a CPU)"
+        )
+    if resume and force:
+        raise InputError("--resume and --force contradict each other: give one")
+    if not (mac_weight >= 0 and mac_weight == mac_weight):
+        raise InputError(f"--mac-weight {mac_weight}: give a number ≥ 0")
 
 
 def _summary(result: Any, out: Path) -> str:

@@ -38,9 +38,10 @@ import numpy as np
 from .._atomic import atomic_write_bytes, atomic_write_text, check_folder, check_writable
 from .._json import to_jsonable
 from ..datasets import EvalDataset
-from ..engine import BACKENDS as ENGINE
-from ..engine import EngineConfig, Models, NeuralOptions, RefineOptions, load_models
+from ..engine import EngineConfig, Models, NeuralOptions, load_models
 from ..errors import InputError, OutputPathError
+from ..pipeline.refine import RefineConfig
+from ..presets import BACKENDS as ENGINE
 from .protocol import evaluate
 from .reconstructors import BACKENDS, Reconstructor, ReconstructSettings, make_reconstructor
 from .result_files import ResultWriter
@@ -291,7 +292,7 @@ def run_bench(
             quality=s.quality,
         )
         if s.backend not in models:  # the networks load once per backend
-            models[s.backend] = load_models(config.replace(refine=RefineOptions())) if s.backend in ENGINE else Models()
+            models[s.backend] = load_models(config.replace(refine=RefineConfig())) if s.backend in ENGINE else Models()
         recon = make_reconstructor(config, models[s.backend])
         cfg = EvalConfig(
             settings=ReconstructSettings(size=s.size, intrinsics=intrinsics),  # type: ignore[arg-type]

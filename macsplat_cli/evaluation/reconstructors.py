@@ -106,7 +106,7 @@ class EngineReconstructor:
 
     def __call__(self, scene: EvalScene, case: EvalCase, settings: ReconstructSettings) -> Reconstruction:
         config = self.config.replace()
-        config.pipeline.views = ViewConfig(size=settings.size)
+        config.pipeline.views, config.size = ViewConfig(), settings.size
         paths = _context_paths(scene, case)
         with tempfile.TemporaryDirectory(prefix="macsplat-eval-") as tmp:
             if settings.intrinsics == "given":

@@ -80,7 +80,11 @@ class ReconstructConfig:
 
 @dataclass
 class Reconstruction:
-    """The result of a run: Gaussians in the camera-0 frame (relative scale: baseline 1)."""
+    """The result of a run: Gaussians in the camera-0 frame (relative scale: baseline 1).
+
+    ``maps`` are the Gaussian stage's, or the refinement's (stage 7, :mod:`.refine`) when it ran; ``report`` gets each
+    later stage's section through its ``add_*`` methods (:class:`~macsplat_cli.report.RunReport`).
+    """
 
     views: list[View]
     geometry: TwoViewGeometry
@@ -89,7 +93,7 @@ class Reconstruction:
     report: RunReport
     scale: Literal["relative", "metric"] = "relative"
     compacted: Gaussians | None = None
-    """The scene after the compaction (:mod:`macsplat_cli.compact`), when it ran."""
+    """The scene after the compaction (:mod:`.compact`, stage 8), when it ran."""
     background: BackgroundLayer | None = None
     """The far layer around both photos (:mod:`.background`), when it was built; not refined or compacted."""
     pose: PoseResult | None = None

@@ -1,7 +1,8 @@
 """The neural backend in the pipeline's stage slots (``--backend neural``).
 
-* :mod:`.stages`: the ``pair`` stage (the :class:`~macsplat_cli.neural.predictor.PairPredictor`'s one pass
-  per pair) and the descriptor, pose, depth and Gaussian stages that read its output;
+* :mod:`.pair`: the ``pair`` stage (the :class:`~macsplat_cli.neural.predictor.PairPredictor`'s one pass
+  per pair) and the neural stages' settings;
+* :mod:`.stages`: the descriptor, pose, depth and Gaussian stages that read its output;
 * :mod:`.geometry`: focal length (Weiszfeld) from point maps, descriptor sampling (the pose from the point map,
   PnP, is in :mod:`..pose.pnp`);
 * :mod:`.warp`: a view's working pixels ↔ the network grid.
@@ -10,18 +11,8 @@
 from __future__ import annotations
 
 from .geometry import estimate_focal_weiszfeld, pixel_grid, sample_descriptors
-from .stages import (
-    NetworkPair,
-    NeuralConfig,
-    NeuralDepth,
-    NeuralDescriptors,
-    NeuralGaussians,
-    NeuralPair,
-    NeuralPose,
-    neural_reconstruct_config,
-    neural_stages,
-    refine_matches,
-)
+from .pair import NetworkPair, NeuralConfig, NeuralPair
+from .stages import NeuralDepth, NeuralDescriptors, NeuralGaussians, NeuralPose, neural_stages, refine_matches
 from .warp import ViewWarp
 
 __all__ = [
@@ -34,7 +25,6 @@ __all__ = [
     "NeuralPose",
     "ViewWarp",
     "estimate_focal_weiszfeld",
-    "neural_reconstruct_config",
     "neural_stages",
     "pixel_grid",
     "refine_matches",

@@ -1,0 +1,348 @@
+"""Stage 7: MAC-regularised test-time refinement of a two-view reconstruction (``--refine``).
+
+The Gaussians of both views (per-pixel maps, optionally pooled ``scale × scale`` for
+speed) are optimised with Adam so that they render the two context photos well, and —
+with the MAC loss — so that matched pixels of the two views agree on one Gaussian:
+
+``L = Σ_views [ L2 + w_ssim · (1 − SSIM) (+ w_lpips · LPIPS) ] + λ_MAC · L_MAC``
+
+(LPIPS only with user-supplied VGG weights, :func:`macsplat_cli.lpips.load_lpips`.)
+
+over means, scales, rotations, opacities and colours (the cameras are fixed). It stops
+early once the loss plateaus (relative improvement of its running mean below
+``plateau_tol`` over ``plateau_window`` steps). Measured: benchmarks/history/refine.md.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Literal
+
+import cv2
+import numpy as np
+import torch
+
+from ..errors import InputError
+from ..gaussians import GaussianMaps, Gaussians
+from ..mac import MACConfig, mac_loss
+from ..metrics import ssim_map
+from ..render import render
+from ..report import RefineReport
+from .types import DepthMap, TwoViewGeometry, View
+
+if TYPE_CHECKING:
+    from .run import Reconstruction
+
+__all__ = ["AUTO_STEPS", "RefineConfig", "RefineResult", "check_scale", "refine", "refine_reconstruction"]
+
+logger = logging.getLogger(__name__)
+
+AUTO_STEPS = 50
+"""``--refine auto``: the elbow of time against held-out error (benchmarks/history/refine.md)."""
+RefineStep = Callable[[int, dict[str, float]], None]
+
+
+@dataclass
+class RefineConfig:
+    """Args:
+    steps: most optimisation steps; 0: no refinement (the engine skips the stage). ``--refine auto``:
+        :data:`AUTO_STEPS`.
+    scale: pool the maps ``scale × scale`` and render the photos at 1/scale (1 to 4; 2: about 4× faster per step
+        than full resolution).
+    use_mac: add the MAC loss (False: the "w/o MAC" ablation).
+    lpips_weights: the LPIPS-VGG weights folder (``--lpips-weights``); the engine loads it and passes the model
+        to :func:`refine` (its term is ``lpips_weight`` × LPIPS).
+    mac_matches: "filtered": the verified sparse matches (the paper's filtered matching);
+        "dense": also every ``dense_stride``-th measured pixel of view 0 paired with its
+        depth-consistent pixel in view 1.
+    dense_stride: the pixel step of the dense MAC matches.
+    mac: MAC loss weights; ``mac.weight`` is λ_MAC.
+    ssim_weight: weight of the D-SSIM term.
+    lpips_weight: weight of the LPIPS term, when an LPIPS model is passed to :func:`refine`
+        (0.25, as Splatt3R's training loss).
+    lr_means: learning rate of the means, as a fraction of the median scene depth.
+    lr_log_scales: learning rate of the log-scales.
+    lr_quats: learning rate of the quaternions.
+    lr_opacity: learning rate of the opacity logits.
+    lr_sh: learning rate of the SH coefficients.
+    plateau_window: steps over which the improvement is measured.
+    plateau_tol: stop when the running-mean loss improved by less than this fraction.
+    min_steps: never stop before this many steps.
+    """
+
+    steps: int = 0
+    scale: int = 2
+    use_mac: bool = True
+    lpips_weights: Path | None = None
+    mac_matches: Literal["filtered", "dense"] = "filtered"
+    dense_stride: int = 4
+    mac: MACConfig = field(default_factory=MACConfig)
+    ssim_weight: float = 0.2
+    lpips_weight: float = 0.25
+    lr_means: float = 1e-3
+    lr_log_scales: float = 5e-3
+    lr_quats: float = 2e-3
+    lr_opacity: float = 3e-2
+    lr_sh: float = 5e-3
+    plateau_window: int = 25
+    plateau_tol: float = 2e-3
+    min_steps: int = 25
+
+
+@dataclass
+class RefineResult:
+    """The refined per-view maps (``B = 1`` each, at the refinement resolution) and the loss history."""
+
+    maps: list[GaussianMaps]
+    steps: int
+    seconds: float
+    stopped_early: bool
+    history: list[dict[str, float]]
+
+
+@dataclass
+class _Target:
+    """One view as the loss sees it: its photo at the refinement resolution and the camera rendering it."""
+
+    image: torch.Tensor  # [h, w, 3] float32
+    world_to_cam: torch.Tensor  # [4, 4] float32
+    K: torch.Tensor  # [3, 3] float32, intrinsics at the refinement resolution
+
+    def render(self, world: Gaussians) -> torch.Tensor:
+        """``world`` seen by this view's camera. [h, w, 3]"""
+        h, w = self.image.shape[:2]
+        return render(world, self.world_to_cam, self.K, w, h).rgb
+
+
+@dataclass
+class _MacMatches:
+    """The MAC loss's matches at the refinement resolution."""
+
+    xy0: torch.Tensor  # [M, 2] float32
+    xy1: torch.Tensor  # [M, 2] float32
+    weights: torch.Tensor  # [M] float32
+    batch: torch.Tensor  # [M] int64, zeros (one pair)
+    cam_to_world: tuple[torch.Tensor, torch.Tensor]  # [1, 4, 4] float32 each
+
+
+def _downscale(image: np.ndarray, factor: int) -> torch.Tensor:
+    h, w = image.shape[:2]
+    if factor == 1:
+        return torch.from_numpy(np.ascontiguousarray(image, np.float32))
+    small = cv2.resize(image, (w // factor, h // factor), interpolation=cv2.INTER_AREA)
+    return torch.from_numpy(np.ascontiguousarray(small, np.float32))
+
+
+def _cam_to_world(m: GaussianMaps) -> torch.Tensor:
+    """A one-view map's camera-to-world transform (the identity when it has none). [4, 4], as stored"""
+    if m.batch != 1:
+        raise InputError(f"refine() takes one map per view (B = 1), got B = {m.batch}")
+    return m.cam_to_world_or_identity()[0]
+
+
+def _targets(views: list[View], geometry: TwoViewGeometry, params: list[GaussianMaps], f: int) -> list[_Target]:
+    """Each view's photo at 1/``f`` and its camera (the intrinsics scaled by 1/``f``)."""
+    targets = []
+    for k, (v, K) in enumerate(zip(views, [geometry.K0, geometry.K1])):
+        img = _downscale(v.image, f)
+        K = K.copy()
+        K[:2] /= f
+        w2c = torch.linalg.inv(_cam_to_world(params[k])).float()
+        targets.append(_Target(img, w2c, torch.tensor(K, dtype=torch.float32)))
+    return targets
+
+
+def _optimizer(params: list[GaussianMaps], cfg: RefineConfig) -> torch.optim.Adam:
+    """Adam over the five parameter maps; the means' rate scaled by the median scene depth."""
+    depth = torch.cat([m.means[..., 2][m.valid_mask()] for m in params]).detach()
+    scene = float(depth.median()) if depth.numel() else 1.0
+    return torch.optim.Adam(
+        [
+            {"params": [m.means for m in params], "lr": cfg.lr_means * scene},
+            {"params": [m.log_scales for m in params], "lr": cfg.lr_log_scales},
+            {"params": [m.quats for m in params], "lr": cfg.lr_quats},
+            {"params": [m.opacity_logits for m in params], "lr": cfg.lr_opacity},
+            {"params": [m.sh for m in params], "lr": cfg.lr_sh},
+        ]
+    )
+
+
+def _mac_matches(
+    geometry: TwoViewGeometry, depths: list[DepthMap] | None, params: list[GaussianMaps], cfg: RefineConfig
+) -> _MacMatches:
+    """The verified matches (and with ``mac_matches="dense"`` the depth-consistent pixels) at 1/``scale``."""
+    m_xy0, m_xy1, m_w = geometry.inliers.xy0, geometry.inliers.xy1, geometry.inliers.conf
+    if cfg.mac_matches == "dense" and depths is not None:
+        d_xy0, d_xy1, d_w = _dense_matches(geometry, depths, cfg.dense_stride)
+        m_xy0, m_xy1, m_w = np.concatenate([m_xy0, d_xy0]), np.concatenate([m_xy1, d_xy1]), np.concatenate([m_w, d_w])
+    f = cfg.scale
+    return _MacMatches(
+        xy0=torch.tensor(m_xy0 / f, dtype=torch.float32),
+        xy1=torch.tensor(m_xy1 / f, dtype=torch.float32),
+        weights=torch.tensor(m_w, dtype=torch.float32),
+        batch=torch.zeros(len(m_xy0), dtype=torch.long),
+        cam_to_world=(_cam_to_world(params[0]).float()[None], _cam_to_world(params[1]).float()[None]),
+    )
+
+
+def _step_loss(
+    params: list[GaussianMaps], targets: list[_Target], matches: _MacMatches, cfg: RefineConfig,
+    lpips: torch.nn.Module | None,
+) -> tuple[torch.Tensor, dict[str, float]]:  # fmt: skip
+    """One step's loss (photometric over both views, + LPIPS, + λ_MAC · MAC) and its terms."""
+    world = Gaussians.cat([m.to_gaussians() for m in params])
+    photo = torch.zeros(())
+    perceptual = torch.zeros(())
+    for t in targets:
+        rgb = t.render(world)
+        photo = photo + ((rgb - t.image) ** 2).mean() + cfg.ssim_weight * (1.0 - ssim_map(rgb, t.image).mean())
+        if lpips is not None:
+            perceptual = perceptual + lpips(rgb, t.image)
+    terms = {"photo": float(photo.detach())}
+    if lpips is not None:
+        terms["lpips"] = float(perceptual.detach())
+        photo = photo + cfg.lpips_weight * perceptual
+    loss = photo
+    if cfg.use_mac and len(matches.xy0):
+        c2w0, c2w1 = matches.cam_to_world
+        mac = mac_loss(
+            params[0], params[1], matches.xy0, matches.xy1, matches.batch, matches.weights, c2w0, c2w1, cfg.mac,
+            check_inputs=False,
+        )  # fmt: skip
+        loss = loss + cfg.mac.weight * mac.loss
+        terms.update(
+            mac=float(mac.loss.detach()), mac_pos=float(mac.position.detach()), mac_shape=float(mac.shape.detach())
+        )
+    terms["loss"] = float(loss.detach())
+    return loss, terms
+
+
+def _plateaued(running: list[float], step: int, cfg: RefineConfig) -> bool:
+    """The running-mean loss improved by less than ``plateau_tol`` over the last ``plateau_window`` steps."""
+    if step < max(cfg.min_steps, 2 * cfg.plateau_window):
+        return False
+    recent = float(np.mean(running[-cfg.plateau_window :]))
+    before = float(np.mean(running[-2 * cfg.plateau_window : -cfg.plateau_window]))
+    return before - recent < cfg.plateau_tol * abs(before)
+
+
+def refine(
+    views: list[View],
+    geometry: TwoViewGeometry,
+    maps: list[GaussianMaps],
+    config: RefineConfig | None = None,
+    *,
+    depths: list[DepthMap] | None = None,
+    lpips: torch.nn.Module | None = None,
+    on_step: RefineStep | None = None,
+) -> RefineResult:
+    """Refine both views' Gaussians on their photos (+ the MAC loss over the verified matches).
+
+    Args:
+        views: the two views (photos at the working resolution).
+        geometry: their relative pose; its verified matches feed the MAC loss.
+        maps: the per-view Gaussians to refine, ``B = 1`` each, in their view's camera frame with
+            ``cam_to_world`` set (None: the identity) (not modified).
+        config: settings (None: :data:`AUTO_STEPS` steps, the other settings their defaults).
+        depths: the views' depth maps (needed for ``mac_matches="dense"``).
+        lpips: an LPIPS model (:class:`macsplat_cli.lpips.LPIPS`) adds its term to the photometric loss.
+        on_step: called after each step with the step number and the loss terms.
+
+    Returns:
+        :class:`RefineResult` with maps at ``1/scale`` of the working resolution.
+    """
+    cfg = config or RefineConfig(steps=AUTO_STEPS)
+    params = [m.pooled(cfg.scale).detach() for m in maps]
+    for m in params:
+        for t in m.tensors():
+            t.requires_grad_(True)
+    targets = _targets(views, geometry, params, cfg.scale)
+    opt = _optimizer(params, cfg)
+    matches = _mac_matches(geometry, depths, params, cfg)
+
+    history: list[dict[str, float]] = []
+    running: list[float] = []
+    stopped_early = False
+    t0 = time.perf_counter()
+    step = 0
+    for step in range(1, cfg.steps + 1):
+        opt.zero_grad(set_to_none=True)
+        loss, terms = _step_loss(params, targets, matches, cfg, lpips)
+        loss.backward()
+        opt.step()
+        history.append(terms)
+        running.append(terms["loss"])
+        if on_step is not None:
+            on_step(step, terms)
+        if _plateaued(running, step, cfg):
+            stopped_early = step < cfg.steps
+            break
+    seconds = time.perf_counter() - t0
+    logger.debug(
+        "refinement: %d steps in %.1f s, loss %.4f → %.4f", step, seconds, history[0]["loss"], history[-1]["loss"]
+    )
+    return RefineResult(
+        maps=[m.detach() for m in params], steps=step, seconds=seconds, stopped_early=stopped_early, history=history
+    )
+
+
+def check_scale(maps: list[GaussianMaps], scale: int) -> None:
+    """Raise :class:`~macsplat_cli.errors.InputError` when the maps' size is not divisible by ``scale``."""
+    h, w = maps[0].size
+    if any(m.size[0] % scale or m.size[1] % scale for m in maps):
+        raise InputError(f"--refine-scale {scale}: the working size {w}x{h} is not divisible by it")
+
+
+def refine_reconstruction(
+    rec: Reconstruction, config: RefineConfig, *, lpips: torch.nn.Module | None = None,
+    on_step: RefineStep | None = None,
+) -> tuple[RefineResult, RefineReport]:  # fmt: skip
+    """:func:`refine` on a finished reconstruction (its views, pose, maps and depths), and its report section.
+
+    Raises:
+        InputError: the working size is not divisible by ``config.scale`` (:func:`check_scale`).
+    """
+    check_scale(rec.maps, config.scale)
+    f = config.scale
+    out = refine(rec.views, rec.geometry, rec.maps, config, depths=rec.depths, lpips=lpips, on_step=on_step)
+    report = RefineReport(
+        steps=out.steps,
+        max_steps=config.steps,
+        stopped_early=out.stopped_early,
+        seconds=out.seconds,
+        scale=f,
+        mac=config.use_mac,
+        lpips=lpips is not None,
+        loss_first=out.history[0],
+        loss_last=out.history[-1],
+    )
+    return out, report
+
+
+def _dense_matches(geometry: TwoViewGeometry, depths: list[DepthMap], stride: int) -> tuple[np.ndarray, ...]:
+    """Measured pixels of view 0 (every ``stride``-th) and their depth-consistent pixels in view 1."""
+    d0, d1 = depths
+    m0 = d0.measured if d0.measured is not None else d0.valid
+    h, w = d0.depth.shape
+    ys, xs = np.mgrid[0:h:stride, 0:w:stride]
+    ys, xs = ys.ravel(), xs.ravel()
+    keep = m0[ys, xs]
+    ys, xs = ys[keep], xs[keep]
+    xy0 = np.stack([xs + 0.5, ys + 0.5], 1)
+    z = d0.depth[ys, xs].astype(np.float64)
+    X = (np.concatenate([xy0, np.ones((len(xy0), 1))], 1) @ np.linalg.inv(geometry.K0).T) * z[:, None]
+    X1 = X @ geometry.R.T + geometry.t
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = (X1 @ geometry.K1.T)[:, :2] / X1[:, 2:3]
+    h1, w1 = d1.depth.shape
+    ok = np.isfinite(uv).all(1) & (X1[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w1) & (uv[:, 1] >= 0) & (uv[:, 1] < h1)
+    u, v = np.floor(uv[ok, 0]).astype(int), np.floor(uv[ok, 1]).astype(int)
+    m1 = d1.measured if d1.measured is not None else d1.valid
+    agree = m1[v, u] & (np.abs(d1.depth[v, u] - X1[ok, 2]) < 0.02 * X1[ok, 2])
+    idx = np.flatnonzero(ok)[agree]
+    conf = (d0.confidence[ys[idx], xs[idx]] * d1.confidence[v[agree], u[agree]]).astype(np.float32)
+    return xy0[idx], uv[idx], conf
