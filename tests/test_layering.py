@@ -11,9 +11,6 @@ type checker only); relative and absolute alike. The tests assert:
 * a private module (``_name``) is imported only from inside its own package;
 * no cycle among the module-level imports, nor among all of them (a function-level import that closes a
   cycle is a cycle the module structure hides).
-
-:data:`KNOWN` lists the violations other work items of issue 24 remove; it is emptied when they land, and
-any violation not in it fails.
 """
 
 from __future__ import annotations
@@ -75,12 +72,6 @@ PEERS: dict[tuple[str, str], str] = {
 layers are independent of each other. Layers 1, 3 and 5 are one body each: their homes import each other
 freely (still without cycles)."""
 INDEPENDENT_LAYERS = (2, 4)
-
-KNOWN: dict[str, str] = {
-    "private: compact → render._constants": "issue 24 item 3: the compact stage moves into pipeline/",
-}
-"""Violations other work items of issue 24 remove, each with the item that removes it. Empty once they land."""
-
 
 @dataclass(frozen=True)
 class Edge:
@@ -306,10 +297,6 @@ def _cycle_key(component: list[str]) -> str:
     return "cycle: " + " ↔ ".join(component)
 
 
-def _unknown(found: list[str]) -> list[str]:
-    return [v for v in found if v.split(" | ")[0] not in KNOWN]
-
-
 @pytest.fixture(scope="module")
 def graph() -> tuple[set[str], list[Edge]]:
     return _parse(PACKAGE_DIR)
@@ -348,25 +335,17 @@ def test_every_module_has_a_layer(graph: tuple[set[str], list[Edge]]) -> None:
 
 def test_no_import_points_up_sideways_or_into_a_private_module(graph: tuple[set[str], list[Edge]]) -> None:
     found = violations(*graph)
-    assert _unknown(found) == [], "\n" + "\n".join(_unknown(found))
+    assert found == [], "\n" + "\n".join(found)
 
 
 def test_no_cycle_among_module_level_imports(graph: tuple[set[str], list[Edge]]) -> None:
     _, edges = graph
     found = [_cycle_key(c) for c in cycles([e for e in edges if e.kind == "module"])]
-    assert _unknown(found) == [], "\n" + "\n".join(_unknown(found))
+    assert found == [], "\n" + "\n".join(found)
 
 
 def test_no_cycle_among_all_imports(graph: tuple[set[str], list[Edge]]) -> None:
     """Function-level imports too: a cycle they close is still a cycle of the design."""
     _, edges = graph
-    detail = [f"{_cycle_key(c)}: {_one_cycle(c, edges)}" for c in cycles(edges) if _cycle_key(c) not in KNOWN]
+    detail = [f"{_cycle_key(c)}: {_one_cycle(c, edges)}" for c in cycles(edges)]
     assert detail == [], "\n" + "\n".join(detail)
-
-
-def test_known_violations_are_still_there(graph: tuple[set[str], list[Edge]]) -> None:
-    """:data:`KNOWN` shrinks as the work lands: an entry that no longer occurs is removed from it."""
-    modules, edges = graph
-    found = {v.split(" | ")[0] for v in violations(modules, edges)}
-    found |= {_cycle_key(c) for c in cycles(edges)}
-    assert sorted(set(KNOWN) - found) == []

@@ -28,19 +28,8 @@ from .descriptors import SiftConfig, SiftDescriptors
 from .gaussian_init import GaussianInitConfig
 from .matching import MatchConfig
 from .pose import PoseConfig, PoseResult, PoseSearch, PoseSearchConfig
-from .stages import (
-    DepthGaussians,
-    DepthStage,
-    DescribeStage,
-    EssentialPose,
-    FilteredMatcher,
-    GaussianStage,
-    MatchStage,
-    PairStage,
-    PerViewDescriptors,
-    PlaneSweepDepth,
-    PoseStage,
-)
+from .slots import DepthStage, DescribeStage, GaussianStage, MatchStage, PairStage, PoseStage
+from .stages import DepthGaussians, EssentialPose, FilteredMatcher, PerViewDescriptors, PlaneSweepDepth
 from .types import DepthMap, TwoViewGeometry, View
 from .views import ViewConfig, load_views
 

@@ -1,4 +1,4 @@
-"""The stage interfaces of the pipeline, and the classical (weight-free) backend of each.
+"""The classical (weight-free) backend of each pipeline slot (the slots' interfaces: :mod:`.slots`).
 
 =========  ===============================================================  =======================
 slot       signature                                                        classical backend
@@ -21,7 +21,7 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any, Protocol
+from typing import Any
 
 from ..gaussians import GaussianMaps
 from .depth import DepthConfig, estimate_depths
@@ -33,55 +33,11 @@ from .types import DepthMap, Features, Matches, TwoViewGeometry, View
 
 __all__ = [
     "DepthGaussians",
-    "DepthStage",
-    "DescribeStage",
     "EssentialPose",
     "FilteredMatcher",
-    "GaussianStage",
-    "MatchStage",
-    "PairStage",
     "PerViewDescriptors",
     "PlaneSweepDepth",
-    "PoseStage",
 ]
-
-
-class PairStage(Protocol):
-    name: str
-
-    def __call__(self, views: list[View]) -> Any: ...
-
-
-class DescribeStage(Protocol):
-    name: str
-
-    def __call__(self, views: list[View], pair: Any) -> list[Features]: ...
-
-
-class MatchStage(Protocol):
-    name: str
-
-    def __call__(self, f0: Features, f1: Features) -> Matches: ...
-
-
-class PoseStage(Protocol):
-    name: str
-
-    def __call__(self, v0: View, v1: View, matches: Matches, pair: Any) -> TwoViewGeometry: ...
-
-
-class DepthStage(Protocol):
-    name: str
-
-    def __call__(self, views: list[View], geometry: TwoViewGeometry, pair: Any) -> list[DepthMap]: ...
-
-
-class GaussianStage(Protocol):
-    name: str
-
-    def __call__(
-        self, views: list[View], geometry: TwoViewGeometry, depths: list[DepthMap], pair: Any
-    ) -> list[GaussianMaps]: ...
 
 
 class PerViewDescriptors:

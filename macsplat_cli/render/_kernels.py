@@ -26,7 +26,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from ._constants import ALPHA_MAX, ALPHA_MIN, T_MIN
+from .constants import ALPHA_MAX, ALPHA_MIN, T_MIN
 
 GRAD_COLS = 6  # per intersection: d mean2d (2), d conic (3), d opacity (1), then d features (C)
 

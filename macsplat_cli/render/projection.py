@@ -29,7 +29,7 @@ import torch
 
 from ..rotations import quat_to_rotmat
 from ..sh import eval_sh
-from ._constants import ALPHA_MIN
+from .constants import ALPHA_MIN
 
 __all__ = ["MAX_SCREEN_STD", "Projection", "project_gaussians"]
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import torch
 
-from ._constants import ALPHA_MAX, ALPHA_MIN, T_MIN
+from .constants import ALPHA_MAX, ALPHA_MIN, T_MIN
 
 __all__ = ["composite_reference"]
 

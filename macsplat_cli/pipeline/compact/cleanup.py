@@ -10,7 +10,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from ...render._constants import ALPHA_MIN
+from ...render.constants import ALPHA_MIN
 from .config import CompactConfig
 from .state import NEIGHBOURS, ViewState
 

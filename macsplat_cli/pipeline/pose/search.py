@@ -19,20 +19,18 @@ import dataclasses
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from ...errors import ReconstructionError
 from ...metrics import rotation_error_deg, translation_direction_error_deg
 from ..matching import guided_matches
+from ..slots import DescribeStage, MatchStage, PoseStage
 from ..types import Features, Matches, TwoViewGeometry, View
 from .confidence import accept_pose
 from .config import PoseConfig, PoseSearchConfig
 from .geometry import fundamental_from_pose
 from .result import Doubt, PoseConfidence, PoseResult, Tier
 from .tiebreak import plane_tiebreak
-
-if TYPE_CHECKING:
-    from ..stages import DescribeStage, MatchStage, PoseStage
 
 __all__ = ["LOW_CONFIDENCE_HINT", "PoseSearch", "StageTimer", "calibrated_views"]
 
