@@ -399,20 +399,7 @@ def _eval(
     run = run_with_progress(dataset, sel.cases, reconstructor, config, writer, quiet)
     rows = summarize(run)
     if not quiet:
-        mode = "Splatt3R-compatible metrics" if splatt3r_compatible else "standard metrics"
-        for table in summary_tables(rows, f"macsplat eval ({mode})"):
-            err_console.print(table)
-        for r in run.failures:
-            failed = escape(f"{r.case.key}: {r.error}")
-            err_console.print(f"[yellow]failed[/] {failed}", highlight=False, soft_wrap=True)
-        err_console.print(
-            escape(
-                f"{len(run.results)} case(s) in {time.perf_counter() - t0:.1f} s; wrote {writer.json_path}, "
-                f"{writer.csv_path}, {writer.jsonl}"
-            ),
-            highlight=False,
-            soft_wrap=True,
-        )
+        _print_summary(run, rows, writer, splatt3r_compatible, time.perf_counter() - t0)
     if json_out:
         out_console.print_json(json.dumps({"summary": to_jsonable(rows), "results": str(writer.json_path)}))
     if run.errors:
@@ -421,3 +408,17 @@ def _eval(
             f"{len(run.errors)} of {len(run.results)} case(s) could not be evaluated because of bad input "
             f"(first: {first.case.key}: {first.error}); the other cases' results are in {out}"
         )
+
+
+def _print_summary(run: Any, rows: Any, writer: Any, splatt3r_compatible: bool, seconds: float) -> None:
+    """The summary tables, the failed cases and the files written, on stderr."""
+    mode = "Splatt3R-compatible metrics" if splatt3r_compatible else "standard metrics"
+    for table in summary_tables(rows, f"macsplat eval ({mode})"):
+        err_console.print(table)
+    for r in run.failures:
+        failed = escape(f"{r.case.key}: {r.error}")
+        err_console.print(f"[yellow]failed[/] {failed}", highlight=False, soft_wrap=True)
+    files = f"{writer.json_path}, {writer.csv_path}, {writer.jsonl}"
+    err_console.print(
+        escape(f"{len(run.results)} case(s) in {seconds:.1f} s; wrote {files}"), highlight=False, soft_wrap=True
+    )
