@@ -1,7 +1,9 @@
 """Pose confidence (issue 14): how many wrong poses are written, refused or caught, by baseline.
 
     python -m benchmarks.pose_confidence --json after.json                     # this checkout
-    PYTHONPATH=/tmp/head python -m benchmarks.pose_confidence --json before.json   # another checkout's library
+    cd /tmp && PYTHONPATH=/tmp/head:$REPO python -m benchmarks.pose_confidence --json before.json
+        # another checkout's library (/tmp/head/macsplat_cli) with these benchmarks ($REPO: this repository); run
+        # from a folder without macsplat_cli: ``-m`` puts the working folder first on the path
     python -m benchmarks.pose_confidence --table before.json after.json        # the tables
     python -m benchmarks.pose_confidence --signals after.json                  # every case's checks
     python -m benchmarks.pose_confidence --angles 45 60 75 90 --min-angle 35 --no-wide --json nowide.json
