@@ -1,9 +1,9 @@
 """Pose and depth error of `reconstruct` by baseline on synthetic scenes with exact ground truth.
 
-    python benchmarks/accuracy_synthetic.py                 # 2 seeds, field of view 50°
-    python benchmarks/accuracy_synthetic.py --seeds 0 1 2 --fov 75
-    python benchmarks/accuracy_synthetic.py --intrinsics given --angles 10 20 30 45 60 --no-slanted --no-colour-check
-    python benchmarks/accuracy_synthetic.py --intrinsics given --angles 10 20 30 45 60 --no-speckle
+    python -m benchmarks.accuracy_synthetic                 # 2 seeds, field of view 50°
+    python -m benchmarks.accuracy_synthetic --seeds 0 1 2 --fov 75
+    python -m benchmarks.accuracy_synthetic --intrinsics given --angles 10 20 30 45 60 --no-slanted --no-colour-check
+    python -m benchmarks.accuracy_synthetic --intrinsics given --angles 10 20 30 45 60 --no-speckle
 
 Scenes: `macsplat_cli.datasets.synthetic` room (indoor) and object-centric layouts, ray-traced with
 textured surfaces; the second camera orbits the scene centre by the baseline angle (with

@@ -1,8 +1,8 @@
 """What ``--quality fast`` saves on the neural backend by skipping the semantic fusion while matches verify,
 and what a pair that needs it pays (issue 13).
 
-    python benchmarks/bench_fusion_skip.py                      # 512x384, DINOv3 ViT-S/16 and ViT-L/16
-    python benchmarks/bench_fusion_skip.py --dino vits16 --threads 2
+    python -m benchmarks.bench_fusion_skip                      # 512x384, DINOv3 ViT-S/16 and ViT-L/16
+    python -m benchmarks.bench_fusion_skip --dino vits16 --threads 2
 
 With fusion "auto" (``--quality fast``) the network pass leaves DINOv3 and the fusion MLP out; they run only
 when the backbone's own descriptors verify fewer than ``fallback_min_inliers`` matches, and then the matching
@@ -16,26 +16,15 @@ from __future__ import annotations
 
 import argparse
 import functools
-import statistics
-import time
 
 import numpy as np
 import torch
 
+from benchmarks._common import median_seconds
 from macsplat_cli.neural.dinov3 import DINOV3_PRESETS, DINOv3Encoder
 from macsplat_cli.neural.fusion import FusionConfig, ResidualSemanticFusion, fuse_descriptors
 from macsplat_cli.pipeline.matching import MatchConfig, match_features
 from macsplat_cli.pipeline.types import Features
-
-
-def _median_s(fn, reps: int) -> float:  # noqa: ANN001
-    fn()
-    times = []
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
 
 
 def main() -> None:
@@ -59,7 +48,7 @@ def main() -> None:
         enc = DINOv3Encoder(cfg).eval()
         fusion = ResidualSemanticFusion(FusionConfig(desc_dim=24, dino_dim=cfg.embed_dim)).eval()
         with torch.no_grad():
-            s = _median_s(functools.partial(fuse_descriptors, desc, img, fusion=fusion, encoder=enc), args.reps)
+            s = median_seconds(functools.partial(fuse_descriptors, desc, img, fusion=fusion, encoder=enc), args.reps)
         n = sum(p.numel() for p in enc.parameters()) / 1e6
         print(f"| {name} | {n:.1f} | {s:.2f} |")
     rng = np.random.default_rng(0)
@@ -72,7 +61,8 @@ def main() -> None:
         return Features(xy=xy, desc=d, conf=rng.uniform(0, 3, n).astype(np.float32))
 
     f0, f1 = feats(), feats()
-    s = _median_s(lambda: match_features(f0, f1, MatchConfig(conf_threshold=1.0, ratio_confidence=False)), args.reps)
+    cfg = MatchConfig(conf_threshold=1.0, ratio_confidence=False)
+    s = median_seconds(lambda: match_features(f0, f1, cfg), args.reps)
     print(f"\nextra matching pass on a hard pair ({n:,} descriptors per view): {s:.2f} s (+ the PnP, tens of ms)")
 
 

@@ -14,8 +14,8 @@ resident set size sampled every millisecond during the module minus the RSS befo
 process's peak RSS overall. Weights: N(0, 0.02) (LayerNorm gains 1), so no
 initialisation time is spent.
 
-    python benchmarks/bench_neural.py                           # CPU, fp32, 512x384
-    python benchmarks/bench_neural.py --device cuda --dtype bf16 --reps 10
+    python -m benchmarks.bench_neural                           # CPU, fp32, 512x384
+    python -m benchmarks.bench_neural --device cuda --dtype bf16 --reps 10
 """
 
 from __future__ import annotations
@@ -24,7 +24,6 @@ import argparse
 import ctypes
 import os
 import platform
-import resource
 import statistics
 import threading
 import time
@@ -34,6 +33,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from benchmarks._common import peak_rss_mib, print_header, row
 from macsplat_cli.neural import BackboneConfig, GaussianHead, MASt3RBackbone
 from macsplat_cli.neural.dinov3 import DINOv3Config, DINOv3Encoder
 from macsplat_cli.neural.fusion import FusionConfig, ResidualSemanticFusion
@@ -140,22 +140,8 @@ def _measure(fn: Callable[[], Any], device: torch.device, reps: int) -> tuple[fl
     return statistics.median(times), extra / 2**20, out
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
-    ap.add_argument("--dtype", default="fp32", choices=list(DTYPES))
-    ap.add_argument("--reps", type=int, default=3, help="timed repetitions per module (after one warm-up)")
-    ap.add_argument("--size", default="512x384", help="WxH of both views (multiples of 16)")
-    ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
-    args = ap.parse_args()
-    if args.device == "cuda" and not torch.cuda.is_available():
-        raise SystemExit("--device cuda: CUDA is not available")
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    device, dtype = torch.device(args.device), DTYPES[args.dtype]
-    w, h = (int(v) for v in args.size.lower().split("x"))
-
-    t0 = time.perf_counter()
+def _models(device: torch.device, dtype: torch.dtype) -> tuple[nn.Module, nn.Module, nn.Module, nn.Module]:
+    """The released-size backbone, Gaussian head, DINOv3 ViT-S/16 and fusion with random weights."""
     bcfg = BackboneConfig()
     dcfg = DINOv3Config.preset("vits16")
     with torch.device("meta"):
@@ -164,21 +150,13 @@ def main() -> None:
         dino = DINOv3Encoder(dcfg)
         fusion = ResidualSemanticFusion(FusionConfig(dino_dim=dcfg.embed_dim))
     backbone, head, dino, fusion = (_random(m, device, dtype) for m in (backbone, head, dino, fusion))
-    setup_s = time.perf_counter() - t0
+    return backbone, head, dino, fusion
 
-    g = torch.Generator().manual_seed(1)
-    img = (torch.rand(2, 3, h, w, generator=g) * 2 - 1).to(device, dtype)
-    rgb = (img + 1) / 2
-    rows: list[tuple[str, float, float, float]] = []
 
-    def run(name: str, module: nn.Module | None, fn: Callable[[], Any]) -> Any:
-        with torch.no_grad():
-            sec, mib, out = _measure(fn, device, args.reps)
-        params = sum(p.numel() for p in module.parameters()) / 1e6 if module is not None else float("nan")
-        rows.append((name, params, sec, mib))
-        print(f"  {name}: {sec * 1e3:.0f} ms, +{mib:.0f} MiB", flush=True)
-        return out
-
+def _time_modules(run: Callable[[str, nn.Module | None, Callable[[], Any]], Any], models: tuple, img: torch.Tensor,
+                  rgb: torch.Tensor) -> None:  # fmt: skip
+    """Each module as the pipeline calls it, then the whole pass (``run(name, module, fn)`` times one)."""
+    backbone, head, dino, fusion = models
     enc1, enc2, pos, grid = run(
         "MASt3R encoder (ViT-L/16, both views)",
         nn.ModuleList([backbone.patch_embed, backbone.enc_blocks, backbone.enc_norm]),
@@ -206,7 +184,42 @@ def main() -> None:
         return head(a, b, rgb[:1], rgb[1:]), d
 
     run("whole forward pass (all of the above)", nn.ModuleList([backbone, dino, fusion, head]), whole)
-    peak_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    ap.add_argument("--dtype", default="fp32", choices=list(DTYPES))
+    ap.add_argument("--reps", type=int, default=3, help="timed repetitions per module (after one warm-up)")
+    ap.add_argument("--size", default="512x384", help="WxH of both views (multiples of 16)")
+    ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+    args = ap.parse_args()
+    if args.device == "cuda" and not torch.cuda.is_available():
+        raise SystemExit("--device cuda: CUDA is not available")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    device, dtype = torch.device(args.device), DTYPES[args.dtype]
+    w, h = (int(v) for v in args.size.lower().split("x"))
+
+    t0 = time.perf_counter()
+    models = _models(device, dtype)
+    setup_s = time.perf_counter() - t0
+
+    g = torch.Generator().manual_seed(1)
+    img = (torch.rand(2, 3, h, w, generator=g) * 2 - 1).to(device, dtype)
+    rgb = (img + 1) / 2
+    rows: list[tuple[str, float, float, float]] = []
+
+    def run(name: str, module: nn.Module | None, fn: Callable[[], Any]) -> Any:
+        with torch.no_grad():
+            sec, mib, out = _measure(fn, device, args.reps)
+        params = sum(p.numel() for p in module.parameters()) / 1e6 if module is not None else float("nan")
+        rows.append((name, params, sec, mib))
+        print(f"  {name}: {sec * 1e3:.0f} ms, +{mib:.0f} MiB", flush=True)
+        return out
+
+    _time_modules(run, models, img, rgb)
+    peak_rss = peak_rss_mib()
 
     where = torch.cuda.get_device_name(device) if device.type == "cuda" else f"{platform.processor() or 'CPU'}"
     threads = torch.get_num_threads()
@@ -217,10 +230,9 @@ def main() -> None:
     )
     print()
     mem = "peak extra GPU memory MiB" if device.type == "cuda" else "peak extra RSS MiB"
-    print(f"| module | parameters (M) | forward ms | {mem} |")
-    print("|---|---:|---:|---:|")
+    print_header(["module", "parameters (M)", "forward ms", mem], "lrrr")
     for name, params, sec, mib in rows:
-        print(f"| {name} | {params:,.1f} | {sec * 1e3:,.0f} | {mib:,.0f} |")
+        print(row([name, f"{params:,.1f}", f"{sec * 1e3:,.0f}", f"{mib:,.0f}"]))
     if device.type == "cuda":
         print(f"\npeak GPU memory allocated: {torch.cuda.max_memory_allocated(device) / 2**20:,.0f} MiB")
     print(f"peak process RSS: {peak_rss:,.0f} MiB")

@@ -15,9 +15,9 @@ timed here for completeness). ORT has no bf16 CPU kernels, so there is no ORT bf
 column is each cell's largest output error against torch fp32 on the same pair, relative to the
 output's range (as the export's parity check).
 
-    python benchmarks/bench_onnx.py                             # full size, 1 and 2 threads
-    python benchmarks/bench_onnx.py --model tiny --reps 3       # a minute
-    python benchmarks/bench_onnx.py --provider cuda             # on a GPU: torch CUDA vs ORT-CUDA
+    python -m benchmarks.bench_onnx                             # full size, 1 and 2 threads
+    python -m benchmarks.bench_onnx --model tiny --reps 3       # a minute
+    python -m benchmarks.bench_onnx --provider cuda             # on a GPU: torch CUDA vs ORT-CUDA
 """
 
 from __future__ import annotations
@@ -195,7 +195,7 @@ def main() -> None:
     print("|---|---|---:|---:|---:|---:|---|")
     for threads in (int(t) for t in args.threads.split(",")):
         for engine, precision in cells:
-            cmd = [sys.executable, __file__, "--cell", "--model", args.model, "--size", f"{w}x{h}",
+            cmd = [sys.executable, "-m", "benchmarks.bench_onnx", "--cell", "--model", args.model, "--size", f"{w}x{h}",
                    "--threads", str(threads), "--reps", str(args.reps), "--engine", engine, "--precision", precision,
                    "--reference", str(ref), "--provider", args.provider]  # fmt: skip
             if engine == "onnxruntime":

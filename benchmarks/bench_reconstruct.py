@@ -1,8 +1,8 @@
 """Wall time of `macsplat reconstruct` on two ~1 MP photos, per stage.
 
-    python benchmarks/bench_reconstruct.py                         # synthetic 1152x864 pair
-    python benchmarks/bench_reconstruct.py --images a.jpg b.jpg    # your photos
-    python benchmarks/bench_reconstruct.py --quality fast          # a --quality preset (default: balanced)
+    python -m benchmarks.bench_reconstruct                         # synthetic 1152x864 pair
+    python -m benchmarks.bench_reconstruct --images a.jpg b.jpg    # your photos
+    python -m benchmarks.bench_reconstruct --quality fast          # a --quality preset (default: balanced)
 
 Three measurements:
 

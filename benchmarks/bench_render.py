@@ -5,8 +5,8 @@ front of an identity OpenCV camera with focal length = image width, scales 0.005
 random rotations, opacity logits U(-2, 2), SH degree 0; loss = L1 to a random image.
 Each configuration runs in its own process so that peak memory is its own.
 
-    python benchmarks/bench_render.py                 # the table for benchmarks/README.md
-    python benchmarks/bench_render.py --sizes 100000:256x256 --reps 5
+    python -m benchmarks.bench_render                 # the table for benchmarks/README.md
+    python -m benchmarks.bench_render --sizes 100000:256x256 --reps 5
 """
 
 from __future__ import annotations
@@ -18,18 +18,18 @@ import subprocess
 import sys
 import time
 
+from benchmarks._common import peak_rss_mib, print_header, row
+
 DEFAULT = ["50000:256x256", "100000:256x256", "250000:256x256", "50000:512x384", "100000:512x384", "250000:512x384"]
 
 
 def _one(n: int, w: int, h: int, reps: int, backend: str) -> dict:
-    import resource
-
     import torch
 
     from macsplat_cli.gaussians import Gaussians
     from macsplat_cli.render import render
 
-    base_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    base_rss = peak_rss_mib()
     g = torch.Generator().manual_seed(0)
     means = torch.rand(n, 3, generator=g) * torch.tensor([2.0, 2.0, 2.0]) - torch.tensor([1.0, 1.0, -2.0])
     params = [
@@ -66,7 +66,7 @@ def _one(n: int, w: int, h: int, reps: int, backend: str) -> dict:
         loss.backward()
         t_tot.append(time.perf_counter() - t0)
     out = render(gs, V, K, w, h, backend=backend)
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    peak = peak_rss_mib()
     t_fwd.sort()
     t_tot.sort()
     return {
@@ -99,20 +99,19 @@ def main() -> None:
     for spec in args.sizes:
         n, size = spec.split(":")
         w, h = size.split("x")
-        cmd = [sys.executable, __file__, "--_child", n, w, h, "--reps", str(args.reps), "--backend", args.backend]
+        cmd = [sys.executable, "-m", "benchmarks.bench_render", "--_child", n, w, h, "--reps", str(args.reps),
+               "--backend", args.backend]  # fmt: skip
         res = subprocess.run(cmd, capture_output=True, text=True, env=os.environ.copy(), check=True)
         rows.append(json.loads(res.stdout.strip().splitlines()[-1]))
     if args.json:
         print(json.dumps(rows, indent=2))
         return
     print(f"backend={args.backend}, threads={rows[0]['threads']}, median of {args.reps} repetitions\n")
-    print("| Gaussians | image | visible | intersections | forward ms | forward+backward ms | peak RSS MB (baseline) |")
-    print("|---:|---:|---:|---:|---:|---:|---:|")
+    print_header(["Gaussians", "image", "visible", "intersections", "forward ms", "forward+backward ms",
+                  "peak RSS MB (baseline)"], "rrrrrrr")  # fmt: skip
     for r in rows:
-        print(
-            f"| {r['n']:,} | {r['size']} | {r['visible']:,} | {r['intersections']:,} | {r['fwd_ms']:.0f} | "
-            f"{r['fwd_bwd_ms']:.0f} | {r['peak_rss_mb']:.0f} ({r['baseline_rss_mb']:.0f}) |"
-        )
+        print(row([f"{r['n']:,}", r["size"], f"{r['visible']:,}", f"{r['intersections']:,}", f"{r['fwd_ms']:.0f}",
+                   f"{r['fwd_bwd_ms']:.0f}", f"{r['peak_rss_mb']:.0f} ({r['baseline_rss_mb']:.0f})"]))  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """Scene compaction (``macsplat_cli.pipeline.compact``): Gaussians, PLY size, render time and held-out PSNR per preset.
 
-    python benchmarks/compact_gaussians.py --data ../shared/data               # dev scenes + synthetic + example
-    python benchmarks/compact_gaussians.py --data ../shared/data --only synthetic --json out.json
+    python -m benchmarks.compact_gaussians --data ../shared/data               # dev scenes + synthetic + example
+    python -m benchmarks.compact_gaussians --data ../shared/data --only synthetic --json out.json
 
 Each case is reconstructed once (classical backend, no refinement, 512 px working size; the dev scenes
 with their given intrinsics), then compacted with every preset. Per preset: the Gaussians and the
@@ -13,7 +13,8 @@ mean PSNR of the held-out targets against their photos, and the "fidelity": the 
 render against the full scene's render of the same camera (how much the picture changed; > 100: identical).
 
 Held-out targets: the dev scenes' views between the two context views, placed as in
-``accuracy_dev.py`` (ground-truth pose in the camera-0 frame, baseline-scaled); the synthetic pairs' a
+``accuracy_dev.py`` (``benchmarks/_dev.py``: ground-truth pose in the camera-0 frame, baseline-scaled); the synthetic
+pairs' a
 ray-traced view half-way between the two cameras; the shipped example has none (its PSNR column is
 empty), its fidelity camera is the midpoint between the two cameras.
 """
@@ -22,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import math
 import sys
 import tempfile
@@ -33,23 +33,23 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+from benchmarks._common import print_header, row, write_json
+from benchmarks._dev import between, c2w, dev_frames, load_rgb, photo_size, save_intrinsics, target_intrinsics
+from macsplat_cli._json import to_jsonable
+from macsplat_cli.cameras import Camera, CameraSet, save_cameras
+from macsplat_cli.datasets import synthetic as syn
+from macsplat_cli.engine import EngineConfig, reconstruct
+from macsplat_cli.gaussians import Gaussians
+from macsplat_cli.images import save_image
+from macsplat_cli.metrics import psnr
+from macsplat_cli.pipeline.compact import compact_reconstruction
+from macsplat_cli.pipeline.run import ReconstructConfig, Reconstruction
+from macsplat_cli.pipeline.views import ViewConfig, working_size
+from macsplat_cli.ply import write_ply
+from macsplat_cli.presets import QUALITIES, compact_config
+from macsplat_cli.render import render_camera
 
-import accuracy_dev as dev  # noqa: E402  (the dev scenes' loaders and target placement)
-
-from macsplat_cli.cameras import Camera, CameraSet, save_cameras  # noqa: E402
-from macsplat_cli.datasets import synthetic as syn  # noqa: E402
-from macsplat_cli.engine import EngineConfig, reconstruct  # noqa: E402
-from macsplat_cli.gaussians import Gaussians  # noqa: E402
-from macsplat_cli.images import save_image  # noqa: E402
-from macsplat_cli.metrics import psnr  # noqa: E402
-from macsplat_cli.pipeline.compact import compact_reconstruction  # noqa: E402
-from macsplat_cli.pipeline.run import ReconstructConfig, Reconstruction  # noqa: E402
-from macsplat_cli.pipeline.views import ViewConfig, working_size  # noqa: E402
-from macsplat_cli.ply import write_ply  # noqa: E402
-from macsplat_cli.presets import QUALITIES, compact_config  # noqa: E402
-from macsplat_cli.render import render_camera  # noqa: E402
-
+ROOT = Path(__file__).resolve().parents[1]
 SIZE = 512
 DEV_CASES = [
     ("co3d", "close 12°", (2, 5)),
@@ -73,25 +73,21 @@ def _config(intrinsics: Path | None) -> EngineConfig:
 
 
 def dev_case(data: Path, scene: str, name: str, pair: tuple[int, int], tmp: Path) -> Case:
-    frames = dev.co3d(data) if scene == "co3d" else dev.icl_like(data, scene)
+    frames = dev_frames(data, scene)
     f0, f1 = frames[pair[0]], frames[pair[1]]
-    k = tmp / f"{scene}_{pair[0]}_{pair[1]}.json"
-    save_cameras(k, CameraSet([Camera(f.path.name, f.size[0], f.size[1], f.K, np.eye(4)) for f in (f0, f1)]))
-    rec = reconstruct([f0.path, f1.path], _config(k))
-    T_gt = np.linalg.inv(f1.c2w) @ f0.c2w
+    k = save_intrinsics(tmp / f"{scene}_{pair[0]}_{pair[1]}.json", (f0, f1))
+    rec = reconstruct([f0.image, f1.image], _config(k))
+    T_gt = np.linalg.inv(c2w(f1)) @ c2w(f0)
     scale = 1.0 / np.linalg.norm(T_gt[:3, 3])
-    v0, g = rec.views[0], rec.geometry
     targets, photos = [], []
-    for ti in dev.between(frames, pair):
+    for ti in between(frames, pair):
         ft = frames[ti]
-        T = np.linalg.inv(ft.c2w) @ f0.c2w
+        T = np.linalg.inv(c2w(ft)) @ c2w(f0)
         T[:3, 3] *= scale
-        w, h = working_size(*ft.size, SIZE)
-        K = g.K0.copy()
-        K[0] *= w / v0.width
-        K[1] *= h / v0.height
+        w, h = working_size(*photo_size(ft), SIZE)
+        K = target_intrinsics(rec.geometry.K0, rec.views[0], (w, h))
         targets.append(Camera(f"t{ti}", w, h, K, np.linalg.inv(T)))
-        photos.append(dev._load_rgb(ft.path, (w, h)))
+        photos.append(load_rgb(ft.image, (w, h)))
     return Case(f"{scene} {name}", rec, targets, photos)
 
 
@@ -182,6 +178,22 @@ def _ply_size(g: Gaussians, tmp: Path) -> float:
     return size
 
 
+HEADER = ["case", "targets", "preset", "Gaussians", "fewer ×", "PLY MB", "compact s", "render ms", "faster ×",
+          "CPU faster ×", "tile work ×", "PSNR", "Δ PSNR", "fidelity dB"]  # fmt: skip
+
+
+def table_row(r: dict) -> str:
+    fid = "> 100" if r["fidelity_db"] > 100 else f"{r['fidelity_db']:.1f}"
+    cells = [
+        r["case"], str(r["targets"]), r["preset"], f"{r['gaussians']:,}", f"{r['ratio']:.2f}",
+        f"{r['ply_mb']:.1f}", f"{r['compact_s']:.2f}", f"{1000 * r['render_s']:.0f}", f"{r['speedup']:.2f}",
+        f"{r['cpu_speedup']:.2f}", f"{r['work_ratio']:.2f}",
+        "–" if math.isnan(r["psnr"]) else f"{r['psnr']:.2f}",
+        "–" if math.isnan(r["d_psnr"]) else f"{r['d_psnr']:+.2f}", fid,
+    ]  # fmt: skip
+    return row(cells)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=None, help="the shared data folder (../shared/data); none: skip")
@@ -198,11 +210,8 @@ def main() -> None:
         builders += [(f"{s} {n}", lambda s=s, n=n, p=p: dev_case(args.data, s, n, p, tmp)) for s, n, p in DEV_CASES]
     for k, seed, a in SYNTHETIC_CASES:
         builders.append((f"synthetic {k} {a:g}°", lambda k=k, seed=seed, a=a: synthetic_case(k, seed, a, tmp)))
-    builders += [("example motorcycle", lambda: example_case(Path(__file__).resolve().parents[1]))]
-    header = ["case", "targets", "preset", "Gaussians", "fewer ×", "PLY MB", "compact s", "render ms", "faster ×",
-              "CPU faster ×", "tile work ×", "PSNR", "Δ PSNR", "fidelity dB"]  # fmt: skip
-    print("| " + " | ".join(header) + " |")
-    print("|---|---:|---|" + "---:|" * (len(header) - 3), flush=True)
+    builders += [("example motorcycle", lambda: example_case(ROOT))]
+    print_header(HEADER, "lrl" + "r" * (len(HEADER) - 3))
     results = []
     for name, build in builders:
         if args.only not in name:
@@ -210,19 +219,9 @@ def main() -> None:
         case = build()
         for r in measure(case, presets, args.repeats, args.budget, tmp):
             results.append(r)
-            fid = "> 100" if r["fidelity_db"] > 100 else f"{r['fidelity_db']:.1f}"
-            cells = [
-                r["case"], str(r["targets"]), r["preset"], f"{r['gaussians']:,}", f"{r['ratio']:.2f}",
-                f"{r['ply_mb']:.1f}", f"{r['compact_s']:.2f}", f"{1000 * r['render_s']:.0f}", f"{r['speedup']:.2f}",
-                f"{r['cpu_speedup']:.2f}", f"{r['work_ratio']:.2f}",
-                "–" if math.isnan(r["psnr"]) else f"{r['psnr']:.2f}",
-                "–" if math.isnan(r["d_psnr"]) else f"{r['d_psnr']:+.2f}", fid,
-            ]  # fmt: skip
-            print("| " + " | ".join(cells) + " |", flush=True)
+            print(table_row(r), flush=True)
     if args.json:
-        from macsplat_cli._json import to_jsonable
-
-        args.json.write_text(json.dumps(to_jsonable(results), indent=2))
+        write_json(args.json, to_jsonable(results))
 
 
 if __name__ == "__main__":

@@ -3,9 +3,9 @@
 On a machine with an NVIDIA GPU (macsplat's dependencies installed, a CUDA build of PyTorch, and
 ``onnxruntime-gpu`` for the onnxruntime row), from the repository root:
 
-    python benchmarks/gpu_smoke.py                  # released sizes: ViT-L/ViT-B MASt3R, 512 px (minutes)
-    python benchmarks/gpu_smoke.py --tiny           # the tiny layout
-    python benchmarks/gpu_smoke.py --steps reconstruct,onnx --keep
+    python -m benchmarks.gpu_smoke                  # released sizes: ViT-L/ViT-B MASt3R, 512 px (minutes)
+    python -m benchmarks.gpu_smoke --tiny           # the tiny layout
+    python -m benchmarks.gpu_smoke --steps reconstruct,onnx --keep
 
 It prints one Markdown table (step, result, seconds, peak memory, note) and exits 1 when a step
 failed (the tail of each failed step's stderr follows the table). On a machine without a GPU it
@@ -547,7 +547,6 @@ def run(args: argparse.Namespace) -> int:
                   "CUDA device (a CPU build, or a driver it cannot use): nothing could be checked")  # fmt: skip
             return 1
     gpu = args.device == "cuda"
-    sys.path.insert(0, str(ROOT))  # the repository's macsplat_cli, also where it is not installed
     tmp = None
     if args.workdir is not None:
         work = args.workdir.resolve()
@@ -614,4 +613,3 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
-

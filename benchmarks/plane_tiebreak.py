@@ -1,8 +1,8 @@
 """The plane tie-break's candidates (issue 14): does dense consistency pick the right pose of a plane, and how
 accurate is that pose?
 
-    python benchmarks/plane_tiebreak.py --data ../shared/data            # CO3D apple + synthetic orbits
-    python benchmarks/plane_tiebreak.py --only co3d --rows              # every case's candidates
+    python -m benchmarks.plane_tiebreak --data ../shared/data            # CO3D apple + synthetic orbits
+    python -m benchmarks.plane_tiebreak --only co3d --rows              # every case's candidates
 
 For each case (intrinsics given: the tie-break needs them) and each descriptor tier (the primary SIFT and the
 wide-baseline tier's affine-simulated SIFT), the tier's filtered matches give the dominant plane
@@ -22,20 +22,18 @@ field of view 50°/75°; seeds 0, 1).
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import pose_confidence as PC  # noqa: E402  (the cases and their preparation)
-
-from macsplat_cli.metrics import rotation_error_deg  # noqa: E402
-from macsplat_cli.pipeline.descriptors import SiftDescriptors  # noqa: E402
-from macsplat_cli.pipeline.matching import match_features  # noqa: E402
-from macsplat_cli.pipeline.pose import dominant_plane, plane_poses, tiebreak_plane_ok, tiebreak_winner_ok  # noqa: E402
-from macsplat_cli.pipeline.run import ReconstructConfig  # noqa: E402
-from macsplat_cli.pipeline.views import load_views  # noqa: E402
+from benchmarks import pose_confidence as PC  # the cases and their preparation
+from benchmarks._common import progress
+from macsplat_cli.metrics import rotation_error_deg
+from macsplat_cli.pipeline.descriptors import SiftDescriptors
+from macsplat_cli.pipeline.matching import match_features
+from macsplat_cli.pipeline.pose import dominant_plane, plane_poses, tiebreak_plane_ok, tiebreak_winner_ok
+from macsplat_cli.pipeline.run import ReconstructConfig
+from macsplat_cli.pipeline.views import load_views
 
 RIGHT_DEG = 5.0
 
@@ -120,7 +118,7 @@ def main() -> None:
                 marks = " | ".join("yes" if b else "no" for b in (through, nearer, right))
                 share = f"{row['plane']} / {row['matches']}"
                 print(f"| {case['set']} {name} | {row['tier']} | {share} | {cands} | {marks} |")
-        print(f"done: {case['set']} {name}", file=sys.stderr, flush=True)
+        progress(f"done: {case['set']} {name}")
     print()
     print("| set | tiers with a plane | through the guards | leader the nearer candidate | leader within 5° |")
     print("|---|---:|---:|---:|---:|")

@@ -1,6 +1,6 @@
 """Which pose do the matches support: ours or the data set's? (NYU dining pairs of accuracy_dev.py)
 
-    python benchmarks/pose_agreement_dev.py --data ../shared/data
+    python -m benchmarks.pose_agreement_dev --data ../shared/data
 
 For each pair, with the data's intrinsics: our pose's and the data's pose's Sampson errors
 over our verified matches (median, and the fraction under 1 px), next to the angle between
@@ -10,21 +10,17 @@ the two poses.
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).parent))
-import accuracy_dev as dev  # noqa: E402
-
-from macsplat_cli.cameras import Camera, CameraSet, save_cameras  # noqa: E402
-from macsplat_cli.engine import EngineConfig, reconstruct  # noqa: E402
-from macsplat_cli.metrics import rotation_error_deg, translation_direction_error_deg  # noqa: E402
-from macsplat_cli.pipeline.pose import fundamental_from_pose, sampson_distance  # noqa: E402
-from macsplat_cli.pipeline.run import ReconstructConfig  # noqa: E402
-from macsplat_cli.pipeline.views import ViewConfig  # noqa: E402
+from benchmarks._dev import c2w, dev_frames, save_intrinsics
+from macsplat_cli.engine import EngineConfig, reconstruct
+from macsplat_cli.metrics import rotation_error_deg, translation_direction_error_deg
+from macsplat_cli.pipeline.pose import fundamental_from_pose, sampson_distance
+from macsplat_cli.pipeline.run import ReconstructConfig
+from macsplat_cli.pipeline.views import ViewConfig
 
 
 def main() -> None:
@@ -32,7 +28,7 @@ def main() -> None:
     ap.add_argument("--data", type=Path, required=True, help="the shared dev data folder")
     ap.add_argument("--scene", default="nyu_dining")
     args = ap.parse_args()
-    frames = dev.icl_like(args.data, args.scene)
+    frames = dev_frames(args.data, args.scene)
     print(
         "| pair | verified | rot ° ours vs data | t ° ours vs data | Sampson px ours (median, <1 px) "
         "| Sampson px data's pose (median, <1 px) |"
@@ -40,12 +36,11 @@ def main() -> None:
     print("|---|---:|---:|---:|---|---|")
     for pair in [(0, 2), (1, 4), (0, 4)]:
         f0, f1 = frames[pair[0]], frames[pair[1]]
-        tmp = Path(tempfile.mkdtemp()) / "k.json"
-        save_cameras(tmp, CameraSet([Camera(f.path.name, *f.size, f.K, np.eye(4)) for f in (f0, f1)]))
+        tmp = save_intrinsics(Path(tempfile.mkdtemp()) / "k.json", (f0, f1))
         g = reconstruct(
-            [f0.path, f1.path], EngineConfig(pipeline=ReconstructConfig(views=ViewConfig(intrinsics=tmp)))
+            [f0.image, f1.image], EngineConfig(pipeline=ReconstructConfig(views=ViewConfig(intrinsics=tmp)))
         ).geometry
-        T = np.linalg.inv(f1.c2w) @ f0.c2w
+        T = np.linalg.inv(c2w(f1)) @ c2w(f0)
         R_gt, t_gt = T[:3, :3], T[:3, 3] / np.linalg.norm(T[:3, 3])
         m = g.inliers
         ours = np.abs(sampson_distance(fundamental_from_pose(g.R, g.t, g.K0, g.K1), m.xy0, m.xy1))

@@ -1,7 +1,7 @@
 """The pose checks added with issues 13 and 16, measured: what ``--quality fast``'s lighter SIFT costs in
 pose error, how far real pairs stay from the mirror-image refusal, and a wrong pose still accepted.
 
-    python benchmarks/pose_checks.py --data ../shared/data
+    python -m benchmarks.pose_checks --data ../shared/data
 
 1. Rotation/translation-direction error (°) of ``--quality balanced`` (512 px, SIFT at 768 px) and
    ``fast`` (384 px, SIFT at 640 px), and of ``fast`` with SIFT at 512 px and 4,000 keypoints (rejected
@@ -16,13 +16,13 @@ pose error, how far real pairs stay from the mirror-image refusal, and a wrong p
 from __future__ import annotations
 
 import argparse
-import glob
+import dataclasses
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from macsplat_cli import presets
+from benchmarks._dev import dev_frames
 from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.engine import EngineConfig, reconstruct
 from macsplat_cli.errors import ReconstructionError
@@ -57,18 +57,17 @@ def fast_sift(tmp: Path) -> None:
             cells = []
             for quality, sift in (("balanced", None), ("fast", None), ("fast", (512, 4000))):
                 config = EngineConfig(quality=quality)  # the preset's working size
-                saved = presets.FAST_SIFT
-                presets.FAST_SIFT = sift or saved
-                try:
-                    cells.append(_errors(paths, truth, config))
-                finally:
-                    presets.FAST_SIFT = saved
+                if sift is not None:  # below the preset's own SIFT caps, which it applies as minima
+                    d = config.pipeline.descriptors
+                    config.pipeline.descriptors = dataclasses.replace(d, detect_size=sift[0], max_keypoints=sift[1])
+                cells.append(_errors(paths, truth, config))
             print(f"| {kind} {angle}° | " + " | ".join(cells) + " |")
 
 
 def flipped(data: Path, tmp: Path) -> None:
     cases = []
-    imgs = sorted(glob.glob(str(data / "co3d_apple" / "images" / "*")))
+    have_co3d = (data / "co3d_apple" / "cameras_opencv.json").is_file()
+    imgs = [f.image for f in dev_frames(data, "co3d")] if have_co3d else []
     cases += [(f"co3d apple {i}-{j}", [imgs[i], imgs[j]]) for i, j in ((0, 1), (0, 3), (1, 4)) if len(imgs) > j]
     cases.append(
         ("middlebury (example)", [ROOT / "examples/motorcycle/left.jpg", ROOT / "examples/motorcycle/right.jpg"])

@@ -1,10 +1,12 @@
 """Pose confidence (issue 14): how many wrong poses are written, refused or caught, by baseline.
 
-    python benchmarks/pose_confidence.py --json after.json                     # this checkout
-    PYTHONPATH=/tmp/head python benchmarks/pose_confidence.py --json before.json   # another checkout (before)
-    python benchmarks/pose_confidence.py --table before.json after.json        # the tables
-    python benchmarks/pose_confidence.py --signals after.json                  # every case's checks
-    python benchmarks/pose_confidence.py --angles 45 60 75 90 --min-angle 35 --no-wide --json nowide.json
+    python -m benchmarks.pose_confidence --json after.json                     # this checkout
+    cd /tmp && PYTHONPATH=/tmp/head:$REPO python -m benchmarks.pose_confidence --json before.json
+        # another checkout's library (/tmp/head/macsplat_cli) with these benchmarks ($REPO: this repository); run
+        # from a folder without macsplat_cli: ``-m`` puts the working folder first on the path
+    python -m benchmarks.pose_confidence --table before.json after.json        # the tables
+    python -m benchmarks.pose_confidence --signals after.json                  # every case's checks
+    python -m benchmarks.pose_confidence --angles 45 60 75 90 --min-angle 35 --no-wide --json nowide.json
         # the wide-baseline cases without the second fallback tier (issue 14 item 3); drop --no-wide for with
 
 Cases: ray-traced orbit pairs (``macsplat_cli.datasets.synthetic``, room and object, 10–90°, true field of view
@@ -12,7 +14,8 @@ Cases: ray-traced orbit pairs (``macsplat_cli.datasets.synthetic``, room and obj
 between the cameras, intrinsics given or not). Each case runs the classical pipeline up to the final pose and its
 confidence (``Pipeline.run`` with a depth stage that stops it: depth and Gaussians do not depend on it) with
 ``accept_low_confidence=True``, and records the rotation error against the ground truth, the pose stage's doubts,
-the confidence and its checks, and the time. An outcome is "right" below 5° rotation error, "wrong" at 5° or more,
+the confidence and its checks, and the times (to the pose, and of the ``pose confidence`` stage, from the pipeline's
+``on_stage`` events). An outcome is "right" below 5° rotation error, "wrong" at 5° or more,
 "refused" when the pipeline raised (no pose) or, after, when a doubt or a failed check refuses it. On a checkout
 without the confidence (``--json`` from there), every pose it returns is written.
 """
@@ -20,9 +23,9 @@ without the confidence (``--json`` from there), every pose it returns is written
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
-import sys
 import tempfile
 import time
 from collections import defaultdict
@@ -31,8 +34,11 @@ from typing import Any
 
 import numpy as np
 
-from macsplat_cli.cameras import Camera, CameraSet, save_cameras
+from benchmarks._common import progress, write_json
+from macsplat_cli.cameras import CameraSet, save_cameras
+from macsplat_cli.datasets import Frame
 from macsplat_cli.datasets import synthetic as S
+from macsplat_cli.datasets.co3d import load_co3d_json
 from macsplat_cli.errors import MacsplatError
 from macsplat_cli.images import save_image
 from macsplat_cli.metrics import rotation_error_deg, translation_direction_error_deg
@@ -115,6 +121,11 @@ def co3d_cases(data: Path) -> list[dict[str, Any]]:
     return [{"set": "co3d", "a": a, "b": b, "given": given} for a, b in CO3D_PAIRS for given in (True, False)]
 
 
+@functools.lru_cache(maxsize=2)
+def _co3d_frames(data: Path) -> list[Frame]:
+    return load_co3d_json(data / "co3d_apple")[0].frames
+
+
 def prepare(
     case: dict[str, Any], data: Path, tmp: Path
 ) -> tuple[list[Path], ReconstructConfig, np.ndarray, np.ndarray]:
@@ -131,11 +142,10 @@ def prepare(
         cams = [c0, c1]
         R, t = S.relative_pose(c0, c1)
     else:
-        doc = json.loads((data / "co3d_apple" / "cameras_opencv.json").read_text())
-        w, h = doc["width"], doc["height"]
-        vs = [doc["views"][case["a"]], doc["views"][case["b"]]]
-        paths = [data / "co3d_apple" / v["image"] for v in vs]
-        cams = [Camera(Path(v["image"]).stem, w, h, np.array(v["K"]), np.array(v["c2w"])) for v in vs]
+        frames = _co3d_frames(data)
+        pair = [frames[case["a"]], frames[case["b"]]]
+        paths = [f.image for f in pair]
+        cams = [f.camera for f in pair]
         T = cams[1].world_to_cam @ cams[0].cam_to_world
         R, t = T[:3, :3], T[:3, 3]
         case["angle"] = round(rotation_error_deg(cams[0].cam_to_world[:3, :3], cams[1].cam_to_world[:3, :3]), 1)
@@ -255,8 +265,8 @@ def main() -> None:
         res = run_case(paths, cfg, R, t)
         results.append({"case": case, "result": res})
         msg = res.get("failed", "")[:70] or f"rot {res['rot']:.2f}° doubts {len(res['doubts'])}"
-        print(f"{case} {msg} {res['time_s']:.2f}s", file=sys.stderr, flush=True)
-        args.json.write_text(json.dumps(results, indent=1, default=float))
+        progress(f"{case} {msg} {res['time_s']:.2f}s")
+        write_json(args.json, results, indent=1, default=float)
 
 
 if __name__ == "__main__":

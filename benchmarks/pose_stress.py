@@ -1,7 +1,7 @@
 """Pose estimation on degenerate synthetic motions: planar scenes and forward motion under noise.
 
-    python benchmarks/pose_stress.py              # this checkout's pose stage
-    python benchmarks/pose_stress.py --rev HEAD   # ... and a git revision's pose.py side by side
+    python -m benchmarks.pose_stress              # this checkout's pose stage
+    python -m benchmarks.pose_stress --rev HEAD   # ... and a git revision's pose.py side by side
 
 Planar (issue 14), 320×240 px, focal 300 px (known); the pose is "right" within 2° / 10°, else "wrong", or
 refused (ReconstructionError). Two motions, 60 seeds each:

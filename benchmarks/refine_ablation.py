@@ -1,13 +1,13 @@
 """The "w/o MAC" ablation of the default backend: no refinement vs refinement without and with MAC.
 
-    python benchmarks/refine_ablation.py                        # synthetic scenes only
-    python benchmarks/refine_ablation.py --data ../shared/data  # + the real dev scenes
-    python benchmarks/refine_ablation.py --steps 50 --scale 2   # the defaults of --refine auto
+    python -m benchmarks.refine_ablation                        # synthetic scenes only
+    python -m benchmarks.refine_ablation --data ../shared/data  # + the real dev scenes
+    python -m benchmarks.refine_ablation --steps 50 --scale 2   # the defaults of --refine auto
 
 Synthetic: room and object scenes at 20° and 45° orbits with the true intrinsics; the
 held-out target is the camera half way round the orbit; depth error is the median relative
 error of the rendered depth at camera 0 against the ground truth (over pixels with
-alpha > 0.5). Real: the dev scenes of accuracy_dev.py (targets between the context views,
+alpha > 0.5). Real: the dev scenes of accuracy_dev.py (``benchmarks/_dev.py``: targets between the context views,
 GT target poses expressed in camera 0 and scaled by the baseline ratio). Pose errors are
 the same in every mode (refinement does not move the cameras).
 """
@@ -15,15 +15,15 @@ the same in every mode (refinement does not move the cameras).
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 
+from benchmarks._common import print_header, row
+from benchmarks._dev import between, c2w, dev_frames, load_rgb, photo_size, save_intrinsics, target_intrinsics
 from macsplat_cli.cameras import Camera, CameraSet, save_cameras
 from macsplat_cli.datasets import synthetic as S
 from macsplat_cli.engine import EngineConfig, reconstruct
@@ -96,68 +96,39 @@ def synthetic_rows(steps: int, scale: int) -> list[list[str]]:
                 d, a = o.depth.numpy(), o.alpha.numpy()
                 m = (a > 0.5) & (depth_gt > 0)
                 derr = float(np.median(np.abs(d[m] - depth_gt[m]) / depth_gt[m])) * 100
-                rows.append(
-                    [
-                        f"synthetic {kind}",
-                        f"{angle:g}°",
-                        mode,
-                        f"{p:.2f}",
-                        f"{s_:.3f}",
-                        f"{pm:.2f}",
-                        f"{derr:.1f}",
-                        f"{secs:.1f}",
-                    ]
-                )
-                print("| " + " | ".join(rows[-1]) + " |", flush=True)
+                rows.append([f"synthetic {kind}", f"{angle:g}°", mode, f"{p:.2f}", f"{s_:.3f}", f"{pm:.2f}",
+                             f"{derr:.1f}", f"{secs:.1f}"])  # fmt: skip
+                print(row(rows[-1]), flush=True)
     return rows
 
 
 def real_rows(data: Path, steps: int, scale: int) -> list[list[str]]:
-    sys.path.insert(0, str(Path(__file__).parent))
-    import accuracy_dev as dev
-
     rows = []
     cases = [("co3d", "close 12°", (2, 5)), ("co3d", "medium 27°", (0, 5)), ("icl_livingroom", "(1,5)", (0, 4)),
              ("nyu_dining", "(1,3)", (0, 2))]  # fmt: skip
     for scene, name, pair in cases:
-        frames = dev.co3d(data) if scene == "co3d" else dev.icl_like(data, scene)
-        targets = dev.between(frames, pair)
+        frames = dev_frames(data, scene)
+        targets = between(frames, pair)
         f0, f1 = frames[pair[0]], frames[pair[1]]
-        tmp = Path(tempfile.mkdtemp()) / "k.json"
-        save_cameras(tmp, CameraSet([Camera(f.path.name, *f.size, f.K, np.eye(4)) for f in (f0, f1)]))
+        tmp = save_intrinsics(Path(tempfile.mkdtemp()) / "k.json", (f0, f1))
         rec = reconstruct(
-            [f0.path, f1.path], EngineConfig(pipeline=ReconstructConfig(views=ViewConfig(intrinsics=tmp)))
+            [f0.image, f1.image], EngineConfig(pipeline=ReconstructConfig(views=ViewConfig(intrinsics=tmp)))
         )
-        T_gt = np.linalg.inv(f1.c2w) @ f0.c2w
+        T_gt = np.linalg.inv(c2w(f1)) @ c2w(f0)
         s = 1.0 / np.linalg.norm(T_gt[:3, 3])
-        v0 = rec.views[0]
         for mode, (g, secs) in _scenes(rec, steps, scale).items():
             ms = []
             for ti in targets:
                 ft = frames[ti]
-                T = np.linalg.inv(ft.c2w) @ f0.c2w
+                T = np.linalg.inv(c2w(ft)) @ c2w(f0)
                 T[:3, 3] *= s
-                w, h = working_size(*ft.size, 512)
-                K = rec.geometry.K0.copy()
-                K[0] *= w / v0.width
-                K[1] *= h / v0.height
-                img = cv2.imread(str(ft.path), cv2.IMREAD_COLOR)[..., ::-1].astype(np.float32) / 255
-                img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
-                ms.append(_image_metrics(g, Camera("t", w, h, K, np.linalg.inv(T)), img))
+                w, h = working_size(*photo_size(ft), 512)
+                K = target_intrinsics(rec.geometry.K0, rec.views[0], (w, h))
+                ms.append(_image_metrics(g, Camera("t", w, h, K, np.linalg.inv(T)), load_rgb(ft.image, (w, h))))
             p, s_, pm = np.mean(ms, axis=0)
-            rows.append(
-                [
-                    f"{scene} {name}",
-                    f"{len(targets)} targets",
-                    mode,
-                    f"{p:.2f}",
-                    f"{s_:.3f}",
-                    f"{pm:.2f}",
-                    "–",
-                    f"{secs:.1f}",
-                ]
-            )
-            print("| " + " | ".join(rows[-1]) + " |", flush=True)
+            rows.append([f"{scene} {name}", f"{len(targets)} targets", mode, f"{p:.2f}", f"{s_:.3f}", f"{pm:.2f}", "–",
+                         f"{secs:.1f}"])  # fmt: skip
+            print(row(rows[-1]), flush=True)
     return rows
 
 
@@ -172,8 +143,8 @@ def main() -> None:
     global DENSE
     DENSE = args.dense_mac
     print(f"refinement: up to {args.steps} steps at 1/{args.scale} resolution, early stop on plateau\n")
-    print("| scene | pair | mode | PSNR | SSIM | masked PSNR | depth err % (cam 0) | refine s |")
-    print("|---|---|---|---:|---:|---:|---:|---:|")
+    print_header(["scene", "pair", "mode", "PSNR", "SSIM", "masked PSNR", "depth err % (cam 0)", "refine s"],
+                 "lllrrrrr")  # fmt: skip
     if not args.real_only:
         synthetic_rows(args.steps, args.scale)
     if args.data:

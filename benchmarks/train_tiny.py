@@ -1,9 +1,9 @@
 """``macsplat train`` on a CPU: the tiny model on a small training set — loss curve, validation PSNR before and
 after, with and without the MAC loss, and throughput / peak memory by batch size.
 
-    python benchmarks/train_tiny.py                       # synthetic room + object scenes
-    python benchmarks/train_tiny.py --data ../shared/data/co3d_apple --layout co3d-json
-    python benchmarks/train_tiny.py --throughput          # pairs/s and peak RSS for batch 1, 2, 4
+    python -m benchmarks.train_tiny                       # synthetic room + object scenes
+    python -m benchmarks.train_tiny --data ../shared/data/co3d_apple --layout co3d-json
+    python -m benchmarks.train_tiny --throughput          # pairs/s and peak RSS for batch 1, 2, 4
 
 Validation: held-out pairs of the same scenes (PSNR/SSIM of the rendered targets, full images), and the
 disagreement of matched Gaussians on the validation pairs (MAC's position and shape terms with unit weights and
@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import resource
 import subprocess
 import sys
 import tempfile
@@ -25,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from benchmarks._common import peak_rss_mib
 from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.mac import MACConfig, mac_loss
 from macsplat_cli.neural.predictor import prediction_from_outputs
@@ -98,8 +98,8 @@ def run(data: Path, layout: str, args: argparse.Namespace, mac_weight: float, ou
 def throughput(data: Path, layout: str, args: argparse.Namespace) -> None:
     print("| batch | s/step | pairs/s | peak RSS MB |\n|---:|---:|---:|---:|")
     for b in (1, 2, 4):
-        cmd = [sys.executable, __file__, "--data", str(data), "--layout", layout, "--steps", "6", "--batch", str(b),
-               "--size", *map(str, args.size), "--_one"]  # fmt: skip
+        cmd = [sys.executable, "-m", "benchmarks.train_tiny", "--data", str(data), "--layout", layout, "--steps", "6",
+               "--batch", str(b), "--size", *map(str, args.size), "--_one"]  # fmt: skip
         out = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout.strip().splitlines()[-1]
         r = json.loads(out)
         print(f"| {b} | {r['s_per_step']:.2f} | {b / r['s_per_step']:.2f} | {r['rss_mb']:.0f} |")
@@ -117,7 +117,7 @@ def one(data: Path, layout: str, args: argparse.Namespace) -> None:
         trainer = Trainer(predictor, train_ds, None, cfg, on_step=lambda s, row: times.append(row["seconds"]))
         trainer.prepare_run_folder(resume=False, force=True)
         trainer.fit()
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    rss = peak_rss_mib()
     print(json.dumps({"s_per_step": float(np.median(times[1:])), "rss_mb": rss}))
 
 

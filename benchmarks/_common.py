@@ -1,0 +1,80 @@
+"""What the benchmark scripts share: Markdown tables, timing (also of the pipeline's stages), peak memory, JSON.
+
+Every script prints Markdown tables (:func:`row`, :func:`rule`) to paste into ``benchmarks/README.md`` or a page
+of ``benchmarks/history/``. Stages are timed through the engine's progress callback (:class:`StageTimer`, passed
+as ``on_stage`` to :func:`macsplat_cli.engine.reconstruct` or :meth:`~macsplat_cli.pipeline.run.Pipeline.run`),
+never by replacing the pipeline's functions.
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import statistics
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+
+def row(cells: Sequence[str]) -> str:
+    """One Markdown table row: ``| a | b |``."""
+    return "| " + " | ".join(cells) + " |"
+
+
+def rule(aligns: str) -> str:
+    """The Markdown separator row, one character per column: ``l`` left (``---``), ``r`` right (``---:``)."""
+    return "|" + "".join({"l": "---|", "r": "---:|"}[a] for a in aligns)
+
+
+def print_header(columns: Sequence[str], aligns: str) -> None:
+    """Print a table's header row and separator (``aligns`` as in :func:`rule`)."""
+    assert len(columns) == len(aligns), (columns, aligns)
+    print(row(columns))
+    print(rule(aligns), flush=True)
+
+
+def median_seconds(fn: Callable[[], Any], reps: int) -> float:
+    """Median wall time of ``fn()`` over ``reps`` calls after one warm-up call."""
+    fn()
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def peak_rss_mib() -> float:
+    """This process's peak resident set size so far, MiB (Linux ``ru_maxrss`` is in KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+class StageTimer:
+    """An ``on_stage(stage, event)`` callback that times the stages: ``seconds[stage]`` (summed when a stage runs
+    more than once), also for a stage that failed (``failed`` lists those)."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self.failed: list[str] = []
+        self._start: dict[str, float] = {}
+
+    def __call__(self, stage: str, event: str) -> None:
+        now = time.perf_counter()
+        if event == "start":
+            self._start[stage] = now
+            return
+        self.seconds[stage] = self.seconds.get(stage, 0.0) + now - self._start.pop(stage, now)
+        if event == "fail":
+            self.failed.append(stage)
+
+
+def write_json(path: Path, obj: Any, *, indent: int = 2, default: Callable[[Any], Any] | None = None) -> None:
+    """Write ``obj`` as JSON (``default`` converts what ``json`` cannot)."""
+    path.write_text(json.dumps(obj, indent=indent, default=default))
+
+
+def progress(message: str) -> None:
+    """A line on stderr (the tables go to stdout)."""
+    print(message, file=sys.stderr, flush=True)
