@@ -13,8 +13,7 @@ import torch
 from macsplat_cli.cameras import Camera, CameraSet, save_cameras
 from macsplat_cli.datasets import synthetic as S
 from macsplat_cli.images import save_image
-from macsplat_cli.pipeline import _sgm_kernels, _sgm_reference
-from macsplat_cli.pipeline.depth import estimate_depths, plane_sweep_cost, push_pull
+from macsplat_cli.pipeline.depth import _sgm_kernels, _sgm_reference, estimate_depths, plane_sweep_cost, push_pull
 from macsplat_cli.pipeline.types import DepthMap, Matches, TwoViewGeometry, View
 from macsplat_cli.pipeline.views import ViewConfig, load_views
 
