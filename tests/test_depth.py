@@ -13,8 +13,8 @@ import torch
 from macsplat_cli.cameras import Camera, CameraSet, save_cameras
 from macsplat_cli.datasets import synthetic as S
 from macsplat_cli.images import save_image
-from macsplat_cli.pipeline import _sgm_kernels, _sgm_reference
-from macsplat_cli.pipeline.depth import estimate_depths, plane_sweep_cost, push_pull
+from macsplat_cli.pipeline.depth import _sgm_kernels, _sgm_reference, estimate_depths, plane_sweep_cost, push_pull
+from macsplat_cli.pipeline.depth.pair import carry_depth, relative_pose
 from macsplat_cli.pipeline.types import DepthMap, Matches, TwoViewGeometry, View
 from macsplat_cli.pipeline.views import ViewConfig, load_views
 
@@ -95,6 +95,47 @@ def test_winner_hand_computed() -> None:
 def _levels(shape: tuple[int, int]) -> int:
     """The number of push-pull levels above the image (halving, rounding up, to one pixel)."""
     return max(math.ceil(math.log2(max(shape))), 0)
+
+
+def test_relative_pose_of_view_1_inverts_view_0() -> None:
+    """``relative_pose(g, 1)`` takes camera-1 points back to camera 0: composed with view 0's, the identity."""
+    rng = np.random.default_rng(0)
+    R, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    R *= np.sign(np.linalg.det(R))
+    t = rng.normal(size=3)
+    idx = np.zeros(0, np.int64)
+    none = Matches(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, np.float32), idx, idx)
+    g = TwoViewGeometry(R, t, np.eye(3), np.eye(3), none)
+    (R0, t0), (R1, t1) = relative_pose(g, 0), relative_pose(g, 1)
+    X = rng.normal(size=(10, 3))
+    np.testing.assert_allclose((X @ R0.T + t0) @ R1.T + t1, X, atol=1e-12)
+
+
+def test_carry_depth_lands_where_the_point_projects() -> None:
+    """Each pixel with a depth lands, in the other view, on the pixel its 3D point projects into; pixels without
+    a depth, behind the other camera or outside its image are not carried."""
+    rng = np.random.default_rng(1)
+    h, w, ho, wo = 12, 16, 10, 14
+    K = np.array([[20.0, 0.5, 8.0], [0.0, 21.0, 6.0], [0.0, 0.0, 1.0]])
+    K_o = np.array([[18.0, 0.0, 7.0], [0.0, 18.0, 5.0], [0.0, 0.0, 1.0]])
+    a = 0.1
+    R = np.array([[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0], [-math.sin(a), 0.0, math.cos(a)]])
+    t = np.array([-0.3, 0.05, 0.1])
+    depth = rng.uniform(1.0, 3.0, (h, w)).astype(np.float32)
+    depth[0, :4] = 0.0  # no depth
+    q, z, inside, sel = carry_depth(depth, K, K_o, R, t, (ho, wo))
+    ys, xs = np.nonzero(depth > 0)
+    np.testing.assert_array_equal(sel, ys * w + xs)
+    X = np.c_[xs + 0.5, ys + 0.5, np.ones(len(xs))] @ np.linalg.inv(K).T * depth[ys, xs, None]
+    Xo = X @ R.T + t
+    uv = Xo @ K_o.T
+    uv = uv[:, :2] / uv[:, 2:]
+    expect_in = (Xo[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < wo) & (uv[:, 1] >= 0) & (uv[:, 1] < ho)
+    assert 0 < expect_in.sum() < len(xs)  # the case covers both
+    np.testing.assert_array_equal(inside, expect_in)
+    np.testing.assert_allclose(z, Xo[:, 2], rtol=1e-12)
+    flat = np.floor(uv[:, 1]).astype(np.int64) * wo + np.floor(uv[:, 0]).astype(np.int64)
+    np.testing.assert_array_equal(q[inside], flat[expect_in])
 
 
 @pytest.mark.parametrize("shape", [(37, 53), (1, 9), (9, 1), (64, 64), (5, 3)])

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from macsplat_cli.datasets import synthetic as S
-from macsplat_cli.pipeline import _patchmatch_kernels as PK
-from macsplat_cli.pipeline import _patchmatch_reference as PR
 from macsplat_cli.pipeline.depth import DepthConfig, colour_outliers, estimate_depths, plane_sweep_cost
+from macsplat_cli.pipeline.depth import _patchmatch_kernels as PK
+from macsplat_cli.pipeline.depth import _patchmatch_reference as PR
 from macsplat_cli.pipeline.types import TwoViewGeometry, View
 
 from _helpers import apply_homography, orbit_views, pixel_centres, smooth_texture, unit_roundoff

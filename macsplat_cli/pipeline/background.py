@@ -15,10 +15,8 @@ opaque Gaussian per grid cell:
 Cells whose centre falls inside the other photo are left out (that view has real Gaussians there, and a layer at
 an extrapolated depth could hide them). With ``behind`` the interior of each photo gets the same layer pushed
 ``behind_factor`` beyond the farthest depth of the cell: a pixel that both views leave uncovered in a novel view
-(a disocclusion) then shows the far surface's blurred colour instead of the background colour. Twice the
-farthest depth was measured best on the development scenes (CO3D 12°/27°: +0.35/+0.9 dB over 1.15×, the
-hole showing roughly what the nearer photo shows in that direction; ICL: −0.4/−0.7 dB, still 8–14 dB above
-the copy).
+(a disocclusion) then shows the far surface's blurred colour instead of the background colour (twice the farthest
+depth by default; measured: benchmarks/history/depth.md).
 
 The layer is returned as a flat :class:`~macsplat_cli.gaussians.Gaussians` set in the world (camera-0) frame,
 apart from the per-pixel maps; it is not refined or compacted.
@@ -120,71 +118,130 @@ def background_gaussians(
     counts: dict[str, int] = {}
     if not cfg.enabled:
         return BackgroundLayer(None, counts)
-    means, scales, colours, quats = [], [], [], []
+    parts: list[_ViewLayer] = []
     dropped = 0
-    Ks = (geometry.K0, geometry.K1)
     for k, (view, dm) in enumerate(zip(views, depths)):
-        K = Ks[k]
-        h, w = dm.depth.shape
-        valid = dm.valid
-        if not valid.any():
+        if not dm.valid.any():
             continue
-        cell = max(2, int(cfg.cell))
-        hc, wc = -(-h // cell), -(-w // cell)
-        py, px = int(np.ceil(cfg.margin * hc)), int(np.ceil(cfg.margin * wc))
-        img = view.image.astype(np.float32)
-        if img.shape[:2] != (h, w):
-            img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
-        inv = np.where(valid, 1.0 / np.maximum(dm.depth, 1e-12), 0.0).astype(np.float32)
-        z_med = float(np.median(dm.depth[valid]))
-        img_c = cv2.resize(img, (wc, hc), interpolation=cv2.INTER_AREA).reshape(hc, wc, 3)
-        vw = cv2.resize(valid.astype(np.float32), (wc, hc), interpolation=cv2.INTER_AREA)
-        iw = cv2.resize(inv, (wc, hc), interpolation=cv2.INTER_AREA)
-        inv_c = np.where(vw > 0, iw / np.maximum(vw, 1e-6), 0.0).astype(np.float32)
-        col = _extend(img_c, np.ones((hc, wc), np.float32), (py, px))
-        inv_ext = _extend(inv_c[..., None], vw, (py, px))[..., 0]
-        gy, gx = np.mgrid[0 : hc + 2 * py, 0 : wc + 2 * px]
-        u = (gx - px + 0.5) * (w / wc)  # working-image pixel coordinates (+0.5 centres) of the cell centres
-        v = (gy - py + 0.5) * (h / hc)
-        inside = (gx >= px) & (gx < px + wc) & (gy >= py) & (gy < py + hc)
-        z = np.maximum(1.0 / np.maximum(inv_ext, 1e-12), z_med)
-        if cfg.behind:
-            far = _cell_min(np.where(valid, inv, np.inf).astype(np.float32), cell, np.inf)[:hc, :wc]
-            far = np.where(np.isfinite(far), far, 1.0 / z_med)
-            z_far = np.zeros_like(z)
-            z_far[py : py + hc, px : px + wc] = cfg.behind_factor / np.maximum(far, 1e-12)
-            z = np.where(inside, np.maximum(z_far, z), z)
-            keep = np.ones_like(inside)
-        else:
-            keep = ~inside
-        rays = np.stack([u, v, np.ones_like(u, dtype=np.float64)], -1) @ np.linalg.inv(K).T
-        T = geometry.cam_to_world(k)
-        Pw = (rays * z[..., None]) @ T[:3, :3].T + T[:3, 3]
-        # leave out exterior cells the other photo sees: its own Gaussians are there
-        o = 1 - k
-        To = np.linalg.inv(geometry.cam_to_world(o))
-        Po = Pw @ To[:3, :3].T + To[:3, 3]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            uvo = (Po @ Ks[o].T)[..., :2] / Po[..., 2:3]
-        ho, wo = depths[o].depth.shape
-        seen = (Po[..., 2] > 0) & (uvo[..., 0] > 0) & (uvo[..., 0] < wo) & (uvo[..., 1] > 0) & (uvo[..., 1] < ho)
-        outside_kept = keep & ~inside & ~seen
-        dropped += int((keep & ~inside & seen).sum())
-        sel = outside_kept | (keep & inside)
-        counts[f"outside_view{k}"] = int(outside_kept.sum())
-        counts[f"behind_view{k}"] = int((keep & inside).sum())
-        f = 0.5 * (K[0, 0] + K[1, 1])
-        s = cfg.overlap * cell * z[sel] / f
-        means.append(Pw[sel])
-        scales.append(np.stack([s, s, 0.1 * s], 1))
-        colours.append(col[sel])
-        # a disc facing camera k: its local axes are the camera's axes
-        quats.append(np.repeat(rotmat_to_quat_np(T[None, :3, :3]), int(sel.sum()), 0))
+        part = _view_layer(k, view, dm, geometry, depths[1 - k].depth.shape, cfg)
+        counts[f"outside_view{k}"] = part.outside
+        counts[f"behind_view{k}"] = part.behind
+        dropped += part.dropped
+        parts.append(part)
     counts["dropped_inside_other"] = dropped
-    if not means:
+    if not parts:
         return BackgroundLayer(None, counts)
     t = lambda a: torch.from_numpy(np.ascontiguousarray(np.concatenate(a), np.float32))  # noqa: E731
-    n = sum(len(m) for m in means)
-    g = Gaussians.from_activated(t(means), t(scales), t(quats), torch.full((n,), cfg.opacity), t(colours).clamp(0, 1))
+    n = sum(len(p.means) for p in parts)
+    means, scales, quats = t([p.means for p in parts]), t([p.scales for p in parts]), t([p.quats for p in parts])
+    colours = t([p.colours for p in parts]).clamp(0, 1)
+    g = Gaussians.from_activated(means, scales, quats, torch.full((n,), cfg.opacity), colours)
     logger.debug("background layer: %s", counts)
     return BackgroundLayer(g, counts)
+
+
+@dataclass
+class _ViewLayer:
+    """One view's part of the far layer (camera-0 frame) and its counts.
+
+    Attributes:
+        means: centres. [n, 3]
+        scales: standard deviations (a disc facing the view's camera). [n, 3]
+        colours: RGB. [n, 3]
+        quats: (w, x, y, z), the camera's axes. [n, 4]
+        outside: Gaussians past the view's border; behind: behind its interior; dropped: exterior cells the other
+            photo covers, left out.
+    """
+
+    means: np.ndarray
+    scales: np.ndarray
+    colours: np.ndarray
+    quats: np.ndarray
+    outside: int
+    behind: int
+    dropped: int
+
+
+def _view_layer(
+    k: int, view: View, dm: DepthMap, geometry: TwoViewGeometry, shape_o: tuple[int, int], cfg: BackgroundConfig
+) -> _ViewLayer:
+    """View ``k``'s cells: the photo and its depth extended on the padded grid, placed in the world, less the
+    exterior cells the other view (of ``shape_o = (height, width)``) sees."""
+    K = geometry.K0 if k == 0 else geometry.K1
+    h, w = dm.depth.shape
+    valid = dm.valid
+    cell = max(2, int(cfg.cell))
+    hc, wc = -(-h // cell), -(-w // cell)
+    py, px = int(np.ceil(cfg.margin * hc)), int(np.ceil(cfg.margin * wc))
+    col, inv_ext, inv, z_med = _extended_cells(view, dm.depth, valid, (hc, wc), (py, px))
+    gy, gx = np.mgrid[0 : hc + 2 * py, 0 : wc + 2 * px]
+    u = (gx - px + 0.5) * (w / wc)  # working-image pixel coordinates (+0.5 centres) of the cell centres
+    v = (gy - py + 0.5) * (h / hc)
+    inside = (gx >= px) & (gx < px + wc) & (gy >= py) & (gy < py + hc)
+    z = np.maximum(1.0 / np.maximum(inv_ext, 1e-12), z_med)
+    if cfg.behind:
+        far = _cell_min(np.where(valid, inv, np.inf).astype(np.float32), cell, np.inf)[:hc, :wc]
+        far = np.where(np.isfinite(far), far, 1.0 / z_med)
+        z_far = np.zeros_like(z)
+        z_far[py : py + hc, px : px + wc] = cfg.behind_factor / np.maximum(far, 1e-12)
+        z = np.where(inside, np.maximum(z_far, z), z)
+        keep = np.ones_like(inside)
+    else:
+        keep = ~inside
+    rays = np.stack([u, v, np.ones_like(u, dtype=np.float64)], -1) @ np.linalg.inv(K).T
+    T = geometry.cam_to_world(k)
+    Pw = (rays * z[..., None]) @ T[:3, :3].T + T[:3, 3]
+    # leave out exterior cells the other photo sees: its own Gaussians are there
+    seen = _seen_by(Pw, geometry, 1 - k, shape_o)
+    outside_kept = keep & ~inside & ~seen
+    sel = outside_kept | (keep & inside)
+    f = 0.5 * (K[0, 0] + K[1, 1])
+    s = cfg.overlap * cell * z[sel] / f
+    return _ViewLayer(
+        means=Pw[sel],
+        scales=np.stack([s, s, 0.1 * s], 1),
+        colours=col[sel],
+        # a disc facing camera k: its local axes are the camera's axes
+        quats=np.repeat(rotmat_to_quat_np(T[None, :3, :3]), int(sel.sum()), 0),
+        outside=int(outside_kept.sum()),
+        behind=int((keep & inside).sum()),
+        dropped=int((keep & ~inside & seen).sum()),
+    )
+
+
+def _extended_cells(
+    view: View, depth: np.ndarray, valid: np.ndarray, grid: tuple[int, int], pad: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """The photo's colour and inverse depth per grid cell (``grid = (hc, wc)`` cells over the [H, W] ``depth``),
+    extended by ``pad = (py, px)`` cells per side (:func:`_extend`).
+
+    Returns:
+        ``(colour, inverse depth, the working inverse depth, the median depth)``: [hc + 2py, wc + 2px, 3],
+        [hc + 2py, wc + 2px], [H, W] (0 where no depth), and a float.
+    """
+    h, w = depth.shape
+    hc, wc = grid
+    img = view.image.astype(np.float32)
+    if img.shape[:2] != (h, w):
+        img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+    inv = np.where(valid, 1.0 / np.maximum(depth, 1e-12), 0.0).astype(np.float32)
+    z_med = float(np.median(depth[valid]))
+    img_c = cv2.resize(img, (wc, hc), interpolation=cv2.INTER_AREA).reshape(hc, wc, 3)
+    vw = cv2.resize(valid.astype(np.float32), (wc, hc), interpolation=cv2.INTER_AREA)
+    iw = cv2.resize(inv, (wc, hc), interpolation=cv2.INTER_AREA)
+    inv_c = np.where(vw > 0, iw / np.maximum(vw, 1e-6), 0.0).astype(np.float32)
+    col = _extend(img_c, np.ones((hc, wc), np.float32), pad)
+    inv_ext = _extend(inv_c[..., None], vw, pad)[..., 0]
+    return col, inv_ext, inv, z_med
+
+
+def _seen_by(Pw: np.ndarray, geometry: TwoViewGeometry, o: int, shape_o: tuple[int, int]) -> np.ndarray:
+    """World points [..., 3] that land inside view ``o``'s image (``shape_o = (height, width)``), in front of it.
+    [...] bool"""
+    To = np.linalg.inv(geometry.cam_to_world(o))
+    Po = Pw @ To[:3, :3].T + To[:3, 3]
+    K_o = geometry.K0 if o == 0 else geometry.K1
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uvo = (Po @ K_o.T)[..., :2] / Po[..., 2:3]
+    ho, wo = shape_o
+    return (Po[..., 2] > 0) & (uvo[..., 0] > 0) & (uvo[..., 0] < wo) & (uvo[..., 1] > 0) & (uvo[..., 1] < ho)

@@ -85,6 +85,64 @@ def bin_tiles(pixel_rect, width, height, tile):  # noqa: ANN001, ANN201 - numba
     return offsets, lists
 
 
+@nb.njit(inline="always", **_JIT)
+def _tile_rect(t, tiles_x, tile, width, height):  # noqa: ANN001, ANN202
+    """Pixel bounds ``(x0, y0, x1, y1)`` (x1, y1 exclusive) of tile ``t``, clipped to the image."""
+    ty = t // tiles_x
+    tx = t - ty * tiles_x
+    x0 = tx * tile
+    y0 = ty * tile
+    x1 = min(x0 + tile, width)
+    y1 = min(y0 + tile, height)
+    return x0, y0, x1, y1
+
+
+@nb.njit(inline="always", **_JIT)
+def _splat_forward(g, k, means2d, conics, opacities, features, pixel_rect, x0, y0, x1, y1, T, acc, lst, done):  # noqa: ANN001, ANN202
+    """Composite Gaussian ``g`` (position ``k`` in the tile list) onto the tile's pixels not yet done: updates the
+    tile's transmittance ``T``, accumulated features ``acc``, last-sample index ``lst`` and ``done`` in place.
+    Returns how many pixels it finished."""
+    tw = x1 - x0
+    n_ch = features.shape[1]
+    n_done = 0
+    gx0 = max(pixel_rect[g, 0], x0)
+    gx1 = min(pixel_rect[g, 1] + 1, x1)
+    gy0 = max(pixel_rect[g, 2], y0)
+    gy1 = min(pixel_rect[g, 3] + 1, y1)
+    mx = means2d[g, 0]
+    my = means2d[g, 1]
+    ca = conics[g, 0]
+    cb = conics[g, 1]
+    cc = conics[g, 2]
+    op = opacities[g]
+    level = _level(op)
+    for py in range(gy0, gy1):
+        dy = np.float32(py) + _HALF - my
+        row = (py - y0) * tw - x0
+        for px in range(gx0, gx1):
+            p = row + px
+            if done[p]:
+                continue
+            dx = np.float32(px) + _HALF - mx
+            sigma = _HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+            if sigma < _ZERO or sigma > level:
+                continue
+            alpha = min(_A_MAX, op * np.exp(-sigma))
+            if alpha < _A_MIN:
+                continue
+            next_t = T[p] * (_ONE - alpha)
+            if next_t <= _T_MIN:
+                done[p] = True
+                n_done += 1
+                continue
+            w = alpha * T[p]
+            for ch in range(n_ch):
+                acc[p, ch] += w * features[g, ch]
+            T[p] = next_t
+            lst[p] = k
+    return n_done
+
+
 @nb.njit(parallel=True, **_JIT)
 def composite_forward(means2d, conics, opacities, features, pixel_rect, offsets, lists, width, height, tile):  # noqa: ANN001, ANN201
     """Front-to-back compositing of depth-sorted Gaussians.
@@ -106,12 +164,7 @@ def composite_forward(means2d, conics, opacities, features, pixel_rect, offsets,
     trans = np.ones((height, width), dtype)
     last = np.full((height, width), -1, np.int32)
     for t in nb.prange(n_tiles):
-        ty = t // tiles_x
-        tx = t - ty * tiles_x
-        x0 = tx * tile
-        y0 = ty * tile
-        x1 = min(x0 + tile, width)
-        y1 = min(y0 + tile, height)
+        x0, y0, x1, y1 = _tile_rect(t, tiles_x, tile, width, height)
         tw = x1 - x0
         npix = tw * (y1 - y0)
         T = np.ones(npix, dtype)
@@ -122,41 +175,9 @@ def composite_forward(means2d, conics, opacities, features, pixel_rect, offsets,
         start = offsets[t]
         for k in range(offsets[t + 1] - start):
             g = lists[start + k]
-            gx0 = max(pixel_rect[g, 0], x0)
-            gx1 = min(pixel_rect[g, 1] + 1, x1)
-            gy0 = max(pixel_rect[g, 2], y0)
-            gy1 = min(pixel_rect[g, 3] + 1, y1)
-            mx = means2d[g, 0]
-            my = means2d[g, 1]
-            ca = conics[g, 0]
-            cb = conics[g, 1]
-            cc = conics[g, 2]
-            op = opacities[g]
-            level = _level(op)
-            for py in range(gy0, gy1):
-                dy = np.float32(py) + _HALF - my
-                row = (py - y0) * tw - x0
-                for px in range(gx0, gx1):
-                    p = row + px
-                    if done[p]:
-                        continue
-                    dx = np.float32(px) + _HALF - mx
-                    sigma = _HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-                    if sigma < _ZERO or sigma > level:
-                        continue
-                    alpha = min(_A_MAX, op * np.exp(-sigma))
-                    if alpha < _A_MIN:
-                        continue
-                    next_t = T[p] * (_ONE - alpha)
-                    if next_t <= _T_MIN:
-                        done[p] = True
-                        n_done += 1
-                        continue
-                    w = alpha * T[p]
-                    for ch in range(n_ch):
-                        acc[p, ch] += w * features[g, ch]
-                    T[p] = next_t
-                    lst[p] = k
+            n_done += _splat_forward(
+                g, k, means2d, conics, opacities, features, pixel_rect, x0, y0, x1, y1, T, acc, lst, done
+            )
             if n_done == npix:
                 break
         for py in range(y0, y1):
@@ -167,6 +188,87 @@ def composite_forward(means2d, conics, opacities, features, pixel_rect, offsets,
                 for ch in range(n_ch):
                     feat[py, px, ch] = acc[p, ch]
     return feat, trans, last
+
+
+@nb.njit(inline="always", **_JIT)
+def _load_tile(trans, last, v_feat, v_trans, x0, y0, x1, y1, T, Q, V, lst):  # noqa: ANN001, ANN202
+    """The forward's final transmittance and last-sample index and the cotangents of one tile into the tile arrays
+    ``T``, ``Q``, ``V``, ``lst`` (in place). Returns the largest last-sample index (-1 if none)."""
+    tw = x1 - x0
+    n_ch = V.shape[1]
+    kmax = -1
+    for py in range(y0, y1):
+        for px in range(x0, x1):
+            p = (py - y0) * tw + px - x0
+            T[p] = trans[py, px]
+            Q[p] = trans[py, px] * v_trans[py, px]
+            lst[p] = last[py, px]
+            kmax = max(kmax, lst[p])
+            for ch in range(n_ch):
+                V[p, ch] = v_feat[py, px, ch]
+    return kmax
+
+
+@nb.njit(inline="always", **_JIT)
+def _splat_backward(g, k, means2d, conics, opacities, features, pixel_rect, x0, y0, x1, y1, T, Q, V, lst, v_f):  # noqa: ANN001, ANN202
+    """Gradient of Gaussian ``g`` (position ``k`` in the tile list) over the tile, back to front: steps the tile's
+    ``T`` and ``Q`` back past this sample and sums its feature gradient into ``v_f`` (in place).
+    Returns ``(d mean x, d mean y, d conic a, b, c, d opacity)``."""
+    tw = x1 - x0
+    n_ch = features.shape[1]
+    gx0 = max(pixel_rect[g, 0], x0)
+    gx1 = min(pixel_rect[g, 1] + 1, x1)
+    gy0 = max(pixel_rect[g, 2], y0)
+    gy1 = min(pixel_rect[g, 3] + 1, y1)
+    mx = means2d[g, 0]
+    my = means2d[g, 1]
+    ca = conics[g, 0]
+    cb = conics[g, 1]
+    cc = conics[g, 2]
+    op = opacities[g]
+    level = _level(op)
+    v_mx = 0.0
+    v_my = 0.0
+    v_a = 0.0
+    v_b = 0.0
+    v_c = 0.0
+    v_op = 0.0
+    v_f[:] = 0.0
+    for py in range(gy0, gy1):
+        dy = np.float32(py) + _HALF - my
+        row = (py - y0) * tw - x0
+        for px in range(gx0, gx1):
+            p = row + px
+            if k > lst[p]:
+                continue
+            dx = np.float32(px) + _HALF - mx
+            sigma = _HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+            if sigma < _ZERO or sigma > level:
+                continue
+            gauss = np.exp(-sigma)
+            raw = op * gauss
+            alpha = min(_A_MAX, raw)
+            if alpha < _A_MIN:
+                continue
+            one_minus = _ONE - alpha
+            t_k = T[p] / one_minus
+            w = alpha * t_k
+            fv = 0.0
+            for ch in range(n_ch):
+                fv += features[g, ch] * V[p, ch]
+                v_f[ch] += w * V[p, ch]
+            v_alpha = t_k * fv - Q[p] / one_minus
+            Q[p] += w * fv
+            T[p] = t_k
+            if raw < _A_MAX:  # alpha not clamped: it depends on op and sigma
+                v_op += v_alpha * gauss
+                v_sigma = -v_alpha * alpha
+                v_mx -= v_sigma * (ca * dx + cb * dy)
+                v_my -= v_sigma * (cb * dx + cc * dy)
+                v_a += _HALF * v_sigma * dx * dx
+                v_b += v_sigma * dx * dy
+                v_c += _HALF * v_sigma * dy * dy
+    return v_mx, v_my, v_a, v_b, v_c, v_op
 
 
 @nb.njit(parallel=True, **_JIT)
@@ -189,84 +291,20 @@ def composite_backward(
     dtype = means2d.dtype
     out = np.zeros((lists.shape[0], GRAD_COLS + n_ch), dtype)
     for t in nb.prange(n_tiles):
-        ty = t // tiles_x
-        tx = t - ty * tiles_x
-        x0 = tx * tile
-        y0 = ty * tile
-        x1 = min(x0 + tile, width)
-        y1 = min(y0 + tile, height)
-        tw = x1 - x0
-        npix = tw * (y1 - y0)
+        x0, y0, x1, y1 = _tile_rect(t, tiles_x, tile, width, height)
+        npix = (x1 - x0) * (y1 - y0)
         T = np.empty(npix, dtype)  # transmittance after the current sample
         Q = np.empty(npix, dtype)  # Σ_{later j} α_j T_j (f_j·v) + T_final·v_T
         V = np.empty((npix, n_ch), dtype)
         lst = np.empty(npix, np.int32)
-        kmax = -1
-        for py in range(y0, y1):
-            for px in range(x0, x1):
-                p = (py - y0) * tw + px - x0
-                T[p] = trans[py, px]
-                Q[p] = trans[py, px] * v_trans[py, px]
-                lst[p] = last[py, px]
-                kmax = max(kmax, lst[p])
-                for ch in range(n_ch):
-                    V[p, ch] = v_feat[py, px, ch]
+        kmax = _load_tile(trans, last, v_feat, v_trans, x0, y0, x1, y1, T, Q, V, lst)
         v_f = np.empty(n_ch, dtype)
         start = offsets[t]
         for k in range(kmax, -1, -1):
             g = lists[start + k]
-            gx0 = max(pixel_rect[g, 0], x0)
-            gx1 = min(pixel_rect[g, 1] + 1, x1)
-            gy0 = max(pixel_rect[g, 2], y0)
-            gy1 = min(pixel_rect[g, 3] + 1, y1)
-            mx = means2d[g, 0]
-            my = means2d[g, 1]
-            ca = conics[g, 0]
-            cb = conics[g, 1]
-            cc = conics[g, 2]
-            op = opacities[g]
-            level = _level(op)
-            v_mx = 0.0
-            v_my = 0.0
-            v_a = 0.0
-            v_b = 0.0
-            v_c = 0.0
-            v_op = 0.0
-            v_f[:] = 0.0
-            for py in range(gy0, gy1):
-                dy = np.float32(py) + _HALF - my
-                row = (py - y0) * tw - x0
-                for px in range(gx0, gx1):
-                    p = row + px
-                    if k > lst[p]:
-                        continue
-                    dx = np.float32(px) + _HALF - mx
-                    sigma = _HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-                    if sigma < _ZERO or sigma > level:
-                        continue
-                    gauss = np.exp(-sigma)
-                    raw = op * gauss
-                    alpha = min(_A_MAX, raw)
-                    if alpha < _A_MIN:
-                        continue
-                    one_minus = _ONE - alpha
-                    t_k = T[p] / one_minus
-                    w = alpha * t_k
-                    fv = 0.0
-                    for ch in range(n_ch):
-                        fv += features[g, ch] * V[p, ch]
-                        v_f[ch] += w * V[p, ch]
-                    v_alpha = t_k * fv - Q[p] / one_minus
-                    Q[p] += w * fv
-                    T[p] = t_k
-                    if raw < _A_MAX:  # alpha not clamped: it depends on op and sigma
-                        v_op += v_alpha * gauss
-                        v_sigma = -v_alpha * alpha
-                        v_mx -= v_sigma * (ca * dx + cb * dy)
-                        v_my -= v_sigma * (cb * dx + cc * dy)
-                        v_a += _HALF * v_sigma * dx * dx
-                        v_b += v_sigma * dx * dy
-                        v_c += _HALF * v_sigma * dy * dy
+            v_mx, v_my, v_a, v_b, v_c, v_op = _splat_backward(
+                g, k, means2d, conics, opacities, features, pixel_rect, x0, y0, x1, y1, T, Q, V, lst, v_f
+            )
             r = start + k
             out[r, 0] = v_mx
             out[r, 1] = v_my

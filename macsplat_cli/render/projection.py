@@ -99,20 +99,11 @@ def project_gaussians(
     Returns:
         The visible Gaussians, front to back (:class:`Projection`).
     """
-    dtype, device = means.dtype, means.device
+    dtype = means.dtype
     viewmat = viewmat.to(dtype)
     K = K.to(dtype)
     R, t = viewmat[:3, :3], viewmat[:3, 3]
-
-    # ---- cheap culls, no gradient, before any division
-    with torch.no_grad():
-        finite = torch.isfinite(means).all(1) & torch.isfinite(log_scales).all(1)
-        finite &= torch.isfinite(quats).all(1) & torch.isfinite(opacity_logits)
-        finite &= torch.isfinite(sh).flatten(1).all(1)
-        z = torch.where(finite, means @ R[2] + t[2], torch.zeros((), dtype=dtype, device=device))
-        logit_min = math.log(ALPHA_MIN / (1.0 - ALPHA_MIN))
-        keep = finite & (z > near) & (z < far) & (opacity_logits >= logit_min)
-        ids = keep.nonzero().squeeze(1)
+    ids = _visible_ids(means, log_scales, quats, opacity_logits, sh, R, t, near, far)
 
     means_c = means[ids] @ R.T + t  # [M, 3]
     x, y, z = means_c.unbind(-1)
@@ -120,26 +111,86 @@ def project_gaussians(
     fx, skew, cx = K[0, 0], K[0, 1], K[0, 2]
     fy, cy = K[1, 1], K[1, 2]
     means2d = torch.stack([(fx * x + skew * y) * inv_z + cx, fy * y * inv_z + cy], dim=-1)
+    J = _jacobian(x, y, z, inv_z, K, width, height)
+    conics, a_blur, c_blur = _conics(J, R, quats[ids], log_scales[ids], z, K, eps2d)
+    opacities = torch.sigmoid(opacity_logits[ids])
+    order, rect = _support_rects(means2d, opacities, a_blur, c_blur, z, width, height)
 
-    # Jacobian of the projection at a clamped position.
+    ids_sorted = ids[order]
+    colors = _colors(sh[ids_sorted], means[ids_sorted], R, t)
+    return Projection(
+        ids=ids_sorted,
+        means2d=means2d[order],
+        conics=conics[order],
+        depths=z[order],
+        opacities=opacities[order],
+        colors=colors,
+        pixel_rect=rect.contiguous(),
+    )
+
+
+@torch.no_grad()
+def _visible_ids(
+    means: torch.Tensor,
+    log_scales: torch.Tensor,
+    quats: torch.Tensor,
+    opacity_logits: torch.Tensor,
+    sh: torch.Tensor,
+    R: torch.Tensor,
+    t: torch.Tensor,
+    near: float,
+    far: float,
+) -> torch.Tensor:
+    """The cheap culls, no gradient, before any division: indices [M] of the Gaussians with finite parameters,
+    ``near < z < far`` and an opacity of at least ``ALPHA_MIN``."""
+    dtype, device = means.dtype, means.device
+    finite = torch.isfinite(means).all(1) & torch.isfinite(log_scales).all(1)
+    finite &= torch.isfinite(quats).all(1) & torch.isfinite(opacity_logits)
+    finite &= torch.isfinite(sh).flatten(1).all(1)
+    z = torch.where(finite, means @ R[2] + t[2], torch.zeros((), dtype=dtype, device=device))
+    logit_min = math.log(ALPHA_MIN / (1.0 - ALPHA_MIN))
+    keep = finite & (z > near) & (z < far) & (opacity_logits >= logit_min)
+    return keep.nonzero().squeeze(1)
+
+
+def _jacobian(
+    x: torch.Tensor, y: torch.Tensor, z: torch.Tensor, inv_z: torch.Tensor, K: torch.Tensor, width: int, height: int
+) -> torch.Tensor:
+    """Jacobian of the pinhole projection at camera points ``(x, y, z)`` [M] each, evaluated at ``x/z, y/z``
+    clamped to the image bounds plus 30 % of the half field of view. [M, 2, 3]"""
+    fx, skew, cx = K[0, 0], K[0, 1], K[0, 2]
+    fy, cy = K[1, 1], K[1, 2]
     tan_fovx = 0.5 * width / fx
     tan_fovy = 0.5 * height / fy
     u = torch.clamp(x * inv_z, -(cx / fx + 0.3 * tan_fovx), (width - cx) / fx + 0.3 * tan_fovx)
     v = torch.clamp(y * inv_z, -(cy / fy + 0.3 * tan_fovy), (height - cy) / fy + 0.3 * tan_fovy)
     zero = torch.zeros_like(z)
-    J = torch.stack(
+    return torch.stack(
         [
             torch.stack([fx * inv_z, skew * inv_z, -(fx * u + skew * v) * inv_z], -1),
             torch.stack([zero, fy * inv_z, -fy * v * inv_z], -1),
         ],
         dim=-2,
-    )  # [M, 2, 3]
+    )
 
+
+def _conics(
+    J: torch.Tensor,
+    R: torch.Tensor,
+    quats: torch.Tensor,
+    log_scales: torch.Tensor,
+    z: torch.Tensor,
+    K: torch.Tensor,
+    eps2d: float,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The dilated 2D covariances of the visible Gaussians (``J`` [M, 2, 3], ``quats`` [M, 4], ``log_scales``
+    [M, 3], camera depths ``z`` [M]) as conics [M, 3], with their diagonal ``a + eps2d``, ``c + eps2d`` [M] each."""
+    fx, skew, fy = K[0, 0], K[0, 1], K[1, 1]
     # Σ_cam = M Mᵀ with M = R_wc R_q S; the scale cap keeps J·M within MAX_SCREEN_STD px.
     f_max = torch.maximum(fx.abs(), fy.abs()) + skew.abs()
     log_cap = torch.log(z.detach() * (MAX_SCREEN_STD / f_max))
-    scales = torch.exp(torch.minimum(log_scales[ids], log_cap[:, None]))
-    Mc = (R @ quat_to_rotmat(quats[ids])) * scales[:, None, :]  # [M, 3, 3]
+    scales = torch.exp(torch.minimum(log_scales, log_cap[:, None]))
+    Mc = (R @ quat_to_rotmat(quats)) * scales[:, None, :]  # [M, 3, 3]
     M2 = J @ Mc  # [M, 2, 3]: cov2d = M2 M2ᵀ
     r0, r1 = M2[:, 0], M2[:, 1]
     a = (r0 * r0).sum(-1)
@@ -156,37 +207,38 @@ def project_gaussians(
     det = (minors * minors).sum(-1) + eps2d * (a + c) + eps2d * eps2d  # = (a+ε)(c+ε) − b² ≥ ε²
     a_blur = a + eps2d
     c_blur = c + eps2d
-    conics = torch.stack([c_blur / det, -b / det, a_blur / det], dim=-1)
-    opacities = torch.sigmoid(opacity_logits[ids])
+    return torch.stack([c_blur / det, -b / det, a_blur / det], dim=-1), a_blur, c_blur
 
-    # Support where alpha ≥ 1/255: σ = ½ dᵀ Σ⁻¹ d ≤ ln(255·op), an ellipse whose bounding
-    # box has half-widths sqrt(2 ln(255 op) Σ_xx), sqrt(2 ln(255 op) Σ_yy).
-    with torch.no_grad():
-        level = 2.0 * torch.log(opacities * 255.0).clamp_min(0.0)
-        rx = torch.sqrt(level * a_blur) + _BBOX_MARGIN
-        ry = torch.sqrt(level * c_blur) + _BBOX_MARGIN
-        mx, my = means2d[:, 0], means2d[:, 1]
-        big = float(4 * max(width, height) + 16)  # keep the float→int conversion in range
-        x0 = torch.ceil((mx - rx - 0.5).clamp(-big, big)).clamp_min(0)
-        x1 = torch.floor((mx + rx - 0.5).clamp(-big, big)).clamp_max(width - 1)
-        y0 = torch.ceil((my - ry - 0.5).clamp(-big, big)).clamp_min(0)
-        y1 = torch.floor((my + ry - 0.5).clamp(-big, big)).clamp_max(height - 1)
-        on_screen = (x0 <= x1) & (y0 <= y1) & (level > 0)
-        sel = on_screen.nonzero().squeeze(1)
-        order = sel[torch.argsort(z.detach()[sel], stable=True)]
-        rect = torch.stack([x0, x1, y0, y1], -1)[order].to(torch.int32)
 
-    ids_sorted = ids[order]
-    colors = _colors(sh[ids_sorted], means[ids_sorted], R, t)
-    return Projection(
-        ids=ids_sorted,
-        means2d=means2d[order],
-        conics=conics[order],
-        depths=z[order],
-        opacities=opacities[order],
-        colors=colors,
-        pixel_rect=rect.contiguous(),
-    )
+@torch.no_grad()
+def _support_rects(
+    means2d: torch.Tensor,
+    opacities: torch.Tensor,
+    a_blur: torch.Tensor,
+    c_blur: torch.Tensor,
+    z: torch.Tensor,
+    width: int,
+    height: int,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The Gaussians whose support (alpha ≥ 1/255) reaches the image, front to back: ``(order, rect)``, indices
+    [S] into the visible set and their inclusive pixel bounds (x0, x1, y0, y1) [S, 4] int32.
+
+    Support where alpha ≥ 1/255: σ = ½ dᵀ Σ⁻¹ d ≤ ln(255·op), an ellipse whose bounding box has half-widths
+    sqrt(2 ln(255 op) Σ_xx), sqrt(2 ln(255 op) Σ_yy).
+    """
+    level = 2.0 * torch.log(opacities * 255.0).clamp_min(0.0)
+    rx = torch.sqrt(level * a_blur) + _BBOX_MARGIN
+    ry = torch.sqrt(level * c_blur) + _BBOX_MARGIN
+    mx, my = means2d[:, 0], means2d[:, 1]
+    big = float(4 * max(width, height) + 16)  # keep the float→int conversion in range
+    x0 = torch.ceil((mx - rx - 0.5).clamp(-big, big)).clamp_min(0)
+    x1 = torch.floor((mx + rx - 0.5).clamp(-big, big)).clamp_max(width - 1)
+    y0 = torch.ceil((my - ry - 0.5).clamp(-big, big)).clamp_min(0)
+    y1 = torch.floor((my + ry - 0.5).clamp(-big, big)).clamp_max(height - 1)
+    on_screen = (x0 <= x1) & (y0 <= y1) & (level > 0)
+    sel = on_screen.nonzero().squeeze(1)
+    order = sel[torch.argsort(z.detach()[sel], stable=True)]
+    return order, torch.stack([x0, x1, y0, y1], -1)[order].to(torch.int32)
 
 
 def _colors(sh: torch.Tensor, means: torch.Tensor, R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:

@@ -14,7 +14,7 @@ from ..gaussians import Gaussians
 from . import _gsplat
 from ._output import RenderOutput, normalise_depth
 from .composite import bin_tiles, composite
-from .projection import project_gaussians
+from .projection import Projection, project_gaussians
 from .reference import composite_reference
 
 __all__ = ["Backend", "RenderOutput", "render", "render_camera"]
@@ -62,20 +62,10 @@ def render(
     """
     if width <= 0 or height <= 0:
         raise ValueError(f"image size must be positive, got {width}x{height}")
-    dtype, device = gaussians.dtype, gaussians.device
-    bg = torch.as_tensor(background, dtype=dtype, device=device).reshape(3)
-    viewmat = torch.as_tensor(viewmat).to(device=device, dtype=dtype)
-    K = torch.as_tensor(K).to(device=device, dtype=dtype)
-    check_shape(viewmat, (4, 4), "viewmat")
-    check_shape(K, (3, 3), "K")
-    check_finite(viewmat, "viewmat")
-    check_finite(K, "K")
-    check_finite(bg, "background")
-
-    if backend == "gsplat" or (backend == "auto" and device.type == "cuda"):
+    viewmat, K, bg = _checked_camera(gaussians, viewmat, K, background)
+    if backend == "gsplat" or (backend == "auto" and gaussians.device.type == "cuda"):
         if backend == "gsplat" or _gsplat.available():
             return _gsplat.render_gsplat(gaussians, viewmat, K, width, height, bg, near=near, far=far, eps2d=eps2d)
-
     proj = project_gaussians(
         gaussians.means,
         gaussians.log_scales,
@@ -91,23 +81,47 @@ def render(
         eps2d=eps2d,
     )
     features = torch.cat([proj.colors, proj.depths[:, None]], dim=-1)  # [M, 4]
-    n_isect = 0
-    if backend == "torch":
-        feat, trans = composite_reference(proj.means2d, proj.conics, proj.opacities, features, width, height)
-    elif backend in ("numba", "auto"):
-        tiles = bin_tiles(proj.pixel_rect, width, height)
-        n_isect = tiles.n_intersections
-        feat, trans = composite(
-            proj.means2d, proj.conics, proj.opacities, features, proj.pixel_rect, width, height, tiles=tiles
-        )
-    else:
-        raise ValueError(f"unknown render backend {backend!r}")
+    feat, trans, n_isect = _composite(proj, features, width, height, backend)
     alpha = 1.0 - trans
     rgb = feat[..., :3] + trans[..., None] * bg
     depth = normalise_depth(feat[..., 3], alpha)
     return RenderOutput(
         rgb=rgb, depth=depth, alpha=alpha, visible=proj.ids, means2d=proj.means2d, n_intersections=n_isect
     )
+
+
+def _checked_camera(
+    gaussians: Gaussians, viewmat: torch.Tensor, K: torch.Tensor, background: torch.Tensor | tuple[float, float, float]
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(viewmat [4, 4], K [3, 3], background [3])`` on the Gaussians' device and dtype, checked for shape and
+    finiteness (ShapeError, NonFiniteError)."""
+    dtype, device = gaussians.dtype, gaussians.device
+    bg = torch.as_tensor(background, dtype=dtype, device=device).reshape(3)
+    viewmat = torch.as_tensor(viewmat).to(device=device, dtype=dtype)
+    K = torch.as_tensor(K).to(device=device, dtype=dtype)
+    check_shape(viewmat, (4, 4), "viewmat")
+    check_shape(K, (3, 3), "K")
+    check_finite(viewmat, "viewmat")
+    check_finite(K, "K")
+    check_finite(bg, "background")
+    return viewmat, K, bg
+
+
+def _composite(
+    proj: Projection, features: torch.Tensor, width: int, height: int, backend: Backend
+) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """Alpha compositing of the projected Gaussians' ``features`` [M, C] on the CPU backends: ``(features [H, W, C],
+    transmittance [H, W], tile intersections)`` (0 intersections for the dense ``torch`` twin)."""
+    if backend == "torch":
+        feat, trans = composite_reference(proj.means2d, proj.conics, proj.opacities, features, width, height)
+        return feat, trans, 0
+    if backend in ("numba", "auto"):
+        tiles = bin_tiles(proj.pixel_rect, width, height)
+        feat, trans = composite(
+            proj.means2d, proj.conics, proj.opacities, features, proj.pixel_rect, width, height, tiles=tiles
+        )
+        return feat, trans, tiles.n_intersections
+    raise ValueError(f"unknown render backend {backend!r}")
 
 
 def render_camera(gaussians: Gaussians, camera: Camera, **kwargs: object) -> RenderOutput:
