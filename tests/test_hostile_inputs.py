@@ -19,7 +19,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from test_neural_checkpoints import TINY, random_state_dict, save_pth
 
 from macsplat_cli._limits import MAX_JSON_BYTES, MAX_RENDER_SIDE, check_render_size, json_depth, read_json_file
 from macsplat_cli._state_dict import read_safetensors
@@ -42,7 +41,8 @@ from macsplat_cli.neural.fusion import (
 from macsplat_cli.ply import read_ply, write_ply
 from macsplat_cli.render import render_camera
 
-from _helpers import random_gaussians
+from support.checkpoints import TINY, random_state_dict, save_pth
+from support.gaussians import random_gaussians
 
 K = np.array([[120.0, 0.0, 40.0], [0.0, 120.0, 30.0], [0.0, 0.0, 1.0]])
 DEEP = 200_000  # JSON nesting that overflows Python's recursion limit

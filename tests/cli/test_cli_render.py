@@ -17,7 +17,7 @@ from macsplat_cli.images import load_image
 from macsplat_cli.ply import read_ply, write_ply
 from macsplat_cli.render import render_camera
 
-from _helpers import random_gaussians
+from support.gaussians import random_gaussians
 
 K = np.array([[120.0, 0.0, 40.0], [0.0, 120.0, 30.0], [0.0, 0.0, 1.0]])
 

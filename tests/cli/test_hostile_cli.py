@@ -31,10 +31,10 @@ from macsplat_cli.images import save_image
 from macsplat_cli.pipeline.run import Pipeline
 from macsplat_cli.ply import write_ply
 
-from _helpers import random_gaussians
+from support import REPO
+from support.gaussians import random_gaussians
 
 SIZE = (128, 96)  # the pair; reconstructed at --size 128 in about a second
-REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,7 @@ from macsplat_cli.datasets.synthetic import make_scene, render, write_scannetpp
 from macsplat_cli.datasets.synthetic.scannetpp import fisheye_lens, scannetpp_cameras
 from macsplat_cli.errors import DatasetError
 
-from _helpers import ROT_ROUND_TRIP, gamma
+from support.numerics import ROT_ROUND_TRIP, gamma
 
 SIZE = (96, 64)
 

@@ -1,7 +1,7 @@
 """Tests for the frozen DINOv3 encoder and its checkpoint loader (random weights only).
 
-The expected key names and shapes are written out here from the reference's listing of
-the official state dict, not read from the module under test; the forward pass is
+The expected key names and shapes are written out (``official_spec`` in ``support/checkpoints.py``) from the
+reference's listing of the official state dict, not read from the module under test; the forward pass is
 compared with a naive re-implementation (unfold patch embedding, explicit loops for the
 RoPE angles, complex-number rotation, explicit softmax attention) in float64.
 """
@@ -40,7 +40,8 @@ from macsplat_cli.neural.dinov3 import (
     rope_sin_cos,
 )
 
-from _helpers import forward_rel_tol, gamma, max_rel_err, unit_roundoff
+from support.checkpoints import official_spec, random_official_state_dict
+from support.numerics import forward_rel_tol, gamma, max_rel_err, unit_roundoff
 
 TINY = DINOv3Config.preset("tiny")
 U32 = unit_roundoff(torch.float32)
@@ -48,79 +49,8 @@ TINY_SWIGLU = dataclasses.replace(TINY, name="tiny-swiglu", ffn="swiglu", ffn_hi
 
 
 # ------------------------------------------------------------------------------------------------
-# Helpers: the official layout as the reference lists it, a test-side HF converter and writer
+# Helpers: a test-side HF converter and writer (the official layout: support/checkpoints.py)
 # ------------------------------------------------------------------------------------------------
-
-
-def official_spec(
-    c: int, depth: int, heads: int, hidden: int, ffn: str, *, n_reg: int = 4, patch: int = 16
-) -> dict[str, tuple[int, ...]]:
-    """Key → shape of an official DINOv3 ViT state dict (reference §1.3)."""
-    spec: dict[str, tuple[int, ...]] = {
-        "cls_token": (1, 1, c),
-        "storage_tokens": (1, n_reg, c),
-        "mask_token": (1, c),
-        "patch_embed.proj.weight": (c, 3, patch, patch),
-        "patch_embed.proj.bias": (c,),
-        "rope_embed.periods": (c // heads // 4,),
-    }
-    for i in range(depth):
-        b = f"blocks.{i}."
-        spec |= {
-            b + "norm1.weight": (c,),
-            b + "norm1.bias": (c,),
-            b + "attn.qkv.weight": (3 * c, c),
-            b + "attn.qkv.bias": (3 * c,),
-            b + "attn.qkv.bias_mask": (3 * c,),
-            b + "attn.proj.weight": (c, c),
-            b + "attn.proj.bias": (c,),
-            b + "ls1.gamma": (c,),
-            b + "norm2.weight": (c,),
-            b + "norm2.bias": (c,),
-            b + "ls2.gamma": (c,),
-        }
-        if ffn == "swiglu":
-            spec |= {
-                b + "mlp.w1.weight": (hidden, c),
-                b + "mlp.w1.bias": (hidden,),
-                b + "mlp.w2.weight": (hidden, c),
-                b + "mlp.w2.bias": (hidden,),
-                b + "mlp.w3.weight": (c, hidden),
-                b + "mlp.w3.bias": (c,),
-            }
-        else:
-            spec |= {
-                b + "mlp.fc1.weight": (hidden, c),
-                b + "mlp.fc1.bias": (hidden,),
-                b + "mlp.fc2.weight": (c, hidden),
-                b + "mlp.fc2.bias": (c,),
-            }
-    spec |= {"norm.weight": (c,), "norm.bias": (c,)}
-    return spec
-
-
-def random_official_state_dict(cfg: DINOv3Config, seed: int = 0) -> dict[str, torch.Tensor]:
-    """Random weights in the official layout, scaled so that attention, RoPE and every block matter."""
-    g = torch.Generator().manual_seed(seed)
-    c, hd = cfg.embed_dim, cfg.embed_dim // cfg.num_heads
-    sd: dict[str, torch.Tensor] = {}
-    for key, shape in official_spec(c, cfg.depth, cfg.num_heads, cfg.ffn_hidden_dim, cfg.ffn).items():
-        if key.endswith("bias_mask"):
-            t = torch.cat([torch.ones(c), torch.zeros(c), torch.ones(c)])
-        elif key == "rope_embed.periods":
-            t = torch.tensor([100.0 ** (2 * i / (hd / 2)) for i in range(hd // 4)])
-        elif key.endswith("gamma"):
-            t = 0.5 + 0.1 * torch.randn(shape, generator=g)
-        elif key.endswith(("norm1.weight", "norm2.weight", "norm.weight")):
-            t = 1.0 + 0.1 * torch.randn(shape, generator=g)
-        elif len(shape) >= 2 and key.endswith("weight"):
-            fan_in = math.prod(shape[1:])
-            gain = 3.0 if "qkv" in key else 1.0  # peaky attention, so that positions matter
-            t = gain * torch.randn(shape, generator=g) / math.sqrt(fan_in)
-        else:
-            t = 0.1 * torch.randn(shape, generator=g)
-        sd[key] = t.float()
-    return sd
 
 
 def official_to_hf(sd: dict[str, torch.Tensor], *, prefix: str = "") -> dict[str, torch.Tensor]:

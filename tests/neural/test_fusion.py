@@ -20,7 +20,7 @@ from macsplat_cli.neural.fusion import (
     save_fusion,
 )
 
-from _helpers import gamma, unit_roundoff
+from support.numerics import gamma, unit_roundoff
 
 TINY = DINOv3Config.preset("tiny")  # C = 64
 U32 = unit_roundoff(torch.float32)

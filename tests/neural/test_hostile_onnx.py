@@ -38,11 +38,12 @@ from macsplat_cli.neural.onnx_runtime import OnnxPairPredictor
 from macsplat_cli.neural.predictor import PairPredictor
 from macsplat_cli.neural.predictor_io import save_predictor_checkpoint
 
-from _helpers import file_size_limit, one_error_line, render_pair, run_cli
+from support import REPO
+from support.cli import file_size_limit, one_error_line, run_cli
+from support.scenes import PairFactory, PairSpec
 
 SIZE = (96, 64)  # (W, H) of the photos, multiples of 16
 FOUR = ("pts3d", "conf", "desc", "desc_conf")
-REPO = Path(__file__).resolve().parents[1]
 STOP_WITHIN_S = 8.0
 """A signalled run must have ended this long after the signal (onnxruntime stops between two nodes; one
 node of the slow graph below takes well under a second)."""
@@ -130,8 +131,9 @@ def _bomb_graph(path: Path) -> Path:
 
 
 @pytest.fixture(scope="module")
-def pair(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    return render_pair(tmp_path_factory.mktemp("pair"), SIZE)
+def pair(pair_files: PairFactory) -> tuple[Path, Path]:
+    """A textured room pair 20° apart, 50° field of view, at ``SIZE``."""
+    return pair_files(PairSpec("room", 20.0, SIZE, fov_deg=50.0)).photos
 
 
 @pytest.fixture

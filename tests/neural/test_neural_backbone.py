@@ -24,7 +24,7 @@ from macsplat_cli.neural import (
 from macsplat_cli.rotations import quat_to_rotmat
 from macsplat_cli.sh import C0, rgb_to_sh0
 
-from _helpers import forward_rel_tol, gamma, max_rel_err, unit_roundoff
+from support.numerics import forward_rel_tol, gamma, max_rel_err, unit_roundoff
 
 TINY = BackboneConfig.tiny()
 U32 = unit_roundoff(torch.float32)

@@ -1,7 +1,8 @@
 """Checkpoint layouts: official MASt3R ``.pth`` / Hugging Face folder, Splatt3R Lightning ``.ckpt``.
 
-State dicts are built from the key list and shapes the reference describes (``official_key_shapes``),
-independently of the module tree; the full ViT-L network is only instantiated on the ``meta`` device.
+State dicts are built from the key list and shapes the reference describes (``official_key_shapes`` in
+``support/checkpoints.py``), independently of the module tree; the full ViT-L network is only instantiated on the
+``meta`` device.
 """
 
 from __future__ import annotations
@@ -45,7 +46,8 @@ from macsplat_cli.neural.fusion import (
     save_fusion,
 )
 
-TINY = BackboneConfig.tiny()
+from support.checkpoints import TINY, TINY_ARGS, dpt_shapes, official_key_shapes, random_state_dict, save_pth
+
 # The released model's constructor string as the reference quotes it (§1.1), plus what load_model appends.
 OFFICIAL_ARGS = (
     "AsymmetricMASt3R(pos_embed='RoPE100', patch_embed_cls='ManyAR_PatchEmbed', img_size=(512, 512), "
@@ -53,114 +55,10 @@ OFFICIAL_ARGS = (
     "enc_embed_dim=1024, enc_depth=24, enc_num_heads=16, dec_embed_dim=768, dec_depth=12, dec_num_heads=12, "
     "two_confs=True, desc_conf_mode=('exp', 0, inf), landscape_only=False)"
 )
-TINY_ARGS = (
-    "AsymmetricMASt3R(enc_depth=2, dec_depth=3, enc_embed_dim=64, enc_num_heads=2, dec_embed_dim=32, "
-    "dec_num_heads=2, pos_embed='RoPE100', patch_embed_cls='PatchEmbedDust3R', img_size=(64, 64), "
-    "head_type='catmlp+dpt', output_mode='pts3d+desc24', depth_mode=('exp', -inf, inf), conf_mode=('exp', 1, inf), "
-    "two_confs=True, desc_conf_mode=('exp', 0, inf), landscape_only=False, dpt_layer_dims=(8, 16, 24, 32), "
-    "dpt_feature_dim=16, dpt_last_dim=8, local_mlp_ratio=1.0)"
-)
-
-
-# ============================================================================================= reference key list
-def _dpt_shapes(p: str, c: BackboneConfig, out_channels: int) -> dict[str, tuple[int, ...]]:
-    """``…dpt.*`` keys of reference §1.4/§1.7 (hooks' token widths: encoder, then three decoder layers)."""
-    e, d = c.enc_embed_dim, c.dec_embed_dim
-    l0, l1, l2, l3 = c.dpt_layer_dims
-    f, last = c.dpt_feature_dim, c.dpt_last_dim
-    s: dict[str, tuple[int, ...]] = {}
-
-    def conv(name: str, cout: int, cin: int, k: int, bias: bool = True) -> None:
-        s[f"{p}{name}.weight"] = (cout, cin, k, k)
-        if bias:
-            s[f"{p}{name}.bias"] = (cout,)
-
-    conv("act_postprocess.0.0", l0, e, 1)
-    s[f"{p}act_postprocess.0.1.weight"], s[f"{p}act_postprocess.0.1.bias"] = (l0, l0, 4, 4), (l0,)  # ConvTranspose ×4
-    conv("act_postprocess.1.0", l1, d, 1)
-    s[f"{p}act_postprocess.1.1.weight"], s[f"{p}act_postprocess.1.1.bias"] = (l1, l1, 2, 2), (l1,)  # ConvTranspose ×2
-    conv("act_postprocess.2.0", l2, d, 1)
-    conv("act_postprocess.3.0", l3, d, 1)
-    conv("act_postprocess.3.1", l3, l3, 3)  # stride-2 conv
-    for i, li in enumerate((l0, l1, l2, l3)):
-        conv(f"scratch.layer{i + 1}_rn", f, li, 3, bias=False)
-        conv(f"scratch.layer_rn.{i}", f, li, 3, bias=False)  # alias of the same tensor
-    for r in range(1, 5):
-        conv(f"scratch.refinenet{r}.out_conv", f, f, 1)
-        for u in (1, 2):
-            for v in (1, 2):
-                conv(f"scratch.refinenet{r}.resConfUnit{u}.conv{v}", f, f, 3)
-    conv("head.0", f // 2, f, 3)
-    conv("head.2", last, f // 2, 3)
-    conv("head.4", out_channels, last, 1)
-    return s
-
-
-def official_key_shapes(c: BackboneConfig) -> dict[str, tuple[int, ...]]:
-    """Every state-dict key of AsymmetricMASt3R (catmlp+dpt) with its shape, as reference §1.2–§1.7 describes."""
-    e, d = c.enc_embed_dim, c.dec_embed_dim
-    s: dict[str, tuple[int, ...]] = {"patch_embed.proj.weight": (e, 3, 16, 16), "patch_embed.proj.bias": (e,)}
-    s["mask_token"] = (1, 1, d)
-
-    def linear(name: str, cout: int, cin: int) -> None:
-        s[f"{name}.weight"], s[f"{name}.bias"] = (cout, cin), (cout,)
-
-    def norm(name: str, dim: int) -> None:
-        s[f"{name}.weight"], s[f"{name}.bias"] = (dim,), (dim,)
-
-    for i in range(c.enc_depth):
-        p = f"enc_blocks.{i}."
-        norm(p + "norm1", e)
-        linear(p + "attn.qkv", 3 * e, e)
-        linear(p + "attn.proj", e, e)
-        norm(p + "norm2", e)
-        linear(p + "mlp.fc1", 4 * e, e)
-        linear(p + "mlp.fc2", e, 4 * e)
-    norm("enc_norm", e)
-    linear("decoder_embed", d, e)
-    for blocks in ("dec_blocks", "dec_blocks2"):
-        for i in range(c.dec_depth):
-            p = f"{blocks}.{i}."
-            for n in ("norm1", "norm2", "norm3", "norm_y"):
-                norm(p + n, d)
-            linear(p + "attn.qkv", 3 * d, d)
-            linear(p + "attn.proj", d, d)
-            for n in ("projq", "projk", "projv", "proj"):
-                linear(p + "cross_attn." + n, d, d)
-            linear(p + "mlp.fc1", 4 * d, d)
-            linear(p + "mlp.fc2", d, 4 * d)
-    norm("dec_norm", d)
-    hidden = int(c.local_mlp_ratio * (e + d))
-    for h in (1, 2):
-        s.update(_dpt_shapes(f"downstream_head{h}.dpt.", c, 4))
-        linear(f"downstream_head{h}.head_local_features.fc1", hidden, e + d)
-        linear(f"downstream_head{h}.head_local_features.fc2", (c.local_feat_dim + 1) * 256, hidden)
-    return s
 
 
 def _unique_count(shapes: dict[str, tuple[int, ...]]) -> int:
     return sum(math.prod(v) for k, v in shapes.items() if ".scratch.layer_rn." not in k)
-
-
-def random_state_dict(c: BackboneConfig, seed: int = 0) -> dict[str, torch.Tensor]:
-    """Random tensors with the official names and shapes; aliased keys share one tensor, as in upstream files."""
-    g = torch.Generator().manual_seed(seed)
-    sd: dict[str, torch.Tensor] = {}
-    for k, shape in official_key_shapes(c).items():
-        if ".scratch.layer_rn." in k:
-            i = int(k.rsplit(".", 2)[1])
-            sd[k] = sd[k.replace(f"scratch.layer_rn.{i}", f"scratch.layer{i + 1}_rn")]
-        elif k.endswith(".weight") and "norm" in k.rsplit(".", 2)[-2]:  # LayerNorm gains near 1
-            sd[k] = 1 + 0.05 * torch.randn(shape, generator=g)
-        else:
-            fan_in = math.prod(shape[1:]) if len(shape) > 1 else 1
-            sd[k] = torch.randn(shape, generator=g) / math.sqrt(max(fan_in, 1)) * (0.5 if len(shape) > 1 else 0.02)
-    return sd
-
-
-def save_pth(path: Path, sd: dict[str, torch.Tensor], args: str = TINY_ARGS) -> Path:
-    torch.save({"model": sd, "args": argparse.Namespace(model=args, lr=1e-4, batch_size=8)}, path)
-    return path
 
 
 def _pair(h: int = 32, w: int = 48) -> tuple[torch.Tensor, torch.Tensor]:
@@ -200,7 +98,7 @@ def test_full_gaussian_head_matches_splatt3r_parameter_count() -> None:
     assert total == 729_044_772
     want = {}
     for h in (1, 2):
-        want.update(_dpt_shapes(f"downstream_head{h}.gaussian_dpt.dpt.", cfg, 14))
+        want.update(dpt_shapes(f"downstream_head{h}.gaussian_dpt.dpt.", cfg, 14))
     assert {k: tuple(v.shape) for k, v in head.state_dict().items()} == want
 
 

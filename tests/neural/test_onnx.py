@@ -21,7 +21,6 @@ import numpy as np
 import onnx
 import pytest
 import torch
-from test_neural_pipeline import write_tiny_checkpoints
 
 from macsplat_cli._state_dict import sha256_file
 from macsplat_cli.datasets import synthetic as syn
@@ -36,20 +35,22 @@ from macsplat_cli.neural.onnx_runtime import OnnxPairPredictor, read_predictor_i
 from macsplat_cli.neural.predictor import PairPredictor
 from macsplat_cli.ply import read_ply
 
-from _helpers import one_error_line, render_pair, run_cli
+from support.cli import one_error_line, run_cli
+from support.scenes import PairFactory, PairSpec, rendered_pair
 
 SIZE = (96, 64)
 ACCEPT = "--accept-low-confidence"  # random weights: a pose the acceptance refuses, written anyway for the plumbing
 
 
 @pytest.fixture(scope="module")
-def ckpts(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    return write_tiny_checkpoints(tmp_path_factory.mktemp("ckpt"))
+def ckpts(tiny_checkpoints: dict[str, Path]) -> dict[str, Path]:
+    return tiny_checkpoints
 
 
 @pytest.fixture(scope="module")
-def pair(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    return render_pair(tmp_path_factory.mktemp("pair"), SIZE)
+def pair(pair_files: PairFactory) -> tuple[Path, Path]:
+    """A textured room pair 20° apart, 50° field of view, at ``SIZE``."""
+    return pair_files(PairSpec("room", 20.0, SIZE, fov_deg=50.0)).photos
 
 
 def _all_args(ckpts: dict[str, Path]) -> list[str | Path]:
@@ -191,12 +192,11 @@ class ExactBackbone(torch.nn.Module):
 
 def _exact_predictor(size: tuple[int, int], noise: float = 0.0) -> PairPredictor:
     w, h = size
-    scene = syn.make_scene("room", 0)
-    cam0, cam1 = syn.orbit_pair("room", 20, width=w, height=h, fov_deg=50.0)
+    rendered = rendered_pair(PairSpec("room", 20, size, fov_deg=50.0))
+    cam0, cam1 = rendered.cams
     R, t = syn.relative_pose(cam0, cam1)
     maps = []
-    for cam in (cam0, cam1):
-        depth = syn.render(scene, cam).depth
+    for cam, depth in zip((cam0, cam1), rendered.depths):
         ys, xs = np.mgrid[0:h, 0:w]
         pix = np.stack([xs + 0.5, ys + 0.5, np.ones((h, w))], -1)
         maps.append(pix @ np.linalg.inv(cam.K).T * depth[..., None])

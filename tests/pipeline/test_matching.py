@@ -19,7 +19,7 @@ from macsplat_cli.pipeline.matching import (
 from macsplat_cli.pipeline.pose import fundamental_from_pose
 from macsplat_cli.pipeline.types import Features
 
-from _helpers import assert_within, gamma, unit_roundoff
+from support.numerics import assert_within, gamma, unit_roundoff
 
 U32 = unit_roundoff(np.float32)
 

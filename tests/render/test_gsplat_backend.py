@@ -13,7 +13,7 @@ import torch
 from macsplat_cli.errors import InputError
 from macsplat_cli.render import _gsplat, render
 
-from _helpers import pinhole, random_gaussians
+from support.gaussians import pinhole, random_gaussians
 
 
 def test_gsplat_arguments_and_outputs(monkeypatch: pytest.MonkeyPatch) -> None:

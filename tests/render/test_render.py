@@ -13,17 +13,8 @@ from macsplat_cli.render.composite import bin_tiles, composite
 from macsplat_cli.render.projection import project_gaussians
 from macsplat_cli.render.reference import composite_reference
 
-from _helpers import (
-    GC_ATOL,
-    GC_EPS,
-    GC_RTOL,
-    assert_within,
-    gamma,
-    max_rel_err,
-    pinhole,
-    random_gaussians,
-    unit_roundoff,
-)
+from support.gaussians import pinhole, random_gaussians
+from support.numerics import GC_ATOL, GC_EPS, GC_RTOL, assert_within, gamma, max_rel_err, unit_roundoff
 
 EYE = torch.eye(4)
 BACKGROUND = (0.1, 0.2, 0.3)

@@ -45,7 +45,7 @@ from macsplat_cli.training.model import ModelSpec, build_training_model, freeze_
 from macsplat_cli.training.setup import load_training_data
 from macsplat_cli.training.trainer import Trainer
 
-from _helpers import file_size_limit
+from support.cli import file_size_limit
 
 SIZE = (64, 48)
 FAST = ["--model", "tiny", "--init", "random", "--size", f"{SIZE[0]}x{SIZE[1]}", "--workers", "0"]

@@ -18,7 +18,8 @@ from macsplat_cli.pipeline.depth import estimate_depths, plane_sweep_cost, push_
 from macsplat_cli.pipeline.types import DepthMap, Matches, TwoViewGeometry, View
 from macsplat_cli.pipeline.views import ViewConfig, load_views
 
-from _helpers import apply_homography, assert_within, gamma, orbit_views, pixel_centres, smooth_texture, unit_roundoff
+from support.numerics import assert_within, gamma, unit_roundoff
+from support.scenes import apply_homography, orbit_views, pixel_centres, smooth_texture
 
 U32 = unit_roundoff(np.float32)
 

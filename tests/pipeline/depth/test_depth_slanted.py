@@ -13,7 +13,8 @@ from macsplat_cli.pipeline import _patchmatch_reference as PR
 from macsplat_cli.pipeline.depth import DepthConfig, colour_outliers, estimate_depths, plane_sweep_cost
 from macsplat_cli.pipeline.types import TwoViewGeometry, View
 
-from _helpers import apply_homography, orbit_views, pixel_centres, smooth_texture, unit_roundoff
+from support.numerics import unit_roundoff
+from support.scenes import apply_homography, orbit_views, pixel_centres, smooth_texture
 
 U32 = unit_roundoff(np.float32)
 

@@ -2,8 +2,8 @@
 
 * The CLI end to end with tiny random-weight checkpoints written in the official layouts (MASt3R
   ``.pth``, DINOv3 ``.pth``, macsplat fusion ``.pth``, Splatt3R Lightning ``.ckpt``): random weights
-  give meaningless geometry, which the pose acceptance refuses (``tests/test_hostile_pose.py``), so these run
-  with ``--accept-low-confidence`` and check the plumbing (exit codes, files, report), not accuracy.
+  give meaningless geometry, which the pose acceptance refuses (``tests/pipeline/pose/test_hostile_pose.py``), so
+  these run with ``--accept-low-confidence`` and check the plumbing (exit codes, files, report), not accuracy.
 * The pipeline with a stand-in backbone that returns the exact point maps of a ray-traced pair:
   the pose (metric), the focal length and the depth must come out right.
 * The geometry routines on synthetic point maps with noise and outliers, descriptor sampling, and
@@ -12,9 +12,7 @@
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import io
 import json
 import math
 from pathlib import Path
@@ -23,18 +21,13 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
-from test_dinov3 import random_official_state_dict
-from test_neural_checkpoints import TINY, TINY_ARGS, random_state_dict, save_pth
 
 from macsplat_cli.cameras import load_cameras
-from macsplat_cli.cli import main
 from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.engine import EngineConfig, Models, build_pipeline, reconstruct
 from macsplat_cli.errors import ReconstructionError
 from macsplat_cli.images import save_image
-from macsplat_cli.neural import BackboneConfig, BackboneView, GaussianHead, MASt3RBackbone
-from macsplat_cli.neural.dinov3 import DINOv3Config
-from macsplat_cli.neural.fusion import FusionConfig, ResidualSemanticFusion, save_fusion
+from macsplat_cli.neural import MASt3RBackbone
 from macsplat_cli.neural.loading import load_pair_predictor
 from macsplat_cli.neural.predictor import PairPredictor
 from macsplat_cli.pipeline.matching import MatchConfig, match_features
@@ -44,73 +37,21 @@ from macsplat_cli.pipeline.run import FilteredMatcher
 from macsplat_cli.pipeline.types import Features
 from macsplat_cli.ply import read_ply
 
-SIZE = (96, 64)  # multiples of 16: the working images are the rendered ones, pixel for pixel
-DINO_TINY = DINOv3Config.preset("tiny")  # 64-d features
+from support.checkpoints import TINY, random_state_dict
+from support.cli import run_cli
+from support.neural import PAIR, SIZE, OracleBackbone, Scene, backproject
+from support.scenes import PairFactory
 
 
 # ------------------------------------------------------------------------------ helpers and fixtures
-def _run(args: list[str | Path]) -> tuple[int, str, str]:
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        code = main([str(a) for a in args])
-    return code, out.getvalue(), err.getvalue()
-
-
-def _backproject(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Camera-frame points of a depth map (pixel centres at +0.5). [H, W] → [H, W, 3]"""
-    h, w = depth.shape
-    ys, xs = np.mgrid[0:h, 0:w]
-    pix = np.stack([xs + 0.5, ys + 0.5, np.ones((h, w))], -1)
-    return pix @ np.linalg.inv(K).T * depth[..., None]
-
-
-class Scene:
-    """A ray-traced 96×64 room pair, 20° apart, 50° field of view (not the pipeline's 60° prior)."""
-
-    def __init__(self, folder: Path) -> None:
-        scene = syn.make_scene("room", 0)
-        self.cam0, self.cam1 = syn.orbit_pair("room", 20, width=SIZE[0], height=SIZE[1], fov_deg=50.0)
-        v0, v1 = syn.render(scene, self.cam0), syn.render(scene, self.cam1)
-        self.depth0, self.depth1 = v0.depth, v1.depth
-        self.a, self.b = folder / "a.png", folder / "b.png"
-        save_image(self.a, v0.image)
-        save_image(self.b, v1.image)
-        self.R, self.t = syn.relative_pose(self.cam0, self.cam1)
+@pytest.fixture(scope="module")
+def scene(pair_files: PairFactory) -> Scene:
+    return Scene(pair_files(PAIR))
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory: pytest.TempPathFactory) -> Scene:
-    return Scene(tmp_path_factory.mktemp("scene"))
-
-
-@pytest.fixture(scope="module")
-def ckpts(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    return write_tiny_checkpoints(tmp_path_factory.mktemp("ckpt"))
-
-
-def write_tiny_checkpoints(root: Path) -> dict[str, Path]:
-    """Tiny random-weight checkpoints in the official layouts, in ``root``: MASt3R ``.pth`` (``mast3r``),
-    DINOv3 (``dino``), fusion (``fusion``), Splatt3R ``.ckpt`` (``splatt3r``), and a mismatched MASt3R (``bad``)."""
-    files = {"mast3r": save_pth(root / "mast3r_tiny.pth", random_state_dict(TINY))}
-    torch.save(random_official_state_dict(DINO_TINY, seed=1), root / "dinov3_tiny.pth")
-    files["dino"] = root / "dinov3_tiny.pth"
-    torch.manual_seed(0)
-    fusion = ResidualSemanticFusion(FusionConfig(desc_dim=24, dino_dim=DINO_TINY.embed_dim, hidden_dim=16))
-    with torch.no_grad():  # as after training: a non-zero last layer, so the fusion changes the descriptors
-        fusion.layers[-1].weight.normal_(0.0, 0.5)
-    files["fusion"] = save_fusion(fusion, root / "fusion.pth")
-    # Splatt3R: a Lightning checkpoint holding the frozen MASt3R and the Gaussian head under "encoder."
-    cfg = TINY.replace(head_type="gaussian_head", desc_conf_mode=("exp", 1.0, math.inf))
-    torch.manual_seed(1)
-    head = GaussianHead(cfg).state_dict()
-    state = {"encoder." + k: v for k, v in {**random_state_dict(cfg), **head}.items()}
-    state["lpips_criterion.scaling_layer.shift"] = torch.zeros(1, 3, 1, 1)
-    torch.save({"state_dict": state, "epoch": 19, "global_step": 1200}, root / "splatt3r_tiny.ckpt")
-    files["splatt3r"] = root / "splatt3r_tiny.ckpt"
-    bad = random_state_dict(TINY)
-    bad["dec_blocks.1.mlp.fc1.weight"] = torch.zeros(16, 32)
-    files["bad"] = save_pth(root / "mismatched.pth", bad, args=TINY_ARGS)
-    return files
+def ckpts(tiny_checkpoints: dict[str, Path]) -> dict[str, Path]:
+    return tiny_checkpoints
 
 
 def _neural_args(scene: Scene, out: Path, *extra: str | Path) -> list[str | Path]:
@@ -129,7 +70,7 @@ def _accepting(config: EngineConfig) -> EngineConfig:
 # ------------------------------------------------------------------------------ CLI end to end
 def test_cli_neural_end_to_end(scene: Scene, ckpts: dict[str, Path], tmp_path: Path) -> None:
     """Exit 0, a standard PLY, a metric cameras file, renders, and a report naming every backend."""
-    code, out, err = _run(
+    code, out, err = run_cli(
         _neural_args(scene, tmp_path, "--weights", ckpts["mast3r"], "--report", tmp_path / "report.json",
                      "--renders", tmp_path / "views", "--num-renders", "2", ACCEPT)
     )  # fmt: skip
@@ -162,7 +103,7 @@ def test_cli_neural_end_to_end(scene: Scene, ckpts: dict[str, Path], tmp_path: P
 
 def test_cli_neural_fusion_gaussian_head_and_refine(scene: Scene, ckpts: dict[str, Path], tmp_path: Path) -> None:
     """--dino + --fusion apply the fusion; --gaussian-head gives the head's Gaussians; --refine runs on top."""
-    code, out, err = _run(
+    code, out, err = run_cli(
         _neural_args(scene, tmp_path, "--weights", ckpts["mast3r"], "--dino", ckpts["dino"], "--fusion",
                      ckpts["fusion"], "--gaussian-head", ckpts["splatt3r"], "--refine", "3", "--json", "-q", ACCEPT)
     )  # fmt: skip
@@ -191,7 +132,7 @@ def _one_error_line(err: str, *, after_progress: bool = False) -> str:
 
 
 def test_cli_neural_without_weights_names_the_file(scene: Scene, tmp_path: Path) -> None:
-    code, out, err = _run(_neural_args(scene, tmp_path))
+    code, out, err = run_cli(_neural_args(scene, tmp_path))
     assert code == 2 and out == ""
     line = _one_error_line(err)
     assert "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth" in line
@@ -211,7 +152,7 @@ def test_cli_neural_mismatched_checkpoint_names_the_key(
     A tiny Splatt3R file alone is read as the released architecture (its OmegaConf config is not read).
     """
     opts = ["--weights", ckpts["bad"]] if which == "bad" else ["--gaussian-head", ckpts["splatt3r"]]
-    code, _, err = _run(_neural_args(scene, tmp_path, *opts))
+    code, _, err = run_cli(_neural_args(scene, tmp_path, *opts))
     assert code == 2
     assert f"'{key}'" in _one_error_line(err, after_progress=True)
     assert list(tmp_path.iterdir()) == []
@@ -232,7 +173,7 @@ def test_cli_neural_bad_options(
     opts = [{"DINO": str(ckpts["dino"]), "FUSION": str(ckpts["fusion"])}.get(o, o) for o in opts]
     if "--weights" not in opts:
         opts += ["--weights", str(ckpts["mast3r"])]
-    code, _, err = _run(_neural_args(scene, tmp_path, *opts))
+    code, _, err = run_cli(_neural_args(scene, tmp_path, *opts))
     assert code == 2
     assert message in _one_error_line(err, after_progress="nope.pth" in opts)  # files are read under a progress line
     assert list(tmp_path.iterdir()) == []
@@ -240,51 +181,19 @@ def test_cli_neural_bad_options(
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA is available here")
 def test_cli_neural_cuda_unavailable(scene: Scene, ckpts: dict[str, Path], tmp_path: Path) -> None:
-    code, _, err = _run(_neural_args(scene, tmp_path, "--weights", ckpts["mast3r"], "--device", "cuda"))
+    code, _, err = run_cli(_neural_args(scene, tmp_path, "--weights", ckpts["mast3r"], "--device", "cuda"))
     assert code == 2
     assert "CUDA is not available" in _one_error_line(err)
 
 
 def test_cli_classical_rejects_neural_options(scene: Scene, ckpts: dict[str, Path], tmp_path: Path) -> None:
     args = ["reconstruct", scene.a, scene.b, "-o", tmp_path / "s.ply", "--weights", ckpts["mast3r"]]
-    code, _, err = _run(args)
+    code, _, err = run_cli(args)
     assert code == 2
     assert "--weights only apply to --backend neural" in _one_error_line(err)
 
 
 # ------------------------------------------------------------------------------ pipeline with exact point maps
-class OracleBackbone(torch.nn.Module):
-    """Stands in for MASt3R: the true point maps of a scene (both in camera 0's frame), descriptors that
-    are a fixed random function of the 3-D point (so that matching works), and constant confidences."""
-
-    def __init__(self, scene: Scene) -> None:
-        super().__init__()
-        self.config = BackboneConfig.tiny()
-        P0 = _backproject(scene.depth0, scene.cam0.K)
-        P1 = (_backproject(scene.depth1, scene.cam1.K) - scene.t) @ scene.R  # camera 1 → camera 0
-        rng = np.random.default_rng(0)
-        omega = rng.standard_normal((256, 3)) * 2 * np.pi / 0.3  # descriptors vary over ~30 cm (a few pixels)
-        mix = rng.standard_normal((256, 24))
-
-        def describe(P: np.ndarray) -> torch.Tensor:
-            Xw = P @ scene.cam0.cam_to_world[:3, :3].T + scene.cam0.cam_to_world[:3, 3]
-            return F.normalize(torch.from_numpy(np.cos(Xw @ omega.T) @ mix).float(), dim=-1)[None]
-
-        self.pts = [torch.from_numpy(p).float()[None] for p in (P0, P1)]
-        self.desc = [describe(P0), describe(P1)]
-        self.calls = 0
-
-    def forward(self, img1: torch.Tensor, img2: torch.Tensor) -> tuple[BackboneView, BackboneView]:
-        self.calls += 1
-        h, w = img1.shape[2:]
-        assert self.pts[0].shape[1:3] == (h, w), "the images must reach the network at their working size"
-        views = []
-        for pts, desc in zip(self.pts, self.desc):
-            conf = torch.full((1, h, w), 5.0)
-            views.append(BackboneView(pts, conf, desc, torch.full((1, h, w), 3.0), (), (h // 16, w // 16)))
-        return views[0], views[1]
-
-
 def test_pipeline_recovers_metric_pose_focal_and_depth(scene: Scene) -> None:
     """Exact point maps in → the true relative pose in metres, the true focal length, the true depth."""
     oracle = OracleBackbone(scene)
@@ -306,7 +215,7 @@ def test_pipeline_recovers_metric_pose_focal_and_depth(scene: Scene) -> None:
     # matching on the dense descriptor maps, verified against the point maps: correct to a few pixels
     m = geo.inliers
     assert rec.report.matches["verified"] == len(m) > 60
-    X = _backproject(scene.depth0, scene.cam0.K)[(m.xy0[:, 1]).astype(int), (m.xy0[:, 0]).astype(int)]
+    X = backproject(scene.depth0, scene.cam0.K)[(m.xy0[:, 1]).astype(int), (m.xy0[:, 0]).astype(int)]
     uv = (X @ scene.R.T + scene.t) @ scene.cam1.K.T
     err = np.linalg.norm(uv[:, :2] / uv[:, 2:] - m.xy1, axis=1)
     assert np.median(err) < 1.0 and np.mean(err < 2.0) > 0.9  # snapped off the 4-px grid by refine_matches
@@ -340,7 +249,7 @@ def _synthetic_pointmap(f: float, w: int = 160, h: int = 120, seed: int = 0) -> 
     K = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])
     ys, xs = np.mgrid[0:h, 0:w]
     depth = 2.0 + 0.5 * np.sin(xs / 17.0) * np.cos(ys / 11.0) + 0.3 * rng.random((h, w))
-    return _backproject(depth, K), K
+    return backproject(depth, K), K
 
 
 @pytest.mark.parametrize("fov", [40.0, 60.0, 85.0])
@@ -575,22 +484,22 @@ def test_eval_with_the_neural_backend(ckpts: dict[str, Path], tmp_path: Path) ->
     syn.write_dataset(data, room, [dataclasses.replace(c, name=f"f{i}") for i, c in enumerate(cams)], supersample=1)
     args = ["eval", "--data", data, "--backend", "neural", "--max-pairs", "1", "--max-targets", "1", "--json", "-q",
             "--size", str(SIZE[0])]  # fmt: skip
-    code, out, err = _run([*args, "--out", tmp_path / "r", "--weights", ckpts["mast3r"]])
+    code, out, err = run_cli([*args, "--out", tmp_path / "r", "--weights", ckpts["mast3r"]])
     assert code == 0, err
     doc = json.loads((tmp_path / "r" / "results.json").read_text())
     assert doc["cases_done"] == doc["cases_total"] > 0
     assert {c["method"] for c in doc["cases"]} == {"neural"}
     assert all(c["status"] in ("ok", "failed") for c in doc["cases"])
-    code, _, err = _run([*args, "--out", tmp_path / "s"])
+    code, _, err = run_cli([*args, "--out", tmp_path / "s"])
     assert code == 2 and "mast3r" in err.lower() and not (tmp_path / "s").exists()
-    code, _, err = _run(["eval", "--data", data, "--weights", ckpts["mast3r"], "--out", tmp_path / "c", "-q"])
+    code, _, err = run_cli(["eval", "--data", data, "--weights", ckpts["mast3r"], "--out", tmp_path / "c", "-q"])
     assert code == 2 and "--backend neural" in err  # the weights would be ignored by the classical backend
 
     # and the bench grid over it
     bench = ["bench", "--data", data, "--backend", "neural", "--size", str(SIZE[0]), "--refine", "0,2",
              "--max-pairs", "1", "--max-targets", "1", "-q", "--weights", ckpts["mast3r"],
              "--out", tmp_path / "b"]  # fmt: skip
-    code, _, err = _run(bench)
+    code, _, err = run_cli(bench)
     assert code == 0, err
     rows = json.loads((tmp_path / "b" / "bench.json").read_text())
     assert (tmp_path / "b" / "bench.md").is_file() and (tmp_path / "b" / "bench.png").is_file()
@@ -614,13 +523,13 @@ def test_bf16_precision_matches_fp32_and_runs_from_the_cli(
     assert np.median(rel) < 0.05  # bfloat16 keeps 8 bits of mantissa
     assert not np.array_equal(bf16.pts3d, fp32.pts3d)  # autocast did run in bfloat16
 
-    code, _, err = _run(_neural_args(scene, tmp_path, "--weights", ckpts["mast3r"], "--precision", "bf16", "-q",
+    code, _, err = run_cli(_neural_args(scene, tmp_path, "--weights", ckpts["mast3r"], "--precision", "bf16", "-q",
                                      "--report", tmp_path / "r.json", ACCEPT))  # fmt: skip
     assert code == 0, err
     assert json.loads((tmp_path / "r.json").read_text())["neural"]["config"]["precision"] == "bf16"
-    code, _, err = _run(["reconstruct", scene.a, scene.b, "-o", tmp_path / "c.ply", "--precision", "bf16"])
+    code, _, err = run_cli(["reconstruct", scene.a, scene.b, "-o", tmp_path / "c.ply", "--precision", "bf16"])
     assert code == 2 and "--precision" in err
-    code, _, err = _run(_neural_args(scene, tmp_path, "--weights", ckpts["mast3r"], "--precision", "fp8"))
+    code, _, err = run_cli(_neural_args(scene, tmp_path, "--weights", ckpts["mast3r"], "--precision", "fp8"))
     assert code == 2 and "fp8" in err
 
 
@@ -697,7 +606,7 @@ def test_fusion_auto_skips_dinov3_while_matches_verify_and_runs_it_on_demand(
         assert rep["applied"] is True and "on demand" in rep["detail"]
         assert demand.backends()["descriptors_fallback"].endswith("(on demand)")
         # through the CLI: the report says what ran
-        code, out, err = _run(
+        code, out, err = run_cli(
             [
                 *_neural_args(
                     scene, tmp_path, "--weights", ckpts["mast3r"], "--dino", ckpts["dino"], "--fusion", ckpts["fusion"]

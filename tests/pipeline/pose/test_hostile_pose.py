@@ -22,7 +22,6 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from test_neural_pipeline import SIZE, OracleBackbone, Scene, _run, write_tiny_checkpoints
 
 from macsplat_cli.cameras import load_cameras
 from macsplat_cli.datasets import synthetic as syn
@@ -37,16 +36,20 @@ from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig, Reconstructio
 from macsplat_cli.pipeline.types import Matches, View
 from macsplat_cli.pipeline.views import ViewConfig
 
+from support.cli import run_cli
+from support.neural import PAIR, SIZE, OracleBackbone, Scene
+from support.scenes import PairFactory, PairSpec, rendered_pair
+
 
 # ------------------------------------------------------------------------------ fixtures and helpers
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory: pytest.TempPathFactory) -> Scene:
-    return Scene(tmp_path_factory.mktemp("scene"))
+def scene(pair_files: PairFactory) -> Scene:
+    return Scene(pair_files(PAIR))
 
 
 @pytest.fixture(scope="module")
-def ckpts(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    return write_tiny_checkpoints(tmp_path_factory.mktemp("ckpt"))
+def ckpts(tiny_checkpoints: dict[str, Path]) -> dict[str, Path]:
+    return tiny_checkpoints
 
 
 TOO_FEW_VERIFIED = r"only \d+ verified match(es)? agrees? with the pose, need at least 15"
@@ -106,7 +109,7 @@ def test_random_weight_network_pose_is_refused_naming_the_figure(
     written (before: exit 0 and a scene, 0 verified matches, a log warning)."""
     out = tmp_path / "out"
     out.mkdir()
-    code, stdout, err = _run(["reconstruct", scene.a, scene.b, "-o", out / "scene.ply", "--backend", "neural",
+    code, stdout, err = run_cli(["reconstruct", scene.a, scene.b, "-o", out / "scene.ply", "--backend", "neural",
                               "--weights", ckpts["mast3r"]])  # fmt: skip
     assert code == 3, err
     line = _error_line(err)
@@ -120,7 +123,7 @@ def test_random_weight_network_pose_is_written_flagged_with_accept_low_confidenc
 ) -> None:
     """``--accept-low-confidence``: exit 0, and the report, the cameras file and the summary say the pose may be
     wrong, with every failed figure (PnP agreement, too few verified matches)."""
-    code, _, err = _run(["reconstruct", scene.a, scene.b, "-o", tmp_path / "scene.ply", "--backend", "neural",
+    code, _, err = run_cli(["reconstruct", scene.a, scene.b, "-o", tmp_path / "scene.ply", "--backend", "neural",
                          "--weights", ckpts["mast3r"], "--accept-low-confidence",
                          "--report", tmp_path / "r.json"])  # fmt: skip
     assert code == 0, err
@@ -327,14 +330,12 @@ def test_cmyk_jpeg_pair_at_size_128_reconstructs(tmp_path: Path) -> None:
     exit 1, "internal error" (cv2.findFundamentalMat, !model.empty(), on 441 matches of which 396 distinct)."""
     from PIL import Image
 
-    scene = syn.make_scene("room", 0, textured=True)
-    cams = syn.orbit_pair("room", 5, width=256, height=192)
     paths = []
-    for k, cam in enumerate(cams):
-        rgb = np.rint(np.clip(syn.render(scene, cam).image, 0, 1) * 255).astype(np.uint8)
+    for k, image in enumerate(rendered_pair(PairSpec("room", 5, (256, 192))).images):
+        rgb = np.rint(np.clip(image, 0, 1) * 255).astype(np.uint8)
         paths.append(tmp_path / f"view{k}.jpg")
         Image.fromarray(rgb).convert("CMYK").save(paths[-1], "JPEG")
-    code, _, err = _run(["reconstruct", *paths, "-o", tmp_path / "s.ply", "--size", "128", "-q",
+    code, _, err = run_cli(["reconstruct", *paths, "-o", tmp_path / "s.ply", "--size", "128", "-q",
                          "--report", tmp_path / "r.json"])  # fmt: skip
     assert code == 0, err
     assert json.loads((tmp_path / "r.json").read_text())["pose"]["doubts"] == []

@@ -16,6 +16,8 @@ from macsplat_cli.pipeline.pose import PoseConfig, estimate_pose, fundamental_fr
 from macsplat_cli.pipeline.types import IntrinsicsSource, Matches, View
 from macsplat_cli.pipeline.views import prior_focal
 
+from support import REPO
+
 W, H = 512, 384
 
 
@@ -291,7 +293,7 @@ def test_small_working_sizes_scale_the_pixel_thresholds(size: int) -> None:
     "ambiguous … photograph more of the scene's depth" (a setting blamed on the scene)."""
     from macsplat_cli.engine import EngineConfig, reconstruct
 
-    root = Path(__file__).resolve().parents[1] / "examples" / "motorcycle"
+    root = REPO / "examples" / "motorcycle"
     config = EngineConfig(quality="best", size=size)
     rec = reconstruct([root / "left.jpg", root / "right.jpg"], config)
     assert abs(max(rec.report.images[0].working_size) - size) <= 8  # the working size asked for (multiple of 16)
