@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from macsplat_cli.datasets import synthetic as syn
+from support.scenes import PairSpec, rendered_pair
 
 # An EXIF block whose directory points past its end: Pillow warns "Corrupt EXIF data" and "Tag data larger than
 # file" while reading the orientation, and still decodes the pixels.
@@ -27,10 +27,9 @@ _BAD_EXIF = (
 def pair(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     """A textured room pair 12° apart at 128×96, both JPEGs with a corrupt EXIF block."""
     folder = tmp_path_factory.mktemp("warn_pair")
-    scene = syn.make_scene("room", 5)
     paths = []
-    for i, cam in enumerate(syn.orbit_pair("room", 12.0, width=128, height=96, fov_deg=60.0)):
-        pixels = (np.clip(syn.render(scene, cam).image, 0, 1) * 255).round().astype(np.uint8)
+    for i, image in enumerate(rendered_pair(PairSpec("room", 12.0, (128, 96), 60.0, scene_seed=5)).images):
+        pixels = (np.clip(image, 0, 1) * 255).round().astype(np.uint8)
         path = folder / f"v{i}.jpg"
         Image.fromarray(pixels).save(path, quality=95, exif=_BAD_EXIF)
         paths.append(path)

@@ -27,25 +27,22 @@ from macsplat_cli.cameras import CameraSet, save_cameras
 from macsplat_cli.cli import main
 from macsplat_cli.cli._common import err_console
 from macsplat_cli.datasets import synthetic as syn
-from macsplat_cli.images import save_image
 from macsplat_cli.pipeline.run import Pipeline
 from macsplat_cli.ply import write_ply
 
 from support import REPO
 from support.gaussians import random_gaussians
+from support.scenes import PairFactory, PairSpec
 
 SIZE = (128, 96)  # the pair; reconstructed at --size 128 in about a second
 
 
 @pytest.fixture(scope="module")
-def pair(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+def pair(pair_files: PairFactory) -> tuple[Path, Path]:
     """A textured room pair 12° apart at 128×96, with Rich markup in its file names."""
-    folder = tmp_path_factory.mktemp("hostile_pair")
-    scene = syn.make_scene("room", 5)
-    cam0, cam1 = syn.orbit_pair("room", 12.0, width=SIZE[0], height=SIZE[1], fov_deg=60.0)
-    a = save_image(folder / "IMG_001 [copy].png", syn.render(scene, cam0).image)
-    b = save_image(folder / "[bold]IMG_002.png", syn.render(scene, cam1).image)
-    return a, b
+    return pair_files(
+        PairSpec("room", 12.0, SIZE, 60.0, scene_seed=5), ("IMG_001 [copy].png", "[bold]IMG_002.png")
+    ).photos
 
 
 @pytest.fixture(scope="module")

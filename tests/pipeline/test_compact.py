@@ -28,6 +28,8 @@ from macsplat_cli.pipeline.types import DepthMap, Matches, TwoViewGeometry, View
 from macsplat_cli.presets import compact_config
 from macsplat_cli.render import render_camera
 
+from support.scenes import PairFactory, PairSpec
+
 W, H = 160, 120
 WALL_Z = 3.0
 PSNR_LOSS_DB = 0.2  # the target on novel views (default settings)
@@ -266,16 +268,12 @@ def test_pooled_maps_use_rescaled_cameras(pair: Pair) -> None:
     assert psnr(_render(g, pair.novel), pair.novel_image) >= p_full - PSNR_LOSS_DB
 
 
-def test_compact_reconstruction_on_an_engine_run(tmp_path: Path) -> None:
+def test_compact_reconstruction_on_an_engine_run(pair_files: PairFactory) -> None:
     from macsplat_cli.engine import EngineConfig, reconstruct
-    from macsplat_cli.images import save_image
     from macsplat_cli.pipeline.run import count_gaussians
 
-    scene = syn.make_scene("room", 5)
-    cams = syn.orbit_pair("room", 12.0, width=192, height=144, fov_deg=60.0)
-    for name, c in zip(("a.png", "b.png"), cams):
-        save_image(tmp_path / name, syn.render(scene, c).image)
-    rec = reconstruct([tmp_path / "a.png", tmp_path / "b.png"], EngineConfig(size=192))
+    files = pair_files(PairSpec("room", 12.0, (192, 144), 60.0, scene_seed=5))
+    rec = reconstruct([files.a, files.b], EngineConfig(size=192))
     g, report = compact_reconstruction(rec)
     assert report.before == count_gaussians(rec.maps) and len(g) == report.after < 0.7 * report.before
     assert math.isfinite(report.ratio)

@@ -20,6 +20,7 @@ from macsplat_cli.pipeline.pose import fundamental_from_pose
 from macsplat_cli.pipeline.types import Features
 
 from support.numerics import assert_within, gamma, unit_roundoff
+from support.scenes import PairFactory, PairSpec
 
 U32 = unit_roundoff(np.float32)
 
@@ -482,23 +483,18 @@ def test_column_top2_kernel_matches_reference(shape: tuple[int, int], levels: in
     np.testing.assert_array_equal(top_k, -np.sort(-full, axis=0)[:2])
 
 
-def test_sift_describes_both_views_in_threads_with_the_same_output(tmp_path) -> None:  # noqa: ANN001
+def test_sift_describes_both_views_in_threads_with_the_same_output(pair_files: PairFactory) -> None:
     """SIFT is thread-safe: the describe slot runs the two views in parallel threads, and gets exactly what one
     view at a time gets; a backend that does not declare itself thread-safe stays on the calling thread."""
     import os
     import threading
 
-    from macsplat_cli.datasets import synthetic as syn
-    from macsplat_cli.images import save_image
     from macsplat_cli.pipeline.descriptors import SiftDescriptors
     from macsplat_cli.pipeline.stages import PerViewDescriptors
     from macsplat_cli.pipeline.views import load_views
 
-    scene = syn.make_scene("room", seed=2)
-    paths = []
-    for cam in syn.orbit_pair(scene, 15.0, width=320, height=240, seed=2):
-        paths.append(save_image(tmp_path / f"{cam.name}.png", syn.render(scene, cam).image))
-    views = load_views(paths)
+    files = pair_files(PairSpec("room", 15.0, (320, 240), scene_seed=2, orbit_seed=2), ("view0.png", "view1.png"))
+    views = load_views(list(files.photos))
     sift = SiftDescriptors()
     threads: list[str] = []
 

@@ -10,8 +10,6 @@ the accuracy tests are printed as a table at the end of the module (``pytest -s`
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import re
 from collections.abc import Callable, Iterator
@@ -34,6 +32,9 @@ from macsplat_cli.pipeline.stages import EssentialPose
 from macsplat_cli.pipeline.types import Matches, TwoViewGeometry, View
 from macsplat_cli.pipeline.views import ViewConfig, prior_focal
 from macsplat_cli.ply import read_ply
+
+from support.cli import run_cli
+from support.scenes import PairFactory, PairSpec
 
 # ------------------------------------------------------------------------------ bounds
 # Synthetic cameras: 512×384 px. With known intrinsics, the orbit_pair default 60° field of
@@ -86,15 +87,12 @@ class Pair:
         return float(np.linalg.norm(self.cam0.center - self.cam1.center))
 
 
-PairFactory = Callable[..., Pair]
+MakePair = Callable[..., Pair]
 
 
 @pytest.fixture(scope="module")
-def make_pair(tmp_path_factory: pytest.TempPathFactory) -> PairFactory:
-    """Renders ``orbit_pair(kind, angle)`` once per module (cached) into its own folder."""
-    root = tmp_path_factory.mktemp("pairs")
-    scenes: dict[tuple[str, bool], syn.Scene] = {}
-    cache: dict[tuple, Pair] = {}
+def make_pair(pair_files: PairFactory) -> MakePair:
+    """``orbit_pair(kind, angle)`` (or ``pure_rotation_pair``) rendered once per session (``support.scenes``)."""
 
     def get(
         kind: str,
@@ -105,21 +103,10 @@ def make_pair(tmp_path_factory: pytest.TempPathFactory) -> PairFactory:
         textured: bool = True,
         rotation: bool = False,
     ) -> Pair:
-        key = (kind, angle, fov, size, textured, rotation)
-        if key not in cache:
-            scene = scenes.setdefault((kind, textured), syn.make_scene(kind, 0, textured=textured))  # type: ignore[arg-type]
-            build = syn.pure_rotation_pair if rotation else syn.orbit_pair
-            cam0, cam1 = build(kind, angle, width=size[0], height=size[1], fov_deg=fov)  # type: ignore[arg-type]
-            folder = root / (
-                f"{kind}_{angle}_fov{fov:g}_{size[0]}x{size[1]}_{'tex' if textured else 'flat'}_{build.__name__}"
-            )
-            folder.mkdir()
-            v0 = syn.render(scene, cam0)
-            save_image(folder / "view0.png", v0.image)
-            save_image(folder / "view1.png", syn.render(scene, cam1).image)
-            save_cameras(folder / "cameras.json", CameraSet([cam0, cam1]))
-            cache[key] = Pair(folder / "view0.png", folder / "view1.png", cam0, cam1, v0.depth, folder / "cameras.json")
-        return cache[key]
+        spec = PairSpec(kind, angle, size, fov, textured=textured, rotation=rotation)  # type: ignore[arg-type]
+        files = pair_files(spec, ("view0.png", "view1.png"))
+        cam0, cam1 = files.rendered.cams
+        return Pair(files.a, files.b, cam0, cam1, files.rendered.depths[0], files.cameras)
 
     return get
 
@@ -164,7 +151,7 @@ def _run_pipeline(pair: Pair, *, intrinsics: bool) -> Reconstruction:
     [(kind, angle, FOV_DEG) for kind in ("room", "object") for angle in sorted(POSE_TOL_DEG)],
 )
 def test_pose_and_depth_accuracy_with_known_intrinsics(
-    make_pair: PairFactory, error_table: list[tuple], kind: str, angle: int, fov: float
+    make_pair: MakePair, error_table: list[tuple], kind: str, angle: int, fov: float
 ) -> None:
     """Rotation, translation direction and depth of orbit pairs are within the stated bounds."""
     pair = make_pair(kind, angle, fov=fov)
@@ -195,7 +182,7 @@ def test_pose_and_depth_accuracy_with_known_intrinsics(
         assert depth_err < DEPTH_TOL[angle], f"median relative depth error {100 * depth_err:.2f} %"
 
 
-def test_near_planar_wide_pair_is_resolved_not_wrong(make_pair: PairFactory) -> None:
+def test_near_planar_wide_pair_is_resolved_not_wrong(make_pair: MakePair) -> None:
     """Room, 75° orbit, 50° field of view: the confident matches lie almost all on one wall, seen
     at a grazing angle. The essential matrix then picked a pose 11.8° / 10° off, which guided
     matching went on to 'verify' with 208 matches (67 correct). Two poses from the wall's
@@ -211,7 +198,7 @@ def test_near_planar_wide_pair_is_resolved_not_wrong(make_pair: PairFactory) -> 
 @pytest.mark.parametrize("angle", sorted(UNKNOWN_TOL))
 @pytest.mark.parametrize("kind", ["room", "object"])
 def test_focal_self_calibration_with_unknown_intrinsics(
-    make_pair: PairFactory, error_table: list[tuple], kind: str, angle: int
+    make_pair: MakePair, error_table: list[tuple], kind: str, angle: int
 ) -> None:
     """Without intrinsics the focal length is estimated within 3 % and the pose stays accurate."""
     pair = make_pair(kind, angle, fov=UNKNOWN_FOV_DEG)
@@ -244,16 +231,8 @@ class CliRun:
     pair: Pair
 
 
-def _main_captured(args: list[str | Path]) -> tuple[int, str, str]:
-    """``main(args)`` with stdout and stderr captured (usable outside function-scoped capsys)."""
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        code = main([str(a) for a in args])
-    return code, out.getvalue(), err.getvalue()
-
-
 @pytest.fixture(scope="module")
-def cli_pair(make_pair: PairFactory) -> Pair:
+def cli_pair(make_pair: MakePair) -> Pair:
     """A 640×480 room pair 15° apart, larger than the working images (512×384 by default)."""
     return make_pair("room", 15, fov=UNKNOWN_FOV_DEG, size=CLI_SIZE)
 
@@ -263,7 +242,7 @@ def cli_run(cli_pair: Pair, tmp_path_factory: pytest.TempPathFactory) -> CliRun:
     """One full ``macsplat reconstruct`` run with every output."""
     out = tmp_path_factory.mktemp("cli") / "out"
     out.mkdir()
-    code, stdout, stderr = _main_captured(
+    code, stdout, stderr = run_cli(
         ["reconstruct", cli_pair.a, cli_pair.b, "-o", out / "scene.ply", "--renders", out / "views",
          "--num-renders", "4", "--video", out / "path.gif", "--report", out / "report.json",
          "--size", str(CLI_WORK_SIZE[0])]
@@ -408,7 +387,7 @@ def test_reconstruct_help_lists_the_options(capsys: pytest.CaptureFixture[str]) 
 
 # ------------------------------------------------------------------------------ bad input
 @pytest.fixture(scope="module")
-def bad_files(make_pair: PairFactory, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+def bad_files(make_pair: MakePair, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """Named input files for the failure cases (all small or derived from cached renders)."""
     root = tmp_path_factory.mktemp("bad")
     good = make_pair("room", 20)

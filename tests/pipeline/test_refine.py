@@ -3,8 +3,6 @@
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 from pathlib import Path
 
@@ -12,31 +10,25 @@ import numpy as np
 import pytest
 import torch
 
-from macsplat_cli.cameras import CameraSet, save_cameras
-from macsplat_cli.cli import main
-from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.errors import InputError
 from macsplat_cli.gaussians import GaussianMaps
-from macsplat_cli.images import save_image
 from macsplat_cli.mac import MACConfig, mac_loss
 from macsplat_cli.pipeline.refine import RefineConfig, refine
 from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig, Reconstruction
 from macsplat_cli.pipeline.views import ViewConfig
+
+from support.cli import run_cli
+from support.scenes import PairFactory, PairSpec
 
 # ------------------------------------------------------------------------------ refinement
 SIZE = (256, 192)
 
 
 @pytest.fixture(scope="module")
-def pair(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path]:
+def pair(pair_files: PairFactory) -> tuple[Path, Path, Path]:
     """A textured room pair 12° apart, rendered at 256×192, and its true cameras."""
-    folder = tmp_path_factory.mktemp("refine_pair")
-    scene = syn.make_scene("room", 3)
-    cam0, cam1 = syn.orbit_pair("room", 12.0, width=SIZE[0], height=SIZE[1], fov_deg=60.0)
-    save_image(folder / "a.png", syn.render(scene, cam0).image)
-    save_image(folder / "b.png", syn.render(scene, cam1).image)
-    save_cameras(folder / "cameras.json", CameraSet([cam0, cam1]))
-    return folder / "a.png", folder / "b.png", folder / "cameras.json"
+    files = pair_files(PairSpec("room", 12.0, SIZE, 60.0, scene_seed=3))
+    return files.a, files.b, files.cameras
 
 
 @pytest.fixture(scope="module")
@@ -94,18 +86,11 @@ def test_refinement_takes_one_map_per_view(rec: Reconstruction) -> None:
 
 
 # ------------------------------------------------------------------------------ CLI
-def _main(args: list[str | Path]) -> tuple[int, str, str]:
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        code = main([str(a) for a in args])
-    return code, out.getvalue(), err.getvalue()
-
-
 @pytest.mark.parametrize("mac", [True, False])
 def test_cli_reconstruct_refine(pair: tuple[Path, Path, Path], tmp_path: Path, mac: bool) -> None:
     args = ["reconstruct", pair[0], pair[1], "-o", tmp_path / "s.ply", "--size", str(SIZE[0]), "--refine", "3",
             "--report", tmp_path / "r.json", "--intrinsics", pair[2]] + ([] if mac else ["--no-mac"])  # fmt: skip
-    code, _, err = _main(args)
+    code, _, err = run_cli(args)
     assert code == 0, err
     report = json.loads((tmp_path / "r.json").read_text())
     r = report["refine"]
@@ -121,7 +106,7 @@ def test_cli_reconstruct_refine(pair: tuple[Path, Path, Path], tmp_path: Path, m
     [(["--refine", "abc"], "--refine"), (["--refine", "-2"], "--refine"), (["--refine-scale", "9"], "refine-scale")],
 )
 def test_cli_bad_refine_values(pair: tuple[Path, Path, Path], tmp_path: Path, option: list[str], message: str) -> None:
-    code, _, err = _main(["reconstruct", pair[0], pair[1], "-o", tmp_path / "s.ply", *option])
+    code, _, err = run_cli(["reconstruct", pair[0], pair[1], "-o", tmp_path / "s.ply", *option])
     assert code == 2
     assert message in err and "Traceback" not in err
     assert not (tmp_path / "s.ply").exists()
@@ -151,9 +136,9 @@ def test_cli_refine_with_lpips_weights(pair: tuple[Path, Path, Path], tmp_path: 
                tmp_path / "vgg.pth")  # fmt: skip
     base = ["reconstruct", pair[0], pair[1], "-o", tmp_path / "s.ply", "--size", str(SIZE[0]), "-q",
             "--lpips-weights", tmp_path]  # fmt: skip
-    code, _, err = _main(base)  # no --refine: the weights would be unused
+    code, _, err = run_cli(base)  # no --refine: the weights would be unused
     assert code == 2 and "--refine" in err and not (tmp_path / "s.ply").exists()
-    code, _, err = _main([*base, "--refine", "2", "--refine-scale", "4", "--report", tmp_path / "r.json"])
+    code, _, err = run_cli([*base, "--refine", "2", "--refine-scale", "4", "--report", tmp_path / "r.json"])
     assert code == 0, err
     r = json.loads((tmp_path / "r.json").read_text())["refine"]
     assert r["lpips"] is True and r["loss_last"]["lpips"] > 0

@@ -10,10 +10,8 @@
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import dataclasses
-import io
 import json
 import os
 import subprocess
@@ -24,7 +22,6 @@ import numpy as np
 import pytest
 import torch
 
-from macsplat_cli.cli import main
 from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.errors import OutputPathError
 from macsplat_cli.neural.loading import load_pair_predictor
@@ -34,15 +31,10 @@ from macsplat_cli.training.model import ModelSpec, build_training_model, freeze_
 from macsplat_cli.training.setup import load_training_data
 from macsplat_cli.training.trainer import Trainer, TrainingError
 
+from support.cli import run_cli
+
 SIZE = (64, 48)
 FAST = ["--model", "tiny", "--init", "random", "--size", f"{SIZE[0]}x{SIZE[1]}", "--workers", "0", "-q"]
-
-
-def _run(args: list[str | Path]) -> tuple[int, str, str]:
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        code = main([str(a) for a in args])
-    return code, out.getvalue(), err.getvalue()
 
 
 @pytest.fixture(scope="module")
@@ -66,7 +58,7 @@ def _trainer(data: Path, out: Path, steps: int, **changes: object) -> Trainer:
 
 def test_cli_trains_and_reconstruct_takes_the_checkpoint(data: Path, tmp_path: Path) -> None:
     out = tmp_path / "run"
-    code, _, err = _run(["train", "--data", data, "--out", out, "--steps", "3", "--batch", "2", "--val-every", "2",
+    code, _, err = run_cli(["train", "--data", data, "--out", out, "--steps", "3", "--batch", "2", "--val-every", "2",
                          "--ckpt-every", "2", *FAST])  # fmt: skip
     assert code == 0, err
     assert {p.name for p in out.iterdir()} == {"run.json", "metrics.csv", "last.pt", "best.pt"}
@@ -85,7 +77,7 @@ def test_cli_trains_and_reconstruct_takes_the_checkpoint(data: Path, tmp_path: P
     for k, v in predictor.state_dict().items():
         assert torch.equal(v, best["state_dict"][k])
     images = sorted((data / "images").iterdir())
-    code, _, err = _run(["reconstruct", images[0], images[2], "-o", tmp_path / "s.ply", "--backend", "neural",
+    code, _, err = run_cli(["reconstruct", images[0], images[2], "-o", tmp_path / "s.ply", "--backend", "neural",
                          "--weights", out / "best.pt", "-q"])  # fmt: skip
     assert code in (0, 3), err  # loaded and run; an untrained network's geometry may be refused (exit 3), not crash
 
@@ -159,7 +151,7 @@ def test_non_finite_losses_are_skipped_then_stop_the_run(
 def test_bad_input_is_one_line_and_exit_2(data: Path, tmp_path: Path, extra: list[str], message: str) -> None:
     extra = [str(tmp_path / a) if a == "MISSING" else a for a in extra]
     args = ["train", "--data", data, "--out", tmp_path / "r", "--steps", "1", *FAST, *extra]  # later options win
-    code, _, err = _run(args)
+    code, _, err = run_cli(args)
     assert code == 2, err
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("error:") and message in lines[0], err
@@ -169,12 +161,12 @@ def test_bad_input_is_one_line_and_exit_2(data: Path, tmp_path: Path, extra: lis
 def test_out_holding_another_run_is_refused_unless_resumed_or_forced(data: Path, tmp_path: Path) -> None:
     out = tmp_path / "r"
     args = ["train", "--data", data, "--out", out, "--steps", "1", "--val-every", "0", *FAST]
-    assert _run(args)[0] == 0
+    assert run_cli(args)[0] == 0
     before = (out / "last.pt").read_bytes()
-    code, _, err = _run(args)
+    code, _, err = run_cli(args)
     assert code == 2 and "holds another run" in err and (out / "last.pt").read_bytes() == before
-    assert _run([*args, "--force"])[0] == 0
-    code, _, err = _run([*args[:6], "2", *args[7:], "--resume"])  # continue to step 2
+    assert run_cli([*args, "--force"])[0] == 0
+    code, _, err = run_cli([*args[:6], "2", *args[7:], "--resume"])  # continue to step 2
     assert code == 0, err
     assert torch.load(out / "last.pt", weights_only=True)["training"]["step"] == 2
 
@@ -210,7 +202,7 @@ def test_two_gloo_processes_match_one_process_with_the_same_global_batch(data: P
 def test_trains_on_a_scannetpp_tree_with_its_validation_split(tmp_path: Path) -> None:
     """A fisheye-only ScanNet++ tree (undistorted on the fly): nvs_sem_train pairs train, nvs_sem_val validate."""
     root = syn.write_scannetpp(tmp_path / "scannetpp", layout="fisheye", frames=6, size=(96, 64))
-    code, _, err = _run(["train", "--data", root, "--out", tmp_path / "r", "--steps", "1", *FAST])
+    code, _, err = run_cli(["train", "--data", root, "--out", tmp_path / "r", "--steps", "1", *FAST])
     assert code == 0, err
     run = json.loads((tmp_path / "r" / "run.json").read_text())
     assert run["data"]["layout"] == "scannetpp" and run["data"]["validation"] == "split nvs_sem_val"
@@ -265,7 +257,8 @@ def test_point_regression_is_zero_for_the_true_point_maps() -> None:
 
 
 def test_init_random_trains_the_backbone_with_the_geometry_term(data: Path, tmp_path: Path) -> None:
-    code, _, err = _run(["train", "--data", data, "--out", tmp_path / "r", "--steps", "1", "--val-every", "0", *FAST])
+    args = ["train", "--data", data, "--out", tmp_path / "r", "--steps", "1", "--val-every", "0", *FAST]
+    code, _, err = run_cli(args)
     assert code == 0, err
     run = json.loads((tmp_path / "r" / "run.json").read_text())
     assert run["model"]["train_backbone"] is True and run["config"]["loss"]["geometry_weight"] == 1.0

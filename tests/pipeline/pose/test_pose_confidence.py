@@ -10,8 +10,6 @@ and the cameras file.
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import math
 from pathlib import Path
@@ -20,11 +18,9 @@ import cv2
 import numpy as np
 import pytest
 
-from macsplat_cli.cameras import Camera, CameraSet, load_cameras, save_cameras
-from macsplat_cli.cli import main
+from macsplat_cli.cameras import Camera, load_cameras
 from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.errors import ReconstructionError
-from macsplat_cli.images import save_image
 from macsplat_cli.metrics import rotation_error_deg
 from macsplat_cli.pipeline.pose import (
     LOW_CONFIDENCE_HINT,
@@ -39,6 +35,9 @@ from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig
 from macsplat_cli.pipeline.stages import EssentialPose
 from macsplat_cli.pipeline.types import Matches, TwoViewGeometry, View
 from macsplat_cli.pipeline.views import ViewConfig
+
+from support.cli import run_cli
+from support.scenes import PairFactory, PairSpec
 
 W, H = 512, 384
 
@@ -158,19 +157,12 @@ def test_rotation_without_parallax_is_flagged() -> None:
 
 # ------------------------------------------------------------------------------ pipeline and CLI
 @pytest.fixture(scope="module")
-def pairs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, tuple[Path, Path, Path]]:
+def pairs(pair_files: PairFactory) -> dict[str, tuple[Path, Path, Path]]:
     """Rendered orbit pairs: (photo a, photo b, cameras file with their true intrinsics), by name."""
-    root = tmp_path_factory.mktemp("confidence_pairs")
     out = {}
     for name, kind, angle, fov, seed in [("easy", "room", 15, 50, 0), ("wide", "object", 60, 50, 1)]:
-        scene = syn.make_scene(kind, 0)  # type: ignore[arg-type]
-        cam0, cam1 = syn.orbit_pair(scene, angle, seed=seed, fov_deg=fov, width=W, height=H)
-        folder = root / name
-        folder.mkdir()
-        for cam, file in ((cam0, "a.png"), (cam1, "b.png")):
-            save_image(folder / file, syn.render(scene, cam).image)
-        save_cameras(folder / "cameras.json", CameraSet([cam0, cam1]))
-        out[name] = (folder / "a.png", folder / "b.png", folder / "cameras.json")
+        files = pair_files(PairSpec(kind, angle, (W, H), fov, orbit_seed=seed))  # type: ignore[arg-type]
+        out[name] = (files.a, files.b, files.cameras)
     return out
 
 
@@ -210,20 +202,13 @@ def test_pose_stage_doubts_are_honoured(pairs: dict[str, tuple[Path, Path, Path]
     assert rec.pose is not None and [(d.check, d.message) for d in rec.pose.doubts] == [("pose", _DoubtingPose.doubt)]
 
 
-def _main_captured(args: list[str | Path]) -> tuple[int, str, str]:
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        code = main([str(a) for a in args])
-    return code, out.getvalue(), err.getvalue()
-
-
 def test_cli_good_pair_is_accepted_with_its_confidence(
     pairs: dict[str, tuple[Path, Path, Path]], tmp_path: Path
 ) -> None:
     """A 15° room pair, no intrinsics: exit 0, the confidence high in the report, the summary and the cameras."""
     a, b, _ = pairs["easy"]
     out = tmp_path / "scene.ply"
-    code, _, err = _main_captured(["reconstruct", a, b, "-o", out, "--size", "256", "--report", tmp_path / "r.json"])
+    code, _, err = run_cli(["reconstruct", a, b, "-o", out, "--size", "256", "--report", tmp_path / "r.json"])
     assert code == 0, err
     pose = json.loads((tmp_path / "r.json").read_text())["pose"]
     assert pose["confidence"] > 0.5 and pose["doubts"] == [] and "focal_rotation_deg" in pose["confidence_checks"]
@@ -241,14 +226,14 @@ def test_cli_refuses_a_wrong_wide_pose_and_writes_it_on_request(
     ``--accept-low-confidence``: written, a warning, and the low confidence in the report and the cameras."""
     a, b, _ = pairs["wide"]
     out = tmp_path / "scene.ply"
-    code, _, err = _main_captured(["reconstruct", a, b, "-o", out, "-q"])
+    code, _, err = run_cli(["reconstruct", a, b, "-o", out, "-q"])
     assert code == 3
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("error:") and "--accept-low-confidence" in lines[0]
     assert not any(tmp_path.iterdir())  # no scene, no cameras, no temporary file
 
     report = tmp_path / "report.json"
-    code, _, err = _main_captured(
+    code, _, err = run_cli(
         ["reconstruct", a, b, "-o", out, "--accept-low-confidence", "--report", report, "--size", "256"]
     )
     assert code == 0, err

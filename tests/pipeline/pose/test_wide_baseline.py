@@ -7,15 +7,11 @@ explains in front of both cameras: only the true pose explains the scene off the
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-from macsplat_cli.cameras import CameraSet, save_cameras
 from macsplat_cli.datasets import synthetic as S
 from macsplat_cli.errors import ReconstructionError
-from macsplat_cli.images import save_image
 from macsplat_cli.metrics import rotation_error_deg
 from macsplat_cli.pipeline.descriptors import SiftConfig, SiftDescriptors
 from macsplat_cli.pipeline.matching import match_features
@@ -25,25 +21,20 @@ from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig
 from macsplat_cli.pipeline.types import Features, Matches, TwoViewGeometry, View
 from macsplat_cli.pipeline.views import ViewConfig, load_views
 
+from support.scenes import PairFactory, PairSpec
+
 W, H = 512, 384
 
 
 @pytest.fixture(scope="module")
-def table_pair(tmp_path_factory: pytest.TempPathFactory):
+def table_pair(pair_files: PairFactory):  # noqa: ANN201
     """A 30° object orbit (given intrinsics): the views, their SIFT features, the matches that lie on the table
     top (by the ground truth) and the true relative pose."""
-    tmp: Path = tmp_path_factory.mktemp("wide")
-    scene = S.make_scene("object", seed=0)
-    c0, c1 = S.orbit_pair(scene, 30.0, seed=0, fov_deg=60.0, width=W, height=H)
-    r0 = S.render(scene, c0)
-    paths = []
-    for cam in (c0, c1):
-        p = tmp / f"{cam.name}.png"
-        save_image(p, S.render(scene, cam).image)
-        paths.append(p)
-    save_cameras(tmp / "cameras.json", CameraSet([c0, c1]))
-    cfg = ReconstructConfig(views=ViewConfig(intrinsics=tmp / "cameras.json"))
-    views = load_views(paths, cfg.views)
+    files = pair_files(PairSpec("object", 30.0, (W, H), 60.0, orbit_seed=0), ("view0.png", "view1.png"))
+    c0, c1 = files.rendered.cams
+    r0 = files.rendered.views[0]
+    cfg = ReconstructConfig(views=ViewConfig(intrinsics=files.cameras))
+    views = load_views(list(files.photos), cfg.views)
     assert views[0].width == W and views[0].height == H
     feats = [SiftDescriptors(SiftConfig())(v) for v in views]
     m = match_features(feats[0], feats[1])
