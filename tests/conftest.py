@@ -1,12 +1,25 @@
-"""Shared pytest configuration: the ``slow`` marker, isolated environment for CLI tests."""
+"""Shared pytest configuration: the ``slow`` marker, isolated environment for CLI tests, and the session fixtures of
+``support/`` (the synthetic pairs' photos, the tiny checkpoints).
+
+``tests/`` mirrors ``macsplat_cli/`` in folders without ``__init__.py`` (pytest's default ``prepend`` import mode): a
+test module is imported by its basename, so basenames are unique across the folders, and this file's folder,
+``tests/``, is put on ``sys.path`` before any test module is imported, so ``import support.<topic>`` works from
+every subfolder (and from a single test file run alone). No test module imports another
+(``test_suite_layout.py``).
+"""
 
 from __future__ import annotations
 
 import logging
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pytest
 
 import macsplat_cli  # noqa: F401  (first: sets OMP_WAIT_POLICY before any test imports torch)
+
+if TYPE_CHECKING:
+    from support.scenes import PairFactory
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
@@ -34,3 +47,20 @@ def _plain_terminal(monkeypatch: pytest.MonkeyPatch) -> None:
 def _library_logs_reach_caplog(monkeypatch: pytest.MonkeyPatch) -> None:
     """The CLI's logging setup turns propagation off on ``macsplat_cli``; caplog needs it on."""
     monkeypatch.setattr(logging.getLogger("macsplat_cli"), "propagate", True)
+
+
+@pytest.fixture(scope="session")
+def pair_files(tmp_path_factory: pytest.TempPathFactory) -> PairFactory:
+    """Synthetic pairs' photos and true cameras, written once per session (:class:`support.scenes.PairFactory`)."""
+    from support.scenes import PairFactory
+
+    return PairFactory(tmp_path_factory)
+
+
+@pytest.fixture(scope="session")
+def tiny_checkpoints(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """:func:`support.checkpoints.write_tiny_checkpoints` once per session, in a shared folder: read them, write
+    elsewhere."""
+    from support.checkpoints import write_tiny_checkpoints
+
+    return write_tiny_checkpoints(tmp_path_factory.mktemp("tiny_checkpoints"))

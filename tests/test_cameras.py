@@ -17,7 +17,7 @@ from macsplat_cli.camera_formats import read_colmap_text, read_nerfstudio, write
 from macsplat_cli.cameras import Camera, CameraSet, load_cameras, quat_to_rotmat_np, rotmat_to_quat_np, save_cameras
 from macsplat_cli.errors import CameraFileError, OutputPathError
 
-from _helpers import ROT_MAT, ROT_ROUND_TRIP, ROT_UNIT_Q, gamma, unit_roundoff
+from support.numerics import ROT_MAT, ROT_ROUND_TRIP, ROT_UNIT_Q, gamma, unit_roundoff
 
 U = unit_roundoff(np.float64)  # every camera quantity is float64
 # Rotation budgets (ROT_*) are derived in tests/test_rotations.py; Shepperd on an exactly orthogonal R: ≤ 13u.

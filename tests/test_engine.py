@@ -22,33 +22,27 @@ import pytest
 import torch
 
 from macsplat_cli import engine
-from macsplat_cli.cameras import CameraSet, load_cameras, save_cameras
+from macsplat_cli.cameras import load_cameras
 from macsplat_cli.cli import main
-from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.engine import EngineConfig, Models, NeuralOptions, load_models, reconstruct, render_path
 from macsplat_cli.errors import InputError
 from macsplat_cli.evaluation import EngineReconstructor, ReconstructSettings
 from macsplat_cli.gaussians import Gaussians
-from macsplat_cli.images import save_image
 from macsplat_cli.pipeline.refine import RefineConfig
 from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig, count_gaussians
 from macsplat_cli.pipeline.views import ViewConfig
 from macsplat_cli.ply import read_ply
 
+from support.scenes import PairFactory, PairSpec
+
 SIZE = (192, 144)
 
 
 @pytest.fixture(scope="module")
-def pair(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path]:
-    """A textured room pair 12° apart at 192×144, and its true cameras."""
-    folder = tmp_path_factory.mktemp("engine_pair")
-    scene = syn.make_scene("room", 5)
-    cam0, cam1 = syn.orbit_pair("room", 12.0, width=SIZE[0], height=SIZE[1], fov_deg=60.0)
-    cam0, cam1 = dataclasses.replace(cam0, name="a.png"), dataclasses.replace(cam1, name="b.png")
-    save_image(folder / "a.png", syn.render(scene, cam0).image)
-    save_image(folder / "b.png", syn.render(scene, cam1).image)
-    save_cameras(folder / "cameras.json", CameraSet([cam0, cam1]))
-    return folder / "a.png", folder / "b.png", folder / "cameras.json"
+def pair(pair_files: PairFactory) -> tuple[Path, Path, Path]:
+    """A textured room pair 12° apart at 192×144, and its true cameras (named after the files)."""
+    files = pair_files(PairSpec("room", 12.0, SIZE, 60.0, scene_seed=5), camera_names=True)
+    return files.a, files.b, files.cameras
 
 
 def _config(cams: Path, steps: int = 0) -> EngineConfig:

@@ -12,7 +12,8 @@ from macsplat_cli.gaussians import GaussianMaps, Gaussians
 from macsplat_cli.rotations import quat_to_rotmat
 from macsplat_cli.sh import C0, eval_sh, rgb_to_sh0, sh0_to_rgb
 
-from _helpers import ROT_MAT, ROT_QUAT, ROT_UNIT_Q, gamma, random_gaussians, unit_roundoff
+from support.gaussians import random_gaussians
+from support.numerics import ROT_MAT, ROT_QUAT, ROT_UNIT_Q, gamma, unit_roundoff
 
 U32 = unit_roundoff(torch.float32)
 

@@ -8,8 +8,6 @@ CLI exits with status 2 and one ``error:`` line naming the problem, quickly and 
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import os
 import struct
@@ -19,13 +17,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from test_neural_checkpoints import TINY, random_state_dict, save_pth
 
 from macsplat_cli._limits import MAX_JSON_BYTES, MAX_RENDER_SIDE, check_render_size, json_depth, read_json_file
 from macsplat_cli._state_dict import read_safetensors
 from macsplat_cli.camera_formats import read_colmap_text, read_nerfstudio
 from macsplat_cli.cameras import Camera, CameraSet, load_cameras, save_cameras
-from macsplat_cli.cli import main
 from macsplat_cli.errors import CameraFileError, ImageReadError, InputError, PlyFormatError
 from macsplat_cli.images import load_image, save_image
 from macsplat_cli.neural.checkpoints import CheckpointError, read_mast3r_checkpoint
@@ -42,7 +38,9 @@ from macsplat_cli.neural.fusion import (
 from macsplat_cli.ply import read_ply, write_ply
 from macsplat_cli.render import render_camera
 
-from _helpers import random_gaussians
+from support.checkpoints import TINY, random_state_dict, save_pth
+from support.cli import run_cli
+from support.gaussians import random_gaussians
 
 K = np.array([[120.0, 0.0, 40.0], [0.0, 120.0, 30.0], [0.0, 0.0, 1.0]])
 DEEP = 200_000  # JSON nesting that overflows Python's recursion limit
@@ -52,10 +50,7 @@ HAS_DEV_ZERO = os.path.exists("/dev/zero")
 # ------------------------------------------------------------------------------ helpers
 def run(*args: str | Path) -> tuple[int, str, str]:
     """``main(args)`` in process, stdout and stderr captured."""
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        code = main([str(a) for a in args])
-    return code, out.getvalue(), err.getvalue()
+    return run_cli(list(args))
 
 
 def error_line(code: int, out: str, err: str) -> str:

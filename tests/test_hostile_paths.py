@@ -42,7 +42,8 @@ from macsplat_cli.images import save_image, write_video
 from macsplat_cli.pipeline.run import Pipeline
 from macsplat_cli.ply import write_ply
 
-from _helpers import file_size_limit, random_gaussians
+from support.cli import file_size_limit
+from support.gaussians import random_gaussians
 
 IS_ROOT = os.geteuid() == 0
 

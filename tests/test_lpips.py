@@ -12,7 +12,7 @@ import torch.nn.functional as F
 
 from macsplat_cli.lpips import LPIPS, LPIPSWeightsError, load_lpips
 
-from _helpers import forward_rel_tol, forward_rel_tol_probabilistic
+from support.numerics import forward_rel_tol, forward_rel_tol_probabilistic
 
 CONVS = [(0, 3, 64), (2, 64, 64), (5, 64, 128), (7, 128, 128), (10, 128, 256), (12, 256, 256), (14, 256, 256),
          (17, 256, 512), (19, 512, 512), (21, 512, 512), (24, 512, 512), (26, 512, 512), (28, 512, 512)]  # fmt: skip

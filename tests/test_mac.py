@@ -12,7 +12,7 @@ from macsplat_cli.gaussians import GaussianMaps
 from macsplat_cli.mac import MACConfig, huber, mac_loss, sample_maps
 from macsplat_cli.rotations import quat_to_rotmat
 
-from _helpers import GC_ATOL, GC_EPS, GC_RTOL, gamma, unit_roundoff
+from support.numerics import GC_ATOL, GC_EPS, GC_RTOL, gamma, unit_roundoff
 
 D = torch.float64
 U64 = unit_roundoff(D)

@@ -10,7 +10,7 @@ import torch
 
 from macsplat_cli.rotations import quat_multiply, quat_to_rotmat, quat_to_rotmat_np, rotmat_to_quat, rotmat_to_quat_np
 
-from _helpers import ROT_MAT, ROT_QUAT, ROT_ROUND_TRIP, ROT_UNIT_Q, gamma, unit_roundoff
+from support.numerics import ROT_MAT, ROT_QUAT, ROT_ROUND_TRIP, ROT_UNIT_Q, gamma, unit_roundoff
 
 D = torch.float64
 U64 = unit_roundoff(np.float64)

@@ -29,7 +29,8 @@ from macsplat_cli.render import render
 from macsplat_cli.rotations import quat_to_rotmat
 from macsplat_cli.sh import C0, C1
 
-from _helpers import gamma, pinhole, random_gaussians, unit_roundoff
+from support.gaussians import pinhole, random_gaussians
+from support.numerics import gamma, unit_roundoff
 
 D = torch.float64
 U32, U64 = unit_roundoff(torch.float32), unit_roundoff(torch.float64)

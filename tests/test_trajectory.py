@@ -11,7 +11,7 @@ from macsplat_cli.cameras import Camera, quat_to_rotmat_np, rotmat_to_quat_np
 from macsplat_cli.errors import InputError
 from macsplat_cli.trajectory import interpolate_cameras, slerp
 
-from _helpers import ROT_MAT, ROT_QUAT, ROT_ROUND_TRIP
+from support.numerics import ROT_MAT, ROT_QUAT, ROT_ROUND_TRIP
 
 U = np.finfo(np.float64).eps / 2
 # float64 budgets (ROT_*: tests/test_rotations.py): a camera at a key frame is its rotation's R → q → R round trip;

@@ -1,0 +1,403 @@
+"""Hostile and odd inputs to the command line (issue 16).
+
+* outputs that are inputs (same path, symbolic or hard link, a file inside --renders or a
+  frame folder) are refused before any work, and the input is left as it was;
+* Rich markup in file names and option values (``[/]``, ``[copy]``) is printed verbatim, in
+  error lines and in summaries, for every command;
+* SIGTERM during a write removes the partial file (exit 143, SIGINT 130), and temporary files
+  left by killed writes are removed by the next write of the same file once their process is gone;
+* an unwritable existing --renders folder is found before the first stage: nothing is written.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+from macsplat_cli._atomic import atomic_write_bytes, remove_stale_temporaries
+from macsplat_cli.cameras import CameraSet, save_cameras
+from macsplat_cli.cli import main
+from macsplat_cli.cli._common import err_console
+from macsplat_cli.datasets import synthetic as syn
+from macsplat_cli.pipeline.run import Pipeline
+from macsplat_cli.ply import write_ply
+
+from support import REPO
+from support.gaussians import random_gaussians
+from support.scenes import PairFactory, PairSpec
+
+SIZE = (128, 96)  # the pair; reconstructed at --size 128 in about a second
+
+
+@pytest.fixture(scope="module")
+def pair(pair_files: PairFactory) -> tuple[Path, Path]:
+    """A textured room pair 12° apart at 128×96, with Rich markup in its file names."""
+    return pair_files(
+        PairSpec("room", 12.0, SIZE, 60.0, scene_seed=5), ("IMG_001 [copy].png", "[bold]IMG_002.png")
+    ).photos
+
+
+@pytest.fixture(scope="module")
+def scene_files(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """A small valid scene (PLY) and a two-camera file at 64×48 for ``render``."""
+    folder = tmp_path_factory.mktemp("hostile_scene")
+    g = random_gaussians(200, seed=3)
+    write_ply(folder / "scene.ply", g)
+    cams = syn.orbit_pair("room", 12.0, width=64, height=48, fov_deg=60.0)
+    save_cameras(folder / "cams.json", CameraSet(list(cams)))
+    return folder / "scene.ply", folder / "cams.json"
+
+
+def _one_error_line(err: str) -> str:
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert "Traceback" not in err and "MarkupError" not in err, err
+    assert sum("error:" in ln for ln in lines) == 1 and lines[-1].startswith("error: "), err
+    return lines[-1]
+
+
+def _snapshot(folder: Path) -> dict[str, bytes | None]:
+    return {str(p.relative_to(folder)): (p.read_bytes() if p.is_file() else None) for p in sorted(folder.rglob("*"))}
+
+
+# ------------------------------------------------------------------------------ outputs vs inputs
+def _link(kind: str, src: Path, dst: Path) -> Path:
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    if kind == "hard":
+        os.link(src, dst)
+    else:
+        dst.symlink_to(src)
+    return dst
+
+
+@pytest.mark.parametrize(
+    ("case", "label"),
+    [
+        ("cameras-is-photo-b", "--cameras"),
+        ("report-is-photo-a", "--report"),
+        ("report-hard-link-to-a", "--report"),
+        ("cameras-symlink-to-b", "--cameras"),
+        ("report-is-intrinsics", "--report"),
+        ("renders-holds-photo-a", "--renders"),
+        ("scene-is-lpips-weights", "-o"),
+    ],
+)
+def test_reconstruct_refuses_to_overwrite_an_input(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path, case: str, label: str
+) -> None:
+    """An output that is an input (path, link or a view file inside --renders): exit 2, before any work."""
+    calls: list[object] = []
+    monkeypatch.setattr(Pipeline, "run", lambda self, *a, **k: calls.append(a))
+    a, b = tmp_path / "a.png", tmp_path / "b.png"
+    a.write_bytes(b"photo a")
+    b.write_bytes(b"photo b")
+    cams = tmp_path / "cams.json"
+    cams.write_text("{}")
+    args: list[str | Path] = ["reconstruct", a, b, "-o", tmp_path / "s.ply", "-q"]
+    args += {
+        "cameras-is-photo-b": ["--cameras", b],
+        "report-is-photo-a": ["--report", a],
+        "report-hard-link-to-a": ["--report", _link("hard", a, tmp_path / "x" / "report.json")],
+        "cameras-symlink-to-b": ["--cameras", _link("sym", b, tmp_path / "y" / "c.json")],
+        "report-is-intrinsics": ["--intrinsics", cams, "--report", cams],
+        "renders-holds-photo-a": ["--renders", _link("hard", a, tmp_path / "views" / "view_001.png").parent],
+        "scene-is-lpips-weights": ["--refine", "2", "--lpips-weights", tmp_path / "s.ply"],
+    }[case]
+    if case == "scene-is-lpips-weights":
+        (tmp_path / "s.ply").write_bytes(b"weights")
+    before = _snapshot(tmp_path)
+    got = main([str(x) for x in args])
+    line = _one_error_line(capsys.readouterr().err)
+    assert got == 2, line
+    assert line.startswith(f"error: {label} ") and "refusing to overwrite an input" in line, line
+    assert calls == []
+    assert _snapshot(tmp_path) == before  # the inputs as they were, nothing new
+
+
+def test_reconstruct_two_outputs_hard_linked_are_one_file(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    """Two outputs that are hard links of one existing file collide like two equal paths."""
+    (tmp_path / "r.json").write_text("old")
+    os.link(tmp_path / "r.json", tmp_path / "c.json")
+    got = main(["reconstruct", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "-o", str(tmp_path / "s.ply"),
+                "--cameras", str(tmp_path / "c.json"), "--report", str(tmp_path / "r.json")])  # fmt: skip
+    line = _one_error_line(capsys.readouterr().err)
+    assert got == 2 and "same file" in line, line
+    assert (tmp_path / "r.json").read_text() == "old"
+
+
+@pytest.mark.parametrize("case", ["output-hard-link-to-scene", "depth-symlink-to-cameras", "frame-is-the-scene"])
+def test_render_refuses_to_overwrite_an_input(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, scene_files: tuple[Path, Path], case: str
+) -> None:
+    """``render``: the image, depth or a frame of -o DIR that is the scene or the camera file → exit 2."""
+    scene = tmp_path / "scene.ply"
+    scene.write_bytes(scene_files[0].read_bytes())
+    cams = tmp_path / "cams.json"
+    cams.write_bytes(scene_files[1].read_bytes())
+    args: list[str | Path] = ["render", scene, "--pose", cams, "-q"]
+    args += {
+        "output-hard-link-to-scene": ["-o", _link("hard", scene, tmp_path / "view.png")],
+        "depth-symlink-to-cameras": ["-o", tmp_path / "v.png", "--depth", _link("sym", cams, tmp_path / "d.png")],
+        "frame-is-the-scene": ["--path", "3", "-o", _link("hard", scene, tmp_path / "f" / "frame_0002.png").parent],
+    }[case]
+    before = _snapshot(tmp_path)
+    got = main([str(x) for x in args])
+    line = _one_error_line(capsys.readouterr().err)
+    assert got == 2 and "refusing to overwrite an input" in line, line
+    assert _snapshot(tmp_path) == before
+
+
+@pytest.mark.parametrize(
+    ("extra", "needle"),
+    [
+        (["--path", "10001", "-o", "frames"], "less than or equal to 10000"),  # more views than any path needs
+        (["--path", "2000", "--width", "8000", "--height", "6000", "--video", "v.mp4"], "GiB in memory"),
+    ],
+)
+def test_render_path_is_bounded_before_any_work(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, scene_files: tuple[Path, Path], extra: list[str], needle: str
+) -> None:
+    """``render --path N``: N is capped, and a video whose frames would not fit in memory is refused before the
+    first frame (exit 2, nothing written)."""
+    args = ["render", str(scene_files[0]), "--pose", str(scene_files[1]), "-q"]
+    args += [str(tmp_path / a) if a in ("frames", "v.mp4") else a for a in extra]
+    before = _snapshot(tmp_path)
+    got = main(args)
+    line = _one_error_line(capsys.readouterr().err)
+    assert got == 2 and needle in line, line
+    assert _snapshot(tmp_path) == before
+
+
+def test_export_onnx_refuses_to_overwrite_a_checkpoint(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """``export-onnx -o`` that is (a link to) a checkpoint: exit 2 before the checkpoints load."""
+    import macsplat_cli.neural.loading as loading
+
+    loads: list[object] = []
+
+    def load(**files: object) -> None:
+        loads.append(files)
+        raise RuntimeError("loaded")
+
+    monkeypatch.setattr(loading, "load_pair_predictor", load)
+    weights = tmp_path / "mast3r.pth"
+    weights.write_bytes(b"checkpoint")
+    out = _link("sym", weights, tmp_path / "predictor.onnx")
+    got = main(["export-onnx", "-o", str(out), "--weights", str(weights), "-q"])
+    line = _one_error_line(capsys.readouterr().err)
+    assert got == 2 and line.startswith("error: -o ") and "--weights" in line, line
+    assert loads == [] and weights.read_bytes() == b"checkpoint"
+
+
+# ------------------------------------------------------------------------------ Rich markup
+@pytest.mark.parametrize(
+    ("args", "verbatim"),
+    [
+        pytest.param(["reconstruct", "{a}", "{b}", "-o", "{tmp}/s.ply", "--refine", "[/]"], "'[/]'",
+                     id="reconstruct-refine"),
+        pytest.param(["reconstruct", "{tmp}/IMG_001 [copy].jpg", "{b}", "-o", "{tmp}/s.ply"], "IMG_001 [copy].jpg",
+                     id="reconstruct-missing-bracketed-photo"),
+        pytest.param(["reconstruct", "{a}", "{b}", "-o", "{tmp}/[bold]s[/].txt"], "[bold]s[/].txt",
+                     id="reconstruct-output-name"),
+        pytest.param(["reconstruct", "{a}", "{b}", "-o", "{tmp}/s.ply", "--quality", "[red]x"], "'[red]x'",
+                     id="reconstruct-quality"),
+        pytest.param(["render", "{scene}", "--pose", "{cams}", "-o", "{tmp}/v.png", "--background", "[/]"], "'[/]'",
+                     id="render-background"),
+        pytest.param(["render", "{scene}", "--pose", "{cams}", "-o", "{tmp}/v.png", "--backend", "[/]"], "'[/]'",
+                     id="render-backend-usage-error"),
+        pytest.param(["render", "{scene}", "--pose", "{badk}", "-o", "{tmp}/v.png"], "[[fx",
+                     id="render-builtin-message-with-brackets"),
+        pytest.param(["eval", "--data", "{tmp}/d", "--backend", "[/]"], "'[/]'", id="eval-backend"),
+        pytest.param(["bench", "--data", "{tmp}/d", "--size", "[/]"], "'[/]'", id="bench-size"),
+        pytest.param(["train", "--data", "{tmp}/d", "--out", "{tmp}/o", "--size", "[/]"], "'[/]'", id="train-size"),
+        pytest.param(["export-onnx", "-o", "{tmp}/[/]x.txt", "--weights", "{tmp}/w.pth"], "[/]x.txt",
+                     id="export-onnx-output"),
+        pytest.param(["export-onnx", "-o", "{tmp}/x.onnx", "--weights", "{tmp}/w.pth", "--size", "[/]"], "'[/]'",
+                     id="export-onnx-size"),
+    ],
+)  # fmt: skip
+def test_markup_in_names_and_values_is_printed_verbatim(
+    capsys: pytest.CaptureFixture[str],
+    tmp_path: Path,
+    pair: tuple[Path, Path],
+    scene_files: tuple[Path, Path],
+    args: list[str],
+    verbatim: str,
+) -> None:
+    """Bracketed text in a path or option value: exit 2 and one ``error:`` line holding it verbatim."""
+    badk = json.loads(scene_files[1].read_text())
+    badk["cameras"][0]["K"][2] = [0.0, 1.0, 1.0]
+    (tmp_path / "badk.json").write_text(json.dumps(badk))
+    names = {"{a}": pair[0], "{b}": pair[1], "{scene}": scene_files[0], "{cams}": scene_files[1],
+             "{badk}": tmp_path / "badk.json", "{tmp}": tmp_path}  # fmt: skip
+    argv = []
+    for x in args:
+        for k, v in names.items():
+            x = x.replace(k, str(v))
+        argv.append(x)
+    got = main(argv)
+    line = _one_error_line(capsys.readouterr().err)
+    assert got == 2, line
+    assert verbatim in line, line
+
+
+def test_reconstruct_with_markup_in_every_name_succeeds_and_prints_them(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path, pair: tuple[Path, Path]
+) -> None:
+    """Photos ``IMG_001 [copy].png``, ``[bold]IMG_002.png`` and outputs under ``[/]``: exit 0, names intact."""
+    monkeypatch.setattr(err_console, "_width", 1000)  # one table row per line: the paths unwrapped
+    out = tmp_path / "[/]" / "scene [copy].ply"
+    report = tmp_path / "[red]r[/].json"
+    got = main(["reconstruct", str(pair[0]), str(pair[1]), "-o", str(out), "--report", str(report),
+                "--size", str(SIZE[0]), "--focal", "111"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert got == 0, err
+    assert out.is_file() and out.with_name("scene [copy].cameras.json").is_file() and report.is_file()
+    assert "Traceback" not in err and "error:" not in err
+    for text in ("IMG_001 [copy].png", "[bold]IMG_002.png", str(out), str(out.with_name("scene [copy].cameras.json"))):
+        assert text in err, (text, err)
+
+
+# ------------------------------------------------------------------------------ output locations
+@pytest.mark.parametrize("case", ["existing-renders-not-writable", "renders-holds-a-folder-named-like-a-view"])
+def test_unwritable_renders_folder_fails_before_any_work(
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    tmp_path: Path,
+    pair: tuple[Path, Path],
+    case: str,
+) -> None:
+    """An existing --renders folder that cannot take the views: exit 2, and no scene, cameras or view written."""
+    renders = tmp_path / "views"
+    renders.mkdir()
+    if case == "existing-renders-not-writable":  # tests run as root, who may write anywhere: ask os.access
+        real_access = os.access
+
+        def access(p: str | os.PathLike[str], mode: int, **kw: object) -> bool:
+            return not (mode & os.W_OK and Path(p) == renders) and real_access(p, mode, **kw)  # type: ignore[arg-type]
+
+        monkeypatch.setattr(os, "access", access)
+    else:
+        (renders / "view_001.png").mkdir()
+    before = _snapshot(tmp_path)
+    got = main(["reconstruct", str(pair[0]), str(pair[1]), "-o", str(tmp_path / "s.ply"), "--renders", str(renders),
+                "--num-renders", "3", "--report", str(tmp_path / "r.json"), "--size", str(SIZE[0])])  # fmt: skip
+    line = _one_error_line(capsys.readouterr().err)
+    assert got == 2 and "views" in line, line
+    assert _snapshot(tmp_path) == before  # nothing at all written
+
+
+# ------------------------------------------------------------------------------ signals, stale temporaries
+_HANG_IN_A_WRITE = """
+import sys, time
+import macsplat_cli.cli.reconstruct as command
+from macsplat_cli._atomic import atomic_path
+from macsplat_cli.cli import main
+
+def hang(images, config, *, output, **kw):
+    with atomic_path(output) as tmp:
+        tmp.write_bytes(b"half a scene")
+        print("writing", flush=True)
+        time.sleep(60)
+
+command._reconstruct = hang
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def _default_signals() -> None:
+    """In the child before exec: SIGINT and SIGTERM at their defaults, as in a terminal."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+@pytest.mark.parametrize(("sig", "code"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)], ids=["SIGTERM", "SIGINT"])
+def test_signal_during_a_write_leaves_no_temporary_file(tmp_path: Path, sig: signal.Signals, code: int) -> None:
+    """``kill``/``timeout`` (SIGTERM) mid-write: the partial file is removed, exit 143 (Ctrl-C: 130)."""
+    out = tmp_path / "out"
+    out.mkdir()
+    script = tmp_path / "hang.py"
+    script.write_text(_HANG_IN_A_WRITE)
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.Popen(
+        [sys.executable, str(script), "reconstruct", "a.png", "b.png", "-o", str(out / "x.ply")],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+        preexec_fn=_default_signals,  # a background pytest (``cmd &``) starts children with SIGINT ignored
+    )  # fmt: skip
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "writing", proc.stderr
+        assert [p.name for p in out.iterdir() if p.name.startswith(".x.ply.")], "the write should be in progress"
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == code, err
+    assert "interrupted" in err and "Traceback" not in err, err
+    assert list(out.iterdir()) == []
+
+
+def _dead_pid() -> int:
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def _plant(folder: Path, name: str, age_s: float) -> Path:
+    p = folder / name
+    p.write_bytes(b"partial")
+    t = time.time() - age_s
+    os.utime(p, (t, t))
+    return p
+
+
+def test_stale_temporaries_of_dead_processes_are_removed_by_the_next_write(tmp_path: Path) -> None:
+    """Only old temporaries of the same file whose process is gone are removed; live or fresh ones stay."""
+    dead, live = _dead_pid(), os.getpid()
+    stale = _plant(tmp_path, f".scene.ply.{dead}.k3j_9x2a.tmp.ply", 120)
+    kept = [
+        _plant(tmp_path, f".scene.ply.{live}.a1b2c3d4.tmp.ply", 120),  # its process still runs
+        _plant(tmp_path, f".scene.ply.{dead}.zzzzzzzz.tmp.ply", 5),  # too recent to judge
+        _plant(tmp_path, f".other.ply.{dead}.q1w2e3r4.tmp.ply", 120),  # another file's
+        _plant(tmp_path, f".scene.ply.7.ply.{dead}.q1w2e3r4.tmp.ply", 120),  # scene.ply.7.ply's
+        _plant(tmp_path, ".scene.ply.notapid.tmp.ply", 120),  # not named by atomic_path
+    ]
+    atomic_write_bytes(tmp_path / "scene.ply", b"new scene")
+    assert not stale.exists()
+    assert all(p.exists() for p in kept)
+    assert (tmp_path / "scene.ply").read_bytes() == b"new scene"
+    assert sorted(tmp_path.iterdir()) == sorted([*kept, tmp_path / "scene.ply"])
+
+
+def test_a_killed_write_is_cleaned_by_the_next_one(tmp_path: Path) -> None:
+    """SIGKILL cannot be handled: its temporary file stays, named with the pid, until the next write."""
+    script = textwrap.dedent(
+        f"""
+        import time
+        from macsplat_cli._atomic import atomic_path
+        with atomic_path({str(tmp_path / "[copy] x.ply")!r}) as tmp:
+            tmp.write_bytes(b"half")
+            print("writing", flush=True)
+            time.sleep(60)
+        """
+    )
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONPATH": str(REPO)})  # fmt: skip
+    assert proc.stdout is not None and proc.stdout.readline().strip() == "writing"
+    proc.kill()
+    proc.wait(timeout=30)
+    left = list(tmp_path.iterdir())
+    assert len(left) == 1 and left[0].name.startswith(f".[copy] x.ply.{proc.pid}."), left
+    assert remove_stale_temporaries(tmp_path / "[copy] x.ply") == []  # too recent: its owner might be alive
+    t = time.time() - 120
+    os.utime(left[0], (t, t))
+    atomic_write_bytes(tmp_path / "[copy] x.ply", b"whole")
+    assert [p.name for p in tmp_path.iterdir()] == ["[copy] x.ply"]
