@@ -7,7 +7,7 @@ keeps its own error class, a subclass of :class:`StateDictError`, which :func:`c
 and raises (and :func:`read_safetensors` builds from a message).
 
 The safetensors reader needs no extra dependency (the format is simple); it is checked against the
-``safetensors`` package in ``tests/test_dinov3.py``.
+``safetensors`` package in ``tests/neural/test_dinov3.py``.
 """
 
 from __future__ import annotations

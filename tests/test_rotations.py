@@ -14,7 +14,7 @@ from support.numerics import ROT_MAT, ROT_QUAT, ROT_ROUND_TRIP, ROT_UNIT_Q, gamm
 
 D = torch.float64
 U64 = unit_roundoff(np.float64)
-# Float64 error budgets (first order; u = 2⁻⁵³; the ROT_* constants of _helpers, derived here):
+# Float64 error budgets (first order; u = 2⁻⁵³; the ROT_* constants of support.numerics, derived here):
 # * a unit quaternion q/‖q‖: the dot (γ₄, halved by the √), the √ and the ÷: ≤ 4u per component, ‖q̂‖ − 1 ≤ 4u;
 # * R(q̂) (entries 1 − 2(y² + z²), 2(xy − wz), …, or I + s·(…) with s = 2/‖q‖²): ≤ 8u per entry (entries ≤ 1),
 #   plus 2·ε for a q̂ of squared norm 1 + ε, so R is a rotation up to E_R ≤ 16u per entry;

@@ -76,7 +76,7 @@ ALLOWED_OPS: frozenset[tuple[str, str]] = frozenset(
 )  # fmt: skip
 """``(domain, op type)`` of every node ``export-onnx`` writes ("" is the standard ``ai.onnx`` domain): a file
 with any other node (control flow such as ``Loop``/``If``/``Scan``, which can run without end; a custom
-domain) was not made by the exporter and is refused before onnxruntime loads it. ``tests/test_onnx.py``
+domain) was not made by the exporter and is refused before onnxruntime loads it. ``tests/neural/test_onnx.py``
 checks every export against it, and the exporter refuses to write a file outside it."""
 
 OUTPUT_MEANINGS: dict[str, str] = {
