@@ -5,29 +5,30 @@ The script is for a machine with a GPU; here it runs its steps on the CPU with `
 
 from __future__ import annotations
 
-import importlib.util
+import importlib
 import os
 import shutil
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
 
 import pytest
 import torch
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "gpu_smoke.py"
+from support import REPO
+
+SMOKE = [sys.executable, "-m", "benchmarks.gpu_smoke"]  # run from the repository root, as the README says
 GPU_HERE = shutil.which("nvidia-smi") is not None or Path("/dev/nvidia0").exists() or torch.cuda.is_available()
 
 
 @pytest.fixture(scope="module")
-def smoke() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("gpu_smoke", SCRIPT)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["gpu_smoke"] = module  # dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
+def smoke() -> Iterator[ModuleType]:
+    """``benchmarks.gpu_smoke``, imported the way ``python -m benchmarks.gpu_smoke`` runs it (repository root first)."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.syspath_prepend(str(REPO))
+        yield importlib.import_module("benchmarks.gpu_smoke")
 
 
 def _rows(stdout: str) -> dict[str, list[str]]:
@@ -42,9 +43,9 @@ def _rows(stdout: str) -> dict[str, list[str]]:
 
 _RUN_SCRIPT = """
 import runpy, sys
-sys.argv = [sys.argv[1], *sys.argv[2:]]
+sys.argv = ["gpu_smoke", *sys.argv[1:]]
 try:
-    runpy.run_path(sys.argv[0], run_name="__main__")
+    runpy.run_module("benchmarks.gpu_smoke", run_name="__main__", alter_sys=True)
 except SystemExit as e:
     print("exit", e.code)
 print("torch imported:", "torch" in sys.modules)
@@ -53,14 +54,14 @@ print("torch imported:", "torch" in sys.modules)
 
 @pytest.mark.skipif(GPU_HERE, reason="an NVIDIA GPU is attached here")
 def test_without_a_gpu_it_says_so_and_exits_0_without_importing_torch() -> None:
-    run = subprocess.run([sys.executable, "-c", _RUN_SCRIPT, str(SCRIPT)], capture_output=True, text=True, timeout=60)
+    run = subprocess.run([sys.executable, "-c", _RUN_SCRIPT], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert run.stdout.splitlines() == ["no CUDA device: nothing to check", "exit 0", "torch imported: False"]
-    plain = subprocess.run([sys.executable, str(SCRIPT)], capture_output=True, text=True, timeout=60)
+    plain = subprocess.run(SMOKE, cwd=REPO, capture_output=True, text=True, timeout=60)
     assert (plain.returncode, plain.stdout.strip()) == (0, "no CUDA device: nothing to check")
 
 
 def test_help_imports_no_torch() -> None:
-    run = subprocess.run([sys.executable, "-c", _RUN_SCRIPT, str(SCRIPT), "--help"], capture_output=True, text=True,
+    run = subprocess.run([sys.executable, "-c", _RUN_SCRIPT, "--help"], cwd=REPO, capture_output=True, text=True,
                          timeout=60)  # fmt: skip
     assert "--tiny" in run.stdout and "--steps" in run.stdout
     assert run.stdout.splitlines()[-2:] == ["exit 0", "torch imported: False"]
@@ -69,9 +70,9 @@ def test_help_imports_no_torch() -> None:
 def test_cpu_tiny_run_prints_one_table_of_ok_rows(tmp_path: Path) -> None:
     """The real steps (reconstruct through the neural backend, bf16 train) in subprocesses, on the CPU."""
     run = subprocess.run(
-        [sys.executable, str(SCRIPT), "--device", "cpu", "--tiny", "--steps", "reconstruct,train", "--train-steps",
+        [*SMOKE, "--device", "cpu", "--tiny", "--steps", "reconstruct,train", "--train-steps",
          "2", "--workdir", str(tmp_path / "work")],
-        capture_output=True, text=True, timeout=600,
+        cwd=REPO, capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert run.returncode == 0, run.stdout + run.stderr[-3000:]
     assert run.stdout.count("| step | result | seconds | peak RSS MiB | note |") == 1
