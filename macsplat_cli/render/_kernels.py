@@ -98,6 +98,18 @@ def _tile_rect(t, tiles_x, tile, width, height):  # noqa: ANN001, ANN202
 
 
 @nb.njit(inline="always", **_JIT)
+def _gaussian_in_tile(g, means2d, conics, opacities, pixel_rect, x0, y0, x1, y1):  # noqa: ANN001, ANN202
+    """Gaussian ``g`` as both splat passes read it: its pixel rectangle clipped to the tile ``(gx0, gx1, gy0,
+    gy1)`` (upper bounds exclusive), centre ``(mx, my)``, conic ``(a, b, c)``, opacity and its alpha level."""
+    gx0 = max(pixel_rect[g, 0], x0)
+    gx1 = min(pixel_rect[g, 1] + 1, x1)
+    gy0 = max(pixel_rect[g, 2], y0)
+    gy1 = min(pixel_rect[g, 3] + 1, y1)
+    op = opacities[g]
+    return gx0, gx1, gy0, gy1, means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], op, _level(op)
+
+
+@nb.njit(inline="always", **_JIT)
 def _splat_forward(g, k, means2d, conics, opacities, features, pixel_rect, x0, y0, x1, y1, T, acc, lst, done):  # noqa: ANN001, ANN202
     """Composite Gaussian ``g`` (position ``k`` in the tile list) onto the tile's pixels not yet done: updates the
     tile's transmittance ``T``, accumulated features ``acc``, last-sample index ``lst`` and ``done`` in place.
@@ -105,17 +117,9 @@ def _splat_forward(g, k, means2d, conics, opacities, features, pixel_rect, x0, y
     tw = x1 - x0
     n_ch = features.shape[1]
     n_done = 0
-    gx0 = max(pixel_rect[g, 0], x0)
-    gx1 = min(pixel_rect[g, 1] + 1, x1)
-    gy0 = max(pixel_rect[g, 2], y0)
-    gy1 = min(pixel_rect[g, 3] + 1, y1)
-    mx = means2d[g, 0]
-    my = means2d[g, 1]
-    ca = conics[g, 0]
-    cb = conics[g, 1]
-    cc = conics[g, 2]
-    op = opacities[g]
-    level = _level(op)
+    gx0, gx1, gy0, gy1, mx, my, ca, cb, cc, op, level = _gaussian_in_tile(
+        g, means2d, conics, opacities, pixel_rect, x0, y0, x1, y1
+    )
     for py in range(gy0, gy1):
         dy = np.float32(py) + _HALF - my
         row = (py - y0) * tw - x0
@@ -216,17 +220,9 @@ def _splat_backward(g, k, means2d, conics, opacities, features, pixel_rect, x0, 
     Returns ``(d mean x, d mean y, d conic a, b, c, d opacity)``."""
     tw = x1 - x0
     n_ch = features.shape[1]
-    gx0 = max(pixel_rect[g, 0], x0)
-    gx1 = min(pixel_rect[g, 1] + 1, x1)
-    gy0 = max(pixel_rect[g, 2], y0)
-    gy1 = min(pixel_rect[g, 3] + 1, y1)
-    mx = means2d[g, 0]
-    my = means2d[g, 1]
-    ca = conics[g, 0]
-    cb = conics[g, 1]
-    cc = conics[g, 2]
-    op = opacities[g]
-    level = _level(op)
+    gx0, gx1, gy0, gy1, mx, my, ca, cb, cc, op, level = _gaussian_in_tile(
+        g, means2d, conics, opacities, pixel_rect, x0, y0, x1, y1
+    )
     v_mx = 0.0
     v_my = 0.0
     v_a = 0.0
