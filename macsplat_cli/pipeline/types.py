@@ -27,7 +27,9 @@ import numpy as np
 
 from ..cameras import Camera
 
-__all__ = ["DepthMap", "Features", "FocalEvidence", "IntrinsicsSource", "Matches", "TwoViewGeometry", "View"]
+__all__ = [
+    "DepthMap", "Features", "FocalEvidence", "IntrinsicsSource", "Matches", "PoseSource", "TwoViewGeometry", "View",
+]  # fmt: skip
 
 IntrinsicsSource = Literal["file", "focal", "exif", "prior", "estimated"]
 """Where a view's K came from: ``--intrinsics`` file, ``--focal``, EXIF 35 mm focal,
@@ -146,6 +148,10 @@ FocalEvidence = Literal["pointmap"]
 """What, besides the matches, a pose stage measured a prior view's focal length on (the neural backend: Weiszfeld
 on the network's point map); the acceptance then does not ask the matches for the focal."""
 
+PoseSource = Literal["matches", "pointmap"]
+"""What a pose was estimated from: the matches (the classical pose stage), or a network's point map (PnP); the
+acceptance tests either on the matches, and asks the matches for the pose's uncertainty only when it came from them."""
+
 
 @dataclass
 class TwoViewGeometry:
@@ -166,6 +172,7 @@ class TwoViewGeometry:
         focal_estimated: ``K0``/``K1`` replace the prior's focal of the views that had only the prior.
         focal_evidence: what besides the matches the focal was measured on; None: the matches only (or none).
         median_parallax_deg: the median parallax of the verified matches (°), when measured.
+        source: what the pose was estimated from.
     """
 
     R: np.ndarray
@@ -178,6 +185,7 @@ class TwoViewGeometry:
     focal_estimated: bool = False
     focal_evidence: FocalEvidence | None = None
     median_parallax_deg: float | None = None
+    source: PoseSource = "matches"
 
     def cam_to_world(self, view: int) -> np.ndarray:
         """Camera-to-world transform of ``view`` (0 or 1) in the camera-0 world. [4, 4]"""

@@ -243,7 +243,7 @@ class NeuralPose:
         return TwoViewGeometry(
             R=R, t=t, K0=K0, K1=K1, inliers=inl, diagnostics=info, doubts=doubts, focal_estimated=estimated,
             # the focal was measured on the point map, not the matches: the acceptance does not ask them for it
-            focal_evidence="pointmap" if estimated else None, median_parallax_deg=parallax,
+            focal_evidence="pointmap" if estimated else None, median_parallax_deg=parallax, source="pointmap",
         )  # fmt: skip
 
     @staticmethod

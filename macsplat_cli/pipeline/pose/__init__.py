@@ -3,7 +3,7 @@
 ==================  ===========================================================================================
 module              what it holds
 ==================  ===========================================================================================
-``config``          :class:`PoseConfig`, :class:`ConfidenceConfig`, :class:`PoseSearchConfig`: every threshold
+``config``          :class:`PoseConfig`, :class:`ConfidenceConfig`, :class:`EvidenceConfig`, :class:`PoseSearchConfig`
 ``geometry``        epipolar constraint, Sampson distance, triangulation, cheirality, decompositions
 ``robust``          OpenCV's MAGSAC++ estimators within their preconditions (essential, fundamental, homography)
 ``refit``           the one non-linear refit of (R, t[, focal]): LM on Cauchy-weighted Sampson distances
@@ -12,6 +12,8 @@ module              what it holds
 ``checks``          degenerate matches, too few inliers, no baseline, mirror images
 ``essential``       :func:`estimate_pose`, the classical pose (the ``pose`` slot's default)
 ``pnp``             :func:`pose_from_pointmap`, the neural backend's pose from a point map
+``evidence``        :func:`pose_evidence`: the a contrario test (NFA), the pose's uncertainty, GRIC, on the putative
+                    matches
 ``confidence``      :func:`assess_pose`, :func:`accept_pose`: the acceptance of any backend's pose
 ``tiebreak``        the plane tie-break of the wide-baseline tier
 ``search``          :class:`PoseSearch`: the tiers, guided re-matching and acceptance as one stage object
@@ -27,8 +29,9 @@ from __future__ import annotations
 
 from .checks import flipped_fraction
 from .confidence import accept_pose, assess_pose
-from .config import ConfidenceConfig, PoseConfig, PoseSearchConfig
+from .config import ConfidenceConfig, EvidenceConfig, PoseConfig, PoseSearchConfig
 from .essential import estimate_pose
+from .evidence import PoseEvidence, pose_evidence
 from .geometry import epipolar_fit, fundamental_from_pose, sampson_distance, triangulate
 from .pnp import PnPResult, pose_from_pointmap
 from .refit import Refit, refit_pose
@@ -41,10 +44,12 @@ __all__ = [
     "LOW_CONFIDENCE_HINT",
     "ConfidenceConfig",
     "Doubt",
+    "EvidenceConfig",
     "PlanePose",
     "PnPResult",
     "PoseConfidence",
     "PoseConfig",
+    "PoseEvidence",
     "PoseResult",
     "PoseSearch",
     "PoseSearchConfig",
@@ -60,6 +65,7 @@ __all__ = [
     "flipped_fraction",
     "fundamental_from_pose",
     "plane_poses",
+    "pose_evidence",
     "pose_from_pointmap",
     "refit_pose",
     "sampson_distance",

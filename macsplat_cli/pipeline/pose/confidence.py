@@ -20,7 +20,9 @@ hardly constrain it) or by parallax (a rotation without parallax, what a homogra
 Each check gives a score in [0, 1] that is 0.5 at its threshold (``x² / (x² + thr²)`` for a lower bound, the
 converse for an upper one); the confidence is the smallest. :func:`accept_pose` is the acceptance of a pose from any
 backend: the pose stage's doubts, the support minimum (``PoseConfig.min_inliers`` verified matches), then
-:func:`assess_pose`. Measured: benchmarks/history/pose.md.
+:func:`assess_pose`, then the evidence of the putative matches gathered before the pose (:func:`weigh_evidence`,
+:mod:`.evidence`: the a contrario test for every pose, the rotation's uncertainty for a pose estimated from the
+matches). Measured: benchmarks/history/pose.md.
 """
 
 from __future__ import annotations
@@ -28,17 +30,17 @@ from __future__ import annotations
 import math
 import time
 
-import cv2
 import numpy as np
 
 from ...metrics import rotation_angle_deg, rotation_error_deg
 from ..types import Matches, TwoViewGeometry, View
-from .config import ConfidenceConfig, PoseConfig
-from .geometry import fundamental_from_pose, sampson_distance
+from .config import ConfidenceConfig, EvidenceConfig, PoseConfig
+from .evidence import PoseEvidence, pose_evidence
+from .geometry import fundamental_from_pose, hull_share, sampson_distance
 from .refit import refit_pose
 from .result import Doubt, PoseConfidence
 
-__all__ = ["accept_pose", "assess_pose"]
+__all__ = ["acceptance_rule", "accept_pose", "assess_pose", "weigh_evidence"]
 
 
 def _upper(x: float, thr: float) -> float:
@@ -69,12 +71,6 @@ def _fit_set(
     if len(idx) > cfg.max_matches:
         idx = np.sort(np.random.default_rng(0).choice(idx, cfg.max_matches, replace=False))
     return e0[idx], e1[idx]
-
-
-def _hull_share(xy: np.ndarray, width: int, height: int) -> float:
-    if len(xy) < 3:
-        return 0.0
-    return float(cv2.contourArea(cv2.convexHull(np.ascontiguousarray(xy, np.float32)))) / float(width * height)
 
 
 def _focal_times(K: np.ndarray, k: float, unknown: bool) -> np.ndarray:
@@ -130,7 +126,7 @@ def _spread_and_parallax(
 ) -> None:
     """The spread and parallax checks (module docstring), into ``checks``, ``scores`` and ``doubts``."""
     inl = g.inliers
-    spread = min(_hull_share(inl.xy0, v0.width, v0.height), _hull_share(inl.xy1, v1.width, v1.height))
+    spread = min(hull_share(inl.xy0, v0.width, v0.height), hull_share(inl.xy1, v1.width, v1.height))
     checks["spread"] = spread
     if cfg.min_spread > 0:
         scores["spread"] = _lower(spread, cfg.min_spread)
@@ -210,6 +206,33 @@ def assess_pose(
                           seconds=time.perf_counter() - t0)  # fmt: skip
 
 
+def _evidence_doubts(
+    e: PoseEvidence, cfg: EvidenceConfig, scores: dict[str, float], *, from_matches: bool
+) -> list[Doubt]:
+    """The a contrario test and, for a pose estimated ``from_matches``, the uncertainty (:mod:`.evidence`) as
+    doubts, their scores into ``scores``. A pose from a point map (PnP on thousands of points) is not the matches'
+    estimate: their uncertainty is reported, not checked."""
+    doubts = []
+    scores["nfa"] = _lower(max(-e.log10_nfa, 0.0), -cfg.max_log10_nfa) if math.isfinite(e.log10_nfa) else 0.0
+    if not e.log10_nfa < cfg.max_log10_nfa:
+        doubts.append(Doubt("evidence", (
+            f"pose confidence low: the {e.putative} matches found before the pose do not single it out (log10 NFA "
+            f"{e.log10_nfa:.1f}, need below {cfg.max_log10_nfa:g}: random matches would agree with some pose as well)"
+        )))  # fmt: skip
+    three_sigma = 3.0 * e.rotation_sigma_deg
+    if not from_matches:
+        return doubts
+    scores["uncertainty"] = _upper(three_sigma, cfg.max_rotation_3sigma_deg)
+    if not three_sigma < cfg.max_rotation_3sigma_deg:
+        focal = "; the focal length is free" if e.focal_free else ""
+        doubts.append(Doubt("uncertainty", (
+            f"pose confidence low: the {e.inliers} matches that support the pose cover {100 * e.coverage:.0f} % of the "
+            f"photo and leave its rotation uncertain by ±{three_sigma:.1f}° (3σ{focal}); a pose needs "
+            f"±{cfg.max_rotation_3sigma_deg:g}°"
+        )))  # fmt: skip
+    return doubts
+
+
 def _support_doubts(geometry: TwoViewGeometry, pose: PoseConfig) -> list[Doubt]:
     """The pose's support in the matches, as doubts: at least ``pose.min_inliers`` verified matches.
 
@@ -239,22 +262,67 @@ def accept_pose(
         evidence: as for :func:`assess_pose`.
 
     Returns:
-        :class:`PoseConfidence`: ``doubts`` are the pose stage's, then the failed support minimum, then
-        :func:`assess_pose`'s (not repeating a message); ``score`` is :func:`assess_pose`'s (1 without it), 0 when
-        the support minimum fails; ``checks`` are :func:`assess_pose`'s.
+        :class:`PoseConfidence`: ``doubts`` are the pose stage's, then the failed support minimum, the a contrario
+        test's, :func:`assess_pose`'s (not repeating a message), and the uncertainty's; ``score`` is the smallest
+        check score (1 without checks), 0 when the support minimum fails; ``checks`` are :func:`assess_pose`'s and
+        :func:`weigh_evidence`'s measurements; ``evidence`` and ``rule`` what was weighed and how.
     """
     t0 = time.perf_counter()
+    found = None
     doubts = [Doubt("pose", str(d)) for d in geometry.doubts]
     support = _support_doubts(geometry, pose)
     doubts += support
     if config is not None:
         conf = assess_pose(v0, v1, geometry, config, evidence=evidence)
         score, checks = conf.score, conf.checks
+        more: list[Doubt] = []
+        if config.evidence is not None:
+            found, more, scores = weigh_evidence(v0, v1, geometry, evidence, config.evidence)
+            checks.update(found.checks())
+            score = min(score, *scores.values())
+        # the order a refusal names them in: the a contrario test, the checks (the focal's advice first among its
+        # causes), then the uncertainty they may explain
         seen = [d.message for d in doubts]
+        doubts += [d for d in more if d.check == "evidence"]
         doubts += [d for d in conf.doubts if d.message not in seen]
+        doubts += [d for d in more if d.check != "evidence"]
     else:
         score, checks = 1.0, {}
     if support:
         score = 0.0
     return PoseConfidence(score=float(score), ok=not doubts, doubts=doubts, checks=checks,
-                          seconds=time.perf_counter() - t0)  # fmt: skip
+                          seconds=time.perf_counter() - t0, evidence=found,
+                          rule=acceptance_rule(pose, config))  # fmt: skip
+
+
+def weigh_evidence(
+    v0: View, v1: View, geometry: TwoViewGeometry, putative: Matches | None, config: EvidenceConfig
+) -> tuple[PoseEvidence, list[Doubt], dict[str, float]]:
+    """The evidence of the ``putative`` matches for ``geometry`` (:func:`~.evidence.pose_evidence`; the verified
+    matches when None), its doubts and scores. ``v0, v1``: the views as loaded."""
+    found = pose_evidence(
+        v0, v1, geometry, putative if putative is not None else geometry.inliers, _focal_unknown(v0, v1, geometry),
+        config,
+    )  # fmt: skip
+    scores: dict[str, float] = {}
+    doubts = _evidence_doubts(found, config, scores, from_matches=geometry.source == "matches")
+    return found, doubts, scores
+
+
+def acceptance_rule(pose: PoseConfig, config: ConfidenceConfig | None) -> str:
+    """The acceptance rule in words: what a pose must satisfy to be written without a doubt."""
+    parts = ["no doubt from the pose stage", f"at least {pose.min_inliers} verified matches"]
+    if config is not None:
+        e = config.evidence
+        if e is not None:
+            parts += [
+                f"log10 NFA below {e.max_log10_nfa:g} on the tier's putative matches (gathered before the pose)",
+                f"rotation 3-sigma below {e.max_rotation_3sigma_deg:g} deg on them (a pose estimated from the matches)",
+            ]
+        parts += [
+            f"a refit on its verified matches moves the rotation less than {config.max_refit_rotation_deg:g} deg",
+            f"an unknown focal length leaves less than {config.max_focal_rotation_deg:g} deg of rotation uncertainty",
+            f"parallax over rotation at least {config.min_parallax_to_rotation:g} above "
+            f"{config.parallax_check_above_deg:g} deg of rotation",
+        ]
+    return "; ".join(parts)

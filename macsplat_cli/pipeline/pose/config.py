@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 from ..descriptors import SiftConfig
 
-__all__ = ["ConfidenceConfig", "PoseConfig", "PoseSearchConfig"]
+__all__ = ["ConfidenceConfig", "EvidenceConfig", "PoseConfig", "PoseSearchConfig"]
 
 
 @dataclass
@@ -110,6 +110,33 @@ class PoseConfig:
 
 
 @dataclass
+class EvidenceConfig:
+    """Thresholds of :func:`~.evidence.pose_evidence` and the acceptance built on it.
+
+    Args:
+        max_log10_nfa: a pose is meaningful when its log10 NFA is below this: at most one false alarm in
+            ``10^-max_log10_nfa`` pairs of random matches (a stated rate, not a tuned threshold).
+        max_rotation_3sigma_deg: the largest three-sigma rotation uncertainty of an accepted pose (°).
+        min_noise_px: the residuals' noise level is at least this (px): keypoints are located to no better than a
+            tenth of a pixel, and exact synthetic matches would otherwise claim an exact pose.
+        max_threshold_px: a residual above this (px) is no agreement at any threshold: the NFA's adaptive threshold
+            stays within a few pose-stage thresholds (at a larger one, the matches near the true epipolar lines
+            agree with any nearby pose better than chance does).
+        max_matches: the uncertainty uses at most this many of the NFA's inliers (a fixed-seed sample).
+        gric_lambda3: GRIC's bound on a residual's cost, in units of its degrees of freedom (Torr's 2).
+        homography_threshold_px: the homography of the GRIC comparison is fitted by RANSAC with this threshold.
+    """
+
+    max_log10_nfa: float = -3.0
+    max_rotation_3sigma_deg: float = 2.0
+    min_noise_px: float = 0.1
+    max_threshold_px: float = 4.0
+    max_matches: int = 2000
+    gric_lambda3: float = 2.0
+    homography_threshold_px: float = 1.5
+
+
+@dataclass
 class ConfidenceConfig:
     """Thresholds of :func:`~.confidence.assess_pose`.
 
@@ -135,6 +162,8 @@ class ConfidenceConfig:
             fewer residuals is too noisy to see a 10 % rise).
         min_refit_matches: the re-fit checks need at least this many verified matches (a fundamental matrix's
             eight).
+        evidence: the a contrario test, the uncertainty and GRIC on the putative matches
+            (:func:`~.evidence.pose_evidence`); None: off.
         min_rise: the residual rise is floored at this before the plausible focal change is extrapolated from it
             (no rise at all would claim any focal length fits).
     """
@@ -153,6 +182,7 @@ class ConfidenceConfig:
     min_evidence: int = 200
     min_refit_matches: int = 8
     min_rise: float = 1e-3
+    evidence: EvidenceConfig | None = field(default_factory=EvidenceConfig)
 
 
 @dataclass

@@ -22,6 +22,7 @@ __all__ = [
     "epipolar_fit",
     "fundamental_from_pose",
     "homog",
+    "hull_share",
     "line_spread_px",
     "parallax_deg",
     "same_pose",
@@ -151,3 +152,10 @@ def line_spread_px(xy: np.ndarray) -> float:
         return 0.0
     s = np.linalg.svd(xy - xy.mean(0), compute_uv=False)
     return float(s[-1]) / math.sqrt(len(xy))
+
+
+def hull_share(xy: np.ndarray, width: int, height: int) -> float:
+    """The share of a ``width × height`` photo that the convex hull of the points ``xy`` [M, 2] covers."""
+    if len(xy) < 3:
+        return 0.0
+    return float(cv2.contourArea(cv2.convexHull(np.ascontiguousarray(xy, np.float32)))) / float(width * height)

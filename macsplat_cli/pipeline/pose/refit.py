@@ -18,7 +18,10 @@ import numpy as np
 from ...camera_math import scale_focal
 from .geometry import fundamental_from_pose, sampson_distance
 
-__all__ = ["CHECK_GN", "POSE_LM", "SENSITIVITY_LM", "FocalFit", "Refit", "RefitSchedule", "refit_pose"]
+__all__ = [
+    "CHECK_GN", "MAD_TO_STD", "POSE_LM", "SENSITIVITY_LM", "FocalFit", "Refit", "RefitSchedule", "apply_step",
+    "pose_jacobian", "refit_pose",
+]  # fmt: skip
 
 MAD_TO_STD = 1.4826
 """The standard deviation of a normal distribution per unit of its median absolute deviation."""
@@ -118,23 +121,11 @@ def refit_pose(
     n_par = 6 if focal is not None else 5
     h = schedule.fd_step
 
-    def intrinsics(s_: float) -> tuple[np.ndarray, np.ndarray]:
-        return (scale_focal(K0, s_) if unknown[0] else K0), (scale_focal(K1, s_) if unknown[1] else K1)
-
     def residuals(R_: np.ndarray, t_: np.ndarray, s_: float) -> np.ndarray:
-        return sampson_distance(fundamental_from_pose(R_, t_, *intrinsics(s_)), xy0, xy1)
-
-    def apply(theta: np.ndarray, R_: np.ndarray, t_: np.ndarray, s_: float) -> tuple[np.ndarray, np.ndarray, float]:
-        dR, _ = cv2.Rodrigues(theta[:3].reshape(3, 1))
-        basis = np.linalg.svd(t_.reshape(1, 3))[2][1:]  # two unit vectors ⟂ t
-        t_new = t_ + theta[3:5] @ basis
-        return dR @ R_, t_new / np.linalg.norm(t_new), s_ + (theta[5] if focal is not None else 0.0)
+        return sampson_distance(fundamental_from_pose(R_, t_, *_intrinsics(K0, K1, s_, unknown)), xy0, xy1)
 
     def jacobian(R_: np.ndarray, t_: np.ndarray, s_: float) -> np.ndarray:
-        steps = np.concatenate([np.eye(n_par), -np.eye(n_par)]) * h
-        Fs = [fundamental_from_pose(a, b, *intrinsics(c)) for a, b, c in (apply(d, R_, t_, s_) for d in steps)]
-        r_ = sampson_distance(np.stack(Fs), xy0, xy1)  # [2·n_par, M], central differences
-        return ((r_[:n_par] - r_[n_par:]) / (2 * h)).T
+        return pose_jacobian(R_, t_, K0, K1, xy0, xy1, log_focal=s_, unknown=unknown, n_par=n_par, step=h)
 
     def cost(r_: np.ndarray, s_: float) -> float:
         c = float(np.sum(np.log1p((r_ / scale_px) ** 2)))
@@ -158,7 +149,7 @@ def refit_pose(
                 step = -np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), g)
             except np.linalg.LinAlgError:
                 break
-            cand = apply(step, R, t, s)
+            cand = apply_step(step, R, t, s)
             r_c = residuals(*cand)
             c_c = cost(r_c, cand[2])
             if c_c < current:
@@ -172,6 +163,35 @@ def refit_pose(
             break
     std_s = 1.0 / math.sqrt(info_s) if info_s > 0 else math.inf
     return Refit(R, t, s, std_s, r, noise)
+
+
+def _intrinsics(K0: np.ndarray, K1: np.ndarray, s: float, unknown: tuple[bool, bool]) -> tuple[np.ndarray, np.ndarray]:
+    """``K0, K1`` with the focal of each ``unknown`` view scaled by ``exp(s)``."""
+    return (scale_focal(K0, s) if unknown[0] else K0), (scale_focal(K1, s) if unknown[1] else K1)
+
+
+def apply_step(theta: np.ndarray, R: np.ndarray, t: np.ndarray, s: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """The pose after the parameter step ``theta`` [5] or [6] (module docstring): ``(R, t, log focal scale)``."""
+    dR, _ = cv2.Rodrigues(theta[:3].reshape(3, 1))
+    basis = np.linalg.svd(t.reshape(1, 3))[2][1:]  # two unit vectors ⟂ t
+    t_new = t + theta[3:5] @ basis
+    return dR @ R, t_new / np.linalg.norm(t_new), s + (theta[5] if len(theta) > 5 else 0.0)
+
+
+def pose_jacobian(
+    R: np.ndarray, t: np.ndarray, K0: np.ndarray, K1: np.ndarray, xy0: np.ndarray, xy1: np.ndarray, *,
+    log_focal: float = 0.0, unknown: tuple[bool, bool] = (True, True), n_par: int = 5, step: float = 1e-6,
+) -> np.ndarray:  # fmt: skip
+    """The Jacobian of the signed Sampson distances of ``xy0, xy1`` [M, 2] over the pose's parameters (rotation 3,
+    translation direction 2, and with ``n_par = 6`` the log focal scale of the ``unknown`` views), by central
+    differences with ``step``, all ``2 · n_par`` poses in one stacked call. [M, n_par]"""
+    steps = np.concatenate([np.eye(n_par), -np.eye(n_par)]) * step
+    Fs = [
+        fundamental_from_pose(a, b, *_intrinsics(K0, K1, c, unknown))
+        for a, b, c in (apply_step(d, R, t, log_focal) for d in steps)
+    ]
+    r_ = sampson_distance(np.stack(Fs), xy0, xy1)  # [2·n_par, M], central differences
+    return ((r_[:n_par] - r_[n_par:]) / (2 * step)).T
 
 
 def _focal_information(

@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 from ..types import Features, Matches, TwoViewGeometry, View
+from .evidence import PoseEvidence
 
 __all__ = ["Doubt", "DoubtCheck", "PoseConfidence", "PoseResult", "Tier"]
 
@@ -19,9 +20,10 @@ or the plane tie-break after the wide tier (its matches guided along the winning
 WIDE_TIERS: tuple[Tier, ...] = ("wide", "wide+plane-tiebreak")
 """The tiers the report names (``descriptors_tier``)."""
 
-DoubtCheck = Literal["pose", "support", "spread", "parallax", "refit", "focal"]
+DoubtCheck = Literal["pose", "support", "spread", "parallax", "refit", "focal", "evidence", "uncertainty"]
 """Who doubts: the pose stage itself (either backend), the support minimum (verified matches), or a check of
-:func:`~.confidence.assess_pose` (match spread, parallax over rotation, the re-fit, the focal length)."""
+:func:`~.confidence.assess_pose` (match spread, parallax over rotation, the re-fit, the focal length), or the evidence
+of the putative matches (:func:`~.evidence.pose_evidence`: the a contrario test, the rotation's uncertainty)."""
 
 
 @dataclass(frozen=True)
@@ -50,6 +52,8 @@ class PoseConfidence:
         doubts: one per failed check, in order.
         checks: the measurements, by name.
         seconds: time spent.
+        evidence: the a contrario test, the uncertainty and GRIC on the putative matches, when measured.
+        rule: the acceptance rule that was applied, in words (for the cameras file).
     """
 
     score: float
@@ -57,6 +61,8 @@ class PoseConfidence:
     doubts: list[Doubt] = field(default_factory=list)
     checks: dict[str, float] = field(default_factory=dict)
     seconds: float = 0.0
+    evidence: PoseEvidence | None = None
+    rule: str = ""
 
     @property
     def reasons(self) -> list[str]:
@@ -129,19 +135,43 @@ class PoseResult:
         if self.confidence is not None:
             out["confidence"] = self.confidence.score
             out["confidence_checks"] = self.confidence.checks
+            out["evidence"] = self.evidence_summary()
         out["doubts"] = [d.message for d in self.doubts]
         if self.accepted_low_confidence:
             out["accepted_low_confidence"] = True
         return out
 
+    def evidence_summary(self) -> dict[str, Any]:
+        """What the acceptance decided on: the tier, its putative matches, the pose's inliers among them, the log10
+        NFA, their coverage, the rotation's uncertainty, whether the support is planar, and each check's outcome
+        (``passed``: names; ``failed``: the doubts' check names)."""
+        out: dict[str, Any] = {"tier": self.tier, "guided": self.guided, "verified": len(self.geometry.inliers)}
+        conf = self.confidence
+        e = conf.evidence if conf is not None else None
+        if e is not None:
+            out.update(
+                putative_matches=e.putative, inliers=e.inliers, log10_nfa=e.log10_nfa, threshold_px=e.threshold_px,
+                coverage=e.coverage, rotation_sigma_deg=e.rotation_sigma_deg, planar_support=e.planar,
+            )  # fmt: skip
+        if conf is not None:
+            out["rule"] = conf.rule
+        out["failed"] = sorted({d.check for d in self.doubts})
+        return out
+
     def camera_confidence(self) -> dict[str, Any] | None:
         """The cameras file's ``pose_confidence`` (None when the pose was not assessed and has no doubts):
-        ``score`` (None when not assessed), ``checks``, ``doubts`` and ``accepted_low_confidence``."""
+        ``score`` (None when not assessed), ``log10_nfa`` and ``acceptance_rule`` (when assessed), ``checks``,
+        ``doubts`` and ``accepted_low_confidence``."""
         if self.confidence is None and not self.doubts:
             return None
+        conf = self.confidence
+        assessed = {} if conf is None else {
+            "log10_nfa": conf.evidence.log10_nfa if conf.evidence is not None else None, "acceptance_rule": conf.rule,
+        }  # fmt: skip
         return {
-            "score": self.confidence.score if self.confidence is not None else None,
-            "checks": dict(self.confidence.checks) if self.confidence is not None else {},
+            "score": conf.score if conf is not None else None,
+            **assessed,
+            "checks": dict(conf.checks) if conf is not None else {},
             "doubts": [d.message for d in self.doubts],
             "accepted_low_confidence": self.accepted_low_confidence,
         }

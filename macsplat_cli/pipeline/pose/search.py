@@ -3,11 +3,15 @@
 1. Descriptor tiers: the primary descriptors → matching → pose; when they verify fewer than
    ``fallback_min_inliers`` matches (or fail), the fallback descriptors, kept when they verify more; when neither
    gives a pose, the wide-baseline descriptors, and when their pose fails, the plane tie-break
-   (:func:`~.tiebreak.plane_tiebreak`).
+   (:func:`~.tiebreak.plane_tiebreak`). A tier's pose that its own putative matches do not support (the a contrario
+   test and the uncertainty of :func:`~.confidence.weigh_evidence`) does not stop the search: the later tiers run,
+   and the first whose pose their matches support replaces it.
 2. Guided re-matching: with fewer than ``guided_below`` verified matches, every keypoint is matched again along
-   the pose's epipolar lines and the pose re-estimated, kept if it verifies more and stays near.
-3. Acceptance (:func:`~.confidence.accept_pose`): the pose stage's doubts, the support minimum and the checks; a
-   doubted pose is refused unless ``accept_low_confidence``.
+   the pose's epipolar lines and the pose re-estimated, kept if it verifies more and stays near. Guided matches
+   refine a pose; they are never evidence for accepting it.
+3. Acceptance (:func:`~.confidence.accept_pose`): the pose stage's doubts, the support minimum, the checks, and the
+   evidence of the tier's putative matches (gathered before the pose); a doubted pose is refused unless
+   ``accept_low_confidence``.
 4. The views whose prior focal the pose estimated become new, self-calibrated :class:`View` objects.
 
 Measured: benchmarks/history/pose.md.
@@ -26,7 +30,7 @@ from ...metrics import rotation_error_deg, translation_direction_error_deg
 from ..matching import guided_matches
 from ..slots import DescribeStage, MatchStage, PoseStage
 from ..types import Features, Matches, TwoViewGeometry, View
-from .confidence import accept_pose
+from .confidence import accept_pose, weigh_evidence
 from .config import PoseConfig, PoseSearchConfig
 from .geometry import fundamental_from_pose
 from .result import Doubt, PoseConfidence, PoseResult, Tier
@@ -142,33 +146,48 @@ class PoseSearch:
         return _Attempt(geometry, failure, feats, matches, tier)
 
     def _tiers(self, views: list[View], pair: Any, timed: StageTimer) -> _Attempt:
-        """The first tier that gives a pose (module docstring, 1).
+        """The tier whose pose stands (module docstring, 1): the first that gives a pose, unless the putative
+        matches do not support it (:func:`~.confidence.weigh_evidence`): then the later tiers run too, and the
+        first of them whose pose they support replaces it.
 
         Raises:
-            ReconstructionError: none does: the fallback tier's failure when it ran, else the primary's (the wide
-                tier's is only logged).
+            ReconstructionError: none gives a pose: the fallback tier's failure when it ran, else the primary's (the
+                wide tier's is only logged).
         """
         c = self.config
         best = primary = self._chain(views, pair, timed, self.describe, "primary", "")
         n_verified = len(best.geometry.inliers) if best.geometry is not None else 0
-        if self.fallback is not None and n_verified < c.fallback_min_inliers:
-            logger.debug("%d verified matches (< %d): retrying with %s", n_verified, c.fallback_min_inliers,
-                         self.fallback.name)  # fmt: skip
+        doubted = best.geometry is not None and not self._credible(views, best)
+        if self.fallback is not None and (n_verified < c.fallback_min_inliers or doubted):
+            logger.debug("%d verified matches (< %d) or a pose its matches do not support: retrying with %s",
+                         n_verified, c.fallback_min_inliers, self.fallback.name)  # fmt: skip
             alt = self._chain(views, pair, timed, self.fallback, "fallback", " (fallback)")
-            if alt.geometry is not None and len(alt.geometry.inliers) > n_verified:
-                best = alt
+            if alt.geometry is not None:
+                alt_ok = self._credible(views, alt)
+                more = len(alt.geometry.inliers) > n_verified
+                if best.geometry is None or (doubted and alt_ok) or (more and (alt_ok or doubted)):
+                    best, doubted = alt, not alt_ok
             elif best.geometry is None:
                 best = dataclasses.replace(best, failure=alt.failure or best.failure)
-        if self.wide is not None and best.geometry is None:
+        if self.wide is not None and (best.geometry is None or doubted):
             wide = self._wide(views, primary.features, pair, timed)
-            if wide.geometry is not None:  # else the chain's own failure stands (the tier's is logged)
+            if wide.geometry is not None and (best.geometry is None or self._credible(views, wide)):
                 best = wide
             else:
-                logger.debug("wide-baseline tier: %s", wide.failure)
+                logger.debug("wide-baseline tier: %s", wide.failure or "its pose is not supported either")
         if best.geometry is None:
             assert best.failure is not None
             raise best.failure
         return best
+
+    def _credible(self, views: list[View], attempt: _Attempt) -> bool:
+        """The tier's putative matches support its pose (the a contrario test and the uncertainty; True when the
+        acceptance does not weigh evidence)."""
+        cfg = self.config.confidence
+        if cfg is None or cfg.evidence is None or attempt.geometry is None:
+            return True
+        _, doubts, _ = weigh_evidence(views[0], views[1], attempt.geometry, attempt.matches, cfg.evidence)
+        return not doubts
 
     def _wide(self, views: list[View], primary: list[Features], pair: Any, timed: StageTimer) -> _Attempt:
         """The second fallback tier: wide-baseline descriptors, matching and pose; when that pose fails, the

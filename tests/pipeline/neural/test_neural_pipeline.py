@@ -566,8 +566,8 @@ def test_fusion_auto_skips_dinov3_while_matches_verify_and_runs_it_on_demand(
     scene: Scene, ckpts: dict[str, Path], tmp_path: Path
 ) -> None:
     """``--quality fast`` (fusion "auto"): ``forward_unfused`` + ``fuse_descriptors`` is ``forward`` exactly;
-    with enough verified matches DINOv3 never runs and the report says why; with too few, the fusion runs on
-    demand as the descriptor fallback and its descriptors are the ones "always" gives."""
+    with enough verified matches (and a pose that stands) DINOv3 never runs and the report says why; with too few,
+    the fusion runs on demand as the descriptor fallback and its descriptors are the ones "always" gives."""
     predictor = load_pair_predictor(weights=ckpts["mast3r"], dino=ckpts["dino"], fusion=ckpts["fusion"])
     img = torch.rand(2, 3, 64, 96, generator=torch.Generator().manual_seed(0))
     with torch.no_grad():
@@ -587,6 +587,10 @@ def test_fusion_auto_skips_dinov3_while_matches_verify_and_runs_it_on_demand(
         assert len(calls) == 1
         fast = _accepting(EngineConfig(backend="neural", quality="fast"))
         fast.pipeline.search.fallback_min_inliers = 0  # every pair verifies "enough": the fusion is never needed
+        # ... and its pose stands (random weights give a pose that the matches do not single out: a doubted pose
+        # tries the fallback tier too)
+        assert fast.pipeline.search.confidence is not None
+        fast.pipeline.search.confidence.evidence = None
         skip = build_pipeline(fast, Models(predictor=predictor))
         rec_skip = skip.run([scene.a, scene.b])
         assert len(calls) == 1  # DINOv3 did not run

@@ -16,7 +16,9 @@ import pytest
 from macsplat_cli.errors import ReconstructionError
 from macsplat_cli.pipeline.pose import (
     LOW_CONFIDENCE_HINT,
+    ConfidenceConfig,
     Doubt,
+    EvidenceConfig,
     PoseConfig,
     PoseResult,
     PoseSearch,
@@ -179,3 +181,41 @@ def test_report_is_built_from_the_typed_fields() -> None:
     assert wide.report()["descriptors_tier"] == "wide+plane-tiebreak" and wide.report()["plane_tiebreak"] == [300, 100]
     guided = dataclasses.replace(wide, guided=True)
     assert "descriptors_tier" not in guided.report() and "plane_tiebreak" not in guided.report()
+
+
+class Consistent(Describe):
+    """Features whose index-wise matches agree with the stub pose (R = I, t along x: a match moves right along its
+    row), spread over the photo."""
+
+    def __call__(self, views: list[View], pair: object = None) -> list[Features]:
+        self.calls += 1
+        rng = np.random.default_rng(7)
+        xy0 = rng.uniform((0, 0), (W - 12, H), (self.n, 2))
+        xy1 = xy0 + np.c_[rng.uniform(1.0, 10.0, self.n), np.zeros(self.n)]
+        return [Features(xy, np.ones((self.n, 4), np.float32), np.ones(self.n, np.float32)) for xy in (xy0, xy1)]
+
+
+def test_a_tier_whose_matches_do_not_support_its_pose_lets_the_next_one_run() -> None:
+    """Issue 25: the primary tier verifies plenty (no fallback by count), but its own putative matches do not
+    single the pose out (random matches: the a contrario test fails); the fallback tier runs and its pose, which
+    its matches support, stands. The rotation's uncertainty is not gated here (64×48 photos)."""
+    lenient = ConfidenceConfig(evidence=EvidenceConfig(max_rotation_3sigma_deg=360.0))
+    cfg = PoseSearchConfig(confidence=lenient, guided_band_px=None, fallback_min_inliers=10, accept_low_confidence=True)
+    search = PoseSearch(
+        cfg, PoseConfig(), describe=Describe("primary", 200), match=match, pose=Pose(10),
+        fallback=Consistent("fallback", 80), wide=Describe("wide", 60),
+    )  # fmt: skip
+    result = search(_views("file"))
+    assert result.tier == "fallback" and search.wide.calls == 0  # type: ignore[union-attr]
+    assert result.confidence is not None and result.confidence.evidence is not None
+    assert result.confidence.evidence.log10_nfa < EvidenceConfig().max_log10_nfa
+    assert "evidence" not in {d.check for d in result.doubts}
+    summary = result.report()["evidence"]
+    assert summary["tier"] == "fallback" and summary["putative_matches"] == 80 and "log10 NFA" in summary["rule"]
+    # the fallback's matches are random too: nothing supports a pose; the wide tier runs, and the refusal names
+    # the figure that failed
+    search.fallback = Describe("fallback", 80)
+    search.config = dataclasses.replace(cfg, accept_low_confidence=False)
+    with pytest.raises(ReconstructionError, match=r"matches found before the pose do not single it out \(log10 NFA"):
+        search(_views("file"))
+    assert search.wide.calls == 1  # type: ignore[union-attr]
