@@ -160,6 +160,8 @@ def test_exact_point_maps_are_accepted(scene: Scene) -> None:
     assert pose is not None and pose.doubts == [] and not pose.accepted_low_confidence
     conf = pose.confidence
     assert conf is not None and conf.score > 0.5 and "refit_rotation_deg" in conf.checks
+    # the same a contrario test as a classical pose, on the fused descriptors' matches (issue 25)
+    assert conf.evidence is not None and conf.evidence.log10_nfa < -3 and rec.geometry.source == "pointmap"
     assert syn.pose_errors(rec.geometry.R, rec.geometry.t, scene.R, scene.t)[0] < 0.05
 
 

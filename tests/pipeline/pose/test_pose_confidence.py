@@ -216,6 +216,13 @@ def test_cli_good_pair_is_accepted_with_its_confidence(
     assert cams.pose_confidence is not None and cams.pose_confidence["score"] == pytest.approx(pose["confidence"])
     assert cams.pose_confidence["accepted_low_confidence"] is False
     assert "pose check" in err and "confidence" in err
+    # what the acceptance weighed (issue 25): the tier's putative matches, the NFA, the rule
+    ev = pose["evidence"]
+    assert ev["tier"] == "primary" and ev["failed"] == [] and ev["log10_nfa"] < -3
+    assert 0 < ev["inliers"] <= ev["putative_matches"] and 0 < ev["coverage"] <= 1
+    assert 3 * ev["rotation_sigma_deg"] < 2 and "log10 NFA below -3" in ev["rule"]
+    assert cams.pose_confidence["log10_nfa"] == pytest.approx(ev["log10_nfa"])
+    assert cams.pose_confidence["acceptance_rule"] == ev["rule"]
 
 
 def test_cli_refuses_a_wrong_wide_pose_and_writes_it_on_request(
