@@ -27,7 +27,6 @@ import functools
 import json
 import math
 import tempfile
-import time
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
@@ -35,76 +34,27 @@ from typing import Any
 import numpy as np
 
 from benchmarks._common import progress, write_json
+from benchmarks._pose_cases import outcome, pose_case
 from macsplat_cli.cameras import CameraSet, save_cameras
 from macsplat_cli.datasets import Frame
 from macsplat_cli.datasets import synthetic as S
 from macsplat_cli.datasets.co3d import load_co3d_json
-from macsplat_cli.errors import MacsplatError
 from macsplat_cli.images import save_image
-from macsplat_cli.metrics import rotation_error_deg, translation_direction_error_deg
-from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig
-from macsplat_cli.pipeline.views import ViewConfig, load_views
+from macsplat_cli.metrics import rotation_error_deg
+from macsplat_cli.pipeline.run import ReconstructConfig
+from macsplat_cli.pipeline.views import ViewConfig
 
-RIGHT_DEG = 5.0
 CO3D_PAIRS = [
     (0, 1), (2, 5), (3, 4), (16, 18), (14, 17), (1, 4), (0, 5), (14, 19), (13, 15), (0, 15), (4, 6), (5, 6),
     (12, 13), (0, 14), (1, 15), (2, 6), (5, 16), (5, 7), (0, 6), (0, 13), (3, 7), (6, 18), (5, 13), (0, 7),
 ]  # fmt: skip
 
 
-class _Stop(Exception):
-    pass
-
-
-class _StopAtDepth:
-    """A depth stage that records the views and the geometry and stops the run (nothing after the pose)."""
-
-    name = "stop"
-
-    def __init__(self) -> None:
-        self.geometry: Any = None
-
-    def __call__(self, views: Any, geometry: Any, pair: Any) -> Any:
-        self.geometry = geometry
-        raise _Stop
-
-
 def run_case(paths: list[Path], cfg: ReconstructConfig, R_gt: np.ndarray, t_gt: np.ndarray) -> dict[str, Any]:
-    if hasattr(cfg, "search"):
-        cfg.search.accept_low_confidence = True
-    elif hasattr(cfg, "accept_low_confidence"):  # a checkout before the pose search object (issue 24)
-        cfg.accept_low_confidence = True
-    stop = _StopAtDepth()
-    pipe = Pipeline(cfg, depth=stop)
-    t0 = time.perf_counter()
-    try:
-        if hasattr(pipe, "search"):  # the pose search alone: nothing after the pose
-            result = pipe.search(load_views(paths, cfg.views))
-            g, conf = result.geometry, result.confidence
-            doubts = [d.message for d in result.doubts]
-            confidence, checks = (conf.score, dict(conf.checks)) if conf is not None else (None, {})
-            spent = conf.seconds if conf is not None else 0.0
-        else:
-            try:
-                pipe.run(paths)
-            except _Stop:
-                pass
-            g = stop.geometry
-            info = g.info
-            doubts, confidence = list(info.get("doubts", [])), info.get("confidence")
-            checks, spent = dict(info.get("confidence_checks", {})), 0.0
-    except MacsplatError as e:
-        return {"failed": str(e), "time_s": time.perf_counter() - t0, "confidence_s": 0.0}
-    return {
-        "rot": rotation_error_deg(g.R, R_gt),
-        "tdir": translation_direction_error_deg(g.t, t_gt),
-        "doubts": doubts,
-        "confidence": confidence,
-        "checks": checks,
-        "inliers": len(g.inliers),
-        "time_s": time.perf_counter() - t0,
-        "confidence_s": spent,
-    }
+    r = pose_case(paths, cfg, R_gt, t_gt)
+    r.pop("doubt_checks", None)  # this benchmark's records stay as they were (``compare_json``)
+    r.pop("tier", None)
+    return r
 
 
 def synthetic_cases(angles: list[float], seeds: list[int]) -> list[dict[str, Any]]:
@@ -153,14 +103,6 @@ def prepare(
         save_cameras(tmp / f"{key}.json", CameraSet(cams))
         cfg.views = ViewConfig(intrinsics=tmp / f"{key}.json")
     return paths, cfg, R, t
-
-
-def outcome(r: dict[str, Any], *, refusals: bool) -> str:
-    if "failed" in r:
-        return "refused"
-    if refusals and r.get("doubts"):
-        return "refused"
-    return "right" if r["rot"] < RIGHT_DEG else "wrong"
 
 
 def _band(case: dict[str, Any]) -> str:

@@ -9,7 +9,9 @@ pairs with a known baseline (:func:`orbit_pair`, :func:`forward_pair`,
 (:func:`relative_pose`, :func:`pose_errors`) make two-view reconstruction
 measurable; :func:`transfer_points` gives exact correspondences and
 :func:`write_dataset` writes a dataset folder,
-:func:`write_scannetpp` a ScanNet++-layout tree.
+:func:`write_scannetpp` a ScanNet++-layout tree. The built-in scenes
+(:func:`make_scene`, :data:`SCENE_KINDS`): a room, an object on a table, small
+things on a large table (``tabletop``) and an outdoor square (``outdoor``).
 
 **World.** OpenCV-style: y points *down* (floors are at larger y than
 ceilings), units are metres.
@@ -19,7 +21,9 @@ metres; its texture is a function of ``(u, v)`` only, so it is fixed on the
 surface and identical in every view. A textured surface is its ``albedo`` plus
 several octaves of coloured value noise and a few thousand random discs, rings,
 rectangles, triangles and lines per square metre (at ``scale = 1``),
-deterministic from the texture's seed; ``textured=False`` gives flat colours.
+deterministic from the texture's seed; ``textured=False`` gives flat colours; a
+periodic pattern (bricks, tiles, a grid) repeats one tile exactly, as the large
+surfaces of a scene made with ``repetitive=True`` do.
 Textures are rasterised once per surface (a few millimetres per texel, at most
 :data:`MAX_TEXTURE_SIZE` texels a side), cached on the primitive, and sampled
 bilinearly.
@@ -46,12 +50,26 @@ from .orbits import (
 from .primitives import Box, Primitive, Quad, Sphere, rotation_about
 from .raycast import RayHits, SyntheticView, cast_rays, render, transfer_points
 from .scannetpp import write_scannetpp
-from .scenes import Lighting, Scene, SceneKind, make_scene, object_scene, room_scene
-from .textures import MAX_TEXTURE_SIZE, Texture
+from .scenes import (
+    SCENE_KINDS,
+    SCENE_LAYOUTS,
+    Lighting,
+    Scene,
+    SceneKind,
+    make_scene,
+    object_scene,
+    outdoor_scene,
+    room_scene,
+    tabletop_scene,
+)
+from .textures import MAX_TEXTURE_SIZE, PERIODIC_PATTERNS, Texture, TexturePattern
 from .writer import write_dataset
 
 __all__ = [
     "MAX_TEXTURE_SIZE",
+    "PERIODIC_PATTERNS",
+    "SCENE_KINDS",
+    "SCENE_LAYOUTS",
     "Box",
     "Lighting",
     "Primitive",
@@ -62,6 +80,7 @@ __all__ = [
     "Sphere",
     "SyntheticView",
     "Texture",
+    "TexturePattern",
     "cast_rays",
     "forward_pair",
     "intrinsics",
@@ -70,12 +89,14 @@ __all__ = [
     "object_scene",
     "orbit_cameras",
     "orbit_pair",
+    "outdoor_scene",
     "pose_errors",
     "pure_rotation_pair",
     "relative_pose",
     "render",
     "room_scene",
     "rotation_about",
+    "tabletop_scene",
     "transfer_points",
     "write_dataset",
     "write_scannetpp",

@@ -16,7 +16,7 @@ from ...cameras import Camera
 from ...errors import InputError
 from ...metrics import rotation_error_deg, translation_direction_error_deg
 from .primitives import _vec3, rotation_about
-from .scenes import _OBJECT_LAYOUT, _ROOM_LAYOUT, Scene, SceneKind
+from .scenes import SCENE_KINDS, SCENE_LAYOUTS, Scene, SceneKind
 
 __all__ = [
     "forward_pair",
@@ -85,12 +85,9 @@ def look_at_camera(
 def _scene_layout(scene: SceneKind | Scene) -> tuple[np.ndarray, float, float]:
     if isinstance(scene, Scene):
         return scene.target.copy(), float(scene.view_distance), float(scene.view_elevation_deg)
-    if scene == "room":
-        target, dist, elev = _ROOM_LAYOUT
-    elif scene == "object":
-        target, dist, elev = _OBJECT_LAYOUT
-    else:
-        raise InputError(f"unknown synthetic scene kind {scene!r}; use 'room' or 'object'")
+    if scene not in SCENE_LAYOUTS:
+        raise InputError(f"unknown synthetic scene kind {scene!r}; use one of {', '.join(SCENE_KINDS)}")
+    target, dist, elev = SCENE_LAYOUTS[scene]
     return target.copy(), dist, elev
 
 
@@ -114,7 +111,7 @@ def orbit_cameras(
     """Cameras on a circle around the scene's target, all looking at it (no jitter).
 
     Args:
-        scene: a scene kind (``"room"``/``"object"``) or a :class:`Scene` (its
+        scene: a scene kind (:data:`~.scenes.SceneKind`) or a :class:`Scene` (its
             ``target``, ``view_distance``, ``view_elevation_deg``).
         azimuths_deg: azimuth of each camera about the vertical axis through the target
             (0: on the −z side, looking towards +z).
@@ -147,6 +144,7 @@ def orbit_pair(
     seed: int = 0,
     jitter: bool = True,
     names: tuple[str, str] = ("view0", "view1"),
+    elevation_deg: float | None = None,
 ) -> tuple[Camera, Camera]:
     """Two cameras looking at the scene's target, ``angle_deg`` apart around the vertical axis.
 
@@ -159,7 +157,7 @@ def orbit_pair(
     at the target by the two camera centres).
 
     Args:
-        scene: ``"room"``, ``"object"`` or a :class:`Scene`.
+        scene: a scene kind (:data:`~.scenes.SceneKind`) or a :class:`Scene`.
         angle_deg: angle between the optical axes in degrees, in [0, 180 − 2·elevation).
         width: image width.
         height: image height.
@@ -167,11 +165,13 @@ def orbit_pair(
         seed: seed of the jitter.
         jitter: ``False`` for the symmetric pair without jitter (azimuths ±angle/2).
         names: camera names.
+        elevation_deg: elevation above the target (default: the scene's).
 
     Returns:
         ``(camera0, camera1)``.
     """
     target, dist, elev = _scene_layout(scene)
+    elev = elev if elevation_deg is None else float(elevation_deg)
     alpha = math.radians(float(angle_deg))
     rng = np.random.default_rng([seed & 0xFFFFFFFF, 3])
     if jitter:
@@ -224,7 +224,7 @@ def forward_pair(
     a hard case for essential-matrix estimation.
 
     Args:
-        scene: ``"room"``, ``"object"`` or a :class:`Scene`.
+        scene: a scene kind (:data:`~.scenes.SceneKind`) or a :class:`Scene`.
         forward: forward motion as a fraction of the distance to the target (below about
             0.5, the camera stays clear of the objects of the built-in scenes).
         rotation_deg: rotation angle between the two cameras.

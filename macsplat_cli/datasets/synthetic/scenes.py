@@ -1,4 +1,11 @@
-"""Synthetic scenes: primitives, lighting and a viewpoint; the built-in room and object-on-a-table layouts.
+"""Synthetic scenes: primitives, lighting and a viewpoint; the built-in layouts (:data:`SceneKind`).
+
+The kinds: ``"room"`` (inside a 6 m room), ``"object"`` (an object on a table, a backdrop room around),
+``"tabletop"`` (small things on a large table seen from 30–60° above: the support is nearly one plane) and
+``"outdoor"`` (near objects a few metres away, buildings 40–90 m away: little parallax far away). With
+``repetitive=True`` the large surfaces (walls, floors, table tops, the ground, the facades) carry one tile repeated
+exactly (:data:`~.textures.PERIODIC_PATTERNS`: bricks, tiles, a grid), which matches consistently at the wrong
+place; the objects keep their unique textures.
 
 **World.** OpenCV-style: y points *down* (floors are at larger y than ceilings), units
 are metres.
@@ -11,20 +18,34 @@ same colour in every view (photo-consistency is exact up to anti-aliasing).
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 
 from ...errors import InputError
 from .primitives import Box, Primitive, Quad, Sphere, _vec3, rotation_about
-from .textures import Texture
+from .textures import PERIODIC_PATTERNS, Texture
 
-__all__ = ["Lighting", "Scene", "SceneKind", "make_scene", "object_scene", "room_scene"]
+__all__ = [
+    "SCENE_KINDS",
+    "SCENE_LAYOUTS",
+    "Lighting",
+    "Scene",
+    "SceneKind",
+    "make_scene",
+    "object_scene",
+    "outdoor_scene",
+    "room_scene",
+    "tabletop_scene",
+]
 
-SceneKind = Literal["room", "object"]
+SceneKind = Literal["room", "object", "tabletop", "outdoor"]
+"""The built-in scenes (:func:`make_scene`)."""
+SCENE_KINDS: tuple[SceneKind, ...] = get_args(SceneKind)
 
 
 @dataclass(frozen=True)
@@ -76,6 +97,19 @@ def _random_texture(
     return Texture(albedo=albedo, seed=int(rng.integers(0, 2**31)), textured=textured, scale=scale)  # type: ignore[arg-type]
 
 
+def _periodic(seed: int, tag: int, repetitive: bool) -> np.random.Generator | None:
+    """The generator of the periodic patterns of a ``repetitive`` scene (None: not repetitive); its own stream, so
+    that the scene's layout, colours and patterns do not depend on ``repetitive``."""
+    return np.random.default_rng([seed & 0xFFFFFFFF, tag, 9]) if repetitive else None
+
+
+def _repeat(tex: Texture, rng: np.random.Generator | None) -> Texture:
+    """``tex`` with a periodic pattern drawn from ``rng`` (``rng`` None or ``tex`` flat: ``tex`` as it is)."""
+    if rng is None or not tex.textured:
+        return tex
+    return dataclasses.replace(tex, pattern=PERIODIC_PATTERNS[int(rng.integers(len(PERIODIC_PATTERNS)))])
+
+
 def _inside_box_quads(lo: np.ndarray, hi: np.ndarray, textures: Sequence[Texture]) -> list[Primitive]:
     """Six quads bounding the box ``[lo, hi]`` with front normals pointing inwards.
 
@@ -96,13 +130,17 @@ def _inside_box_quads(lo: np.ndarray, hi: np.ndarray, textures: Sequence[Texture
     return quads
 
 
-# Camera layouts of the built-in scenes: (target, view distance, elevation in degrees).
 _ROOM_HALF = np.array([3.0, 1.5, 3.0])
-_ROOM_LAYOUT = (np.array([0.0, 0.6, 0.0]), 2.4, 15.0)
-_OBJECT_LAYOUT = (np.array([0.0, -0.2, 0.0]), 1.4, 25.0)
+SCENE_LAYOUTS: dict[SceneKind, tuple[np.ndarray, float, float]] = {
+    "room": (np.array([0.0, 0.6, 0.0]), 2.4, 15.0),
+    "object": (np.array([0.0, -0.2, 0.0]), 1.4, 25.0),
+    "tabletop": (np.array([0.0, -0.03, 0.0]), 1.0, 45.0),
+    "outdoor": (np.array([0.0, -0.8, 0.0]), 6.0, 8.0),
+}
+"""The orbit cameras' layout of each kind: (target [3], view distance in metres, elevation in degrees)."""
 
 
-def room_scene(seed: int = 0, *, textured: bool = True) -> Scene:
+def room_scene(seed: int = 0, *, textured: bool = True, repetitive: bool = False) -> Scene:
     """The inside of a 6 × 3 × 6 m textured room with boxes and spheres on the floor.
 
     World: the room spans ``x, z ∈ [−3, 3]``, ``y ∈ [−1.5, 1.5]`` with the floor at
@@ -115,11 +153,13 @@ def room_scene(seed: int = 0, *, textured: bool = True) -> Scene:
     Args:
         seed: seed of the layout, colours and textures.
         textured: ``False`` gives flat colours (for textureless failure tests).
+        repetitive: the walls, floor and ceiling carry periodic patterns.
     """
     rng = np.random.default_rng([seed & 0xFFFFFFFF, 1])
+    prng = _periodic(seed, 1, repetitive)
     floor_y = float(_ROOM_HALF[1])
     prims: list[Primitive] = _inside_box_quads(
-        -_ROOM_HALF, _ROOM_HALF, [_random_texture(rng, textured, 1.0) for _ in range(6)]
+        -_ROOM_HALF, _ROOM_HALF, [_repeat(_random_texture(rng, textured, 1.0), prng) for _ in range(6)]
     )
     radii = [0.5, 0.9, 1.6, 2.0, 2.4]  # distances from the centre: objects at different depths
     start = rng.uniform(0, 2 * np.pi)
@@ -155,11 +195,18 @@ def room_scene(seed: int = 0, *, textured: bool = True) -> Scene:
                 _random_texture(rng, textured, 0.4, 0.2, 0.9),
             )
         )
-    target, dist, elev = _ROOM_LAYOUT
-    return Scene(prims, target=target.copy(), view_distance=dist, view_elevation_deg=elev, name=f"room-{seed}")
+    return _scene(prims, "room", seed)
 
 
-def object_scene(seed: int = 0, *, textured: bool = True) -> Scene:
+def _scene(prims: list[Primitive], kind: SceneKind, seed: int, **kwargs: object) -> Scene:
+    """A scene of ``kind`` with its layout (:data:`SCENE_LAYOUTS`)."""
+    target, dist, elev = SCENE_LAYOUTS[kind]
+    return Scene(
+        prims, target=target.copy(), view_distance=dist, view_elevation_deg=elev, name=f"{kind}-{seed}", **kwargs
+    )  # type: ignore[arg-type]
+
+
+def object_scene(seed: int = 0, *, textured: bool = True, repetitive: bool = False) -> Scene:
     """An object of about 0.5 m on a textured table, inside a large textured backdrop room.
 
     World: the table top is the plane ``y = 0`` (``2 × 1.4`` m, on four legs); the
@@ -170,12 +217,12 @@ def object_scene(seed: int = 0, *, textured: bool = True) -> Scene:
     Args:
         seed: seed of the layout, colours and textures.
         textured: ``False`` gives flat colours.
+        repetitive: the backdrop room and the table carry periodic patterns.
     """
     rng = np.random.default_rng([seed & 0xFFFFFFFF, 2])
-    prims: list[Primitive] = _inside_box_quads(
-        np.array([-5.0, -4.0, -5.0]), np.array([5.0, 0.9, 5.0]), [_random_texture(rng, textured, 1.5) for _ in range(6)]
-    )
-    table_tex = _random_texture(rng, textured, 0.5, 0.3, 0.7)
+    prng = _periodic(seed, 2, repetitive)
+    prims: list[Primitive] = _backdrop(rng, prng, textured, np.array([-5.0, -4.0, -5.0]), np.array([5.0, 0.9, 5.0]))
+    table_tex = _repeat(_random_texture(rng, textured, 0.5, 0.3, 0.7), prng)
     prims.append(Box((0.0, 0.03, 0.0), (1.0, 0.03, 0.7), None, table_tex))
     for sx in (-1, 1):
         for sz in (-1, 1):
@@ -192,14 +239,148 @@ def object_scene(seed: int = 0, *, textured: bool = True) -> Scene:
     r2 = 0.06
     spin2 = rotation_about(rng.normal(size=3), float(rng.uniform(0, 360)))
     prims.append(Sphere((-0.27, -r2, -0.12), r2, spin2, _random_texture(rng, textured, 0.25, 0.2, 0.9)))
-    target, dist, elev = _OBJECT_LAYOUT
-    return Scene(prims, target=target.copy(), view_distance=dist, view_elevation_deg=elev, name=f"object-{seed}")
+    return _scene(prims, "object", seed)
 
 
-def make_scene(kind: SceneKind, seed: int = 0, *, textured: bool = True) -> Scene:
-    """:func:`room_scene` or :func:`object_scene` by name."""
-    if kind == "room":
-        return room_scene(seed, textured=textured)
-    if kind == "object":
-        return object_scene(seed, textured=textured)
-    raise InputError(f"unknown synthetic scene kind {kind!r}; use 'room' or 'object'")
+def _backdrop(
+    rng: np.random.Generator, prng: np.random.Generator | None, textured: bool, lo: np.ndarray, hi: np.ndarray
+) -> list[Primitive]:
+    """A large backdrop room ``[lo, hi]`` around a table (textures at scale 1.5)."""
+    return _inside_box_quads(lo, hi, [_repeat(_random_texture(rng, textured, 1.5), prng) for _ in range(6)])
+
+
+def tabletop_scene(seed: int = 0, *, textured: bool = True, repetitive: bool = False) -> Scene:
+    """Three to five small things (3–16 cm) on a large 3 × 2 m textured table, inside a backdrop room.
+
+    Seen from the layout's 30–60° above the table (:data:`SCENE_LAYOUTS`: 1 m from the centre, 45° by default),
+    most of an image is the table: the matches lie nearly on one plane, the hard case of the pose (homography
+    against essential matrix). World: the table top is the plane ``y = 0``, ``x ∈ [−1.5, 1.5]``,
+    ``z ∈ [−1, 1]``; the things stand within 0.4 m of the origin and rise to at most ``y ≈ −0.16``; the
+    backdrop room spans ``x, z ∈ [−5, 5]``, ``y ∈ [−3, 0.8]``.
+
+    Args:
+        seed: seed of the layout, colours and textures.
+        textured: ``False`` gives flat colours.
+        repetitive: the table and the backdrop room carry periodic patterns.
+    """
+    rng = np.random.default_rng([seed & 0xFFFFFFFF, 6])
+    prng = _periodic(seed, 6, repetitive)
+    prims = _backdrop(rng, prng, textured, np.array([-5.0, -3.0, -5.0]), np.array([5.0, 0.8, 5.0]))
+    table_tex = _repeat(_random_texture(rng, textured, 0.5, 0.3, 0.75), prng)
+    prims.append(Box((0.0, 0.03, 0.0), (1.5, 0.03, 1.0), None, table_tex))
+    for sx in (-1, 1):
+        for sz in (-1, 1):
+            prims.append(Box((sx * 1.4, 0.44, sz * 0.9), (0.04, 0.38, 0.04), None, table_tex))
+    n = int(rng.integers(3, 6))
+    start = rng.uniform(0, 2 * np.pi)
+    for i in range(n):
+        ang = start + i * 2 * np.pi / n + rng.uniform(-0.3, 0.3)
+        rad = rng.uniform(0.08, 0.35)
+        x, z = rad * math.cos(ang), rad * math.sin(ang)
+        tex = _random_texture(rng, textured, 0.2, 0.15, 0.9)
+        shape = int(rng.integers(0, 3))
+        if shape == 0:  # a box (a cup, a tin)
+            half = rng.uniform([0.02, 0.02, 0.02], [0.05, 0.08, 0.05])
+            rot = rotation_about((0, 1, 0), float(rng.uniform(0, 90)))
+            prims.append(Box((x, -half[1], z), half, rot, tex))
+        elif shape == 1:  # a ball
+            r = float(rng.uniform(0.025, 0.06))
+            spin = rotation_about(rng.normal(size=3), float(rng.uniform(0, 360)))
+            prims.append(Sphere((x, -r, z), r, spin, tex))
+        else:  # a flat thing (a book)
+            half = rng.uniform([0.06, 0.008, 0.04], [0.1, 0.02, 0.07])
+            rot = rotation_about((0, 1, 0), float(rng.uniform(0, 90)))
+            prims.append(Box((x, -half[1], z), half, rot, tex))
+    return _scene(prims, "tabletop", seed)
+
+
+_SKY = (0.62, 0.74, 0.9)
+"""The colour of rays that hit nothing outdoors (flat: no features)."""
+
+
+def _ground(rng: np.random.Generator, prng: np.random.Generator | None, textured: bool) -> list[Primitive]:
+    """The ground plane ``y = 0``: a near patch of 3 × 3 tiles of 12 m (fine textures, 1.2 cm texels) and four
+    coarse strips out to 120 m (30 cm texels)."""
+    ex, ez = np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])
+    prims: list[Primitive] = []
+    for i in range(3):
+        for j in range(3):
+            tex = _repeat(_random_texture(rng, textured, 1.0, 0.3, 0.6), prng)
+            prims.append(Quad((-18.0 + 12 * i, 0.0, -18.0 + 12 * j), 12 * ez, 12 * ex, tex))  # normal −y (up)
+    far, near = 120.0, 18.0
+    strips = [  # (corner, x extent, z extent): left, right, back, front
+        ((-far, -far), far - near, 2 * far),
+        ((near, -far), far - near, 2 * far),
+        ((-near, -far), 2 * near, far - near),
+        ((-near, near), 2 * near, far - near),
+    ]
+    for (x0, z0), dx, dz in strips:
+        tex = _repeat(_random_texture(rng, textured, 4.0, 0.3, 0.6), prng)
+        prims.append(Quad((x0, 0.0, z0), dz * ez, dx * ex, tex))
+    return prims
+
+
+def outdoor_scene(seed: int = 0, *, textured: bool = True, repetitive: bool = False) -> Scene:
+    """A square: things a few metres from the cameras, posts and trees at 10–25 m, buildings at 40–90 m, sky.
+
+    The depth range of one view spans two orders of magnitude: the cameras (6 m from the centre, about 1.6 m above
+    the ground, :data:`SCENE_LAYOUTS`) see the near things at 2–10 m and the facades at 35–95 m, whose parallax is
+    small. World: the ground is the plane ``y = 0`` out to 120 m; five near things (boxes of 0.6–1.8 m, balls)
+    stand within 3.5 m of the origin; six posts with a round crown stand 10–25 m out; ten buildings (16–28 m wide,
+    8–24 m high) ring the square 40–80 m from the origin, their faces seen from it; rays that hit nothing are sky
+    (a flat colour).
+
+    Args:
+        seed: seed of the layout, colours and textures.
+        textured: ``False`` gives flat colours.
+        repetitive: the ground and the facades carry periodic patterns.
+    """
+    rng = np.random.default_rng([seed & 0xFFFFFFFF, 7])
+    prng = _periodic(seed, 7, repetitive)
+    prims = _ground(rng, prng, textured)
+    start = rng.uniform(0, 2 * np.pi)
+    for i in range(5):  # near things
+        ang, rad = start + i * 2 * np.pi / 5 + rng.uniform(-0.4, 0.4), rng.uniform(0.5, 2.8)
+        x, z = rad * math.cos(ang), rad * math.sin(ang)
+        tex = _random_texture(rng, textured, 0.5, 0.15, 0.9)
+        if rng.uniform() < 0.7:
+            half = rng.uniform([0.3, 0.3, 0.3], [0.9, 0.8, 0.6])
+            prims.append(Box((x, -half[1], z), half, rotation_about((0, 1, 0), float(rng.uniform(0, 90))), tex))
+        else:
+            r = float(rng.uniform(0.3, 0.6))
+            prims.append(Sphere((x, -r, z), r, rotation_about(rng.normal(size=3), float(rng.uniform(0, 360))), tex))
+    for _ in range(6):  # posts with a crown
+        ang, rad = rng.uniform(0, 2 * np.pi), rng.uniform(10.0, 25.0)
+        x, z = rad * math.cos(ang), rad * math.sin(ang)
+        height, crown = float(rng.uniform(2.0, 4.0)), float(rng.uniform(0.8, 1.8))
+        prims.append(Box((x, -height / 2, z), (0.15, height / 2, 0.15), None, _random_texture(rng, textured, 1.0)))
+        spin = rotation_about(rng.normal(size=3), float(rng.uniform(0, 360)))
+        prims.append(Sphere((x, -height - crown, z), crown, spin, _random_texture(rng, textured, 2.0, 0.1, 0.6)))
+    start = rng.uniform(0, 2 * np.pi)
+    for i in range(10):  # buildings, their long side towards the square
+        ang, rad = start + i * 2 * np.pi / 10 + rng.uniform(-0.15, 0.15), rng.uniform(40.0, 80.0)
+        half = rng.uniform([8.0, 4.0, 5.0], [14.0, 12.0, 10.0])
+        centre = np.array([(rad + half[2]) * math.cos(ang), -half[1], (rad + half[2]) * math.sin(ang)])
+        yaw = rotation_about((0, 1, 0), -math.degrees(ang) + 90.0)  # local z along the radius
+        prims.append(Box(centre, half, yaw, _repeat(_random_texture(rng, textured, 8.0, 0.3, 0.85), prng)))
+    return _scene(prims, "outdoor", seed, background=_SKY)
+
+
+def make_scene(kind: SceneKind, seed: int = 0, *, textured: bool = True, repetitive: bool = False) -> Scene:
+    """The built-in scene ``kind`` (:data:`SCENE_KINDS`) of ``seed``.
+
+    Args:
+        kind: the layout.
+        seed: seed of the layout, colours and textures.
+        textured: ``False`` gives flat colours.
+        repetitive: the large surfaces carry periodic patterns (module docstring).
+    """
+    builders: dict[SceneKind, Callable[..., Scene]] = {
+        "room": room_scene,
+        "object": object_scene,
+        "tabletop": tabletop_scene,
+        "outdoor": outdoor_scene,
+    }
+    if kind not in builders:
+        raise InputError(f"unknown synthetic scene kind {kind!r}; use one of {', '.join(SCENE_KINDS)}")
+    return builders[kind](seed, textured=textured, repetitive=repetitive)

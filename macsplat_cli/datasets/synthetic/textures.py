@@ -1,21 +1,29 @@
-"""Procedural surface textures of the synthetic scenes: value noise and random shapes, rasterised once per surface.
+"""Procedural surface textures of the synthetic scenes: value noise and random shapes, or a repeated tile.
 
 A textured surface is its ``albedo`` plus several octaves of coloured value noise and a few
 thousand random discs, rings, rectangles, triangles and lines per square metre (at
-``scale = 1``), deterministic from the texture's seed. Textures are rasterised once per
-surface (a few millimetres per texel, at most :data:`MAX_TEXTURE_SIZE` texels a side),
-cached on the primitive, and sampled bilinearly.
+``scale = 1``), deterministic from the texture's seed. A *periodic* texture (``pattern``
+``"bricks"``, ``"tiles"`` or ``"grid"``) is one small tile repeated exactly over the surface:
+every period looks the same, so its descriptors match consistently at the wrong place (the
+hard case of repetitive scenes). Textures are rasterised once per surface (a few millimetres
+per texel, at most :data:`MAX_TEXTURE_SIZE` texels a side), cached on the primitive, and
+sampled bilinearly.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import cv2
 import numpy as np
 
-__all__ = ["MAX_TEXTURE_SIZE", "Texture"]
+__all__ = ["MAX_TEXTURE_SIZE", "PERIODIC_PATTERNS", "Texture", "TexturePattern"]
+
+TexturePattern = Literal["random", "bricks", "tiles", "grid"]
+"""A texture's pattern: random noise and shapes (unique everywhere), or one tile repeated exactly."""
+PERIODIC_PATTERNS: tuple[TexturePattern, ...] = tuple(p for p in get_args(TexturePattern) if p != "random")
 
 MAX_TEXTURE_SIZE = 1024
 """Largest side of a rasterised surface texture, in texels."""
@@ -30,6 +38,10 @@ _SHAPE_SPACING = 0.1
 _SHAPE_RADIUS = (0.012, 0.12)
 """Range of shape radii in metres at scale 1 (log-uniform)."""
 _MAX_SHAPES = 8000
+_PERIOD = {"bricks": (0.24, 0.16), "tiles": (0.3, 0.3), "grid": (0.1, 0.1)}
+"""(width, height) in metres at scale 1 of the repeated tile of each periodic pattern (bricks: two courses)."""
+_JOINT = 0.012
+"""Width in metres at scale 1 of the mortar, grout and grid lines of the periodic patterns."""
 
 
 @dataclass(frozen=True)
@@ -42,12 +54,16 @@ class Texture:
         textured: ``False`` for a flat ``albedo`` (no pattern).
         scale: size of the pattern features relative to the default (noise cells of
             2 cm to 64 cm, shapes of 1.2 cm to 12 cm radius, 4 mm texels at ``scale = 1``).
+        pattern: ``"random"`` (noise and shapes), or a tile repeated exactly: ``"bricks"``
+            (24 × 8 cm bricks, courses offset by half a brick), ``"tiles"`` (30 cm square tiles, one motif
+            each) or ``"grid"`` (10 cm grid lines); sizes at ``scale = 1``.
     """
 
     albedo: tuple[float, float, float] = (0.6, 0.6, 0.6)
     seed: int = 0
     textured: bool = True
     scale: float = 1.0
+    pattern: TexturePattern = "random"
 
 
 def _draw_shapes(
@@ -100,6 +116,10 @@ def _texture_image(tex: Texture, width_m: float, height_m: float, key: int) -> t
     texel = max(_TEXEL * s, max(width_m, height_m) / MAX_TEXTURE_SIZE)
     w = max(2, math.ceil(width_m / texel))
     h = max(2, math.ceil(height_m / texel))
+    if tex.pattern != "random":
+        tile = _periodic_tile(tex, texel, key)
+        reps = (math.ceil(h / tile.shape[0]), math.ceil(w / tile.shape[1]), 1)
+        return np.ascontiguousarray(np.tile(tile, reps)[:h, :w]), texel
     albedo = np.asarray(tex.albedo, dtype=np.float32)
     img = np.empty((h, w, 3), dtype=np.float32)
     img[:] = albedo
@@ -126,6 +146,39 @@ def _texture_image(tex: Texture, width_m: float, height_m: float, key: int) -> t
     add_noise(_FINE_NOISE)
     np.clip(img, 0.0, 1.0, out=img)
     return img, texel
+
+
+def _periodic_tile(tex: Texture, texel: float, key: int) -> np.ndarray:
+    """One period of a periodic pattern, a whole number of texels a side (so that it repeats exactly). [h, w, 3]
+
+    The tile's colours (the albedo, a joint colour and a motif colour) and a faint speckle inside it come from the
+    texture's seed: every period is identical, speckle included.
+    """
+    s = float(tex.scale)
+    pw, ph = (max(4, round(m * s / texel)) for m in _PERIOD[tex.pattern])
+    joint = max(1, round(_JOINT * s / texel))
+    rng = np.random.default_rng([int(tex.seed) & 0xFFFFFFFF, key, 11])
+    albedo = np.asarray(tex.albedo, dtype=np.float64)
+    line = tuple(int(c) for c in np.clip(np.rint((0.35 * albedo + rng.uniform(0.0, 0.3, 3)) * 255), 0, 255))
+    motif = tuple(int(c) for c in np.clip(np.rint(rng.uniform(0.05, 0.95, 3) * 255), 0, 255))
+    speckle = rng.uniform(-0.05, 0.05, (ph, pw, 1))
+    tile = np.clip(np.rint((albedo + speckle) * 255), 0, 255).astype(np.uint8)  # [ph, pw, 3]
+    if tex.pattern == "bricks":  # two courses; the second offset by half a brick
+        half = ph // 2
+        tile[:joint], tile[half : half + joint] = line, line
+        tile[:half, :joint] = line
+        tile[half:, pw // 2 : pw // 2 + joint] = line
+    elif tex.pattern == "tiles":  # grout on two sides and one motif (a disc and a bar) per tile
+        tile[:joint], tile[:, :joint] = line, line
+        centre, radius = (pw // 2 * 16, ph // 2 * 16), int(0.22 * min(pw, ph) * 16)
+        cv2.circle(tile, centre, radius, motif, -1, cv2.LINE_AA, 4)
+        bar = np.array([[0.3 * pw, 0.75 * ph], [0.7 * pw, 0.75 * ph], [0.7 * pw, 0.82 * ph], [0.3 * pw, 0.82 * ph]])
+        cv2.fillPoly(tile, [np.rint(bar * 16).astype(np.int32)], motif, cv2.LINE_AA, 4)
+    elif tex.pattern == "grid":
+        tile[:joint], tile[:, :joint] = line, line
+    else:
+        raise AssertionError(tex.pattern)
+    return tile.astype(np.float32) / 255.0
 
 
 def _bilinear(img: np.ndarray, texel: float, u: np.ndarray, v: np.ndarray) -> np.ndarray:
