@@ -2,7 +2,8 @@
 
 A tilted plane seen with a random motion (the original stress family, ~5° between the views) or a table photographed
 twice from above, optionally with objects on it whose matches partly fall below the confidence gate
-(``Matches.below_gate``), and outliers. Used by ``benchmarks/pose_stress.py`` and ``tests/pipeline/pose/test_pose_planar.py``.
+(``Matches.below_gate``), and outliers. Used by ``benchmarks/pose_stress.py`` and
+``tests/pipeline/pose/test_pose_planar.py``.
 
 The matches are plain arrays (:class:`PlanarMatches`): the data sets sit below the pipeline, so the callers build
 the pipeline's ``Matches`` from them.

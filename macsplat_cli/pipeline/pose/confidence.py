@@ -322,9 +322,9 @@ def acceptance_rule(pose: PoseConfig, config: ConfidenceConfig | None) -> str:
         if e is not None:
             parts += [
                 f"log10 NFA below {e.max_log10_nfa:g} on the tier's putative matches (gathered before the pose)",
-                f"rotation 3-sigma below {e.max_rotation_3sigma_deg:g} deg on them, {e.planar_rotation_3sigma_deg:g} deg "
-                "when they lie near one plane and those off it do not single the pose out (a pose estimated from "
-                "the matches)",
+                f"rotation 3-sigma below {e.max_rotation_3sigma_deg:g} deg on them, "
+                f"{e.planar_rotation_3sigma_deg:g} deg when they lie near one plane and those off it do not single "
+                "the pose out (a pose estimated from the matches)",
             ]
         parts += [
             f"a refit on its verified matches moves the rotation less than {config.max_refit_rotation_deg:g} deg",
