@@ -138,9 +138,7 @@ def draw_case(split: str, kind: str, width: int, index: int, *, intrinsics: str,
 
 def cases(splits: list[str], kinds: list[str], widths: list[int], per_width: int, **draw: Any) -> list[dict]:
     """Every case of the splits, ``per_width`` per kind and width."""
-    return [
-        draw_case(s, k, w, i, **draw) for s in splits for w in widths for k in kinds for i in range(per_width)
-    ]
+    return [draw_case(s, k, w, i, **draw) for s in splits for w in widths for k in kinds for i in range(per_width)]
 
 
 def _render(case: dict, folder: Path, stem: str) -> None:

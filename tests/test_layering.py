@@ -73,6 +73,7 @@ layers are independent of each other. Layers 1, 3 and 5 are one body each: their
 freely (still without cycles)."""
 INDEPENDENT_LAYERS = (2, 4)
 
+
 @dataclass(frozen=True)
 class Edge:
     source: str  # dotted, without the root: "neural.predictor"
