@@ -189,13 +189,13 @@ def test_near_planar_wide_pair_is_resolved_not_wrong(make_pair: MakePair) -> Non
     homography explain the matches (39 and 40 of 40): the pair was refused as ambiguous. Issue 14:
     the wall's second pose puts part of the matches behind a camera, so the pair is resolved
     (measured 1.33° / 0.75°) — never a wrong pose. Issue 25: the evidence gathered before the pose (146 putative
-    matches, 127 of them on 4 % of the photo, 89 % on the wall's homography, the 16 off it not meaningful on their
-    own) leaves the rotation uncertain by ±2.1° (3σ), over the ±2° such a near-planar pose needs; the later tiers
-    find no better-supported pose, so the pair is refused naming that figure — written with
-    --accept-low-confidence, and then still right."""
+    matches, 127 of them on 4 % of the photo, 89 % on the wall's homography) leaves the rotation uncertain by
+    ±2.1° (3σ), over the ±2° an accepted pose needs; the later tiers find no better-supported pose, so the pair is
+    refused naming that figure — written with --accept-low-confidence, and then still right."""
     pair = make_pair("room", 75, fov=UNKNOWN_FOV_DEG)
     with pytest.raises(
-        ReconstructionError, match=r"cover \d+ % of the photo and leave its rotation uncertain.*lie on one plane"
+        ReconstructionError,
+        match=r"cover \d+ % of the photo and leave its rotation uncertain.*lie on one plane\); a pose needs ±2°",
     ):
         _run_pipeline(pair, intrinsics=True)
     config = ReconstructConfig(views=ViewConfig(intrinsics=pair.intrinsics))

@@ -222,18 +222,16 @@ def _evidence_doubts(
     three_sigma = 3.0 * e.rotation_sigma_deg
     if not from_matches:
         return doubts
-    planar = e.planar_unresolved(cfg.max_log10_nfa)
-    bound = cfg.planar_rotation_3sigma_deg if planar else cfg.max_rotation_3sigma_deg
-    scores["uncertainty"] = _upper(three_sigma, bound)
-    if not three_sigma < bound:
+    scores["uncertainty"] = _upper(three_sigma, cfg.max_rotation_3sigma_deg)
+    if not three_sigma < cfg.max_rotation_3sigma_deg:
         focal = "; the focal length is free" if e.focal_free else ""
-        why = (
-            f"; {100 * e.plane_share:.0f} % of the {e.putative} matches lie on one plane and the {e.off_plane} off it "
-            f"do not single the pose out: such a pose needs ±{bound:g}°" if planar else f"; a pose needs ±{bound:g}°"
+        planar = (
+            f"; {100 * e.plane_share:.0f} % of the {e.putative} matches lie on one plane" if e.planar else ""
         )  # fmt: skip
         doubts.append(Doubt("uncertainty", (
             f"pose confidence low: the {e.inliers} matches that support the pose cover {100 * e.coverage:.0f} % of the "
-            f"photo and leave its rotation uncertain by ±{three_sigma:.1f}° (3σ{focal}){why}"
+            f"photo and leave its rotation uncertain by ±{three_sigma:.1f}° (3σ{focal}{planar}); a pose needs "
+            f"±{cfg.max_rotation_3sigma_deg:g}°"
         )))  # fmt: skip
     return doubts
 
@@ -322,9 +320,7 @@ def acceptance_rule(pose: PoseConfig, config: ConfidenceConfig | None) -> str:
         if e is not None:
             parts += [
                 f"log10 NFA below {e.max_log10_nfa:g} on the tier's putative matches (gathered before the pose)",
-                f"rotation 3-sigma below {e.max_rotation_3sigma_deg:g} deg on them, "
-                f"{e.planar_rotation_3sigma_deg:g} deg when they lie near one plane and those off it do not single "
-                "the pose out (a pose estimated from the matches)",
+                f"rotation 3-sigma below {e.max_rotation_3sigma_deg:g} deg on them (a pose estimated from the matches)",
             ]
         parts += [
             f"a refit on its verified matches moves the rotation less than {config.max_refit_rotation_deg:g} deg",

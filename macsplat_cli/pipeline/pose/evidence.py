@@ -90,10 +90,6 @@ class PoseEvidence:
         """GRIC prefers the homography: the support is near-planar."""
         return self.gric_homography < self.gric_epipolar
 
-    def planar_unresolved(self, max_log10_nfa: float) -> bool:
-        """The support is near-planar and the matches off the plane do not single the pose out on their own."""
-        return self.planar and not self.off_plane_log10_nfa < max_log10_nfa
-
     def checks(self) -> dict[str, float]:
         """The measurements, for the report's ``confidence_checks``."""
         return {

@@ -168,19 +168,3 @@ def test_acceptance_weighs_the_putative_matches_not_the_verified_ones() -> None:
     conf = accept_pose(_view(), _view(), g, PoseConfig(), ConfidenceConfig(), evidence=verified)
     assert conf.ok and conf.checks["log10_nfa"] < -100
 
-
-def test_planar_support_without_off_plane_evidence_gets_the_tight_bound() -> None:
-    """A support on one plane whose few off-plane matches do not single the pose out is held to
-    ``planar_rotation_3sigma_deg``; a 3-D support with the same matches count to ``max_rotation_3sigma_deg``."""
-    rng = np.random.default_rng(8)
-    plane = _matches(300, rng=rng, planar=True, outliers=0.0)
-    few_off = _matches(4, rng=rng, outliers=0.0)
-    m = Matches(np.r_[plane.xy0, few_off.xy0], np.r_[plane.xy1, few_off.xy1], np.ones(304, np.float32),
-                np.arange(304), np.arange(304))  # fmt: skip
-    tight = EvidenceConfig(planar_rotation_3sigma_deg=1e-6)
-    found, doubts, _ = weigh_evidence(_view(), _view(), _geometry(R_TRUE, T_TRUE, m), m, tight)
-    assert found.planar_unresolved(tight.max_log10_nfa) and found.off_plane <= 10
-    assert [d.check for d in doubts] == ["uncertainty"] and "lie on one plane" in doubts[0].message
-    spread = _matches(304, rng=rng, outliers=0.0, depth=(3.0, 12.0))
-    found, doubts, _ = weigh_evidence(_view(), _view(), _geometry(R_TRUE, T_TRUE, spread), spread, tight)
-    assert not found.planar_unresolved(tight.max_log10_nfa) and doubts == []
