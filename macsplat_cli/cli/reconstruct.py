@@ -384,6 +384,12 @@ def _summary(report: dict[str, Any], written: dict[str, Any]) -> None:
     t.add_row("pose", escape(line))
     if pose.get("confidence") is not None or pose.get("doubts"):
         line = f"confidence {num('confidence', '.2f')}"
+        ev = pose.get("evidence") or {}
+        if isinstance(ev.get("log10_nfa"), (int, float)):  # what the acceptance weighed (issue 25)
+            line += (
+                f", {ev['inliers']} of {ev['putative_matches']} putative matches ({ev['tier']} tier), "
+                f"log10 NFA {ev['log10_nfa']:.0f}, rotation ±{3 * ev['rotation_sigma_deg']:.2f}° (3σ)"
+            )
         if pose.get("accepted_low_confidence"):
             line = (
                 "[yellow]warning: the pose may be wrong (written with --accept-low-confidence): "

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import cv2
@@ -216,6 +217,7 @@ def test_cli_good_pair_is_accepted_with_its_confidence(
     assert cams.pose_confidence is not None and cams.pose_confidence["score"] == pytest.approx(pose["confidence"])
     assert cams.pose_confidence["accepted_low_confidence"] is False
     assert "pose check" in err and "confidence" in err
+    assert re.search(r"\d+ of \d+ putative matches \(primary tier\), log10 NFA -\d+", err), err
     # what the acceptance weighed (issue 25): the tier's putative matches, the NFA, the rule
     ev = pose["evidence"]
     assert ev["tier"] == "primary" and ev["failed"] == [] and ev["log10_nfa"] < -3
