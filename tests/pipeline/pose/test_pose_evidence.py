@@ -167,4 +167,3 @@ def test_acceptance_weighs_the_putative_matches_not_the_verified_ones() -> None:
     assert conf.evidence is not None and conf.evidence.putative == 16 and "log10 NFA below -3" in conf.rule
     conf = accept_pose(_view(), _view(), g, PoseConfig(), ConfidenceConfig(), evidence=verified)
     assert conf.ok and conf.checks["log10_nfa"] < -100
-
