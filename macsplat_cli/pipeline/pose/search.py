@@ -157,7 +157,7 @@ class PoseSearch:
         c = self.config
         best = primary = self._chain(views, pair, timed, self.describe, "primary", "")
         n_verified = len(best.geometry.inliers) if best.geometry is not None else 0
-        doubted = best.geometry is not None and not self._credible(views, best)
+        doubted = not self._credible(views, best)
         if self.fallback is not None and (n_verified < c.fallback_min_inliers or doubted):
             logger.debug("%d verified matches (< %d) or a pose its matches do not support: retrying with %s",
                          n_verified, c.fallback_min_inliers, self.fallback.name)  # fmt: skip
@@ -181,10 +181,12 @@ class PoseSearch:
         return best
 
     def _credible(self, views: list[View], attempt: _Attempt) -> bool:
-        """The tier's putative matches support its pose (the a contrario test and the uncertainty; True when the
-        acceptance does not weigh evidence)."""
+        """The tier's putative matches support its pose (the a contrario test and the uncertainty). True when there
+        is no pose, when the acceptance does not weigh evidence, and when the pose stage itself doubts the pose: its
+        doubt (an unobservable focal length, a plane's ambiguity) is about the geometry, which another tier's
+        matches do not change, and it refuses the pose anyway."""
         cfg = self.config.confidence
-        if cfg is None or cfg.evidence is None or attempt.geometry is None:
+        if cfg is None or cfg.evidence is None or attempt.geometry is None or attempt.geometry.doubts:
             return True
         _, doubts, _ = weigh_evidence(views[0], views[1], attempt.geometry, attempt.matches, cfg.evidence)
         return not doubts

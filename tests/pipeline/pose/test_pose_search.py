@@ -219,3 +219,17 @@ def test_a_tier_whose_matches_do_not_support_its_pose_lets_the_next_one_run() ->
     with pytest.raises(ReconstructionError, match=r"matches found before the pose do not single it out \(log10 NFA"):
         search(_views("file"))
     assert search.wide.calls == 1  # type: ignore[union-attr]
+
+
+def test_a_pose_the_pose_stage_doubts_does_not_send_the_search_on() -> None:
+    """The pose stage's own doubt (an unobservable focal length, say) is about the geometry: other tiers' matches
+    would not lift it, and it refuses the pose anyway; so the evidence test does not run the later tiers for it
+    (they would only cost time on a pair that is refused)."""
+    cfg = PoseSearchConfig(guided_band_px=None, fallback_min_inliers=10, accept_low_confidence=True)
+    search = PoseSearch(
+        cfg, PoseConfig(), describe=Describe("primary", 200), match=match, pose=Pose(10, doubts=("stub doubt",)),
+        fallback=Consistent("fallback", 80), wide=Describe("wide", 60),
+    )  # fmt: skip
+    result = search(_views("file"))
+    assert result.tier == "primary" and search.fallback.calls == 0 and search.wide.calls == 0  # type: ignore[union-attr]
+    assert [d.check for d in result.doubts][:2] == ["pose", "evidence"]
