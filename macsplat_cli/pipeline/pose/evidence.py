@@ -39,7 +39,7 @@ from .geometry import epipolar_fit, fundamental_from_pose, homog, hull_share, sa
 from .refit import MAD_TO_STD, pose_jacobian
 from .robust import distinct_matches
 
-__all__ = ["EvidenceConfig", "PoseEvidence", "fundamental_residuals", "log10_nfa", "pose_evidence"]
+__all__ = ["EvidenceConfig", "PoseEvidence", "epipolar_nfa", "fundamental_residuals", "log10_nfa", "pose_evidence"]
 
 ESSENTIAL_SAMPLE = (5, 10)
 """The essential matrix's minimal sample and the most models one sample gives (the five-point solver)."""
@@ -171,6 +171,24 @@ def _epipolar_residuals(g: TwoViewGeometry, xy0: np.ndarray, xy1: np.ndarray) ->
     return np.where(front & np.isfinite(d), d, np.inf)
 
 
+def epipolar_nfa(
+    v0: View, v1: View, geometry: TwoViewGeometry, xy0: np.ndarray, xy1: np.ndarray, unknown: tuple[bool, bool],
+    config: EvidenceConfig | None = None,
+) -> tuple[float, int, float, np.ndarray]:  # fmt: skip
+    """The pose's smallest log10 NFA on the distinct putative matches ``xy0, xy1`` [M, 2] (module docstring).
+
+    Returns:
+        ``(log10 NFA, k, ε, residuals [M])``: as :func:`log10_nfa`, and each match's symmetric epipolar distance
+        (``inf``: behind a camera, or farther than ``max_threshold_px``).
+    """
+    cfg = config or EvidenceConfig()
+    res = _epipolar_residuals(geometry, xy0, xy1) if len(xy0) else np.zeros(0)
+    res = np.where(res <= cfg.max_threshold_px, res, np.inf)
+    sample = FOCAL_SAMPLE if any(unknown) else ESSENTIAL_SAMPLE
+    nfa, k, eps = log10_nfa(res, _line_alpha(v0, v1), 1, sample, min_residual=cfg.min_noise_px)
+    return nfa, k, eps, res
+
+
 # ============================================================================================== uncertainty
 def _uncertainty(
     g: TwoViewGeometry, xy0: np.ndarray, xy1: np.ndarray, unknown: tuple[bool, bool], cfg: EvidenceConfig
@@ -247,31 +265,28 @@ def pose_evidence(
     xy0 = putative.xy0[first].astype(np.float64)
     xy1 = putative.xy1[first].astype(np.float64)
     n = len(xy0)
-    sample = FOCAL_SAMPLE if any(unknown) else ESSENTIAL_SAMPLE
-    coef = _line_alpha(v0, v1)
-    res = _epipolar_residuals(geometry, xy0, xy1) if n else np.zeros(0)
-    res = np.where(res <= cfg.max_threshold_px, res, np.inf)
-    nfa, k, eps = log10_nfa(res, coef, 1, sample, min_residual=cfg.min_noise_px)
+    nfa, k, eps, res = epipolar_nfa(v0, v1, geometry, xy0, xy1, unknown, cfg)
     inl = res <= eps if k else np.zeros(n, bool)
     coverage = min(hull_share(xy0[inl], v0.width, v0.height), hull_share(xy1[inl], v1.width, v1.height))
     noise, rot_sigma, t_sigma = _uncertainty(geometry, xy0[inl], xy1[inl], unknown, cfg)
-    # GRIC on every putative match, at the inliers' noise level
+    # GRIC on the putative matches, at the inliers' noise level
     sigma = noise if math.isfinite(noise) else cfg.min_noise_px
     e2_epi = fundamental_residuals(geometry, xy0, xy1) ** 2 if n else np.zeros(0)
     e2_epi = np.where(np.isfinite(res), e2_epi, np.inf)
-    gric_e = _gric(e2_epi, sigma, 3, 7 if any(unknown) else 5, cfg.gric_lambda3)
     e2_h = _homography_residuals(xy0, xy1, cfg.homography_threshold_px)
+    k_epi = 7 if any(unknown) else 5
     if e2_h is None:
-        gric_h, on_plane = math.inf, np.zeros(n, bool)
+        gric_e, gric_h, on_plane = _gric(e2_epi, sigma, 3, k_epi, cfg.gric_lambda3), math.inf, np.zeros(n, bool)
     else:
         # on the matches either model explains: one neither explains costs each model its cap, which differs by
         # model dimension and would favour the epipolar model by the outlier count alone
         either = (e2_epi / sigma**2 < cfg.gric_lambda3 * (4 - 3)) | (e2_h / sigma**2 < cfg.gric_lambda3 * (4 - 2))
-        gric_e = _gric(e2_epi[either], sigma, 3, 7 if any(unknown) else 5, cfg.gric_lambda3)
+        gric_e = _gric(e2_epi[either], sigma, 3, k_epi, cfg.gric_lambda3)
         gric_h = _gric(e2_h[either], sigma, 2, 8, cfg.gric_lambda3)
         on_plane = e2_h <= (cfg.homography_threshold_px**2) / 2.0
     off = ~on_plane
-    off_nfa, _, _ = log10_nfa(res[off], coef, 1, sample, min_residual=cfg.min_noise_px)
+    sample = FOCAL_SAMPLE if any(unknown) else ESSENTIAL_SAMPLE
+    off_nfa, _, _ = log10_nfa(res[off], _line_alpha(v0, v1), 1, sample, min_residual=cfg.min_noise_px)
     return PoseEvidence(
         putative=n, log10_nfa=nfa, inliers=int(inl.sum()), threshold_px=eps, coverage=coverage, noise_px=noise,
         rotation_sigma_deg=rot_sigma, translation_sigma_deg=t_sigma, focal_free=any(unknown), gric_epipolar=gric_e,
