@@ -11,9 +11,9 @@ descriptor tier that produced it), never on matches guided by the pose, which ag
   them within ``ε`` has ``NFA(k, ε) = N_out (n − s) C(n, k) C(k, s) α(ε)^(k − s)``: the expected number of poses
   that would do as well by chance among all those a minimal-sample search could test (``s`` matches per sample,
   ``N_out`` models per sample: 5 and 10 for the essential matrix, 7 and 3 when a focal length is estimated too).
-  ``ε`` is chosen by the NFA itself: the residuals sorted, the ``k`` that minimises it. A pose is meaningful when
-  ``NFA < 10^max_log10_nfa``: under the background model, fewer than that many accepted poses per pair are false
-  alarms. Matches behind either camera never count as explained.
+  ``ε`` is chosen by the NFA itself (the residuals sorted, the ``k`` that minimises it), up to
+  ``max_threshold_px``. A pose is meaningful when ``NFA < 10^max_log10_nfa``: under the background model, fewer than
+  that many accepted poses per pair are false alarms. Matches behind either camera never count as explained.
 * **Uncertainty**: the covariance of the pose's parameters (rotation 3, translation direction 2, and the log focal
   scale of views whose focal length only the matches can tell) from the Gauss–Newton Jacobian of the Sampson
   distances of the NFA's inliers, scaled by their robust variance: ``σ² (JᵀJ)⁻¹``. The rotation's standard
@@ -21,8 +21,9 @@ descriptor tier that produced it), never on matches guided by the pose, which ag
   configuration and an unobservable focal length all make it large. It is a gate for gross cases, not an error bar:
   right poses are often several σ off the truth (systematic error).
 * **GRIC** (Torr 1998): the geometric robust information criterion of the epipolar model and of a homography on the
-  putative matches, at the same noise level. When the homography's is lower, the support is near-planar; the pose
-  then rests on the matches off the plane, and those get their own NFA.
+  putative matches, at the same noise level. When the homography's is lower, the support is near-planar, and the
+  matches off the plane get their own NFA. Both are reported, not gated: a rule that tightened the uncertainty
+  bound for such a support was measured worse on the tuning split (benchmarks/history/pose.md).
 """
 
 from __future__ import annotations
