@@ -4,6 +4,7 @@
 * :func:`read_json_file`: a size cap, a nesting cap and parser recursion reported as a typed error.
 * :func:`max_image_pixels`: the decoded-size cap of input photos (``MACSPLAT_MAX_MEGAPIXELS``).
 * :func:`check_render_size`: the cap on rendered image sizes.
+* :func:`check_photo_count`: 2 to ``MAX_PHOTOS`` photos per reconstruction.
 
 Every check raises the caller's error class (a subclass of :class:`~macsplat_cli.errors.InputError`),
 so the CLI exits with status 2 and one line naming the file and the limit.
@@ -22,6 +23,8 @@ from typing import Any
 from .errors import InputError
 
 __all__ = [
+    "MAX_PHOTOS",
+    "check_photo_count",
     "DEFAULT_MAX_MEGAPIXELS",
     "MAX_IMAGE_FILE_BYTES",
     "MAX_JSON_BYTES",
@@ -187,3 +190,16 @@ def check_render_size(width: int, height: int, error: ErrorFactory = InputError)
             f"render size {width}x{height} is too large: at most {MAX_RENDER_SIDE} px a side and "
             f"{MAX_RENDER_PIXELS / 1e6:.1f} megapixels"
         )
+
+
+MAX_PHOTOS = 64
+"""The most photos one reconstruction takes: twice the tested 32 (time and memory grow about linearly with the
+number of photos beyond the all-pairs size: benchmarks/README.md, Multi-view)."""
+
+
+def check_photo_count(n: int, max_photos: int = MAX_PHOTOS) -> None:
+    """Raises :class:`InputError` unless ``2 ≤ n ≤ max_photos``."""
+    if n < 2:
+        raise InputError(f"{n} photo{'s' if n != 1 else ''} given: a scene needs at least two photos of it")
+    if n > max_photos:
+        raise InputError(f"{n} photos given: at most {max_photos} are taken in one run")

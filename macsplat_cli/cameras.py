@@ -36,7 +36,7 @@ import json
 import logging
 import os
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Literal, get_args
 
@@ -300,12 +300,16 @@ class CameraSet:
             wrote (``score`` in [0, 1] or None, ``checks``, ``doubts``, ``accepted_low_confidence``;
             :meth:`macsplat_cli.pipeline.pose.PoseResult.camera_confidence`); None otherwise. Written as the file's
             ``"pose_confidence"`` entry when set, read back as it is (a JSON object).
+        unregistered: photos of the reconstruction that could not be registered (``name``, ``width``,
+            ``height``, ``reason``): written after the cameras in ``"cameras"`` with ``"registered": false`` and
+            no pose; read back into this list, never as cameras.
     """
 
     cameras: list[Camera]
     scale: Scale = "relative"
     world: str = "camera_0"
     pose_confidence: dict[str, Any] | None = None
+    unregistered: list[dict[str, Any]] = field(default_factory=list)
     convention: ClassVar[str] = "opencv"
 
     def __post_init__(self) -> None:
@@ -342,7 +346,7 @@ class CameraSet:
             "convention": self.convention,
             "world": self.world,
             "scale": self.scale,
-            "cameras": [cam.to_dict() for cam in self.cameras],
+            "cameras": [cam.to_dict() for cam in self.cameras] + [to_jsonable(dict(u)) for u in self.unregistered],
         }
         if self.pose_confidence is not None:
             out["pose_confidence"] = to_jsonable(dict(self.pose_confidence))
@@ -377,13 +381,18 @@ class CameraSet:
         cams = d["cameras"]
         if not isinstance(cams, list) or not cams:
             raise CameraFileError(f"{where}: cameras must be a non-empty list of camera objects")
-        cameras = [Camera.from_dict(c, f"{where}: cameras[{i}]") for i, c in enumerate(cams)]
+        left = [dict(c) for c in cams if isinstance(c, Mapping) and c.get("registered") is False]
+        cameras = [Camera.from_dict(c, f"{where}: cameras[{i}]") for i, c in enumerate(cams)
+                   if not (isinstance(c, Mapping) and c.get("registered") is False)]  # fmt: skip
+        if not cameras:
+            raise CameraFileError(f"{where}: no registered camera")
         confidence = d.get("pose_confidence")
         if confidence is not None and not isinstance(confidence, Mapping):
             raise CameraFileError(f"{where}: pose_confidence must be an object, got {_json_type(confidence)}")
         try:
             return cls(cameras=cameras, scale=scale, world=world,
-                       pose_confidence=dict(confidence) if confidence is not None else None)  # fmt: skip
+                       pose_confidence=dict(confidence) if confidence is not None else None,
+                       unregistered=left)  # fmt: skip
         except CameraFileError as e:
             raise CameraFileError(f"{where}: {e}") from None
 

@@ -329,10 +329,10 @@ def reconstruct(
     on_stage: StageEvent | None = None,
     on_refine_step: RefineEvent | None = None,
 ) -> Reconstruction:
-    """Reconstruct a Gaussian scene from two photos.
+    """Reconstruct a Gaussian scene from two or more photos (more than two: :mod:`.pipeline.multiview`).
 
     Args:
-        images: the two photos; the first defines the world frame.
+        images: the photos (2 to ``max_photos``); the first (registered) one defines the world frame.
         config: the settings (default: the classical backend, no refinement).
         models: models loaded by :func:`load_models` for this configuration (loaded here when None,
             reported as the ``"weights"`` stage).
@@ -349,6 +349,7 @@ def reconstruct(
     """
     config = config or EngineConfig()
     notify = on_stage or (lambda stage, event: None)
+    _check_photos(images, config)
     models = _models_for(config, models, notify)
     settings = config.settings()
     pipeline = _build_pipeline(config, settings, models)
@@ -358,6 +359,24 @@ def reconstruct(
     if settings.refine.steps > 0:
         rec = _refine(rec, settings.refine, models, notify, on_refine_step)
     return _compact(rec, settings, config.budget, notify)
+
+
+def _check_photos(images: Sequence[str | Path], config: EngineConfig) -> None:
+    """The photo count, and what more than two photos cannot have yet: before any weights load.
+
+    Raises:
+        InputError: fewer than 2 or too many photos; more than two with the neural backend or ``--refine``.
+    """
+    from ._limits import check_photo_count
+
+    check_photo_count(len(images), config.pipeline.multiview.max_photos)
+    if len(images) > 2 and config.backend == "neural":
+        raise InputError(
+            f"{len(images)} photos: the neural backend reconstructs two photos (pairwise global alignment is not "
+            "built yet); use --backend classical for more"
+        )
+    if len(images) > 2 and config.refine.steps > 0:
+        raise InputError(f"{len(images)} photos: --refine refines two photos' Gaussians; leave it out for more")
 
 
 def _add_network(rec: Reconstruction, pipeline: Pipeline, config: EngineConfig, models: Models) -> None:

@@ -73,6 +73,8 @@ class RunReport:
             dropped_free_space, from_other_view, slanted_refined, colour_rejected, speckle_removed; see
             :class:`~macsplat_cli.pipeline.depth.FilledDepthMap`) and ``background`` (the far layer's Gaussians
             past each view's border and behind its interior, and the cells the other photo covers).
+        multiview: more than two photos: each photo's registration (or why not), each pair's outcome, the
+            registration's points and reprojection error (:meth:`~.pipeline.multiview.MultiViewResult.report`).
         gaussians_written: Gaussians in the written PLY (after writing).
         outputs: role → path of each written file (after writing).
     """
@@ -96,6 +98,7 @@ class RunReport:
     refine: RefineReport | None = None
     compact: dict[str, Any] | None = None
     fill: dict[str, Any] | None = None
+    multiview: dict[str, Any] | None = None
     gaussians_written: int | None = None
     outputs: dict[str, str] = field(default_factory=dict)
 

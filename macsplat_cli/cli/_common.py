@@ -27,6 +27,7 @@ __all__ = [
     "command_context",
     "err_console",
     "escape",
+    "expand_photos",
     "out_console",
 ]
 
@@ -204,3 +205,38 @@ class StageProgress:
             took = time.perf_counter() - self.started.pop(stage)
             self.progress.update(self.tasks[stage], completed=1, took=f"{took:.2f} s")
             self.progress.stop_task(self.tasks[stage])
+
+
+_GLOB = set("*?[")
+
+
+def expand_photos(args: Iterable[Path]) -> list[Path]:
+    """The photos named on the command line: a folder gives its image files (sorted by name, not recursive), an
+    unexpanded glob pattern (``'photos/*.jpg'``) its matches (sorted); the count is checked
+    (:func:`~macsplat_cli._limits.check_photo_count`).
+
+    Raises:
+        InputError: a folder or pattern with no photos, or fewer than 2 or more than the limit in all.
+    """
+    import glob
+
+    from .._limits import check_photo_count
+    from ..errors import InputError
+    from ..images import IMAGE_FORMATS
+
+    out: list[Path] = []
+    for a in args:
+        if a.is_dir():
+            found = sorted(p for p in a.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_FORMATS)
+            if not found:
+                raise InputError(f"{a}: a folder with no photos ({', '.join(IMAGE_FORMATS)})")
+            out += found
+        elif not a.exists() and _GLOB & set(str(a)):
+            found = sorted(Path(p) for p in glob.glob(str(a)) if Path(p).suffix.lower() in IMAGE_FORMATS)
+            if not found:
+                raise InputError(f"{a}: no photo matches this pattern")
+            out += found
+        else:
+            out.append(a)
+    check_photo_count(len(out))
+    return out

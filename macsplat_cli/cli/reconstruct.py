@@ -20,6 +20,7 @@ from ._common import (
     command_context,
     err_console,
     escape,
+    expand_photos,
     out_console,
 )
 from ._options import (
@@ -119,8 +120,14 @@ BackendOpt = Annotated[
 @app.command("reconstruct")
 def reconstruct_command(
     ctx: typer.Context,
-    image_a: Annotated[Path, typer.Argument(metavar="A", help="First photo (defines the world frame).")],
-    image_b: Annotated[Path, typer.Argument(metavar="B", help="Second photo.")],
+    images: Annotated[
+        list[Path],
+        typer.Argument(
+            metavar="PHOTOS...",
+            help="Two or more photos of the scene (the first registered one defines the world frame), or a folder "
+            "of photos.",
+        ),
+    ],
     output: Annotated[Path, typer.Option("--output", "-o", help="The Gaussian scene to write (.ply).")],
     cameras: CamerasOpt = None,
     renders: RendersOpt = None,
@@ -150,16 +157,20 @@ def reconstruct_command(
     verbose: VerboseOpt = False,
     quiet: QuietOpt = False,
 ) -> None:
-    """Reconstruct a Gaussian splat scene from two photos.
+    """Reconstruct a Gaussian splat scene from two or more photos.
 
-    Writes the scene (standard 3DGS PLY), the two estimated cameras (world = first camera;
+    Writes the scene (standard 3DGS PLY), the estimated cameras (world = first camera;
     relative scale, baseline 1, with the classical backend; metres with the neural one), and
-    optionally novel views, a video and a JSON report. The default backend needs no learned
-    weights; [bold]--backend neural[/] uses MASt3R (user-supplied checkpoint, see models/).
+    optionally novel views, a video and a JSON report. More than two photos (up to 64; tested
+    to 32) are registered in one frame; a photo that cannot be is left out with its reason.
+    The default backend needs no learned weights; [bold]--backend neural[/] uses MASt3R
+    (user-supplied checkpoint, see models/), two photos only.
 
     [bold]Examples[/]
 
       macsplat reconstruct a.jpg b.jpg -o scene.ply --renders views/ --video path.mp4
+
+      macsplat reconstruct photos/*.jpg -o scene.ply
 
       macsplat reconstruct a.jpg b.jpg -o scene.ply --backend neural --weights mast3r.pth
     """
@@ -171,7 +182,7 @@ def reconstruct_command(
             weights=weights, dino=dino, fusion=fusion, gaussian_head=gaussian_head, device=device, precision=precision,
         )  # fmt: skip
         _reconstruct(
-            [image_a, image_b], config, output=output, cameras=cameras, renders=renders, num_renders=num_renders,
+            expand_photos(images), config, output=output, cameras=cameras, renders=renders, num_renders=num_renders,
             video=video, report=report, json_out=json_out, quiet=state.quiet,
         )  # fmt: skip
 
@@ -278,7 +289,7 @@ def _reconstruct(
     config.validate()
     cameras = cameras or output.with_name(output.stem + ".cameras.json")
     n = config.neural
-    inputs = [("A", images[0]), ("B", images[1]), ("--intrinsics", config.pipeline.views.intrinsics),
+    inputs = [*((f"photo {k + 1}", p) for k, p in enumerate(images)), ("--intrinsics", config.pipeline.views.intrinsics),
               ("--weights", n.weights), ("--gaussian-head", n.gaussian_head), ("--dino", n.dino),
               ("--fusion", n.fusion), ("--lpips-weights", config.refine.lpips_weights)]  # fmt: skip
     _check_outputs(output, cameras, renders, num_renders, video, report, inputs)
@@ -352,6 +363,21 @@ def _matches_line(report: dict[str, Any]) -> str:
     return line if tier is None else f"{line} ({tier})"
 
 
+def _photos_line(mv: dict[str, Any]) -> str:
+    """More than two photos: how many registered, from which pair, and each photo left out with its reason."""
+    photos = mv["photos"]
+    ok = sum(p["registered"] for p in photos)
+    accepted = sum(p["accepted"] for p in mv["pairs"])
+    rms = mv.get("reprojection_rms_px")
+    line = (
+        f"{ok} of {len(photos)} registered ({accepted} of {len(mv['pairs'])} pairs accepted, first pair "
+        f"{' + '.join(mv['init_pair'] or [])}, {mv['points']:,} points, reprojection RMS "
+        f"{rms:.2f} px)" if rms is not None else f"{ok} of {len(photos)} registered"
+    )
+    left = [f"\n  left out: {p['name']}: {p['reason']}" for p in photos if not p["registered"]]
+    return line + "".join(left)
+
+
 def _summary(report: dict[str, Any], written: dict[str, Any]) -> None:
     from rich.table import Table
 
@@ -367,8 +393,11 @@ def _summary(report: dict[str, Any], written: dict[str, Any]) -> None:
             for p, i in zip(report["inputs"], imgs)
         ),
     )
+    mv = report.get("multiview")
+    if mv is not None:
+        t.add_row("photos", escape(_photos_line(mv)))
     t.add_row("keypoints", " / ".join(str(k) for k in report["keypoints"]))
-    t.add_row("matches", escape(_matches_line(report)))
+    t.add_row("matches" if mv is None else "first pair", escape(_matches_line(report)))
     pose = report["pose"]
 
     def num(key: str, fmt: str) -> str:

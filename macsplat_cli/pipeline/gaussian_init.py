@@ -33,7 +33,7 @@ from ..gaussians import GaussianMaps, Gaussians
 from ..rotations import rotmat_to_quat_np
 from .types import DepthMap, TwoViewGeometry, View
 
-__all__ = ["GaussianInitConfig", "gaussians_from_depth"]
+__all__ = ["GaussianInitConfig", "gaussians_from_depth", "view_gaussians"]
 
 
 @dataclass
@@ -96,16 +96,16 @@ def gaussians_from_depth(
             for k, (view, dm) in enumerate(zip(views, depths))]  # fmt: skip
     workers = min(len(jobs), os.cpu_count() or 1)
     if workers < 2:
-        return [_view_gaussians(*job, cfg) for job in jobs]
+        return [view_gaussians(*job, cfg) for job in jobs]
     # NumPy releases the GIL in its array loops: the views are built side by side
     with ThreadPoolExecutor(workers, thread_name_prefix="gaussians") as pool:
-        return list(pool.map(lambda job: _view_gaussians(*job, cfg), jobs))
+        return list(pool.map(lambda job: view_gaussians(*job, cfg), jobs))
 
 
-def _view_gaussians(
+def view_gaussians(
     view: View, dm: DepthMap, K: np.ndarray, cam_to_world: np.ndarray, cfg: GaussianInitConfig
 ) -> GaussianMaps:
-    """One view's Gaussians (:func:`gaussians_from_depth`); ``K`` [3, 3], ``cam_to_world`` [4, 4]."""
+    """One view's Gaussians in its camera frame (:func:`gaussians_from_depth`); ``K`` [3, 3], ``cam_to_world`` [4, 4]."""
     h, w = dm.depth.shape
     ys, xs = np.mgrid[0:h, 0:w]
     pix = np.stack([xs + 0.5, ys + 0.5, np.ones((h, w))], -1)

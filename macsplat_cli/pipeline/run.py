@@ -16,10 +16,13 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
 import torch
 
 from .. import __version__
+from .._limits import check_photo_count
 from ..cameras import CameraSet
+from ..errors import InputError
 from ..gaussians import GaussianMaps, Gaussians
 from ..report import ImageReport, RunReport
 from .background import BackgroundConfig, BackgroundLayer, background_gaussians
@@ -27,6 +30,7 @@ from .depth import DepthConfig
 from .descriptors import SiftConfig, SiftDescriptors
 from .gaussian_init import GaussianInitConfig
 from .matching import MatchConfig
+from .multiview import MultiViewConfig, MultiViewResult, reconstruct_views
 from .pose import PoseConfig, PoseResult, PoseSearch, PoseSearchConfig
 from .slots import DepthStage, DescribeStage, GaussianStage, MatchStage, PairStage, PoseStage
 from .stages import DepthGaussians, EssentialPose, FilteredMatcher, PerViewDescriptors, PlaneSweepDepth
@@ -55,6 +59,7 @@ class ReconstructConfig:
         depth: dense depth (stage 5).
         gaussians: Gaussians from the depth (stage 6).
         background: the far layer around both photos (stage 6).
+        multiview: more than two photos: pairs, registration, depth from neighbours (:mod:`.multiview`).
     """
 
     views: ViewConfig = field(default_factory=ViewConfig)
@@ -65,6 +70,7 @@ class ReconstructConfig:
     depth: DepthConfig = field(default_factory=DepthConfig)
     gaussians: GaussianInitConfig = field(default_factory=GaussianInitConfig)
     background: BackgroundConfig = field(default_factory=BackgroundConfig)
+    multiview: MultiViewConfig = field(default_factory=MultiViewConfig)
 
 
 @dataclass
@@ -76,7 +82,8 @@ class Reconstruction:
     """
 
     views: list[View]
-    geometry: TwoViewGeometry
+    geometry: TwoViewGeometry | None
+    """The two photos' relative pose; None for more than two photos (``poses``)."""
     depths: list[DepthMap]
     maps: list[GaussianMaps]
     report: RunReport
@@ -86,7 +93,13 @@ class Reconstruction:
     background: BackgroundLayer | None = None
     """The far layer around both photos (:mod:`.background`), when it was built; not refined or compacted."""
     pose: PoseResult | None = None
-    """The pose search's result (tier, evidence, acceptance), when the pipeline estimated the pose."""
+    """The pose search's result (tier, evidence, acceptance), when the pipeline estimated the pose; for more than
+    two photos, the first registered pair's."""
+    poses: list[np.ndarray] | None = None
+    """More than two photos: each view's camera-to-world [4, 4] (the views are the registered photos that have
+    Gaussians, in input order); None for two photos (``geometry``)."""
+    multiview: MultiViewResult | None = None
+    """More than two photos: every photo's registration (and why a photo is not registered), the pairs."""
 
     @functools.cached_property
     def gaussians(self) -> Gaussians:
@@ -101,13 +114,19 @@ class Reconstruction:
         return scene if layer is None else Gaussians.cat([scene, layer])
 
     def cameras(self, *, original_size: bool = True) -> CameraSet:
-        """The two cameras; at the photos' original resolution by default."""
+        """The views' cameras (at the photos' original resolution by default); for more than two photos, the
+        photos left unregistered are listed with their reasons (``CameraSet.unregistered``)."""
+        confidence = self.pose.camera_confidence() if self.pose is not None else None
+        if self.poses is not None:
+            cams = [v.camera(T, original_size=original_size) for v, T in zip(self.views, self.poses)]
+            left = self.multiview.unregistered() if self.multiview is not None else []
+            return CameraSet(cams, scale=self.scale, world="camera_0", pose_confidence=confidence, unregistered=left)
+        assert self.geometry is not None
         K = (self.geometry.K0, self.geometry.K1)
         cams = []
         for k, v in enumerate(self.views):
             cam = View(v.name, v.path, v.image, v.mask, K[k], v.original_size, v.intrinsics_source)
             cams.append(cam.camera(self.geometry.cam_to_world(k), original_size=original_size))
-        confidence = self.pose.camera_confidence() if self.pose is not None else None
         return CameraSet(cams, scale=self.scale, world="camera_0", pose_confidence=confidence)
 
 
@@ -206,8 +225,7 @@ class Pipeline:
             InputError: unreadable photos or intrinsics.
             ReconstructionError: the scene cannot be reconstructed (the message says why).
         """
-        if len(paths) != 2:
-            raise ValueError(f"the pipeline takes exactly two photos, got {len(paths)}")
+        check_photo_count(len(paths), self.config.multiview.max_photos)
         times: dict[str, float] = {}
         notify = on_stage or (lambda stage, event: None)
 
@@ -225,6 +243,8 @@ class Pipeline:
             return out
 
         loaded: list[View] = timed("images", lambda: load_views(paths, self.config.views))
+        if len(loaded) > 2:
+            return self._run_views(paths, loaded, times, timed)
         pair = timed("network", lambda: self.pair(loaded)) if self.pair is not None else None
         pose: PoseResult = self.search(loaded, pair, timed)
         views, geometry = pose.views, pose.geometry
@@ -264,3 +284,48 @@ class Pipeline:
             },
         )
         return Reconstruction(views, geometry, depths, maps, report, scale=self.scale, background=background, pose=pose)
+
+    def _run_views(
+        self, paths: Sequence[str | Path], loaded: list[View], times: dict[str, float], timed: Callable[..., Any]
+    ) -> Reconstruction:
+        """More than two photos (:mod:`.multiview`): the classical chain only."""
+        if self.pair is not None:
+            raise InputError(
+                f"{len(loaded)} photos: the neural backend reconstructs two photos; use --backend classical for more"
+            )
+
+        def two_view_depth(views: list[View], geometry: TwoViewGeometry) -> list[DepthMap]:
+            return self.depth(views, geometry, None)
+
+        c = self.config
+        mv = reconstruct_views(loaded, self.search, two_view_depth, c.gaussians, c.multiview, timed)
+        reg, ks = mv.registration, mv.map_views
+        views = [mv.views[k] for k in ks]
+        depths = [d for d in (mv.depths[k] for k in ks) if d is not None]
+        init = next(o for o in mv.pairs if (o.i, o.j) == reg.init_pair)
+        pose = init.result
+        assert pose is not None
+        report = RunReport(
+            macsplat_version=__version__,
+            inputs=[str(p) for p in paths],
+            backends=self.backends(),
+            times_s={**times, "total": sum(times.values())},
+            images=[
+                ImageReport(v.name, list(v.original_size), [v.width, v.height], v.intrinsics_source, float(v.K[0, 0]))
+                for v in mv.views
+            ],
+            keypoints=[len(f) for f in pose.features],
+            fallback_used=pose.fallback_used,
+            matches={**pose.geometry.inliers.counts},
+            inlier_ratio=pose.inlier_ratio,
+            pose=pose.report(),
+            depth_coverage=[float(d.valid.mean()) for d in depths],
+            depth_measured=[float(d.measured.mean()) if d.measured is not None else None for d in depths],
+            gaussians=count_gaussians(mv.maps),
+            config=asdict(self.config),
+            scale=self.scale,
+            multiview=mv.report(),
+        )
+        poses = [reg.cam_to_world(k) for k in ks]
+        return Reconstruction(views, None, depths, mv.maps, report, scale=self.scale, pose=pose, poses=poses,
+                              multiview=mv)  # fmt: skip

@@ -111,11 +111,16 @@ def axes_geometry(R: np.ndarray, t: np.ndarray) -> dict[str, float]:
     }
 
 
+FOCAL_DOUBT_START = "the focal length cannot be determined"
+"""How the pose stage's doubt about an unobservable focal length begins (:mod:`..multiview` leaves such a pair's
+focal to the bundle adjustment of more photos)."""
+
+
 def _focal_doubt(axes: dict[str, float], cfg: PoseConfig) -> str:
     looking = axes["focal_axes_gap"] < cfg.object_axes_gap and axes["focal_axes_asymmetry"] < cfg.object_axes_asymmetry
     why = " (both cameras look at the same point, as when photographing an object)" if looking else ""
     return (
-        f"the focal length cannot be determined from these two photos{why}, and the pose depends on it: "
+        f"{FOCAL_DOUBT_START} from these two photos{why}, and the pose depends on it: "
         "give --focal, --intrinsics or photos with EXIF"
     )
 

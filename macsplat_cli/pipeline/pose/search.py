@@ -87,11 +87,14 @@ class PoseSearch:
         pose: the pose stage (``(v0, v1, matches, pair) → TwoViewGeometry``).
         fallback: the fallback descriptors, or None.
         wide: the wide-baseline descriptors, or None.
+        warn_doubts: log a kept doubted pose (``accept_low_confidence``) as a warning; off for a caller that judges
+            the doubts itself (:mod:`..multiview`).
     """
 
     def __init__(
         self, config: PoseSearchConfig, pose_config: PoseConfig, *, describe: DescribeStage, match: MatchStage,
         pose: PoseStage, fallback: DescribeStage | None = None, wide: DescribeStage | None = None,
+        warn_doubts: bool = True,
     ) -> None:  # fmt: skip
         self.config = config
         self.pose_config = pose_config
@@ -100,6 +103,7 @@ class PoseSearch:
         self.pose = pose
         self.fallback = fallback
         self.wide = wide
+        self.warn_doubts = warn_doubts
 
     def __call__(self, views: list[View], pair: Any = None, timed: StageTimer | None = None) -> PoseResult:
         """The accepted pose of the two ``views`` (``pair``: the network pass, for backends that have one).
@@ -262,7 +266,7 @@ class PoseSearch:
         doubts: list[Doubt] = conf.doubts
         if doubts and not c.accept_low_confidence:
             raise ReconstructionError(f"{doubts[0].message} ({LOW_CONFIDENCE_HINT})")
-        if doubts:
+        if doubts and self.warn_doubts:
             logger.warning(
                 "the pose may be wrong, the scene is written anyway (--accept-low-confidence): %s", doubts[0].message
             )

@@ -1,0 +1,336 @@
+"""Bundle adjustment: poses, points and shared focal lengths refined on the reprojection errors of all observations.
+
+:func:`bundle_adjust` minimises ``Σ ρ(‖π(K_c (R_c X_p + t_c)) − x_o‖)`` with Huber's ``ρ`` (scale
+``BundleConfig.loss_scale_px``) by :func:`scipy.optimize.least_squares` (trust-region reflective, the 2-D subspace
+steps of LSMR on a sparse Jacobian). The parameters:
+
+* per non-fixed camera, a rotation update ``δ`` (axis-angle, ``R = Exp(δ) · R₀``) and the translation ``t``;
+* per focal group, a log-focal multiplier ``s``: ``fx``, ``fy`` (and the skew) times ``exp(s)``, principal point kept;
+* per point with at least ``BundleConfig.min_observations`` observations, its world position.
+
+The Jacobian is analytic (``BundleConfig.jacobian = "analytic"``; ``"2-point"`` takes scipy's finite differences
+grouped by the same sparsity instead): for ``p = R X + t`` and ``n = p_xy / p_z``,
+``∂pixel/∂p = e^s K₂ₓ₂ ∂n/∂p``, ``∂p/∂X = R``, ``∂p/∂t = I``, ``∂p/∂δ = −[R X]ₓ J_l(δ)`` with ``J_l`` the left Jacobian
+of SO(3) (``Exp(δ + ε) ≈ Exp(J_l(δ) ε) Exp(δ)``), ``∂pixel/∂s = e^s K₂ₓ₂ n``.
+
+Gauge: the fixed poses (camera 0 by default) fix rotation and translation; when they all share one centre the scale is
+still free, and after the solve a similarity about that centre restores the distance from it to the first free
+camera with a non-zero baseline (its value before the solve). A similarity scales every camera-frame point by one
+factor, so it leaves every reprojection error unchanged.
+
+Conventions: OpenCV axes, ``X_cam = R · X_world + t``, pixel ``= K · X_cam / z`` (``K`` encodes the +0.5 pixel
+centres). float64 throughout.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.optimize import least_squares
+
+from ...errors import NonFiniteError, ShapeError
+from .triangulate import _check_inputs, reprojection_errors
+
+__all__ = ["BundleConfig", "BundleResult", "bundle_adjust"]
+
+_SERIES_BELOW = 1e-2  # rotation angle (rad) under which Rodrigues' coefficients come from their Taylor series
+
+
+@dataclass
+class BundleConfig:
+    """Settings of :func:`bundle_adjust`.
+
+    Args:
+        loss_scale_px: robust loss (Huber) scale, px: one pixel of SIFT localisation noise; errors beyond it count
+            linearly, so a mismatched track pulls with a bounded force.
+        max_evaluations: residual evaluations at most (one per trust-region step tried, the Jacobian once per
+            accepted step): BA from an incremental registration's start converges in 10–30 steps; 100 bounds the
+            time of a bad start.
+        ftol: stop when a step lowers the robust cost by less than this fraction: 1e-6 of the cost is far below
+            what changes a pose at 1 px of noise.
+        xtol: stop when the step is below this fraction of the parameters' norm (tiny: points' world coordinates
+            dominate that norm, so a relative 1e-8 would stop before pixel-level convergence).
+        gtol: stop when the scaled gradient's largest entry is below this (an exact fit reaches it).
+        min_observations: a point with fewer observations is not adjusted and its observations are left out of the
+            solve (one observation leaves the point free along its ray); they are still in the reported errors.
+        jacobian: ``"analytic"`` (default: exact, one evaluation per accepted step) or ``"2-point"`` (scipy's
+            finite differences grouped by the sparsity, ~10 extra residual evaluations per step; for checking).
+        lsmr_tol: LSMR's ``atol`` and ``btol`` for the Gauss-Newton direction of each step: the 2-D subspace with
+            the gradient makes an inexact direction safe, and a looser tolerance saves inner iterations.
+    """
+
+    loss_scale_px: float = 1.0
+    max_evaluations: int = 100
+    ftol: float = 1e-6
+    xtol: float = 1e-12
+    gtol: float = 1e-10
+    min_observations: int = 2
+    jacobian: str = "analytic"
+    lsmr_tol: float = 1e-6
+
+
+@dataclass
+class BundleResult:
+    """What :func:`bundle_adjust` returns: the adjusted cameras and points (new arrays) and how the solve went.
+
+    Args:
+        R, t, K: the cameras after the solve (fixed poses unchanged; ``K`` changed only in focal groups).
+            [C, 3, 3], [C, 3], [C, 3, 3]
+        points: the points after the solve (points with fewer than ``min_observations`` only rescaled with the
+            gauge). [P, 3]
+        rms_before_px, rms_after_px: ``sqrt(mean ‖e_o‖²)`` over all observations before and after, px.
+        residual_px: reprojection error norm of each observation after, px. [O]
+        evaluations: residual evaluations used.
+        seconds: wall time of the call.
+        success: the solve stopped on a tolerance (``ftol``, ``xtol``, ``gtol``), not on ``max_evaluations``.
+    """
+
+    R: np.ndarray
+    t: np.ndarray
+    K: np.ndarray
+    points: np.ndarray
+    rms_before_px: float
+    rms_after_px: float
+    residual_px: np.ndarray
+    evaluations: int
+    seconds: float
+    success: bool
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """``[v]ₓ`` [N, 3, 3] of ``v`` [N, 3]."""
+    z = np.zeros(v.shape[0])
+    return np.stack(
+        [np.stack([z, -v[:, 2], v[:, 1]], 1), np.stack([v[:, 2], z, -v[:, 0]], 1), np.stack([-v[:, 1], v[:, 0], z], 1)],
+        axis=1,
+    )
+
+
+def _rodrigues(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(Exp(w), J_l(w))`` [N, 3, 3] each for axis-angle vectors ``w`` [N, 3]: ``I + a W + b W²`` and
+    ``I + b W + c W²`` with ``W = [w]ₓ``, ``a = sin θ/θ``, ``b = (1 − cos θ)/θ²``, ``c = (θ − sin θ)/θ³``."""
+    th2 = np.sum(w * w, axis=1)
+    th = np.sqrt(th2)
+    small = th < _SERIES_BELOW
+    ts = np.where(small, 1.0, th)
+    a = np.where(small, 1 - th2 / 6 * (1 - th2 / 20 * (1 - th2 / 42)), np.sin(ts) / ts)
+    b = np.where(small, 0.5 - th2 / 24 * (1 - th2 / 30 * (1 - th2 / 56)), (1 - np.cos(ts)) / ts**2)
+    c = np.where(small, 1 / 6 - th2 / 120 * (1 - th2 / 42 * (1 - th2 / 72)), (ts - np.sin(ts)) / ts**3)
+    W = _skew(w)
+    W2 = W @ W
+    eye = np.eye(3)[None]
+    return eye + a[:, None, None] * W + b[:, None, None] * W2, eye + b[:, None, None] * W + c[:, None, None] * W2
+
+
+class _Problem:
+    """The parameter layout ``[cameras 6F | focal groups G | points 3Pf]`` and the residuals and Jacobian of the
+    observations used (those of adjusted points), with the Jacobian's CSR structure built once."""
+
+    def __init__(self, R, t, K, points, cam_idx, point_idx, xy, free_cam, group, free_point) -> None:  # noqa: ANN001
+        self.R0, self.t0, self.K0, self.X0 = R, t, K, points
+        C, P = R.shape[0], points.shape[0]
+        used = free_point[point_idx]
+        self.cam, self.pt, self.xy = cam_idx[used], point_idx[used], xy[used]
+        self.free_cams = np.flatnonzero(free_cam)
+        self.cam_slot = np.full(C, -1)
+        self.cam_slot[self.free_cams] = np.arange(self.free_cams.size)
+        groups, self.group = np.unique(group, return_inverse=True)  # compact the ids ≥ 0 to 0..G−1
+        self.group = np.where(group >= 0, self.group - int((groups < 0).any()), -1)
+        self.n_groups = int((groups >= 0).sum())
+        self.free_points = np.flatnonzero(free_point)
+        self.point_slot = np.full(P, -1)
+        self.point_slot[self.free_points] = np.arange(self.free_points.size)
+        self.off_focal = 6 * self.free_cams.size
+        self.off_point = self.off_focal + self.n_groups
+        self.n_params = self.off_point + 3 * self.free_points.size
+        self._structure()
+
+    def _structure(self) -> None:
+        """Columns [O, 10] of each observation's two rows (δ, t, s, X), which of them exist, and the CSR arrays."""
+        cs, g, ps = self.cam_slot[self.cam], self.group[self.cam], self.point_slot[self.pt]
+        cols = np.concatenate(
+            [6 * cs[:, None] + np.arange(6), (self.off_focal + g)[:, None], self.off_point + 3 * ps[:, None] + np.arange(3)],
+            axis=1,
+        )
+        mask = np.concatenate([np.repeat((cs >= 0)[:, None], 6, 1), (g >= 0)[:, None], np.ones((len(cs), 3), bool)], 1)
+        self.mask2 = np.repeat(mask[:, None, :], 2, axis=1)  # [O, 2, 10]
+        self.indices = np.repeat(cols[:, None, :], 2, axis=1)[self.mask2]
+        self.indptr = np.concatenate([[0], np.cumsum(np.repeat(mask.sum(1), 2))])
+        self.shape = (2 * len(cs), self.n_params)
+
+    def x0(self) -> np.ndarray:
+        x = np.zeros(self.n_params)
+        x[: self.off_focal].reshape(-1, 6)[:, 3:] = self.t0[self.free_cams]
+        x[self.off_point :] = self.X0[self.free_points].ravel()
+        return x
+
+    def unpack(self, x: np.ndarray) -> tuple[np.ndarray, ...]:
+        """``(R, t, K, X, δ, s)`` from the parameters ``x``: every camera and point, fixed ones included."""
+        cams = x[: self.off_focal].reshape(-1, 6)
+        d = np.zeros((self.R0.shape[0], 3))
+        d[self.free_cams] = cams[:, :3]
+        t = self.t0.copy()
+        t[self.free_cams] = cams[:, 3:]
+        s = np.zeros(self.R0.shape[0])
+        s[self.group >= 0] = x[self.off_focal : self.off_point][self.group[self.group >= 0]]
+        K = self.K0.copy()
+        K[:, :2, :2] *= np.exp(s)[:, None, None]
+        X = self.X0.copy()
+        X[self.free_points] = x[self.off_point :].reshape(-1, 3)
+        Rd, _ = _rodrigues(d)
+        return Rd @ self.R0, t, K, X, d, s
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        R, t, K, X, _, _ = self.unpack(x)
+        p = np.einsum("oij,oj->oi", R[self.cam], X[self.pt]) + t[self.cam]
+        pix = np.einsum("oij,oj->oi", K[self.cam][:, :2, :], p) / p[:, 2:3]
+        return (pix - self.xy).ravel()
+
+    def jacobian(self, x: np.ndarray) -> sp.csr_matrix:
+        """The analytic Jacobian [2O, n_params] (module docstring), as CSR on the structure of :meth:`_structure`."""
+        R, t, K, X, d, _ = self.unpack(x)
+        _, Jl = _rodrigues(d)
+        Ro = R[self.cam]
+        RX = np.einsum("oij,oj->oi", Ro, X[self.pt])
+        p = RX + t[self.cam]
+        iz = 1.0 / p[:, 2]
+        n = p[:, :2] * iz[:, None]
+        dn = np.zeros((len(p), 2, 3))
+        dn[:, 0, 0] = dn[:, 1, 1] = iz
+        dn[:, :, 2] = -n * iz[:, None]
+        A = K[self.cam][:, :2, :2]
+        Jp = A @ dn  # [O, 2, 3]
+        blocks = np.concatenate(
+            [-Jp @ _skew(RX) @ Jl[self.cam], Jp, np.einsum("oij,oj->oi", A, n)[:, :, None], Jp @ Ro], axis=2
+        )
+        return sp.csr_matrix((blocks[self.mask2], self.indices, self.indptr), shape=self.shape)
+
+    def sparsity(self) -> sp.csr_matrix:
+        return sp.csr_matrix((np.ones(self.indices.size), self.indices, self.indptr), shape=self.shape)
+
+
+def _centres(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Camera centres ``−Rᵀ t`` [C, 3]."""
+    return -np.einsum("cji,cj->ci", R, t)
+
+
+def _scale_reference(R: np.ndarray, t: np.ndarray, fixed: np.ndarray) -> tuple[int, int] | None:
+    """``(anchor, reference)``: the first fixed camera and the first free camera at a non-zero distance from it,
+    when the fixed cameras share one centre (the scale is free); None when the fixed poses fix the scale or no free
+    camera has a baseline. "Non-zero" is above 1e-9 of the cameras' largest distance from the anchor."""
+    centres = _centres(R, t)
+    anchor = int(np.flatnonzero(fixed)[0])
+    dist = np.linalg.norm(centres - centres[anchor], axis=1)
+    tol = 1e-9 * max(float(dist.max()), 1e-300)
+    if (dist[fixed] > tol).any():
+        return None
+    candidates = np.flatnonzero(~fixed & (dist > tol))
+    return (anchor, int(candidates[0])) if candidates.size else None
+
+
+def _restore_scale(
+    R: np.ndarray, t: np.ndarray, X: np.ndarray, free: np.ndarray, anchor: int, ref: int, distance: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(t, X)`` after the similarity ``Y ↦ C_a + λ (Y − C_a)`` about the anchor's centre ``C_a`` that makes
+    ``‖C_ref − C_a‖ = distance``: centres and points scale about ``C_a``, rotations stay, so every camera-frame point
+    is ``λ`` times itself and the reprojections are unchanged; cameras at ``C_a`` (the fixed ones) keep their pose."""
+    centres = _centres(R, t)
+    ca = centres[anchor]
+    now = float(np.linalg.norm(centres[ref] - ca))
+    if not now > 0:
+        return t, X
+    lam = distance / now
+    new_c = ca + lam * (centres - ca)
+    t_new = np.where(free[:, None], -np.einsum("cij,cj->ci", R, new_c), t)
+    return t_new, ca + lam * (X - ca)
+
+
+def _rms(e: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(e**2))) if e.size else 0.0
+
+
+def _options(
+    C: int, fixed_pose: np.ndarray | None, focal_group: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(fixed [C] bool, group [C] int)`` with their defaults (camera 0 fixed, no focal adjusted), checked."""
+    fixed = np.zeros(C, bool) if fixed_pose is None else np.asarray(fixed_pose, dtype=bool)
+    if fixed_pose is None and C:
+        fixed[0] = True
+    group = np.full(C, -1, np.int64) if focal_group is None else np.asarray(focal_group, dtype=np.int64)
+    if fixed.shape != (C,):
+        raise ShapeError("fixed_pose", fixed.shape, "[C]")
+    if group.shape != (C,):
+        raise ShapeError("focal_group", group.shape, "[C]")
+    if not fixed.any():
+        raise ValueError("bundle_adjust needs at least one fixed pose (the gauge of rotation and translation)")
+    return fixed, group
+
+
+def bundle_adjust(
+    R: np.ndarray, t: np.ndarray, K: np.ndarray, points: np.ndarray, cam_idx: np.ndarray, point_idx: np.ndarray,
+    xy: np.ndarray, *, fixed_pose: np.ndarray | None = None, focal_group: np.ndarray | None = None,
+    config: BundleConfig | None = None,
+) -> BundleResult:
+    """Refine poses, points and focal groups on the robust reprojection error (module docstring).
+
+    Args:
+        R, t: world → camera poses. [C, 3, 3], [C, 3]
+        K: intrinsics (pixel centres at +0.5). [C, 3, 3]
+        points: world points. [P, 3]
+        cam_idx, point_idx: camera and point of each observation. [O] each
+        xy: observed pixels. [O, 2]
+        fixed_pose: poses kept as given (default: camera 0 only); at least one. [C] bool
+        focal_group: focal parameter of each camera: -1 keeps its focal, cameras with the same id ≥ 0 share one
+            log-focal multiplier (default: all -1). [C] int
+        config: :class:`BundleConfig`.
+
+    Returns:
+        :class:`BundleResult`. Free cameras without an observation of an adjusted point stay as given.
+
+    Raises:
+        ShapeError, NonFiniteError: malformed inputs; ValueError: an index out of range, no fixed pose, or an
+        observation at depth 0 at the start.
+    """
+    start = time.perf_counter()
+    cfg = config or BundleConfig()
+    R, t, K, X, xy = (np.asarray(a, dtype=np.float64) for a in (R, t, K, points, xy))
+    cam_idx, point_idx = np.asarray(cam_idx, dtype=np.int64), np.asarray(point_idx, dtype=np.int64)
+    if X.ndim != 2 or X.shape[1] != 3:
+        raise ShapeError("points", X.shape, "[P, 3]")
+    if not np.isfinite(X).all():
+        raise NonFiniteError(f"points holds {int((~np.isfinite(X)).sum())} non-finite value(s) (NaN or Inf)")
+    _check_inputs(R, t, K, cam_idx, point_idx, xy, X.shape[0])
+    fixed, group = _options(R.shape[0], fixed_pose, focal_group)
+
+    before = reprojection_errors(R, t, K, X, cam_idx, point_idx, xy)
+    free_point = np.bincount(point_idx, minlength=X.shape[0]) >= cfg.min_observations
+    used = free_point[point_idx]
+    free_cam = ~fixed & (np.bincount(cam_idx[used], minlength=R.shape[0]) > 0)
+    group = np.where(np.bincount(cam_idx[used], minlength=R.shape[0]) > 0, group, -1)
+    prob = _Problem(R, t, K, X, cam_idx, point_idx, xy, free_cam, group, free_point)
+    evaluations, success = 0, True
+    R1, t1, K1, X1 = R, t, K, X
+    if prob.n_params and prob.cam.size:
+        if not np.all(np.isfinite(prob.residuals(prob.x0()))):
+            raise ValueError("an observation is at depth 0 in its camera at the start: its reprojection is undefined")
+        sol = least_squares(
+            prob.residuals, prob.x0(), jac=prob.jacobian if cfg.jacobian == "analytic" else cfg.jacobian,
+            jac_sparsity=None if cfg.jacobian == "analytic" else prob.sparsity(), method="trf", loss="huber",
+            f_scale=cfg.loss_scale_px, x_scale="jac", ftol=cfg.ftol, xtol=cfg.xtol, gtol=cfg.gtol,
+            max_nfev=cfg.max_evaluations, tr_solver="lsmr", tr_options={"atol": cfg.lsmr_tol, "btol": cfg.lsmr_tol},
+        )
+        R1, t1, K1, X1, _, _ = prob.unpack(sol.x)
+        evaluations, success = int(sol.nfev), bool(sol.status > 0)
+        gauge = _scale_reference(R, t, fixed)
+        if gauge is not None:
+            anchor, ref = gauge
+            distance = float(np.linalg.norm(_centres(R, t)[ref] - _centres(R, t)[anchor]))
+            t1, X1 = _restore_scale(R1, t1, X1, ~fixed, anchor, ref, distance)
+    after = reprojection_errors(R1, t1, K1, X1, cam_idx, point_idx, xy)
+    return BundleResult(
+        R=R1, t=t1, K=K1, points=X1, rms_before_px=_rms(before), rms_after_px=_rms(after), residual_px=after,
+        evaluations=evaluations, seconds=time.perf_counter() - start, success=success,
+    )

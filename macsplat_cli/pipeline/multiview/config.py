@@ -1,0 +1,27 @@
+"""The N-photo chain's settings: one dataclass, its parts named per step."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from ..._limits import MAX_PHOTOS
+from .depth import DepthPlanConfig
+from .register import RegisterConfig
+from .shortlist import ShortlistConfig
+
+__all__ = ["MAX_PHOTOS", "MultiViewConfig"]
+
+
+@dataclass
+class MultiViewConfig:
+    """Args:
+    max_photos: more photos than this are refused (a usage error) before any is read.
+    shortlist: which pairs are matched (all of them up to a size, else by image similarity and file order).
+    register: the incremental registration and its bundle adjustment.
+    depth: each photo's depth from its neighbours.
+    """
+
+    max_photos: int = MAX_PHOTOS
+    shortlist: ShortlistConfig = field(default_factory=ShortlistConfig)
+    register: RegisterConfig = field(default_factory=RegisterConfig)
+    depth: DepthPlanConfig = field(default_factory=DepthPlanConfig)

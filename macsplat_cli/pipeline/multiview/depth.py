@@ -1,0 +1,122 @@
+"""Dense depth of every registered photo from its best neighbours.
+
+Each photo's neighbours are the registered photos it shares the most tracks with. Every neighbour pair runs the
+two-view depth stage (plane sweep, SGM, PatchMatch, checks: :mod:`..depth`) in the pair's own frame (baseline 1),
+brought to the global scale; a photo's estimates from its pairs are then fused per pixel: the most confident
+estimate, averaged with those that agree with it, its confidence lowered where another estimate contradicts it.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..types import DepthMap, Matches, TwoViewGeometry, View
+from .register import Registration
+
+__all__ = ["DepthPlanConfig", "depth_pairs", "fuse_estimates", "multiview_depths", "pair_geometry"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class DepthPlanConfig:
+    """Args:
+    neighbours: each photo's depth comes from this many neighbours (more: fewer holes and outliers, one depth
+        pair's time each).
+    min_shared: a neighbour shares at least this many tracks with the photo (fewer cannot bound the depth range).
+    agree: two estimates of a pixel agree within this relative depth difference.
+    contradicted: confidence factor of a pixel another estimate contradicts.
+    """
+
+    neighbours: int = 2
+    min_shared: int = 30
+    agree: float = 0.03
+    contradicted: float = 0.5
+
+
+def _shared(reg: Registration) -> np.ndarray:
+    """Tracks each two registered photos both observe (kept points only). [N, N] int"""
+    n = len(reg.registered)
+    tr = reg.tracks
+    sel = reg.point_ok[tr.track] & reg.registered[tr.view]
+    A = np.zeros((tr.n_tracks, n), bool)
+    A[tr.track[sel], tr.view[sel]] = True
+    A = A.astype(np.int32)
+    S = A.T @ A
+    np.fill_diagonal(S, 0)
+    return S
+
+
+def depth_pairs(reg: Registration, cfg: DepthPlanConfig) -> list[tuple[int, int]]:
+    """The pairs whose two-view depth runs: each registered photo with its ``neighbours`` most co-visible
+    registered photos (pairs as (a, b), a < b, unique)."""
+    S = _shared(reg)
+    pairs: set[tuple[int, int]] = set()
+    for k in np.flatnonzero(reg.registered):
+        order = np.argsort(-S[k], kind="stable")
+        for o in order[: cfg.neighbours]:
+            if S[k, o] >= cfg.min_shared and reg.registered[o]:
+                pairs.add((min(k, int(o)), max(k, int(o))))
+    return sorted(pairs)
+
+
+def pair_geometry(reg: Registration, a: int, b: int) -> tuple[TwoViewGeometry, float]:
+    """Photos ``a`` and ``b`` as a two-view geometry in ``a``'s frame (``|t| = 1``), and the baseline in the
+    global unit; the inliers are their shared tracks' observations (which bound the depth range)."""
+    R = reg.R[b] @ reg.R[a].T
+    t = reg.t[b] - R @ reg.t[a]
+    base = float(np.linalg.norm(t))
+    tr = reg.tracks
+    ok = reg.point_ok[tr.track]
+    xy = np.full((2, tr.n_tracks, 2), np.nan)
+    for s, v in enumerate((a, b)):
+        sel = ok & (tr.view == v)
+        xy[s, tr.track[sel]] = tr.xy[sel]
+    both = np.flatnonzero(np.isfinite(xy[0, :, 0]) & np.isfinite(xy[1, :, 0]))
+    m = Matches(xy[0, both], xy[1, both], np.ones(len(both), np.float32), both, both, {"shared tracks": len(both)})
+    return TwoViewGeometry(R, t / base, reg.K[a], reg.K[b], m), base
+
+
+def fuse_estimates(estimates: Sequence[DepthMap], cfg: DepthPlanConfig) -> DepthMap:
+    """One photo's depth estimates from several neighbours → one (module docstring). All [H, W]."""
+    if len(estimates) == 1:
+        return estimates[0]
+    D = np.stack([e.depth for e in estimates]).astype(np.float64)
+    C = np.stack([np.where(e.valid, e.confidence, 0.0) for e in estimates]).astype(np.float64)
+    M = np.stack([e.measured if e.measured is not None else e.valid for e in estimates])
+    best = np.argmax(C, axis=0)
+    d0 = np.take_along_axis(D, best[None], 0)[0]
+    c0 = np.take_along_axis(C, best[None], 0)[0]
+    valid = c0 > 0
+    close = (C > 0) & (np.abs(D - d0) <= cfg.agree * np.maximum(d0, 1e-12))
+    against = (C > 0) & ~close
+    w = np.where(close, C, 0.0)
+    depth = np.where(valid, (w * D).sum(0) / np.maximum(w.sum(0), 1e-12), 0.0)
+    conf = np.where(against.any(0), c0 * cfg.contradicted, c0)
+    measured = (M & close).any(0) & valid
+    return DepthMap(depth.astype(np.float32), np.where(valid, conf, 0.0).astype(np.float32), measured)
+
+
+DepthFn = Callable[[list[View], TwoViewGeometry], list[DepthMap]]
+"""The two-view depth stage: ``(views, geometry) → [DepthMap] ×2`` (baseline-1 units)."""
+
+
+def multiview_depths(
+    views: Sequence[View], reg: Registration, two_view: DepthFn, cfg: DepthPlanConfig
+) -> tuple[list[DepthMap | None], list[tuple[int, int]]]:
+    """Every registered photo's fused depth (None for the others, and for a photo no depth pair reached), and the
+    depth pairs that ran."""
+    pairs = depth_pairs(reg, cfg)
+    found: dict[int, list[DepthMap]] = {}
+    for a, b in pairs:
+        g, base = pair_geometry(reg, a, b)
+        da, db = two_view([views[a], views[b]], g)
+        for k, d in ((a, da), (b, db)):
+            found.setdefault(k, []).append(DepthMap(d.depth * np.float32(base), d.confidence, d.measured))
+        logger.debug("depth pair %s–%s: baseline %.3f", views[a].name, views[b].name, base)
+    out: list[DepthMap | None] = [fuse_estimates(found[k], cfg) if k in found else None for k in range(len(views))]
+    return out, pairs

@@ -1,0 +1,129 @@
+"""The two-view geometry of every selected pair, each through the same search and acceptance as two photos.
+
+Descriptors are computed once per photo and tier (:class:`CachedDescriptors`); a pair whose pose the acceptance
+refuses is dropped with its reason, never fatal.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from ...errors import ReconstructionError
+from ..pose import PoseResult, PoseSearch
+from ..pose.focal import FOCAL_DOUBT_START
+from ..slots import DescribeStage
+from ..types import Features, View
+
+__all__ = ["CachedDescriptors", "PairOutcome", "cached_search", "focal_doubts_only", "match_pairs"]
+
+logger = logging.getLogger(__name__)
+
+
+class CachedDescriptors:
+    """A ``describe`` slot that computes each view's features once (keyed by the view object), whatever the pair.
+
+    Only for per-view backends (``PerViewDescriptors``): a pairwise backend's features depend on the pair.
+    """
+
+    def __init__(self, stage: DescribeStage) -> None:
+        self.stage = stage
+        self.name = getattr(stage, "name", type(stage).__name__)
+        self._cache: dict[int, tuple[View, Features]] = {}
+        self._lock = threading.Lock()
+
+    def __call__(self, views: Sequence[View], pair: Any = None) -> list[Features]:
+        missing = [v for v in views if id(v) not in self._cache]
+        if missing:
+            for v, f in zip(missing, self.stage(missing, pair)):
+                with self._lock:
+                    self._cache[id(v)] = (v, f)  # the view is kept: its id stays unique while cached
+        return [self._cache[id(v)][1] for v in views]
+
+
+def cached_search(search: PoseSearch, *, accept_low_confidence: bool = False) -> PoseSearch:
+    """A copy of ``search`` whose descriptor tiers are cached per view (``accept_low_confidence``: keep a doubted
+    pose, its doubts listed, for the caller to judge)."""
+    cfg = search.config
+    if accept_low_confidence:
+        cfg = dataclasses.replace(cfg, accept_low_confidence=True)
+    return PoseSearch(
+        cfg,
+        search.pose_config,
+        describe=CachedDescriptors(search.describe),
+        match=search.match,
+        pose=search.pose,
+        fallback=CachedDescriptors(search.fallback) if search.fallback is not None else None,
+        wide=CachedDescriptors(search.wide) if search.wide is not None else None,
+        warn_doubts=not accept_low_confidence,
+    )
+
+
+@dataclass
+class PairOutcome:
+    """One pair's two-view result: the accepted pose, or why there is none.
+
+    Attributes:
+        i, j: the photos (indices into the views, ``i < j``).
+        result: the pose search's result (its ``views`` are ``(views[i], views[j])``), or None.
+        reason: why the pair gave no pose (the search's refusal), or None.
+        seconds: the search's wall time.
+    """
+
+    i: int
+    j: int
+    result: PoseResult | None
+    reason: str | None
+    seconds: float
+    provisional: bool = False
+    """Accepted with its focal-length doubts only: a photo's focal is left to the bundle adjustment of all photos;
+    its rotation is not trusted to check the others."""
+
+    @property
+    def inliers(self) -> int:
+        return len(self.result.geometry.inliers) if self.result is not None else 0
+
+
+FOCAL_CHECKS = ("focal", "uncertainty")
+"""The acceptance's checks a pose of a photo with an unknown focal may fail and still be kept provisionally: what
+the focal leaves open (the focal check, and the rotation's uncertainty, which includes the focal's)."""
+
+
+def focal_doubts_only(result: PoseResult, views: Sequence[View]) -> bool:
+    """Every doubt about the pose is one the unknown focal of one of ``views`` explains (:data:`FOCAL_CHECKS`, or
+    the pose stage's own focal doubt)."""
+    if not any(v.intrinsics_source == "prior" for v in views):
+        return False
+    return all(d.check in FOCAL_CHECKS or (d.check == "pose" and d.message.startswith(FOCAL_DOUBT_START))
+               for d in result.doubts)  # fmt: skip
+
+
+def match_pairs(views: Sequence[View], pairs: Sequence[tuple[int, int]], search: PoseSearch) -> list[PairOutcome]:
+    """The pose search on each pair (``search`` should cache its descriptors and keep doubted poses:
+    :func:`cached_search`).
+
+    A pair the search refuses (a :class:`ReconstructionError`), or whose pose is doubted for anything but an unknown
+    focal (:func:`focal_doubts_only`), is kept with its reason; any other error propagates.
+    """
+    out = []
+    for i, j in pairs:
+        t0 = time.perf_counter()
+        provisional = False
+        try:
+            res: PoseResult | None = search([views[i], views[j]])
+            reason = None
+            if res is not None and res.doubts:
+                provisional = focal_doubts_only(res, (views[i], views[j]))
+                if not provisional:
+                    res, reason = None, str(res.doubts[0])
+        except ReconstructionError as e:
+            res, reason = None, str(e)
+        out.append(PairOutcome(i, j, res, reason, time.perf_counter() - t0, provisional))
+        logger.debug("pair %s–%s: %s", views[i].name, views[j].name,
+                     f"{out[-1].inliers} inliers" if res is not None else reason)  # fmt: skip
+    return out

@@ -1,0 +1,414 @@
+"""Global poses by incremental registration: the best pair, triangulation, PnP with RANSAC for the next photo,
+triangulation, bundle adjustment, until no photo is left that the points can register.
+
+Own code rather than pycolmap's mapper: the pairs' geometry has already been through macsplat's acceptance, the
+photos' intrinsics and keypoints are macsplat's, and a few dozen photos need neither COLMAP's database nor its
+rig model; ``scipy.optimize.least_squares`` with a sparse Jacobian is the bundle adjustment
+(:mod:`.bundle`). A photo is registered only when its PnP pose has enough inliers *and* agrees with every accepted
+pair it has with a registered photo: a pose two views accepted is never contradicted silently.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from ...metrics import rotation_error_deg
+from ..types import View
+from .bundle import BundleConfig, bundle_adjust
+from .pairwise import PairOutcome
+from .tracks import Tracks
+from .triangulate import triangulate_tracks
+
+__all__ = ["Registration", "RegisterConfig", "register_views"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class RegisterConfig:
+    """Args:
+    init_min_parallax_deg: the first pair needs this median parallax (°): less, and its triangulation is too
+        uncertain to register the others on (a pair below it still starts when no other pair has it).
+    min_pnp_inliers: PnP inliers a photo needs (the two-view support minimum's order of magnitude).
+    min_pnp_share: and this share of its 2D–3D correspondences (a random pose explains few).
+    pnp_error_px: PnP's RANSAC threshold (px at the working size: the matches' noise is ~1 px).
+    max_pair_disagreement_deg: a registered pose's rotation relative to each registered photo it has an accepted
+        pair with must agree with that pair's within this (°): the two-view poses are accurate to ~1°.
+    max_error_px: an observation farther than this from its point's projection after the bundle adjustment is an
+        outlier (dropped) — and a triangulated point needs all its observations within it.
+    min_angle_deg: a point is triangulated when its rays span at least this angle (°).
+    focal_scan: an unknown shared focal's starts, as factors of the pairs' estimate (or the prior's): the bundle
+        adjustment converges from within ~15 % (the factors' spacing) but not from the prior's typical 30 % off.
+    bundle: the bundle adjustment's settings.
+    """
+
+    init_min_parallax_deg: float = 2.0
+    min_pnp_inliers: int = 30
+    min_pnp_share: float = 0.3
+    pnp_error_px: float = 3.0
+    max_pair_disagreement_deg: float = 5.0
+    max_error_px: float = 4.0
+    min_angle_deg: float = 1.5
+    focal_scan: tuple[float, ...] = (0.6, 0.75, 0.9, 1.0, 1.15, 1.35, 1.6)
+    bundle: BundleConfig = field(default_factory=BundleConfig)
+
+
+@dataclass
+class Registration:
+    """Every photo's pose in one frame (world = the first registered photo's camera; unit: the first pair's
+    baseline), or why it has none.
+
+    Attributes:
+        R, t: world → camera (``X_cam = R X + t``); NaN where unregistered. [N, 3, 3], [N, 3]
+        K: intrinsics at the working size (self-calibrated where the focal was estimated). [N, 3, 3]
+        registered: [N] bool
+        reasons: why each unregistered photo is not (None where registered).
+        points: the tracks' 3D points (world). [P, 3]; ``point_ok`` [P] bool: triangulated and kept.
+        tracks: the observations (outliers removed).
+        residual_px: each observation's reprojection error after the last adjustment. [O]
+        init_pair: the pair registration started from.
+        order: the photos in the order they were registered.
+        focal_estimated: [N] bool, the bundle adjustment estimated the photo's focal.
+    """
+
+    R: np.ndarray
+    t: np.ndarray
+    K: np.ndarray
+    registered: np.ndarray
+    reasons: list[str | None]
+    points: np.ndarray
+    point_ok: np.ndarray
+    tracks: Tracks
+    residual_px: np.ndarray
+    init_pair: tuple[int, int]
+    order: list[int]
+    focal_estimated: np.ndarray
+
+    def cam_to_world(self, k: int) -> np.ndarray:
+        """Camera-to-world of photo ``k`` (registered). [4, 4]"""
+        T = np.eye(4)
+        T[:3, :3] = self.R[k].T
+        T[:3, 3] = -self.R[k].T @ self.t[k]
+        return T
+
+    def per_view(self) -> list[dict[str, float | int]]:
+        """Each photo's observations and reprojection RMS (px), for the report."""
+        out = []
+        for k in range(len(self.registered)):
+            sel = (self.tracks.view == k) & self.point_ok[self.tracks.track]
+            r = self.residual_px[sel]
+            out.append({"observations": int(sel.sum()),
+                        "reprojection_rms_px": float(np.sqrt(np.mean(r**2))) if len(r) else float("nan")})  # fmt: skip
+        return out
+
+
+class _State:
+    """The registration in progress."""
+
+    def __init__(self, views: Sequence[View], tracks: Tracks, cfg: RegisterConfig) -> None:
+        n = len(views)
+        self.views, self.tracks, self.cfg = views, tracks, cfg
+        self.R = np.full((n, 3, 3), np.nan)
+        self.t = np.full((n, 3), np.nan)
+        self.K = np.stack([v.K for v in views]).astype(np.float64)
+        self.registered = np.zeros(n, bool)
+        self.order: list[int] = []
+        self.points = np.zeros((tracks.n_tracks, 3))
+        self.point_ok = np.zeros(tracks.n_tracks, bool)
+        self.inlier = np.ones(len(tracks), bool)  # observations not (yet) found to be outliers
+        self.residual = np.full(len(tracks), np.nan)
+        self.focal_group = np.full(n, -1)
+
+    def add(self, k: int, R: np.ndarray, t: np.ndarray) -> None:
+        self.R[k], self.t[k] = R, t
+        self.registered[k] = True
+        self.order.append(k)
+
+    def _obs(self) -> np.ndarray:
+        return self.inlier & self.registered[self.tracks.view]
+
+    def triangulate(self) -> None:
+        """Every track with ≥ 2 registered observations, from all of them (points already kept stay kept when
+        their new estimate fails: the bundle adjustment moves them)."""
+        sel = self._obs()
+        tr = self.tracks
+        cams = np.flatnonzero(self.registered)
+        index = np.full(len(self.registered), -1)
+        index[cams] = np.arange(len(cams))
+        tri = triangulate_tracks(self.R[cams], self.t[cams], self.K[cams], index[tr.view[sel]], tr.track[sel],
+                                 tr.xy[sel], tr.n_tracks, max_error_px=self.cfg.max_error_px,
+                                 min_angle_deg=self.cfg.min_angle_deg)  # fmt: skip
+        new = tri.ok & ~self.point_ok
+        self.points[new] = tri.points[new]
+        self.point_ok |= tri.ok
+
+    def adjust(self) -> float:
+        """Bundle adjustment of the registered photos and kept points; outlier observations dropped. RMS (px)."""
+        cams = np.array(self.order)
+        index = np.full(len(self.registered), -1)
+        index[cams] = np.arange(len(cams))
+        tr = self.tracks
+        sel = self._obs() & self.point_ok[tr.track]
+        pts = np.flatnonzero(self.point_ok)
+        pindex = np.full(tr.n_tracks, -1)
+        pindex[pts] = np.arange(len(pts))
+        fixed = np.zeros(len(cams), bool)
+        fixed[0] = True
+        groups = self.focal_group[cams] if len(cams) >= 3 else np.full(len(cams), -1)
+        res = bundle_adjust(self.R[cams], self.t[cams], self.K[cams], self.points[pts], index[tr.view[sel]],
+                            pindex[tr.track[sel]], tr.xy[sel], fixed_pose=fixed, focal_group=groups,
+                            config=self.cfg.bundle)  # fmt: skip
+        self.R[cams], self.t[cams], self.K[cams], self.points[pts] = res.R, res.t, res.K, res.points
+        for g in np.unique(groups[groups >= 0]):  # a shared focal: the photos not yet registered start from it
+            members = np.flatnonzero(self.focal_group == g)
+            f = res.K[int(np.flatnonzero(groups == g)[0]), 0, 0] / self.views[cams[groups == g][0]].K[0, 0]
+            for m in members:
+                self.K[m, :2, :2] = self.views[m].K[:2, :2] * f
+        self.residual[sel] = res.residual_px
+        bad = np.flatnonzero(sel)[res.residual_px > self.cfg.max_error_px]
+        self.inlier[bad] = False
+        # a point left with < 2 observations is no longer kept
+        alive = np.bincount(tr.track[self._obs()], minlength=tr.n_tracks)
+        self.point_ok &= alive >= 2
+        return res.rms_after_px
+
+    def truncated_cost(self, cap_px: float = 2.0) -> float:
+        """Mean of min(e, cap)² over every observation of a kept point in a registered photo, outliers included: a
+        wrong focal is seen in the errors the adjustment dropped, not only in those it kept."""
+        tr = self.tracks
+        sel = self.registered[tr.view] & self.point_ok[tr.track]
+        if not sel.any():
+            return float("inf")
+        v, X = tr.view[sel], self.points[tr.track[sel]]
+        Xc = np.einsum("oij,oj->oi", self.R[v], X) + self.t[v]
+        p = np.einsum("oij,oj->oi", self.K[v], Xc)
+        e = np.linalg.norm(p[:, :2] / np.maximum(p[:, 2:3], 1e-12) - tr.xy[sel], axis=1)
+        e = np.where(Xc[:, 2] > 0, e, cap_px)
+        return float(np.mean(np.minimum(e, cap_px) ** 2))
+
+    def pnp(self, k: int) -> tuple[np.ndarray, np.ndarray, int, int] | None:
+        """Photo ``k``'s pose from its observations of kept points: (R, t, inliers, correspondences) or None."""
+        tr = self.tracks
+        sel = (tr.view == k) & self.inlier & self.point_ok[tr.track]
+        n = int(sel.sum())
+        if n < max(self.cfg.min_pnp_inliers, 6):
+            return None
+        obj, img = self.points[tr.track[sel]], tr.xy[sel] - 0.5  # OpenCV's pixel centres are at integers
+        K = self.K[k]
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, K, None, iterationsCount=2000,
+                                                 reprojectionError=self.cfg.pnp_error_px, confidence=0.9999,
+                                                 flags=cv2.SOLVEPNP_EPNP)  # fmt: skip
+        if not ok or inl is None or len(inl) < 6:
+            return None
+        inl = inl[:, 0]
+        rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], K, None, rvec, tvec)
+        R = cv2.Rodrigues(rvec)[0]
+        t = tvec[:, 0]
+        proj = (obj @ R.T + t) @ K.T
+        err = np.linalg.norm(proj[:, :2] / proj[:, 2:3] - img, axis=1)
+        n_in = int(((err <= self.cfg.pnp_error_px) & (proj[:, 2] > 0)).sum())
+        return R, t, n_in, n
+
+
+def _init_pair(outcomes: Sequence[PairOutcome], cfg: RegisterConfig) -> PairOutcome | None:
+    """The accepted pair with the most verified matches among those with enough parallax (else among all)."""
+    ok = [o for o in outcomes if o.result is not None and not o.provisional]
+    ok = ok or [o for o in outcomes if o.result is not None]
+    if not ok:
+        return None
+    wide = [o for o in ok if (o.result.geometry.median_parallax_deg or 0.0) >= cfg.init_min_parallax_deg]
+    return max(wide or ok, key=lambda o: (o.inliers, -o.i, -o.j))
+
+
+def _disagreement(st: _State, k: int, R: np.ndarray, outcomes: Sequence[PairOutcome]) -> tuple[float, str | None]:
+    """The largest disagreement (°) of photo ``k``'s rotation with its accepted pairs to registered photos."""
+    worst, name = 0.0, None
+    for o in outcomes:
+        if o.result is None or o.provisional or k not in (o.i, o.j):
+            continue
+        other = o.j if o.i == k else o.i
+        if not st.registered[other]:
+            continue
+        Ri, Rj = (R, st.R[other]) if o.i == k else (st.R[other], R)
+        e = rotation_error_deg(Rj @ Ri.T, o.result.geometry.R)
+        if e > worst:
+            worst, name = e, st.views[other].name
+    return worst, name
+
+
+def _unknown_focal(views: Sequence[View], outcomes: Sequence[PairOutcome]) -> tuple[np.ndarray, np.ndarray]:
+    """The starting K of each photo whose focal is only the prior's (the median of its pairs' self-calibrated
+    focal lengths, else the prior), and the focal groups: photos of one size with an unknown focal share one."""
+    K = np.stack([v.K for v in views]).astype(np.float64)
+    groups = np.full(len(views), -1)
+    sizes: dict[tuple[int, int], int] = {}
+    for k, v in enumerate(views):
+        if v.intrinsics_source != "prior":
+            continue
+        groups[k] = sizes.setdefault(v.original_size, len(sizes))
+        fs = [o.result.views[0 if o.i == k else 1].K[0, 0] / v.K[0, 0] for o in outcomes
+              if o.result is not None and k in (o.i, o.j) and o.result.geometry.focal_estimated]  # fmt: skip
+        if fs:
+            K[k, :2, :2] *= float(np.median(fs))
+    # one shared focal per group: the group's median start
+    for g in range(len(sizes)):
+        members = np.flatnonzero(groups == g)
+        scale = np.median([K[m, 0, 0] / views[m].K[0, 0] for m in members])
+        for m in members:
+            K[m, :2, :2] = views[m].K[:2, :2] * scale
+    return K, groups
+
+
+def register_views(
+    views: Sequence[View], outcomes: Sequence[PairOutcome], tracks: Tracks, config: RegisterConfig | None = None
+) -> Registration:
+    """Incremental registration of ``views`` (module docstring). Photos with an unknown focal share one per image
+    size; with ≥ 3 photos it is scanned (:attr:`RegisterConfig.focal_scan`: the registration at each start, the one
+    whose reprojection errors, truncated, are smallest) and then refined by the bundle adjustment — which alone
+    stays in the basin of a far-off start.
+
+    Returns:
+        The :class:`Registration`; photos that could not be registered carry their reason. With no accepted pair
+        nothing is registered (the caller refuses the scene).
+    """
+    cfg = config or RegisterConfig()
+    K0, groups = _unknown_focal(views, outcomes)
+    first = _init_pair(outcomes, cfg)
+    if first is None:
+        st = _State(views, tracks, cfg)
+        return _finish(st, ["no pair with this photo gave an accepted pose"] * len(views), (-1, -1))
+    scales = cfg.focal_scan if (groups >= 0).any() and len(views) >= 3 else (1.0,)
+    best: tuple[tuple[int, float], _State, list[str | None]] | None = None
+    for s in scales:
+        K = K0.copy()
+        K[groups >= 0, :2, :2] *= s
+        st, reasons = _incremental(views, outcomes, tracks, cfg, first, K, groups)
+        score = (-int(st.registered.sum()), st.truncated_cost())
+        logger.debug("focal start ×%.2f: %d registered, truncated cost %.3f", s, -score[0], score[1])
+        if best is None or score < best[0]:
+            best = (score, st, reasons)
+    assert best is not None
+    return _finish(best[1], best[2], (first.i, first.j))
+
+
+def _incremental(
+    views: Sequence[View], outcomes: Sequence[PairOutcome], tracks: Tracks, cfg: RegisterConfig, first: PairOutcome,
+    K: np.ndarray, groups: np.ndarray,
+) -> tuple[_State, list[str | None]]:  # fmt: skip
+    """One incremental registration from ``first`` with the starting intrinsics ``K`` [N, 3, 3]."""
+    st = _State(views, tracks, cfg)
+    st.K, st.focal_group = K, groups
+    if groups[first.i] < 0 and groups[first.j] < 0:
+        g = first.result.geometry
+        st.K[first.i], st.K[first.j] = g.K0, g.K1
+        R, t = g.R, g.t
+    else:  # the pair's pose at these intrinsics
+        R, t = _pose_at(first, st.K[first.i], st.K[first.j], cfg.pnp_error_px)
+    st.add(first.i, np.eye(3), np.zeros(3))
+    st.add(first.j, R, t)
+    st.triangulate()
+    if st.point_ok.any():
+        st.adjust()
+    failed: dict[int, str] = {}
+    while True:
+        k, why = _register_next(st, outcomes, failed)
+        if k is None:
+            break
+        if why is not None:
+            failed[k] = why
+            continue
+        failed.clear()  # more points: the photos that failed may register now
+        st.triangulate()
+        st.adjust()
+        st.triangulate()
+    reasons: list[str | None] = [None] * len(views)
+    for k in range(len(views)):
+        if not st.registered[k]:
+            reasons[k] = failed.get(k) or _unpaired_reason(k, outcomes)
+    return st, reasons
+
+
+def _pose_at(o: PairOutcome, K0: np.ndarray, K1: np.ndarray, threshold_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """The pair's relative pose from its verified matches at the intrinsics ``K0``, ``K1`` (RANSAC on the essential
+    matrix in normalised coordinates, then the cheirality test)."""
+    m = o.result.geometry.inliers
+    n0 = cv2.undistortPoints(m.xy0[:, None] - 0.5, K0, None)[:, 0]
+    n1 = cv2.undistortPoints(m.xy1[:, None] - 0.5, K1, None)[:, 0]
+    f = 0.5 * (K0[0, 0] + K1[0, 0])
+    E, mask = cv2.findEssentialMat(n0, n1, np.eye(3), method=cv2.RANSAC, prob=0.9999, threshold=threshold_px / f)
+    if E is None:
+        g = o.result.geometry
+        return g.R, g.t
+    _, R, t, _ = cv2.recoverPose(E[:3], n0, n1, np.eye(3), mask=mask)
+    return R, t[:, 0] / max(np.linalg.norm(t), 1e-12)
+
+
+def _pair_K(st: _State, o: PairOutcome) -> tuple[np.ndarray, np.ndarray]:
+    """The first pair's intrinsics: the shared focal's start for photos with an unknown focal, else their own."""
+    g = o.result.geometry
+    return (st.K[o.i] if st.focal_group[o.i] >= 0 else g.K0), (st.K[o.j] if st.focal_group[o.j] >= 0 else g.K1)
+
+
+def _unpaired_reason(k: int, outcomes: Sequence[PairOutcome]) -> str:
+    mine = [o for o in outcomes if k in (o.i, o.j)]
+    if not mine:
+        return "not paired with any photo"
+    if all(o.result is None for o in mine):
+        return f"no accepted pose with any other photo ({mine[0].reason})"
+    return "too few of its matches reach points the registered photos triangulated"
+
+
+def _register_next(
+    st: _State, outcomes: Sequence[PairOutcome], failed: dict[int, str]
+) -> tuple[int | None, str | None]:
+    """Registers the unregistered photo with the most correspondences: (photo, None) when registered,
+    (photo, reason) when it failed, (None, None) when no photo is left to try."""
+    tr = st.tracks
+    sel = st.inlier & st.point_ok[tr.track]
+    counts = np.bincount(tr.view[sel], minlength=len(st.views))
+    counts[st.registered] = -1
+    for k in failed:
+        counts[k] = -1
+    k = int(np.argmax(counts))
+    if counts[k] < 0 or counts[k] < st.cfg.min_pnp_inliers:
+        return None, None
+    found = st.pnp(k)
+    if found is None:
+        return k, f"PnP found no pose on its {counts[k]} matches to triangulated points"
+    R, t, n_in, n = found
+    if n_in < st.cfg.min_pnp_inliers or n_in < st.cfg.min_pnp_share * n:
+        return k, f"PnP pose explains only {n_in} of its {n} matches to triangulated points"
+    worst, other = _disagreement(st, k, R, outcomes)
+    if worst > st.cfg.max_pair_disagreement_deg:
+        return k, f"its PnP pose disagrees by {worst:.1f}° with its accepted pose relative to {other}"
+    st.add(k, R, t)
+    logger.debug("registered %s: %d of %d PnP inliers", st.views[k].name, n_in, n)
+    return k, None
+
+
+def _finish(st: _State, reasons: list[str | None], init: tuple[int, int]) -> Registration:
+    """The registration in the output frame: world = the first registered photo (in input order), unit = the
+    first pair's baseline."""
+    R, t, pts = st.R.copy(), st.t.copy(), st.points.copy()
+    reg = np.flatnonzero(st.registered)
+    if len(reg):
+        a, b = init
+        base = np.linalg.norm(st.R[a].T @ st.t[a] - st.R[b].T @ st.t[b])
+        s = 1.0 / base if base > 0 and math.isfinite(base) else 1.0
+        w = reg[0]
+        Rw, tw = st.R[w].copy(), st.t[w].copy()
+        # X' = s (Rw X + tw): camera w becomes the identity, the first pair's baseline 1
+        for k in reg:
+            R[k] = st.R[k] @ Rw.T
+            t[k] = s * (st.t[k] - R[k] @ tw)
+        pts = s * (st.points @ Rw.T + tw)
+    keep = st.inlier
+    return Registration(R, t, st.K.copy(), st.registered.copy(), reasons, pts, st.point_ok.copy(),
+                        st.tracks.subset(keep), np.nan_to_num(st.residual[keep], nan=np.inf), init, list(st.order),
+                        st.focal_group >= 0)  # fmt: skip

@@ -1,0 +1,164 @@
+"""More than two photos (``macsplat reconstruct P1 P2 P3 …``) on ray-traced orbits with exact ground truth.
+
+Registration accuracy with and without intrinsics, a photo that matches nothing, a repeated photo, unrelated photos,
+the cameras file and the report, and the command's bad inputs (one line, exit 2 or 3, nothing written).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from macsplat_cli.cameras import CameraSet, load_cameras, save_cameras
+from macsplat_cli.datasets import synthetic as syn
+from macsplat_cli.errors import ReconstructionError
+from macsplat_cli.images import save_image
+from macsplat_cli.metrics import rotation_error_deg
+from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig, Reconstruction
+from macsplat_cli.ply import read_ply
+
+from support.cli import one_error_line, run_cli
+
+W, H = 320, 240
+# Known intrinsics, 320×240 px, orbits 8–10° apart: the two-view poses are good to ~0.2° here (the pair tests in
+# tests/pipeline/test_reconstruct.py), and the bundle adjustment only tightens them: 0.5° leaves room for the
+# SIFT noise of the smaller photos.
+MAX_ROTATION_DEG = 0.5
+# An unknown focal (the prior's 60° field of view against the true 45°, 33 % off) over 5 photos spanning 40°: the
+# issue's target is 5 %.
+MAX_FOCAL_ERROR = 0.05
+
+
+@dataclass
+class Orbit:
+    photos: list[Path]
+    cameras: Path
+    one_camera: Path  # the intrinsics alone: one camera for any number of photos
+    truth: dict[str, np.ndarray]  # photo stem → world-to-camera rotation
+    focal: float
+
+
+def _orbit(root: Path, kind: str, n: int, step: float, fov: float, seed: int = 0) -> Orbit:
+    scene = syn.make_scene(kind, seed)
+    az = [step * (k - (n - 1) / 2) for k in range(n)]
+    cams = syn.orbit_cameras(scene, az, width=W, height=H, fov_deg=fov, names=[f"v{k}.png" for k in range(n)])
+    photos = [save_image(root / c.name, syn.render(scene, c, supersample=2).image) for c in cams]
+    save_cameras(root / "cameras.json", CameraSet(cams))
+    save_cameras(root / "intrinsics.json", CameraSet([cams[0]]))
+    return Orbit(photos, root / "cameras.json", root / "intrinsics.json", {Path(c.name).stem: c.R for c in cams}, float(cams[0].K[0, 0]))
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory: pytest.TempPathFactory) -> Orbit:
+    return _orbit(tmp_path_factory.mktemp("room"), "room", 4, 8.0, 60.0)
+
+
+@pytest.fixture(scope="module")
+def room_run(room: Orbit) -> Reconstruction:
+    cfg = ReconstructConfig()
+    cfg.views.intrinsics = room.cameras
+    return Pipeline(cfg).run(room.photos)
+
+
+def _rotation_errors(rec: Reconstruction, truth: dict[str, np.ndarray]) -> list[float]:
+    cams = list(rec.cameras())
+    return [rotation_error_deg(b.R @ a.R.T, truth[b.name] @ truth[a.name].T)
+            for i, a in enumerate(cams) for b in cams[i + 1:]]  # fmt: skip
+
+
+def test_every_photo_registers_with_known_intrinsics(room_run: Reconstruction, room: Orbit) -> None:
+    mv = room_run.report.multiview
+    assert mv is not None and mv["registered"] == 4
+    assert [p["registered"] for p in mv["photos"]] == [True] * 4
+    assert max(_rotation_errors(room_run, room.truth)) < MAX_ROTATION_DEG
+    assert mv["reprojection_rms_px"] < 1.0  # SIFT localisation noise, after the bundle adjustment
+    # world = the first photo's camera
+    assert np.allclose(room_run.cameras()[0].cam_to_world, np.eye(4), atol=1e-9)
+
+
+def test_every_registered_photo_gives_gaussians_and_a_depth(room_run: Reconstruction) -> None:
+    assert len(room_run.maps) == len(room_run.views) == len(room_run.depths) == 4
+    assert all(d.valid.mean() > 0.5 for d in room_run.depths)
+    cams = room_run.cameras(original_size=False)
+    for m, c in zip(room_run.maps, cams):
+        assert np.allclose(m.cam_to_world[0].double().numpy(), c.cam_to_world, atol=1e-6)
+
+
+def test_unknown_focal_is_self_calibrated_from_several_photos(tmp_path_factory: pytest.TempPathFactory) -> None:
+    orbit = _orbit(tmp_path_factory.mktemp("object"), "object", 5, 10.0, 45.0)
+    rec = Pipeline(ReconstructConfig()).run(orbit.photos)
+    assert rec.report.multiview["registered"] == 5
+    for v in rec.views:
+        assert v.intrinsics_source == "estimated"
+        assert abs(v.K[0, 0] / (orbit.focal * v.width / W) - 1) < MAX_FOCAL_ERROR
+
+
+# ------------------------------------------------------------------------------ the command
+@pytest.fixture(scope="module")
+def cli_run(room: Orbit, tmp_path_factory: pytest.TempPathFactory) -> tuple[int, str, Path]:
+    """The room's photos, a photo of another scene (matches nothing) and the first photo again under another name."""
+    out = tmp_path_factory.mktemp("cli")
+    other_cam = syn.orbit_cameras(syn.make_scene("outdoor", 3), [0.0], width=W, height=H)[0]
+    stranger = save_image(out / "stranger.png", syn.render(syn.make_scene("outdoor", 3), other_cam).image)
+    again = out / "again.png"
+    again.write_bytes(room.photos[0].read_bytes())
+    code, _, err = run_cli(["reconstruct", *room.photos, stranger, again, "-o", out / "scene.ply",
+                            "--intrinsics", room.one_camera, "--report", out / "report.json", "--renders", out / "views",
+                            "--num-renders", "6"])  # fmt: skip
+    return code, err, out
+
+
+def test_cli_leaves_out_what_it_cannot_register_and_says_why(cli_run: tuple[int, str, Path]) -> None:
+    code, err, out = cli_run
+    assert code == 0, err
+    report = json.loads((out / "report.json").read_text())
+    photos = {p["name"]: p for p in report["multiview"]["photos"]}
+    assert [n for n, p in photos.items() if p["registered"]] == ["v0", "v1", "v2", "v3"]
+    assert "same photo as v0" in photos["again"]["reason"]
+    assert photos["stranger"]["reason"]
+    cams = json.loads((out / "scene.cameras.json").read_text())["cameras"]
+    left = {c["name"]: c for c in cams if c.get("registered") is False}
+    assert set(left) == {"stranger", "again"} and all(c["reason"] for c in left.values())
+    assert [c.name for c in load_cameras(out / "scene.cameras.json")] == ["v0", "v1", "v2", "v3"]
+    assert len(read_ply(out / "scene.ply").means) > 1000
+    assert len(list((out / "views").iterdir())) == 6
+    assert "stranger" in err and "again" in err  # the summary names the photos left out
+
+
+def test_cli_refuses_unrelated_photos_with_exit_3(tmp_path: Path) -> None:
+    photos = []
+    for k, kind in enumerate(("outdoor", "object", "tabletop")):
+        cam = syn.orbit_cameras(syn.make_scene(kind, k), [40.0 * k], width=W, height=H)[0]
+        photos.append(save_image(tmp_path / f"{kind}.png", syn.render(syn.make_scene(kind, k), cam).image))
+    code, _, err = run_cli(["reconstruct", *photos, "-o", tmp_path / "s.ply"])
+    assert code == ReconstructionError.exit_code
+    assert "no pair of the 3 photos gave an accepted pose" in one_error_line(err)
+    assert not (tmp_path / "s.ply").exists() and not (tmp_path / "s.cameras.json").exists()
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["one.png"], "1 photo given"),
+        ([f"p{k}.png" for k in range(65)], "65 photos given: at most 64"),
+        (["empty_folder"], "a folder with no photos"),
+        (["nothing*.png"], "no photo matches this pattern"),
+    ],
+)
+def test_cli_bad_photo_lists_exit_2(tmp_path: Path, args: list[str], message: str) -> None:
+    (tmp_path / "empty_folder").mkdir()
+    code, _, err = run_cli(["reconstruct", *(tmp_path / a for a in args), "-o", tmp_path / "s.ply"])
+    assert code == 2
+    assert message in one_error_line(err)
+    assert not (tmp_path / "s.ply").exists()
+
+
+def test_cli_takes_a_folder_of_photos(room: Orbit, tmp_path: Path) -> None:
+    code, _, err = run_cli(["reconstruct", room.photos[0].parent, "-o", tmp_path / "s.ply",
+                            "--intrinsics", room.cameras, "-q"])  # fmt: skip
+    assert code == 0, err
+    assert len(load_cameras(tmp_path / "s.cameras.json")) == 4
