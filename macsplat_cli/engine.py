@@ -365,18 +365,22 @@ def _check_photos(images: Sequence[str | Path], config: EngineConfig) -> None:
     """The photo count, and what more than two photos cannot have yet: before any weights load.
 
     Raises:
-        InputError: fewer than 2 or too many photos; more than two with the neural backend or ``--refine``.
+        InputError: fewer than 2 or too many photos; more than two, or given poses, with the neural backend or
+            ``--refine``.
     """
     from ._limits import check_photo_count
 
     check_photo_count(len(images), config.pipeline.multiview.max_photos)
-    if len(images) > 2 and config.backend == "neural":
+    if len(images) == 2 and config.pipeline.multiview.poses is None:
+        return
+    what = f"{len(images)} photos" if len(images) > 2 else "--poses"
+    if config.backend == "neural":
         raise InputError(
-            f"{len(images)} photos: the neural backend reconstructs two photos (pairwise global alignment is not "
-            "built yet); use --backend classical for more"
+            f"{what}: the neural backend reconstructs two photos at its own poses (pairwise global alignment is not "
+            "built yet); use --backend classical"
         )
-    if len(images) > 2 and config.refine.steps > 0:
-        raise InputError(f"{len(images)} photos: --refine refines two photos' Gaussians; leave it out for more")
+    if config.refine.steps > 0:
+        raise InputError(f"{what}: --refine refines two photos' estimated Gaussians; leave it out")
 
 
 def _add_network(rec: Reconstruction, pipeline: Pipeline, config: EngineConfig, models: Models) -> None:

@@ -71,6 +71,14 @@ BudgetOpt = Annotated[
 IntrinsicsOpt = Annotated[
     Path | None, typer.Option("--intrinsics", help="Camera file (cameras schema) with the photos' intrinsics.")
 ]
+PosesOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--poses",
+        help="Camera file (cameras schema) with every photo's pose: no pose is estimated, the scene comes out in its "
+        "frame and scale (metric when the file says so); its intrinsics are used unless --intrinsics is given.",
+    ),
+]
 FocalOpt = Annotated[float | None, typer.Option("--focal", help="Focal length in pixels of the original photos.")]
 ConfThresholdOpt = Annotated[
     float | None,
@@ -139,6 +147,7 @@ def reconstruct_command(
     quality: QualityOpt = "balanced",
     budget: BudgetOpt = None,
     intrinsics: IntrinsicsOpt = None,
+    poses: PosesOpt = None,
     focal: FocalOpt = None,
     conf_threshold: ConfThresholdOpt = None,
     accept_low_confidence: AcceptLowConfidenceOpt = False,
@@ -176,7 +185,7 @@ def reconstruct_command(
     """
     with command_context(ctx, verbose, quiet) as state:
         config = reconstruct_config(
-            size=size, quality=quality, budget=budget, intrinsics=intrinsics, focal=focal,
+            size=size, quality=quality, budget=budget, intrinsics=intrinsics, poses=poses, focal=focal,
             conf_threshold=conf_threshold, accept_low_confidence=accept_low_confidence, far_layer=far_layer,
             refine=refine, refine_scale=refine_scale, no_mac=no_mac, lpips_weights=lpips_weights, backend=backend,
             weights=weights, dino=dino, fusion=fusion, gaussian_head=gaussian_head, device=device, precision=precision,
@@ -189,7 +198,7 @@ def reconstruct_command(
 
 def reconstruct_config(
     *, size: int | None = None, quality: str = "balanced", budget: int | None = None, intrinsics: Path | None = None,
-    focal: float | None = None, conf_threshold: float | None = None, accept_low_confidence: bool = False,
+    poses: Path | None = None, focal: float | None = None, conf_threshold: float | None = None, accept_low_confidence: bool = False,
     far_layer: bool = True, refine: str = "0", refine_scale: int = 2, no_mac: bool = False,
     lpips_weights: Path | None = None, backend: str = "classical", weights: Path | None = None,
     dino: Path | None = None, fusion: Path | None = None, gaussian_head: Path | None = None, device: str = "cpu",
@@ -204,6 +213,7 @@ def reconstruct_config(
     """
     from ..engine import EngineConfig
     from ..pipeline.background import BackgroundConfig
+    from ..pipeline.multiview import MultiViewConfig
     from ..pipeline.pose import PoseSearchConfig
     from ..pipeline.refine import RefineConfig
     from ..pipeline.run import ReconstructConfig
@@ -215,9 +225,11 @@ def reconstruct_config(
         budget=budget,
         size=size,
         pipeline=ReconstructConfig(
-            views=ViewConfig(intrinsics=intrinsics, focal=focal),
+            views=ViewConfig(intrinsics=intrinsics if intrinsics is not None or focal is not None else poses,
+                             focal=focal),  # fmt: skip
             search=PoseSearchConfig(accept_low_confidence=accept_low_confidence),
             background=BackgroundConfig(enabled=far_layer),
+            multiview=MultiViewConfig(poses=poses),
         ),
         conf_threshold=conf_threshold,
         neural=neural_options(weights, gaussian_head, dino, fusion, device, precision),
@@ -290,6 +302,7 @@ def _reconstruct(
     cameras = cameras or output.with_name(output.stem + ".cameras.json")
     n = config.neural
     inputs = [*((f"photo {k + 1}", p) for k, p in enumerate(images)), ("--intrinsics", config.pipeline.views.intrinsics),
+              ("--poses", config.pipeline.multiview.poses),
               ("--weights", n.weights), ("--gaussian-head", n.gaussian_head), ("--dino", n.dino),
               ("--fusion", n.fusion), ("--lpips-weights", config.refine.lpips_weights)]  # fmt: skip
     _check_outputs(output, cameras, renders, num_renders, video, report, inputs)

@@ -243,7 +243,7 @@ class Pipeline:
             return out
 
         loaded: list[View] = timed("images", lambda: load_views(paths, self.config.views))
-        if len(loaded) > 2:
+        if len(loaded) > 2 or self.config.multiview.poses is not None:
             return self._run_views(paths, loaded, times, timed)
         pair = timed("network", lambda: self.pair(loaded)) if self.pair is not None else None
         pose: PoseResult = self.search(loaded, pair, timed)
@@ -288,7 +288,7 @@ class Pipeline:
     def _run_views(
         self, paths: Sequence[str | Path], loaded: list[View], times: dict[str, float], timed: Callable[..., Any]
     ) -> Reconstruction:
-        """More than two photos (:mod:`.multiview`): the classical chain only."""
+        """More than two photos, or given poses (:mod:`.multiview`): the classical chain only."""
         if self.pair is not None:
             raise InputError(
                 f"{len(loaded)} photos: the neural backend reconstructs two photos; use --backend classical for more"
@@ -302,9 +302,12 @@ class Pipeline:
         reg, ks = mv.registration, mv.map_views
         views = [mv.views[k] for k in ks]
         depths = [d for d in (mv.depths[k] for k in ks) if d is not None]
-        init = next(o for o in mv.pairs if (o.i, o.j) == reg.init_pair)
-        pose = init.result
+        given = c.multiview.poses is not None
+        # the report's pair: the first registered pair, or with given poses the pair with the most matches
+        first = max(mv.pairs, key=lambda o: (o.inliers if given else (o.i, o.j) == reg.init_pair))
+        pose = first.result
         assert pose is not None
+        scale = mv.scale or self.scale
         report = RunReport(
             macsplat_version=__version__,
             inputs=[str(p) for p in paths],
@@ -318,14 +321,14 @@ class Pipeline:
             fallback_used=pose.fallback_used,
             matches={**pose.geometry.inliers.counts},
             inlier_ratio=pose.inlier_ratio,
-            pose=pose.report(),
+            pose={"given": str(c.multiview.poses)} if given else pose.report(),
             depth_coverage=[float(d.valid.mean()) for d in depths],
             depth_measured=[float(d.measured.mean()) if d.measured is not None else None for d in depths],
             gaussians=count_gaussians(mv.maps),
             config=asdict(self.config),
-            scale=self.scale,
+            scale=scale,
             multiview=mv.report(),
         )
         poses = [reg.cam_to_world(k) for k in ks]
-        return Reconstruction(views, None, depths, mv.maps, report, scale=self.scale, pose=pose, poses=poses,
-                              multiview=mv)  # fmt: skip
+        return Reconstruction(views, None, depths, mv.maps, report, scale=scale, pose=None if given else pose,
+                              poses=poses, multiview=mv)  # fmt: skip

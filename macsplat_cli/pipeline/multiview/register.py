@@ -25,7 +25,7 @@ from .pairwise import PairOutcome
 from .tracks import Tracks
 from .triangulate import triangulate_tracks
 
-__all__ = ["Registration", "RegisterConfig", "register_views"]
+__all__ = ["Registration", "RegisterConfig", "register_known", "register_views"]
 
 logger = logging.getLogger(__name__)
 
@@ -392,12 +392,28 @@ def _register_next(
     return k, None
 
 
-def _finish(st: _State, reasons: list[str | None], init: tuple[int, int]) -> Registration:
+def register_known(views: Sequence[View], tracks: Tracks, R: np.ndarray, t: np.ndarray,
+                   config: RegisterConfig | None = None) -> Registration:  # fmt: skip
+    """Every photo at its given pose (world → camera ``R`` [N, 3, 3], ``t`` [N, 3]): the tracks triangulated from
+    them, in their frame and unit; nothing is estimated or adjusted."""
+    st = _State(views, tracks, config or RegisterConfig())
+    for k in range(len(views)):
+        st.add(k, R[k], t[k])
+    st.triangulate()
+    tr = st.tracks
+    sel = st.point_ok[tr.track]
+    v, X = tr.view[sel], st.points[tr.track[sel]]
+    p = np.einsum("oij,oj->oi", st.K[v], np.einsum("oij,oj->oi", st.R[v], X) + st.t[v])
+    st.residual[sel] = np.linalg.norm(p[:, :2] / p[:, 2:3] - tr.xy[sel], axis=1)
+    return _finish(st, [None] * len(views), (0, 1), given_frame=True)
+
+
+def _finish(st: _State, reasons: list[str | None], init: tuple[int, int], *, given_frame: bool = False) -> Registration:
     """The registration in the output frame: world = the first registered photo (in input order), unit = the
-    first pair's baseline."""
+    first pair's baseline (``given_frame``: as it is)."""
     R, t, pts = st.R.copy(), st.t.copy(), st.points.copy()
     reg = np.flatnonzero(st.registered)
-    if len(reg):
+    if len(reg) and not given_frame:
         a, b = init
         base = np.linalg.norm(st.R[a].T @ st.t[a] - st.R[b].T @ st.t[b])
         s = 1.0 / base if base > 0 and math.isfinite(base) else 1.0

@@ -11,7 +11,7 @@ import hashlib
 import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -23,7 +23,8 @@ from ..types import DepthMap, View
 from .config import MultiViewConfig
 from .depth import DepthFn, multiview_depths
 from .pairwise import PairOutcome, cached_search, match_pairs
-from .register import Registration, register_views
+from .known import load_known_poses, known_pose_pairs
+from .register import Registration, register_known, register_views
 from .shortlist import select_pairs
 from .tracks import build_tracks
 
@@ -57,6 +58,8 @@ class MultiViewResult:
     map_views: list[int]
     depth_pairs: list[tuple[int, int]]
     duplicates: dict[int, int]
+    scale: Literal["relative", "metric"] | None = None
+    """The given poses' scale (``--poses``), else None (relative: the first pair's baseline is 1)."""
 
     def unregistered(self) -> list[dict[str, Any]]:
         """The photos left out: name, original size and why (the cameras file lists them)."""
@@ -118,7 +121,7 @@ def reconstruct_views(
     views: list[View], search: PoseSearch, two_view_depth: DepthFn, gaussians: GaussianInitConfig,
     config: MultiViewConfig, timed: Timer,
 ) -> MultiViewResult:  # fmt: skip
-    """The chain (module docstring) on ``views`` (≥ 3 photos, already loaded).
+    """The chain (module docstring) on ``views`` (≥ 3 photos, or ≥ 2 with ``config.poses``), already loaded.
 
     Raises:
         ReconstructionError: fewer than two photos could be registered (the reasons are in the message).
@@ -129,15 +132,28 @@ def reconstruct_views(
     live = [k for k in range(len(views)) if k not in dups]
     cached = cached_search(search, accept_low_confidence=True)
     sub = [views[k] for k in live]
+    known = load_known_poses(config.poses, views) if config.poses is not None else None
 
     def pairs_stage() -> list[PairOutcome]:
         feats = cached.describe(sub) if len(sub) > config.shortlist.all_pairs_max else None
         chosen = select_pairs(len(sub), feats, config.shortlist)
+        if known is not None:
+            full = [(live[i], live[j]) for i, j in chosen]
+            return known_pose_pairs(views, full, cached.describe, cached.match, known, config.known_pose_max_px)
         outs = match_pairs(sub, chosen, cached)
         return [dataclasses.replace(o, i=live[o.i], j=live[o.j]) for o in outs]
 
     outcomes: list[PairOutcome] = timed("pairs", pairs_stage)
-    reg = timed("register", lambda: register_views(views, outcomes, build_tracks(outcomes), config.register))
+
+    def register_stage() -> Registration:
+        tracks = build_tracks(outcomes)
+        if known is None:
+            return register_views(views, outcomes, tracks, config.register)
+        reg = register_known(views, tracks, known.R, known.t, config.register)
+        reg.registered[list(dups)] = False
+        return reg
+
+    reg = timed("register", register_stage)
     for k, first in dups.items():
         reg.reasons[k] = f"the same photo as {views[first].name}"
     if int(reg.registered.sum()) < 2:
@@ -150,7 +166,8 @@ def reconstruct_views(
         return [view_gaussians(views[k], depths[k], reg.K[k], reg.cam_to_world(k), gaussians) for k in ks], ks
 
     maps, ks = timed("gaussians", gaussian_stage)
-    return MultiViewResult(views, reg, outcomes, depths, maps, ks, dpairs, dups)
+    scale = "metric" if known is not None and known.scale == "metric" else None
+    return MultiViewResult(views, reg, outcomes, depths, maps, ks, dpairs, dups, scale)
 
 
 def _calibrated(v: View, reg: Registration, k: int) -> View:

@@ -162,3 +162,45 @@ def test_cli_takes_a_folder_of_photos(room: Orbit, tmp_path: Path) -> None:
                             "--intrinsics", room.cameras, "-q"])  # fmt: skip
     assert code == 0, err
     assert len(load_cameras(tmp_path / "s.cameras.json")) == 4
+
+
+# ------------------------------------------------------------------------------ known poses
+def _metric_cameras(orbit: Orbit, out: Path, scale: float) -> Path:
+    """The orbit's true cameras in a world of another unit (``scale`` × the renderer's), marked metric."""
+    cams = []
+    for c in load_cameras(orbit.cameras):
+        T = c.cam_to_world.copy()
+        T[:3, 3] *= scale
+        cams.append(c.with_pose(T))
+    save_cameras(out, CameraSet(cams, scale="metric", world="lab"))
+    return out
+
+
+@pytest.mark.parametrize("n", [2, 4])
+def test_given_poses_give_the_scene_in_their_frame_and_scale(room: Orbit, tmp_path: Path, n: int) -> None:
+    given = _metric_cameras(room, tmp_path / "poses.json", 2.5)
+    code, _, err = run_cli(["reconstruct", *room.photos[:n], "-o", tmp_path / "s.ply", "--poses", given,
+                            "--report", tmp_path / "r.json", "-q"])  # fmt: skip
+    assert code == 0, err
+    truth = {c.name: c for c in load_cameras(given)}
+    out = load_cameras(tmp_path / "s.cameras.json")
+    assert out.scale == "metric" and len(out) == n
+    for c in out:
+        assert np.allclose(c.cam_to_world, truth[c.name + ".png"].cam_to_world, atol=1e-9)
+    # the Gaussians lie where the true scene is: in front of the given cameras, at the room's metric depth
+    means = read_ply(tmp_path / "s.ply").means.numpy()
+    cam = truth["v0.png"]
+    z = (means @ cam.world_to_cam[:3, :3].T + cam.world_to_cam[:3, 3])[:, 2]
+    true_depth = syn.render(syn.make_scene("room", 0), load_cameras(room.cameras)[0]).depth
+    ratio = np.median(z[z > 0]) / np.median(true_depth[true_depth > 0])
+    assert abs(ratio / 2.5 - 1) < 0.15  # the median depth of all views' Gaussians against view 0's: same room
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["pose"] == {"given": str(given)}
+
+
+def test_given_poses_refuse_the_neural_backend(room: Orbit, tmp_path: Path) -> None:
+    (tmp_path / "w.pth").write_bytes(b"not read: refused before any weights load")
+    code, _, err = run_cli(["reconstruct", *room.photos[:3], "-o", tmp_path / "s.ply", "--poses", room.cameras,
+                            "--backend", "neural", "--weights", tmp_path / "w.pth"])  # fmt: skip
+    assert code == 2
+    assert "the neural backend reconstructs two photos" in one_error_line(err)
