@@ -362,11 +362,11 @@ def reconstruct(
 
 
 def _check_photos(images: Sequence[str | Path], config: EngineConfig) -> None:
-    """The photo count, and what more than two photos cannot have yet: before any weights load.
+    """The photo count, and what more than two photos cannot have yet (the neural backend): before any weights
+    load.
 
     Raises:
-        InputError: fewer than 2 or too many photos; more than two, or given poses, with the neural backend or
-            ``--refine``.
+        InputError: fewer than 2 or too many photos; more than two, or given poses, with the neural backend.
     """
     from ._limits import check_photo_count
 
@@ -379,8 +379,7 @@ def _check_photos(images: Sequence[str | Path], config: EngineConfig) -> None:
             f"{what}: the neural backend reconstructs two photos at its own poses (pairwise global alignment is not "
             "built yet); use --backend classical"
         )
-    if config.refine.steps > 0:
-        raise InputError(f"{what}: --refine refines two photos' estimated Gaussians; leave it out")
+
 
 
 def _add_network(rec: Reconstruction, pipeline: Pipeline, config: EngineConfig, models: Models) -> None:

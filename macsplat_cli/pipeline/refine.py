@@ -32,7 +32,7 @@ from ..mac import MACConfig, mac_loss
 from ..metrics import ssim_map
 from ..render import render
 from ..report import RefineReport
-from .types import DepthMap, TwoViewGeometry, View
+from .types import DepthMap, MatchSet, TwoViewGeometry, View
 
 if TYPE_CHECKING:
     from .run import Reconstruction
@@ -120,8 +120,10 @@ class _Target:
 
 @dataclass
 class _MacMatches:
-    """The MAC loss's matches at the refinement resolution."""
+    """One pair's MAC matches at the refinement resolution."""
 
+    a: int
+    b: int
     xy0: torch.Tensor  # [M, 2] float32
     xy1: torch.Tensor  # [M, 2] float32
     weights: torch.Tensor  # [M] float32
@@ -144,10 +146,10 @@ def _cam_to_world(m: GaussianMaps) -> torch.Tensor:
     return m.cam_to_world_or_identity()[0]
 
 
-def _targets(views: list[View], geometry: TwoViewGeometry, params: list[GaussianMaps], f: int) -> list[_Target]:
-    """Each view's photo at 1/``f`` and its camera (the intrinsics scaled by 1/``f``)."""
+def _targets(views: list[View], Ks: list[np.ndarray], params: list[GaussianMaps], f: int) -> list[_Target]:
+    """Each view's photo at 1/``f`` and its camera (the intrinsics ``Ks`` scaled by 1/``f``)."""
     targets = []
-    for k, (v, K) in enumerate(zip(views, [geometry.K0, geometry.K1])):
+    for k, (v, K) in enumerate(zip(views, Ks)):
         img = _downscale(v.image, f)
         K = K.copy()
         K[:2] /= f
@@ -171,29 +173,40 @@ def _optimizer(params: list[GaussianMaps], cfg: RefineConfig) -> torch.optim.Ada
     )
 
 
-def _mac_matches(
-    geometry: TwoViewGeometry, depths: list[DepthMap] | None, params: list[GaussianMaps], cfg: RefineConfig
-) -> _MacMatches:
-    """The verified matches (and with ``mac_matches="dense"`` the depth-consistent pixels) at 1/``scale``."""
+def _pair_matches(
+    geometry: TwoViewGeometry, depths: list[DepthMap] | None, cfg: RefineConfig
+) -> list[MatchSet]:
+    """The two views' verified matches (and with ``mac_matches="dense"`` the depth-consistent pixels)."""
     m_xy0, m_xy1, m_w = geometry.inliers.xy0, geometry.inliers.xy1, geometry.inliers.conf
     if cfg.mac_matches == "dense" and depths is not None:
         d_xy0, d_xy1, d_w = _dense_matches(geometry, depths, cfg.dense_stride)
         m_xy0, m_xy1, m_w = np.concatenate([m_xy0, d_xy0]), np.concatenate([m_xy1, d_xy1]), np.concatenate([m_w, d_w])
+    return [MatchSet(0, 1, m_xy0, m_xy1, m_w)]
+
+
+def _mac_matches(sets: list[MatchSet], params: list[GaussianMaps], cfg: RefineConfig) -> list[_MacMatches]:
+    """Each match set at 1/``scale``, with its two views' poses."""
     f = cfg.scale
-    return _MacMatches(
-        xy0=torch.tensor(m_xy0 / f, dtype=torch.float32),
-        xy1=torch.tensor(m_xy1 / f, dtype=torch.float32),
-        weights=torch.tensor(m_w, dtype=torch.float32),
-        batch=torch.zeros(len(m_xy0), dtype=torch.long),
-        cam_to_world=(_cam_to_world(params[0]).float()[None], _cam_to_world(params[1]).float()[None]),
-    )
+    return [
+        _MacMatches(
+            a=m.a,
+            b=m.b,
+            xy0=torch.tensor(m.xy_a / f, dtype=torch.float32),
+            xy1=torch.tensor(m.xy_b / f, dtype=torch.float32),
+            weights=torch.tensor(m.weights, dtype=torch.float32),
+            batch=torch.zeros(len(m.xy_a), dtype=torch.long),
+            cam_to_world=(_cam_to_world(params[m.a]).float()[None], _cam_to_world(params[m.b]).float()[None]),
+        )
+        for m in sets
+        if len(m.xy_a)
+    ]
 
 
 def _step_loss(
-    params: list[GaussianMaps], targets: list[_Target], matches: _MacMatches, cfg: RefineConfig,
+    params: list[GaussianMaps], targets: list[_Target], matches: list[_MacMatches], cfg: RefineConfig,
     lpips: torch.nn.Module | None,
 ) -> tuple[torch.Tensor, dict[str, float]]:  # fmt: skip
-    """One step's loss (photometric over both views, + LPIPS, + λ_MAC · MAC) and its terms."""
+    """One step's loss (photometric over every view, + LPIPS, + λ_MAC · MAC over every pair) and its terms."""
     world = Gaussians.cat([m.to_gaussians() for m in params])
     photo = torch.zeros(())
     perceptual = torch.zeros(())
@@ -207,16 +220,17 @@ def _step_loss(
         terms["lpips"] = float(perceptual.detach())
         photo = photo + cfg.lpips_weight * perceptual
     loss = photo
-    if cfg.use_mac and len(matches.xy0):
-        c2w0, c2w1 = matches.cam_to_world
-        mac = mac_loss(
-            params[0], params[1], matches.xy0, matches.xy1, matches.batch, matches.weights, c2w0, c2w1, cfg.mac,
-            check_inputs=False,
-        )  # fmt: skip
-        loss = loss + cfg.mac.weight * mac.loss
-        terms.update(
-            mac=float(mac.loss.detach()), mac_pos=float(mac.position.detach()), mac_shape=float(mac.shape.detach())
-        )
+    if cfg.use_mac and matches:
+        # every pair's MAC loss, averaged over the pairs (one pair: exactly the two-view loss)
+        parts = [
+            mac_loss(params[m.a], params[m.b], m.xy0, m.xy1, m.batch, m.weights, *m.cam_to_world, cfg.mac,
+                     check_inputs=False)  # fmt: skip
+            for m in matches
+        ]
+        n = len(parts)
+        mac, pos, shape = (sum(getattr(p, k) for p in parts) / n for k in ("loss", "position", "shape"))
+        loss = loss + cfg.mac.weight * mac
+        terms.update(mac=float(mac.detach()), mac_pos=float(pos.detach()), mac_shape=float(shape.detach()))
     terms["loss"] = float(loss.detach())
     return loss, terms
 
@@ -232,25 +246,28 @@ def _plateaued(running: list[float], step: int, cfg: RefineConfig) -> bool:
 
 def refine(
     views: list[View],
-    geometry: TwoViewGeometry,
+    geometry: TwoViewGeometry | None,
     maps: list[GaussianMaps],
     config: RefineConfig | None = None,
     *,
     depths: list[DepthMap] | None = None,
     lpips: torch.nn.Module | None = None,
     on_step: RefineStep | None = None,
+    match_sets: list[MatchSet] | None = None,
 ) -> RefineResult:
-    """Refine both views' Gaussians on their photos (+ the MAC loss over the verified matches).
+    """Refine every view's Gaussians on its photo (+ the MAC loss over the matched pairs).
 
     Args:
-        views: the two views (photos at the working resolution).
-        geometry: their relative pose; its verified matches feed the MAC loss.
+        views: the views (photos at the working resolution; with no ``geometry``, their ``K``).
+        geometry: two views' relative pose; its verified matches feed the MAC loss. None: more views, matched by
+            ``match_sets``.
         maps: the per-view Gaussians to refine, ``B = 1`` each, in their view's camera frame with
             ``cam_to_world`` set (None: the identity) (not modified).
         config: settings (None: :data:`AUTO_STEPS` steps, the other settings their defaults).
         depths: the views' depth maps (needed for ``mac_matches="dense"``).
         lpips: an LPIPS model (:class:`macsplat_cli.lpips.LPIPS`) adds its term to the photometric loss.
         on_step: called after each step with the step number and the loss terms.
+        match_sets: the MAC loss's matches when there is no ``geometry`` (any pairs of the views).
 
     Returns:
         :class:`RefineResult` with maps at ``1/scale`` of the working resolution.
@@ -260,9 +277,11 @@ def refine(
     for m in params:
         for t in m.tensors():
             t.requires_grad_(True)
-    targets = _targets(views, geometry, params, cfg.scale)
+    Ks = [geometry.K0, geometry.K1] if geometry is not None else [v.K for v in views]
+    targets = _targets(views, Ks, params, cfg.scale)
     opt = _optimizer(params, cfg)
-    matches = _mac_matches(geometry, depths, params, cfg)
+    sets = _pair_matches(geometry, depths, cfg) if geometry is not None else list(match_sets or [])
+    matches = _mac_matches(sets, params, cfg)
 
     history: list[dict[str, float]] = []
     running: list[float] = []
@@ -308,7 +327,9 @@ def refine_reconstruction(
     """
     check_scale(rec.maps, config.scale)
     f = config.scale
-    out = refine(rec.views, rec.geometry, rec.maps, config, depths=rec.depths, lpips=lpips, on_step=on_step)
+    sets = rec.multiview.match_sets() if rec.multiview is not None else None
+    out = refine(rec.views, rec.geometry, rec.maps, config, depths=rec.depths, lpips=lpips, on_step=on_step,
+                 match_sets=sets)  # fmt: skip
     report = RefineReport(
         steps=out.steps,
         max_steps=config.steps,

@@ -28,7 +28,7 @@ import numpy as np
 from ..cameras import Camera
 
 __all__ = [
-    "DepthMap", "Features", "FocalEvidence", "IntrinsicsSource", "Matches", "PoseSource", "TwoViewGeometry", "View",
+    "DepthMap", "Features", "FocalEvidence", "IntrinsicsSource", "MatchSet", "Matches", "PoseSource", "TwoViewGeometry", "View",
 ]  # fmt: skip
 
 IntrinsicsSource = Literal["file", "focal", "exif", "prior", "estimated"]
@@ -215,3 +215,20 @@ class DepthMap:
     def valid(self) -> np.ndarray:
         """Pixels with a depth. [H, W] bool"""
         return (self.depth > 0) & (self.confidence > 0)
+
+
+@dataclass
+class MatchSet:
+    """Matches between two of the refined views, for the MAC loss.
+
+    Attributes:
+        a, b: the views (indices into the maps).
+        xy_a, xy_b: the matched pixels at the working resolution. [M, 2] float64
+        weights: each match's weight. [M]
+    """
+
+    a: int
+    b: int
+    xy_a: np.ndarray
+    xy_b: np.ndarray
+    weights: np.ndarray

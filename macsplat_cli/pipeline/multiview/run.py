@@ -19,9 +19,9 @@ from ...errors import ReconstructionError
 from ...gaussians import GaussianMaps
 from ..gaussian_init import GaussianInitConfig, view_gaussians
 from ..pose import PoseSearch
-from ..types import DepthMap, View
+from ..types import DepthMap, MatchSet, View
 from .config import MultiViewConfig
-from .depth import DepthFn, multiview_depths
+from .depth import DepthFn, multiview_depths, pair_geometry
 from .pairwise import PairOutcome, cached_search, match_pairs
 from .known import load_known_poses, known_pose_pairs
 from .register import Registration, register_known, register_views
@@ -67,6 +67,17 @@ class MultiViewResult:
         return [{"name": v.name, "registered": False, "width": v.original_size[0], "height": v.original_size[1],
                  "reason": reg.reasons[k] or "no depth could be estimated for it"}
                 for k, v in enumerate(self.views) if k not in self.map_views]  # fmt: skip
+
+    def match_sets(self) -> list[MatchSet]:
+        """The refinement's MAC matches: for every accepted pair of photos that both have Gaussians, their shared
+        tracks (indices into ``maps``)."""
+        index = {k: i for i, k in enumerate(self.map_views)}
+        out = []
+        for o in self.pairs:
+            if o.result is not None and o.i in index and o.j in index:
+                m = pair_geometry(self.registration, o.i, o.j)[0].inliers
+                out.append(MatchSet(index[o.i], index[o.j], m.xy0, m.xy1, np.ones(len(m), np.float32)))
+        return out
 
     def report(self) -> dict[str, Any]:
         """The report's ``multiview`` section: per photo, per pair, the registration."""

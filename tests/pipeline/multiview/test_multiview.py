@@ -204,3 +204,14 @@ def test_given_poses_refuse_the_neural_backend(room: Orbit, tmp_path: Path) -> N
                             "--backend", "neural", "--weights", tmp_path / "w.pth"])  # fmt: skip
     assert code == 2
     assert "the neural backend reconstructs two photos" in one_error_line(err)
+
+
+# ------------------------------------------------------------------------------ refinement over every view
+def test_refine_over_every_registered_photo(room: Orbit, tmp_path: Path) -> None:
+    code, _, err = run_cli(["reconstruct", *room.photos[:3], "-o", tmp_path / "s.ply", "--intrinsics",
+                            room.one_camera, "--refine", "8", "--report", tmp_path / "r.json", "-q"])  # fmt: skip
+    assert code == 0, err
+    r = json.loads((tmp_path / "r.json").read_text())["refine"]
+    assert r["steps"] == 8 and r["mac"]
+    assert r["loss_last"]["photo"] < r["loss_first"]["photo"]  # the photometric loss over all three photos falls
+    assert r["loss_first"]["mac"] > 0  # MAC over the three pairs' shared tracks
