@@ -25,6 +25,7 @@ apart from the per-pixel maps; it is not refined or compacted.
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -36,7 +37,7 @@ from ..rotations import rotmat_to_quat_np
 from .depth import push_pull
 from .types import DepthMap, TwoViewGeometry, View
 
-__all__ = ["BackgroundConfig", "BackgroundLayer", "background_gaussians"]
+__all__ = ["BackgroundConfig", "BackgroundLayer", "background_gaussians", "background_layer"]
 
 logger = logging.getLogger(__name__)
 
@@ -114,6 +115,16 @@ def background_gaussians(
     Returns:
         The layer and its counts.
     """
+    Ks = [geometry.K0, geometry.K1]
+    return background_layer(views, Ks, [geometry.cam_to_world(k) for k in (0, 1)], depths, config)
+
+
+def background_layer(
+    views: Sequence[View], Ks: Sequence[np.ndarray], poses: Sequence[np.ndarray], depths: Sequence[DepthMap],
+    config: BackgroundConfig | None = None,
+) -> BackgroundLayer:  # fmt: skip
+    """The far layer of any number of views (module docstring): each view's cells, less the exterior cells another
+    view sees. ``Ks`` [3, 3] and ``poses`` (cam_to_world [4, 4]) per view, at the working resolution."""
     cfg = config or BackgroundConfig()
     counts: dict[str, int] = {}
     if not cfg.enabled:
@@ -123,7 +134,8 @@ def background_gaussians(
     for k, (view, dm) in enumerate(zip(views, depths)):
         if not dm.valid.any():
             continue
-        part = _view_layer(k, view, dm, geometry, depths[1 - k].depth.shape, cfg)
+        others = [(Ks[o], poses[o], depths[o].depth.shape) for o in range(len(views)) if o != k]
+        part = _view_layer(view, dm, Ks[k], poses[k], others, cfg)
         counts[f"outside_view{k}"] = part.outside
         counts[f"behind_view{k}"] = part.behind
         dropped += part.dropped
@@ -162,12 +174,15 @@ class _ViewLayer:
     dropped: int
 
 
+_Other = tuple[np.ndarray, np.ndarray, tuple[int, ...]]
+"""Another view: its ``K`` [3, 3], cam_to_world [4, 4] and image shape (height, width)."""
+
+
 def _view_layer(
-    k: int, view: View, dm: DepthMap, geometry: TwoViewGeometry, shape_o: tuple[int, int], cfg: BackgroundConfig
+    view: View, dm: DepthMap, K: np.ndarray, T: np.ndarray, others: Sequence[_Other], cfg: BackgroundConfig
 ) -> _ViewLayer:
-    """View ``k``'s cells: the photo and its depth extended on the padded grid, placed in the world, less the
-    exterior cells the other view (of ``shape_o = (height, width)``) sees."""
-    K = geometry.K0 if k == 0 else geometry.K1
+    """A view's cells (intrinsics ``K``, cam_to_world ``T``): the photo and its depth extended on the padded grid,
+    placed in the world, less the exterior cells another view sees."""
     h, w = dm.depth.shape
     valid = dm.valid
     cell = max(2, int(cfg.cell))
@@ -189,10 +204,11 @@ def _view_layer(
     else:
         keep = ~inside
     rays = np.stack([u, v, np.ones_like(u, dtype=np.float64)], -1) @ np.linalg.inv(K).T
-    T = geometry.cam_to_world(k)
     Pw = (rays * z[..., None]) @ T[:3, :3].T + T[:3, 3]
-    # leave out exterior cells the other photo sees: its own Gaussians are there
-    seen = _seen_by(Pw, geometry, 1 - k, shape_o)
+    # leave out exterior cells another photo sees: its own Gaussians are there
+    seen = np.zeros(Pw.shape[:-1], bool)
+    for other in others:
+        seen |= _seen_by(Pw, *other)
     outside_kept = keep & ~inside & ~seen
     sel = outside_kept | (keep & inside)
     f = 0.5 * (K[0, 0] + K[1, 1])
@@ -235,12 +251,11 @@ def _extended_cells(
     return col, inv_ext, inv, z_med
 
 
-def _seen_by(Pw: np.ndarray, geometry: TwoViewGeometry, o: int, shape_o: tuple[int, int]) -> np.ndarray:
-    """World points [..., 3] that land inside view ``o``'s image (``shape_o = (height, width)``), in front of it.
-    [...] bool"""
-    To = np.linalg.inv(geometry.cam_to_world(o))
+def _seen_by(Pw: np.ndarray, K_o: np.ndarray, T_o: np.ndarray, shape_o: tuple[int, ...]) -> np.ndarray:
+    """World points [..., 3] that land inside a view's image (``K_o``, cam_to_world ``T_o``, ``shape_o = (height,
+    width)``), in front of it. [...] bool"""
+    To = np.linalg.inv(T_o)
     Po = Pw @ To[:3, :3].T + To[:3, 3]
-    K_o = geometry.K0 if o == 0 else geometry.K1
     with np.errstate(divide="ignore", invalid="ignore"):
         uvo = (Po @ K_o.T)[..., :2] / Po[..., 2:3]
     ho, wo = shape_o

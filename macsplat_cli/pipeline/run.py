@@ -298,7 +298,7 @@ class Pipeline:
             return self.depth(views, geometry, None)
 
         c = self.config
-        mv = reconstruct_views(loaded, self.search, two_view_depth, c.gaussians, c.multiview, timed)
+        mv = reconstruct_views(loaded, self.search, two_view_depth, c.gaussians, c.background, c.multiview, timed)
         reg, ks = mv.registration, mv.map_views
         views = [mv.views[k] for k in ks]
         depths = [d for d in (mv.depths[k] for k in ks) if d is not None]
@@ -308,6 +308,8 @@ class Pipeline:
         pose = first.result
         assert pose is not None
         scale = mv.scale or self.scale
+        layer = mv.background.gaussians if mv.background is not None else None
+        n_layer = len(layer) if layer is not None else 0
         report = RunReport(
             macsplat_version=__version__,
             inputs=[str(p) for p in paths],
@@ -324,11 +326,13 @@ class Pipeline:
             pose={"given": str(c.multiview.poses)} if given else pose.report(),
             depth_coverage=[float(d.valid.mean()) for d in depths],
             depth_measured=[float(d.measured.mean()) if d.measured is not None else None for d in depths],
-            gaussians=count_gaussians(mv.maps),
+            gaussians=count_gaussians(mv.maps) + n_layer,
             config=asdict(self.config),
             scale=scale,
+            fill={"depth": [getattr(d, "fill_counts", None) for d in depths],
+                  "background": mv.background.counts if mv.background is not None else None},
             multiview=mv.report(),
         )
         poses = [reg.cam_to_world(k) for k in ks]
-        return Reconstruction(views, None, depths, mv.maps, report, scale=scale, pose=None if given else pose,
-                              poses=poses, multiview=mv)  # fmt: skip
+        return Reconstruction(views, None, depths, mv.maps, report, scale=scale, background=mv.background,
+                              pose=None if given else pose, poses=poses, multiview=mv)  # fmt: skip

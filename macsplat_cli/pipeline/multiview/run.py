@@ -17,6 +17,7 @@ import numpy as np
 
 from ...errors import ReconstructionError
 from ...gaussians import GaussianMaps
+from ..background import BackgroundConfig, BackgroundLayer, background_layer
 from ..gaussian_init import GaussianInitConfig, view_gaussians
 from ..pose import PoseSearch
 from ..types import DepthMap, MatchSet, View
@@ -60,6 +61,8 @@ class MultiViewResult:
     duplicates: dict[int, int]
     scale: Literal["relative", "metric"] | None = None
     """The given poses' scale (``--poses``), else None (relative: the first pair's baseline is 1)."""
+    background: BackgroundLayer | None = None
+    """The far layer around every registered photo (:mod:`..background`), when built."""
 
     def unregistered(self) -> list[dict[str, Any]]:
         """The photos left out: name, original size and why (the cameras file lists them)."""
@@ -130,7 +133,7 @@ def _duplicates(views: Sequence[View]) -> dict[int, int]:
 
 def reconstruct_views(
     views: list[View], search: PoseSearch, two_view_depth: DepthFn, gaussians: GaussianInitConfig,
-    config: MultiViewConfig, timed: Timer,
+    background: BackgroundConfig, config: MultiViewConfig, timed: Timer,
 ) -> MultiViewResult:  # fmt: skip
     """The chain (module docstring) on ``views`` (≥ 3 photos, or ≥ 2 with ``config.poses``), already loaded.
 
@@ -172,13 +175,19 @@ def reconstruct_views(
     views = [_calibrated(v, reg, k) for k, v in enumerate(views)]
     depths, dpairs = timed("depth", lambda: multiview_depths(views, reg, two_view_depth, config.depth))
 
-    def gaussian_stage() -> tuple[list[GaussianMaps], list[int]]:
+    def gaussian_stage() -> tuple[list[GaussianMaps], list[int], BackgroundLayer | None]:
         ks = [k for k, d in enumerate(depths) if d is not None]
-        return [view_gaussians(views[k], depths[k], reg.K[k], reg.cam_to_world(k), gaussians) for k in ks], ks
+        Ts = [reg.cam_to_world(k) for k in ks]
+        maps = [view_gaussians(views[k], depths[k], reg.K[k], T, gaussians) for k, T in zip(ks, Ts)]
+        layer = None
+        if background.enabled:
+            layer = background_layer([views[k] for k in ks], [reg.K[k] for k in ks], Ts, [depths[k] for k in ks],
+                                     background)  # fmt: skip
+        return maps, ks, layer
 
-    maps, ks = timed("gaussians", gaussian_stage)
+    maps, ks, layer = timed("gaussians", gaussian_stage)
     scale = "metric" if known is not None and known.scale == "metric" else None
-    return MultiViewResult(views, reg, outcomes, depths, maps, ks, dpairs, dups, scale)
+    return MultiViewResult(views, reg, outcomes, depths, maps, ks, dpairs, dups, scale, layer)
 
 
 def _calibrated(v: View, reg: Registration, k: int) -> View:
