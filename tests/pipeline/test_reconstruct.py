@@ -24,7 +24,7 @@ import torch
 from macsplat_cli.cameras import Camera, CameraSet, load_cameras, save_cameras
 from macsplat_cli.cli import main
 from macsplat_cli.datasets import synthetic as syn
-from macsplat_cli.errors import ReconstructionError
+from macsplat_cli.errors import InputError, ReconstructionError
 from macsplat_cli.images import save_image
 from macsplat_cli.pipeline.pose import PoseConfig
 from macsplat_cli.pipeline.run import STAGES, Pipeline, ReconstructConfig, Reconstruction
@@ -650,7 +650,9 @@ def test_library_rejects_unrelated_scenes(bad_files: dict[str, Path]) -> None:
         Pipeline().run([bad_files["a"], bad_files["other_scene"]])
 
 
-def test_library_takes_exactly_two_photos(bad_files: dict[str, Path]) -> None:
-    """Three photos are a programming error (ValueError), before anything is read."""
-    with pytest.raises(ValueError, match="exactly two"):
-        Pipeline().run([bad_files["a"], bad_files["b"], bad_files["missing"]])
+@pytest.mark.parametrize(("n", "message"), [(1, "1 photo given"), (65, "65 photos given: at most 64")])
+def test_library_takes_two_to_64_photos(bad_files: dict[str, Path], n: int, message: str) -> None:
+    """One photo, or more than the limit, is bad input (InputError), checked before anything is read (the files
+    here do not exist)."""
+    with pytest.raises(InputError, match=message):
+        Pipeline().run([bad_files["missing"]] * n)
