@@ -15,6 +15,7 @@ from .eval import (
     AssignmentChoice,
     AssignmentOpt,
     CasesOpt,
+    ContextViewsOpt,
     DataOpt,
     IntrinsicsChoice,
     IntrinsicsOpt,
@@ -97,6 +98,7 @@ def bench_command(
     split_by: SplitByOpt = SplitByChoice.auto,
     assignment: AssignmentOpt = AssignmentChoice.bin,
     seed: SeedOpt = 0,
+    context_views: ContextViewsOpt = 2,
     splatt3r_compatible: Splatt3rOpt = False,
     json_out: Annotated[bool, typer.Option("--json", help="Print the bench as JSON on stdout.")] = False,
     weights: WeightsOpt = None,
@@ -111,8 +113,8 @@ def bench_command(
     """Run the evaluation over a grid of settings; report time vs quality and the Pareto front.
 
     Every combination of --backend, --size, --conf-threshold, --refine and --quality is evaluated on the
-    same cases. Writes a Markdown table (bench.md), a plot (bench.png), bench.json, and each
-    setting's full results under runs/.
+    same cases (with --context-views N, N context photos each). Writes a Markdown table (bench.md), a plot
+    (bench.png), bench.json, and each setting's full results under runs/.
 
     [bold]Example[/]
 
@@ -127,7 +129,8 @@ def bench_command(
             layout=layout.value,
             scannetpp_split=scannetpp_split, scenes=scenes, cases_file=cases, intrinsics=intrinsics.value,
             max_pairs=max_pairs, max_targets=max_targets, split_by=split_by.value, assignment=assignment.value,
-            seed=seed, splatt3r_compatible=splatt3r_compatible, json_out=json_out, quiet=state.quiet,
+            seed=seed, context_views=context_views, splatt3r_compatible=splatt3r_compatible, json_out=json_out,
+            quiet=state.quiet,
             neural=neural_options(weights, gaussian_head, dino, fusion, device, precision),
         )  # fmt: skip
 
@@ -137,7 +140,7 @@ def _bench(
     qualities: list[str], eval_size: int | None, metric: str, split: str, layout: str, scannetpp_split: str,
     scenes: str | None,
     cases_file: Path | None, intrinsics: str, max_pairs: int, max_targets: int, split_by: str, assignment: str,
-    seed: int, splatt3r_compatible: bool, json_out: bool, quiet: bool, neural: NeuralOptions,
+    seed: int, splatt3r_compatible: bool, json_out: bool, quiet: bool, neural: NeuralOptions, context_views: int = 2,
 ) -> None:  # fmt: skip
     import json
 
@@ -152,6 +155,7 @@ def _bench(
         grid,
         run_bench,
     )
+    from ..evaluation.contexts import check_context_views
     from ..evaluation.result_files import ResultWriter
 
     if metric not in METRICS:
@@ -161,6 +165,7 @@ def _bench(
         raise InputError(f"--backend {unknown[0]!r}: available: {', '.join(sorted(BACKENDS))}")
     if any(s < 64 for s in sizes) or any(r < 0 for r in steps) or any(t is not None and t < 0 for t in taus):
         raise InputError("--size must be ≥ 64, --refine ≥ 0 and --conf-threshold ≥ 0")
+    check_context_views(context_views, backends=backends, refine_steps=steps)
     from ..presets import check_quality
 
     qualities = [q.strip().lower() for q in qualities]
@@ -180,11 +185,12 @@ def _bench(
     dataset = load_data(data, layout, scannetpp_split, scenes)
     sel = select_cases(
         dataset, cases_file=cases_file, split=split, split_by=split_by, assignment=assignment,
-        max_pairs=max_pairs, max_targets=max_targets, seed=seed, quiet=quiet,
+        max_pairs=max_pairs, max_targets=max_targets, seed=seed, quiet=quiet, context_views=context_views,
     )  # fmt: skip
     if not quiet:
+        each = f", {context_views} context views each" if context_views > 2 else ""
         err_console.print(
-            f"{len(settings)} setting(s) × {len(sel.cases)} case(s) from {len(dataset.scenes)} scene(s)",
+            f"{len(settings)} setting(s) × {len(sel.cases)} case(s) from {len(dataset.scenes)} scene(s){each}",
             highlight=False,
         )
 

@@ -92,6 +92,15 @@ AssignmentOpt = Annotated[
     typer.Option("--assignment", help="bin: each pair in its tightest split; threshold: thresholds as lower bounds."),
 ]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Seed of the pair and target draws.")]
+ContextViewsOpt = Annotated[
+    int,
+    typer.Option(
+        "--context-views",
+        metavar="N",
+        help="Context photos per case: the drawn pair, plus N-2 frames spread between (then around) it, never a "
+        "target; N > 2 reconstructs them together (classical backend).",
+    ),
+]
 Splatt3rOpt = Annotated[
     bool,
     typer.Option(
@@ -119,12 +128,15 @@ def select_cases(
     max_targets: int,
     seed: int,
     quiet: bool,
+    context_views: int = 2,
 ) -> CaseSelection:
-    """Test cases from a file or from the splits, with a spinner while coverage is computed."""
+    """Test cases from a file or from the splits, with a spinner while coverage is computed; with more than two
+    context views, each case's pair extended (:mod:`~macsplat_cli.evaluation.contexts`)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 
     from ..errors import DatasetError
     from ..evaluation import SplitConfig, load_cases, make_cases, parse_splits
+    from ..evaluation.contexts import extend_cases
     from ..evaluation.protocol import check_context_sizes
 
     splits = parse_splits(split)
@@ -132,6 +144,7 @@ def select_cases(
         sel = load_cases(cases_file, dataset)
         if split.strip().lower() != "all":
             sel.cases = [c for c in sel.cases if c.split in splits]
+        sel.cases, left = extend_cases(dataset, sel.cases, context_views)
         check_context_sizes(dataset, sel.cases)
     else:
         check_context_sizes(dataset)  # any frame may become a context view: before the O(N²) coverage
@@ -160,6 +173,21 @@ def select_cases(
 
         with progress:
             sel = make_cases(dataset, cfg, on_coverage=on_coverage)
+        sel.cases, left = extend_cases(dataset, sel.cases, context_views, cfg.angle_slack_deg)
+    if left and not quiet:
+        err_console.print(
+            escape(
+                f"{len(left)} case(s) left out (first: {left[0].key}): too few frames besides their targets for "
+                f"{context_views} context views"
+            ),
+            style="yellow",
+            highlight=False,
+        )
+    if not sel.cases and left:
+        raise DatasetError(
+            f"{dataset.root}: no test case can have {context_views} context views (the scenes have too few frames "
+            "besides the targets); try a smaller --context-views"
+        )
     if not sel.cases:
         raise DatasetError(
             f"{dataset.root}: no test case for split {split!r} (a pair needs a target, and an overlap or angle in "
@@ -230,6 +258,9 @@ def summary_tables(rows: list[dict[str, Any]], title: str) -> list[Any]:
         ("translation_error_deg", "t °", 2), ("auc", "AUC@5/10/20", None), ("focal_error_pct", "focal %", 1),
         ("depth_absrel", "AbsRel", 3), ("depth_delta1", "δ<1.25", 3), ("time_s", "time s", 2),
     ]  # fmt: skip
+    n_views = max((r.get("context_views", 2) for r in rows), default=2)
+    if n_views > 2:  # more than two contexts: how many of them were registered, on average
+        geometry.append(("registered", f"reg./{n_views}", 2))
     backend_rows = [
         {
             **r,
@@ -290,6 +321,7 @@ def eval_command(
     split_by: SplitByOpt = SplitByChoice.auto,
     assignment: AssignmentOpt = AssignmentChoice.bin,
     seed: SeedOpt = 0,
+    context_views: ContextViewsOpt = 2,
     splatt3r_compatible: Splatt3rOpt = False,
     no_baselines: Annotated[
         bool, typer.Option("--no-baselines", help="Skip the point-cloud and copy baselines.")
@@ -314,10 +346,10 @@ def eval_command(
 ) -> None:
     """Evaluate a reconstruction backend on a data set of posed images.
 
-    Two context views per case (their relative pose estimated by the backend), target views
-    between them rendered from their true cameras; PSNR/SSIM (whole image and over the
-    Splatt3R visibility mask), pose error and AUC, focal and depth error, time, next to two
-    baselines (coloured point cloud, nearest context photo). Results are written after every
+    Two context views per case (their relative pose estimated by the backend; more with
+    --context-views), target views between them rendered from their true cameras; PSNR/SSIM
+    (whole image and over the Splatt3R visibility mask), pose error and AUC, focal and depth
+    error, time, next to two baselines (coloured point cloud, nearest context photo). Results are written after every
     case: a partial run keeps what it finished. LPIPS only with --lpips-weights (local VGG weights).
 
     [bold]Examples[/]
@@ -331,8 +363,9 @@ def eval_command(
             scenes=scenes, cases_file=cases, size=size, eval_size=eval_size, intrinsics=intrinsics.value,
             conf_threshold=conf_threshold,
             refine=refine, max_pairs=max_pairs, max_targets=max_targets, split_by=split_by.value,
-            assignment=assignment.value, seed=seed, splatt3r_compatible=splatt3r_compatible,
-            baselines=not no_baselines, json_out=json_out, quiet=state.quiet, lpips_weights=lpips_weights,
+            assignment=assignment.value, seed=seed, context_views=context_views,
+            splatt3r_compatible=splatt3r_compatible, baselines=not no_baselines, json_out=json_out, quiet=state.quiet,
+            lpips_weights=lpips_weights,
             engine=engine_config(
                 backend, conf_threshold=conf_threshold, refine=refine, quality=quality,
                 neural=neural_options(weights, gaussian_head, dino, fusion, device, precision),
@@ -345,19 +378,21 @@ def _eval(
     cases_file: Path | None, size: int, eval_size: int | None, intrinsics: str, conf_threshold: float | None,
     refine: int, max_pairs: int,
     max_targets: int, split_by: str, assignment: str, seed: int, splatt3r_compatible: bool, baselines: bool,
-    json_out: bool, quiet: bool, engine: EngineConfig, lpips_weights: Path | None = None,
+    json_out: bool, quiet: bool, engine: EngineConfig, lpips_weights: Path | None = None, context_views: int = 2,
 ) -> None:  # fmt: skip
     import time
 
     from .._json import to_jsonable
     from ..errors import DatasetError
     from ..evaluation import EvalConfig, ReconstructSettings, ResultWriter, make_reconstructor
+    from ..evaluation.contexts import check_context_views
     from ..evaluation.results import BASELINES
     from ..evaluation.splits import parse_splits
     from ..evaluation.summary import summarize
     from ..lpips import load_lpips
 
     parse_splits(split)  # bad options fail before any work
+    check_context_views(context_views, backends=[engine.backend], refine_steps=[refine])
     ResultWriter.check(out)  # and outputs that cannot be written (a link, a device, a read-only folder)
     check_no_clobber(
         [(f"--out {out}:", out / name) for name in ResultWriter.FILES],
@@ -368,7 +403,7 @@ def _eval(
     dataset = load_data(data, layout, scannetpp_split, scenes)
     sel = select_cases(
         dataset, cases_file=cases_file, split=split, split_by=split_by, assignment=assignment,
-        max_pairs=max_pairs, max_targets=max_targets, seed=seed, quiet=quiet,
+        max_pairs=max_pairs, max_targets=max_targets, seed=seed, quiet=quiet, context_views=context_views,
     )  # fmt: skip
     config = EvalConfig(
         settings=ReconstructSettings(size=size, intrinsics=intrinsics),  # type: ignore[arg-type]
@@ -383,7 +418,7 @@ def _eval(
         "candidates": sel.candidates,
         "options": {"split": split, "max_pairs": max_pairs, "max_targets": max_targets, "seed": seed,
                     "assignment": assignment, "split_by": split_by, "backend": backend, "refine": refine,
-                    "conf_threshold": conf_threshold},
+                    "conf_threshold": conf_threshold, "context_views": context_views},
     }  # fmt: skip
     writer = ResultWriter(out, extra)
     writer.write_coverage(sel.coverage, {s.name: [f.name for f in s.frames] for s in dataset.scenes})
@@ -391,7 +426,9 @@ def _eval(
         err_console.print(
             escape(
                 f"{len(sel.cases)} case(s) from {len(dataset.scenes)} scene(s) ({dataset.layout}), "
-                f"{sum(len(c.targets) for c in sel.cases)} target view(s); backend {reconstructor.name}"
+                f"{sum(len(c.targets) for c in sel.cases)} target view(s)"
+                + (f", {context_views} context views each" if context_views > 2 else "")
+                + f"; backend {reconstructor.name}"
             ),
             highlight=False,
         )

@@ -1,10 +1,12 @@
-"""Evaluation of two-view reconstruction: data sets, test splits, the protocol, metrics, baselines, benches.
+"""Evaluation of reconstruction from two (or more) context views: data sets, test splits, the protocol, metrics,
+baselines, benches.
 
 Layering: :mod:`macsplat_cli.datasets` (posed frames from a folder; :mod:`macsplat_cli.datasets.coverage`,
 Splatt3R's visibility mask and pairwise coverage) → :mod:`.splits` (test cases by coverage or view
-angle) → :mod:`.reconstructors` (what reconstructs a case: the engine with a backend, or the
-ground truth) → :mod:`.protocol` (measuring a case and a run, into :mod:`.results`) → :mod:`.summary`
-(the tables) and :mod:`.result_files` (the files written as the run goes) →
+angle) → :mod:`.contexts` (more than two context views per case) → :mod:`.reconstructors` (what reconstructs a
+case: the engine with a backend, or the ground truth) → :mod:`.protocol` (measuring a case and a run, into
+:mod:`.results`; :mod:`.alignment`: the pose errors and the frame of more than two context views) →
+:mod:`.summary` (the tables) and :mod:`.result_files` (the files written as the run goes) →
 :mod:`.bench` (a grid of settings and its Pareto front). :mod:`.metrics` and
 :mod:`.baselines` hold the measures. The CLI commands ``macsplat eval`` and
 ``macsplat bench`` only parse options and draw progress and tables.
@@ -13,8 +15,10 @@ ground truth) → :mod:`.protocol` (measuring a case and a run, into :mod:`.resu
 from __future__ import annotations
 
 from ..datasets import EvalDataset, EvalScene, Frame, detect_layout, load_dataset
+from .alignment import Similarity, aligned_camera, fit_similarity, pairwise_pose_errors
 from .baselines import PointsConfig, nearest_context, point_cloud, render_points
 from .bench import BenchRow, BenchSetting, bench_markdown, bench_plot, grid, pareto_front, run_bench
+from .contexts import check_context_views, extend_case, extend_cases
 from .metrics import depth_metrics, image_metrics, pose_auc, splatt3r_psnr
 from .protocol import evaluate, evaluate_case
 from .reconstructors import (
@@ -49,13 +53,19 @@ __all__ = [
     "ReconstructSettings",
     "Reconstructor",
     "ResultWriter",
+    "Similarity",
     "SplitConfig",
+    "aligned_camera",
     "bench_markdown",
     "bench_plot",
+    "check_context_views",
     "depth_metrics",
     "detect_layout",
     "evaluate",
     "evaluate_case",
+    "extend_case",
+    "extend_cases",
+    "fit_similarity",
     "grid",
     "image_metrics",
     "load_cases",
@@ -63,6 +73,7 @@ __all__ = [
     "make_cases",
     "make_reconstructor",
     "nearest_context",
+    "pairwise_pose_errors",
     "pareto_front",
     "parse_splits",
     "point_cloud",

@@ -9,13 +9,14 @@
   target's focal length and clamped to ``[min_radius_px, max_radius_px]``. A pixel is
   covered by a disc when its centre is within the radius of the projected point; the
   nearest covering point wins. Pixels no disc covers keep the background.
-* **copy** — the context photo whose camera centre is nearer to the target's (ties: the
+* **copy** — the context photo whose camera centre is nearest to the target's (ties: the
   smaller rotation), resized to the target's size: what a method that moves no pixel
   would score.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -131,8 +132,8 @@ def render_points(
     return image.reshape(H, W, 3), covered.reshape(H, W)
 
 
-def nearest_context(target: Camera, contexts: tuple[Camera, Camera]) -> int:
-    """Index (0 or 1) of the context camera nearer to the target (centre distance, then rotation)."""
+def nearest_context(target: Camera, contexts: Sequence[Camera]) -> int:
+    """Index of the context camera nearest to the target (centre distance, then rotation; then the first)."""
     keys = [
         (
             round(float(np.linalg.norm(target.center - c.center)), 12),
@@ -140,4 +141,4 @@ def nearest_context(target: Camera, contexts: tuple[Camera, Camera]) -> int:
         )
         for c in contexts
     ]
-    return 0 if keys[0] <= keys[1] else 1
+    return min(range(len(keys)), key=keys.__getitem__)

@@ -2,7 +2,8 @@
 
 Every setting (backend × working size × matching confidence threshold × refinement
 steps; further axes are added to :class:`BenchSetting` and :func:`grid`) evaluates the
-same cases (:func:`~.protocol.evaluate`, without baselines).
+same cases (:func:`~.protocol.evaluate`, without baselines), with as many context views as
+the cases have (``--context-views``: :mod:`.contexts`).
 
 **Fair comparison.** Every setting's views are rendered and compared at one resolution
 (``eval_size``, by default the largest working size of the grid): a smaller working size
@@ -307,7 +308,9 @@ def run_bench(
         runs.append(run(dataset, cases, recon, cfg, writer, i))
         rows = bench_rows(settings[: i + 1], runs, metric)
         if out_dir is not None:
-            write_bench(out_dir, rows, metric, title=f"macsplat bench: {dataset.root} ({len(cases)} cases)")
+            n_views = max((len(c.context) for c in cases), default=2)
+            each = f", {n_views} context views each" if n_views > 2 else ""
+            write_bench(out_dir, rows, metric, title=f"macsplat bench: {dataset.root} ({len(cases)} cases{each})")
         if on_row is not None:
             on_row(rows)
     return rows
@@ -341,8 +344,12 @@ BENCH_COLUMNS = (
 
 def bench_markdown(rows: Sequence[BenchRow], metric: str) -> str:
     """The grid as a Markdown table (Pareto-front settings in bold), then the front in time order."""
-    head = ["backend", "size", "τ", "refine", "quality", *(c[1] for c in BENCH_COLUMNS), "failed", "Pareto"]
-    lines = ["| " + " | ".join(head) + " |", "|---|---:|---:|---:|---|" + "---:|" * len(BENCH_COLUMNS) + "---:|:---:|"]
+    columns = BENCH_COLUMNS
+    n_views = max((int(r.summary.get("context_views") or 2) for r in rows), default=2)
+    if n_views > 2:  # more than two contexts: how many of them were registered, on average
+        columns = (*columns, ("registered", f"registered / {n_views}", 2))
+    head = ["backend", "size", "τ", "refine", "quality", *(c[1] for c in columns), "failed", "Pareto"]
+    lines = ["| " + " | ".join(head) + " |", "|---|---:|---:|---:|---|" + "---:|" * len(columns) + "---:|:---:|"]
     for r in rows:
         s = r.setting
         cells = [
@@ -352,7 +359,7 @@ def bench_markdown(rows: Sequence[BenchRow], metric: str) -> str:
             str(s.refine_steps),
             s.quality,
         ]
-        cells += [format_cell(r.summary.get(k), d) for k, _, d in BENCH_COLUMNS]
+        cells += [format_cell(r.summary.get(k), d) for k, _, d in columns]
         cells += [f"{r.summary.get('failed', 0)}/{r.summary.get('cases', 0)}", "✓" if r.pareto else ""]
         if r.pareto:
             cells = [f"**{c}**" if c else c for c in cells]

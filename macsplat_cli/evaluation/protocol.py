@@ -20,8 +20,22 @@ Then
   Splatt3R visibility mask of the target against both context views when the scene has
   depth (:mod:`macsplat_cli.datasets.coverage`), by :func:`.metrics.image_metrics`;
 * baselines on the same targets (:mod:`.baselines`): ``points`` (the reconstruction's
-  coloured points as opaque discs) and ``copy`` (the nearer context photo);
+  coloured points as opaque discs) and ``copy`` (the nearest context photo);
 * wall time of the reconstruction (refinement included).
+
+**More than two context views** (``--context-views``, the contexts chosen by :mod:`.contexts`): the
+reconstructor gets every context photo; the case records which of them were registered (an unregistered
+context is reported with its reason, not fatal; fewer than two registered is the reconstruction's refusal, a
+failure as above). Then, by :mod:`.alignment`:
+
+* pose: the rotation and translation-direction errors of every registered context pair's relative pose, their
+  means as the case's errors (gauge-free: the reconstruction's frame and scale do not enter), each pair's in
+  ``pairs``; focal errors per registered view;
+* frame: the similarity taking the reconstruction's frame onto the data set's, fitted on the registered cameras
+  (its scale is ``s``: depth is scaled by it as above); every target is rendered from its true camera carried
+  into the reconstruction's frame by it, the focal lengths multiplied by the first registered view's
+  estimated-to-true ratio;
+* the visibility mask is the target's against all the context views, the ``copy`` baseline the nearest of them.
 
 A :class:`~macsplat_cli.errors.ReconstructionError` makes the case a **failure**: it stays
 in the results, counts as a 180° pose error in the AUC, and has no image metrics (the copy
@@ -56,6 +70,7 @@ from ..metrics import rotation_error_deg, translation_direction_error_deg
 from ..pipeline.run import Reconstruction
 from ..pipeline.views import MIN_IMAGE_SIDE, working_size
 from ..render import render_camera
+from .alignment import aligned_camera, fit_similarity, pairwise_pose_errors
 from .baselines import nearest_context, point_cloud, render_points
 from .metrics import depth_metrics, image_metrics
 from .reconstructors import Reconstructor
@@ -64,7 +79,7 @@ from .results import CaseResult, EvalConfig, EvalRun, TargetResult
 from .splits import EvalCase
 from .summary import known_mean
 
-__all__ = ["check_context_sizes", "evaluate", "evaluate_case", "target_camera"]
+__all__ = ["check_context_sizes", "evaluate", "evaluate_case", "registered_contexts", "target_camera"]
 
 logger = logging.getLogger(__name__)
 
@@ -118,7 +133,7 @@ def evaluate_case(
     """
     cfg = config or EvalConfig()
     gt = [scene.frames[c].camera for c in case.context]
-    res = CaseResult(case, reconstructor.name)
+    res = CaseResult(case, reconstructor.name, focal_error_pct=[None] * len(case.context))
     targets, has_depth = _targets_truth(scene, case, cfg)  # independent of the reconstruction
     res.targets = [t[0] for t in targets]
 
@@ -132,10 +147,22 @@ def evaluate_case(
         return res
     res.time_s = time.perf_counter() - t0
 
+    if rec.poses is not None:  # more than two photos
+        try:
+            _measure_views(res, rec, targets, scene, gt, has_depth, cfg)
+        except ReconstructionError as e:
+            res.status, res.error = "failed", " ".join(str(e).split())
+        return res
     ratios = _measure_pose(res, rec, gt)
+    res.registered = list(case.context)
     if has_depth and rec.depths:
-        _measure_depth(res, rec, scene, case)
-    _measure_targets(res, rec, targets, scene, gt[0], ratios[0], cfg)
+        _measure_depth(res, rec, scene, list(case.context))
+    scale, ratio0 = res.scale, ratios[0]
+
+    def place(target: Camera, width: int, height: int) -> Camera:
+        return target_camera(target, gt[0], scale=scale, width=width, height=height, focal_ratio=ratio0)
+
+    _measure_targets(res, rec, targets, scene, place, cfg)
     return res
 
 
@@ -168,7 +195,7 @@ def _targets_truth(scene: EvalScene, case: EvalCase, cfg: EvalConfig) -> tuple[l
                 mask = visibility_mask(d_t, cam_w, known, ctx_cams_w, atol=cfg.depth_atol, rtol=cfg.depth_rtol)
         tr = TargetResult(ti, frames[ti].name, wh)
         if "copy" in cfg.baselines:
-            near = case.context[nearest_context(frames[ti].camera, (gt[0], gt[1]))]
+            near = case.context[nearest_context(frames[ti].camera, gt)]
             tr.metrics["copy"] = image_metrics(
                 photo(near, wh), image, mask, splatt3r=cfg.splatt3r_compatible, lpips=cfg.lpips
             )
@@ -195,12 +222,13 @@ def _measure_pose(res: CaseResult, rec: Reconstruction, gt: list[Camera]) -> lis
     return ratios
 
 
-def _measure_depth(res: CaseResult, rec: Reconstruction, scene: EvalScene, case: EvalCase) -> None:
-    """Depth metrics of the context views' depth maps (at their own size, scaled by ``res.scale``) into ``res``."""
+def _measure_depth(res: CaseResult, rec: Reconstruction, scene: EvalScene, frames: list[int]) -> None:
+    """Depth metrics of the context views' depth maps (at their own size, scaled by ``res.scale``) into ``res``;
+    ``frames``: each depth map's frame index."""
     per_view = []
     for k, dm in enumerate(rec.depths):
         h, w = dm.depth.shape
-        d_true = _resize_to(scene.depth(case.context[k]), w, h)  # type: ignore[arg-type]
+        d_true = _resize_to(scene.depth(frames[k]), w, h)  # type: ignore[arg-type]
         est = np.where(dm.valid, dm.depth, 0.0)
         per_view.append(depth_metrics(est, d_true, res.scale))
     res.depth = {key: known_mean([m[key] for m in per_view]) for key in per_view[0]}
@@ -211,18 +239,14 @@ def _measure_targets(
     rec: Reconstruction,
     targets: list[_Target],
     scene: EvalScene,
-    context0: Camera,
-    focal_ratio: tuple[float, float],
+    place: Callable[[Camera, int, int], Camera],
     cfg: EvalConfig,
 ) -> None:
-    """Render every target from its true camera in the reconstruction's frame; its metrics (and the points
-    baseline's) into its :class:`TargetResult`."""
+    """Render every target from its true camera in the reconstruction's frame (``place``: the true camera, width,
+    height → the camera in that frame); its metrics (and the points baseline's) into its :class:`TargetResult`."""
     points = point_cloud(rec.gaussians, cfg.points) if "points" in cfg.baselines else None
     for tr, image, mask in targets:
-        cam = target_camera(
-            scene.frames[tr.index].camera, context0, scale=res.scale, width=tr.size[0], height=tr.size[1],
-            focal_ratio=focal_ratio,
-        )  # fmt: skip
+        cam = place(scene.frames[tr.index].camera, tr.size[0], tr.size[1])
         with torch.no_grad():
             out = render_camera(rec.gaussians, cam, background=cfg.background)
         pred = out.rgb.clamp(0.0, 1.0).cpu().numpy()
@@ -234,6 +258,82 @@ def _measure_targets(
             pm = image_metrics(rgb, image, mask, splatt3r=cfg.splatt3r_compatible, lpips=cfg.lpips)
             pm["alpha_coverage"] = float(covered.mean())
             tr.metrics["points"] = pm
+
+
+# ------------------------------------------------------------------------------------ more than two contexts
+def registered_contexts(rec: Reconstruction, stems: list[str]) -> tuple[list[int], dict[int, str]]:
+    """Which context photos a reconstruction of more than two registered.
+
+    Read from the report's ``multiview`` photos (every input photo in input order, ``registered`` or not, with
+    the reason); without them, by the views' names (the photos' stems), in order.
+
+    Args:
+        rec: the reconstruction.
+        stems: the context photos' file stems, in the order the reconstruction got them.
+
+    Returns:
+        The position in the context of each of ``rec.views``, and the reason of each context position left out.
+
+    Raises:
+        ReconstructionError: the views cannot be matched to the context photos.
+    """
+    photos = (rec.report.multiview or {}).get("photos")
+    pos: list[int] = []
+    if photos is not None and len(photos) == len(stems):
+        pos = [k for k, p in enumerate(photos) if p.get("registered")]
+        reasons = {k: str(p.get("reason") or "not registered") for k, p in enumerate(photos) if not p.get("registered")}
+    else:
+        for v in rec.views:
+            pos.append(next((k for k in range(len(stems)) if k not in pos and stems[k] == v.name), -1))
+        reasons = {k: "not registered" for k in range(len(stems)) if k not in pos}
+    if len(pos) != len(rec.views) or -1 in pos or len(pos) < 2:
+        raise ReconstructionError("the reconstruction's views cannot be matched to the context photos")
+    return pos, reasons
+
+
+def _measure_views(
+    res: CaseResult,
+    rec: Reconstruction,
+    targets: list[_Target],
+    scene: EvalScene,
+    gt: list[Camera],
+    has_depth: bool,
+    cfg: EvalConfig,
+) -> None:
+    """More than two context views (module docstring): registration, pair errors, the similarity onto the truth,
+    focal and depth errors, the targets rendered through it; into ``res``."""
+    case = res.case
+    pos, reasons = registered_contexts(rec, [scene.frames[c].image.stem for c in case.context])
+    res.registered = [case.context[k] for k in pos]
+    res.unregistered = [
+        {"frame": case.context[k], "name": scene.frames[case.context[k]].name, "reason": why}
+        for k, why in sorted(reasons.items())
+    ]
+    est = np.stack([np.asarray(T, np.float64) for T in rec.poses])  # type: ignore[union-attr]  # [M, 4, 4]
+    true = np.stack([gt[k].cam_to_world for k in pos])
+    errors = pairwise_pose_errors(est, true, pos)
+    res.pairs = [
+        {"context": [case.context[e.i], case.context[e.j]], "rotation_error_deg": e.rotation_deg,
+         "translation_error_deg": e.translation_deg}
+        for e in errors
+    ]  # fmt: skip
+    res.rotation_error_deg = float(np.mean([e.rotation_deg for e in errors]))
+    res.translation_error_deg = float(np.mean([e.translation_deg for e in errors]))
+    sim = fit_similarity(est, true, fix_scale=rec.scale != "relative")
+    res.scale = sim.scale
+    ratios = []
+    for j, (v, k) in enumerate(zip(rec.views, pos)):
+        K_true = gt[k].rescaled(v.width, v.height).K
+        ratios.append((v.K[0, 0] / K_true[0, 0], v.K[1, 1] / K_true[1, 1]))
+        if v.intrinsics_source != "file":
+            res.focal_error_pct[k] = 100.0 * (ratios[j][0] - 1.0)
+    if has_depth and len(rec.depths) == len(rec.views):
+        _measure_depth(res, rec, scene, res.registered)
+
+    def place(target: Camera, width: int, height: int) -> Camera:
+        return aligned_camera(target, sim, width=width, height=height, focal_ratio=ratios[0])
+
+    _measure_targets(res, rec, targets, scene, place, cfg)
 
 
 # ------------------------------------------------------------------------------------ a run

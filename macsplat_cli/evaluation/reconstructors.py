@@ -1,7 +1,8 @@
 """What produces the reconstruction of a test case: the engine with a backend, or the ground truth.
 
 A :class:`Reconstructor` is any callable ``(scene, case, settings) → Reconstruction`` with a
-``name``; it sees the two context frames (and, for the oracle only, their ground truth).
+``name``; it sees the context frames (two, or more with ``--context-views``; and, for the oracle only, their
+ground truth).
 The evaluation measures whatever it returns, so backends plug in through :data:`BACKENDS`
 (``--backend`` choices): a factory from an :class:`~macsplat_cli.engine.EngineConfig` to a
 reconstructor. ``classical`` and ``neural`` are :class:`EngineReconstructor`: the engine
@@ -9,7 +10,7 @@ reconstructor. ``classical`` and ``neural`` are :class:`EngineReconstructor`: th
 models loaded once.
 
 :class:`OracleReconstructor` builds the reconstruction from ground truth — the true
-relative pose and the true depth of both context views fed to the classical Gaussian
+relative poses and the true depth of the context views fed to the classical Gaussian
 stage — to check the evaluation itself (a perfect reconstruction must score a 0° pose
 error and render the scene as the photos show it). It is not a ``--backend`` choice.
 """
@@ -31,9 +32,10 @@ from ..cameras import CameraSet, Scale, save_cameras
 from ..datasets import EvalScene
 from ..engine import EngineConfig, Models, load_models, reconstruct
 from ..errors import InputError, ReconstructionError
-from ..pipeline.gaussian_init import GaussianInitConfig, gaussians_from_depth
+from ..gaussians import GaussianMaps
+from ..pipeline.gaussian_init import GaussianInitConfig, gaussians_from_depth, view_gaussians
 from ..pipeline.run import Reconstruction, count_gaussians
-from ..pipeline.types import DepthMap, Matches, TwoViewGeometry
+from ..pipeline.types import DepthMap, Matches, TwoViewGeometry, View
 from ..pipeline.views import ViewConfig, load_views
 from ..report import RunReport
 from .splits import EvalCase
@@ -69,7 +71,7 @@ class ReconstructSettings:
 
 
 class Reconstructor(Protocol):
-    """Reconstructs the two context frames of a case (may raise ReconstructionError)."""
+    """Reconstructs the context frames of a case (may raise ReconstructionError)."""
 
     name: str
 
@@ -121,10 +123,14 @@ class EngineReconstructor:
 class OracleReconstructor:
     """Ground-truth geometry through the classical Gaussian stage (for testing the evaluation).
 
+    Two context views give a two-view reconstruction (``geometry``); more give one shaped like the multi-view
+    pipeline's (``poses`` in context view 0's frame, ``geometry`` None, every photo registered in the report's
+    ``multiview`` section).
+
     Args:
         scale: ``"metric"`` keeps the scene's units; ``"relative"`` divides lengths by the
-            true baseline (baseline 1), as the classical pipeline does, so the evaluation's
-            rescaling of the target cameras is exercised.
+            true baseline of context views 0 and 1 (baseline 1), as the classical pipeline does, so the
+            evaluation's rescaling of the target cameras is exercised.
         gaussians: settings of the Gaussian stage.
     """
 
@@ -147,28 +153,41 @@ class OracleReconstructor:
                     f"the oracle needs ground-truth depth, and frame {scene.frames[c].name} has none"
                 )
             depths.append(DepthMap(d * np.float32(s), (d > 0).astype(np.float32)))
+        if len(views) > 2:
+            poses = [cams[0].world_to_cam @ c.cam_to_world for c in cams]  # in camera 0's frame
+            for P in poses:
+                P[:3, 3] *= s
+            maps = [view_gaussians(v, d, v.K, P, self.gaussians) for v, d, P in zip(views, depths, poses)]
+            photos = [{"name": v.name, "registered": True} for v in views]
+            report = self._report(views, depths, maps, {"photos": photos, "registered": len(views)})
+            return Reconstruction(views, None, depths, maps, report, scale=self.scale, poses=poses)
         empty = np.zeros((0, 2))
         no_matches = Matches(empty, empty, np.zeros(0, np.float32), np.zeros(0, np.int64), np.zeros(0, np.int64))
         geometry = TwoViewGeometry(T[:3, :3].copy(), T[:3, 3] * s, views[0].K, views[1].K, no_matches, {})
         maps = gaussians_from_depth(views, geometry, depths, self.gaussians)
-        report = RunReport(
+        return Reconstruction(views, geometry, depths, maps, self._report(views, depths, maps), scale=self.scale)
+
+    def _report(
+        self, views: list[View], depths: list[DepthMap], maps: list[GaussianMaps], multiview: dict | None = None
+    ) -> RunReport:
+        return RunReport(
             macsplat_version=__version__,
             inputs=[str(v.path) for v in views],
             backends={"all": "oracle (ground truth)"},
             times_s={},
             images=[],
-            keypoints=[0, 0],
+            keypoints=[0] * len(views),
             fallback_used=False,
             matches={},
             inlier_ratio=None,
             pose={},
             depth_coverage=[float(d.valid.mean()) for d in depths],
-            depth_measured=[None, None],
+            depth_measured=[None] * len(views),
             gaussians=count_gaussians(maps),
             config={},
             scale=self.scale,
+            multiview=multiview,
         )
-        return Reconstruction(views, geometry, depths, maps, report, scale=self.scale)
 
 
 BackendFactory = Callable[[EngineConfig, Models | None], Reconstructor]

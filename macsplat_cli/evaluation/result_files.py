@@ -24,8 +24,10 @@ CSV_COLUMNS = (
     "scene", "split", "context_0", "context_1", "target", "target_name", "method", "status",
     "psnr", "ssim", "psnr_masked", "ssim_masked", "lpips", "mask_fraction", "alpha_coverage",
     "rotation_error_deg", "translation_error_deg", "pose_error_deg", "focal_error_pct_0", "focal_error_pct_1",
-    "depth_absrel", "depth_delta1", "time_s", "error",
+    "depth_absrel", "depth_delta1", "time_s", "context_views", "contexts", "registered", "error",
 )  # fmt: skip
+"""The CSV's columns; ``contexts``: every context frame, space-separated (``context_0``, ``context_1``: the first
+two); ``registered``: how many of them the reconstruction registered."""
 
 
 def csv_rows(run: EvalRun) -> list[dict[str, Any]]:
@@ -45,6 +47,9 @@ def csv_rows(run: EvalRun) -> list[dict[str, Any]]:
             "depth_absrel": r.depth.get("absrel"),
             "depth_delta1": r.depth.get("delta1"),
             "time_s": r.time_s,
+            "context_views": len(c.context),
+            "contexts": " ".join(str(i) for i in c.context),
+            "registered": None if r.registered is None else len(r.registered),
             "error": r.error,
         }
         if not r.targets:
@@ -133,6 +138,7 @@ class ResultWriter:
             "dataset": run.dataset,
             "layout": run.layout,
             "method": run.method,
+            "context_views": run.context_views,
             "config": to_jsonable({**asdict(replace(run.config, lpips=None)), "lpips": run.config.lpips is not None}),
             **to_jsonable(self.extra),
             "complete": run.complete,

@@ -77,10 +77,14 @@ class CaseResult:
         rotation_error_deg: relative rotation error (NaN unless ok).
         translation_error_deg: translation-direction error (NaN unless ok).
         focal_error_pct: per context view, ``100 · (f_est / f_true − 1)``; None where the
-            intrinsics were given.
-        depth: depth metrics averaged over the two context views (empty without depth).
+            intrinsics were given (or the view was not registered).
+        depth: depth metrics averaged over the (registered) context views (empty without depth).
         scale: the factor ``s`` from reconstruction units to scene units.
         targets: per target, the image metrics.
+        registered: the context frames the reconstruction registered (None: not reconstructed).
+        unregistered: more than two contexts: each context frame left unregistered, ``{frame, name, reason}``.
+        pairs: more than two contexts: every registered pair's errors, ``{context: [i, j], rotation_error_deg,
+            translation_error_deg}`` (the case's errors are their means).
     """
 
     case: EvalCase
@@ -94,6 +98,9 @@ class CaseResult:
     depth: dict[str, float] = field(default_factory=dict)
     scale: float = math.nan
     targets: list[TargetResult] = field(default_factory=list)
+    registered: list[int] | None = None
+    unregistered: list[dict[str, Any]] = field(default_factory=list)
+    pairs: list[dict[str, Any]] = field(default_factory=list)
 
     @property
     def pose_error_deg(self) -> float:
@@ -121,6 +128,10 @@ class CaseResult:
                 "targets": [
                     {"index": t.index, "name": t.name, "size": list(t.size), "metrics": t.metrics} for t in self.targets
                 ],
+                "registered": None if self.registered is None else len(self.registered),
+                "registered_contexts": self.registered,
+                "unregistered": self.unregistered,
+                **({"pairs": self.pairs} if self.pairs else {}),
             }
         )
 
@@ -135,6 +146,11 @@ class EvalRun:
     config: EvalConfig
     cases: list[EvalCase]
     results: list[CaseResult] = field(default_factory=list)
+
+    @property
+    def context_views(self) -> int:
+        """Context frames per case (2 without cases)."""
+        return max((len(c.context) for c in self.cases), default=2)
 
     @property
     def complete(self) -> bool:

@@ -22,6 +22,9 @@ very-wide test case).
 Pairs with no target, or (nearly) no baseline, are not used. At most ``max_pairs`` pairs
 per split and scene, and ``max_targets`` targets per pair, are drawn with a seeded
 generator, so a run is reproducible.
+
+**More than two context views** (``--context-views N``): the cases are drawn as above, then
+:func:`~.contexts.extend_cases` adds N − 2 frames to each pair (never a target).
 """
 
 from __future__ import annotations
@@ -85,38 +88,50 @@ Assignment = Literal["bin", "threshold"]
 
 @dataclass(frozen=True)
 class EvalCase:
-    """One test case: two context frames and the target frames, indices into a scene's frames.
+    """One test case: the context frames and the target frames, indices into a scene's frames.
 
     Attributes:
         scene: scene name.
         split: split name (``"close"`` … ``"very-wide"``, or a name from a cases file).
-        context: (c0, c1); c0 defines the world frame of the reconstruction.
+        context: the context frames, in the order the reconstruction gets them: (c0, c1) for two, c0 defining the
+            world frame; more than two (``--context-views``, :mod:`.contexts`) in path order.
         targets: target frame indices.
         criterion: ``"coverage"``, ``"angle"`` or ``"file"``.
-        overlap: ``coverage[c0, c1]`` or the optical-axis angle in degrees (NaN for ``"file"``).
+        overlap: ``coverage[c0, c1]`` or the optical-axis angle in degrees of the pair (NaN for ``"file"``).
+        pair: more than two contexts: the pair the case was drawn for (None: the context is the pair).
     """
 
     scene: str
     split: str
-    context: tuple[int, int]
+    context: tuple[int, ...]
     targets: tuple[int, ...]
     criterion: str = "file"
     overlap: float = math.nan
+    pair: tuple[int, int] | None = None
 
     @property
     def key(self) -> str:
-        """A unique, readable identifier: ``scene/split/c0-c1``."""
-        return f"{self.scene}/{self.split}/{self.context[0]}-{self.context[1]}"
+        """A unique, readable identifier: ``scene/split/c0-c1`` (``scene/split/c0-c1-c2-…`` for more contexts)."""
+        return f"{self.scene}/{self.split}/{'-'.join(str(c) for c in self.context)}"
+
+    @property
+    def context_views(self) -> int:
+        """The number of context frames."""
+        return len(self.context)
 
     def to_dict(self) -> dict[str, Any]:
-        return {
+        out = {
             "scene": self.scene,
             "split": self.split,
             "context": list(self.context),
             "targets": list(self.targets),
             "criterion": self.criterion,
             "overlap": None if math.isnan(self.overlap) else self.overlap,
+            "context_views": self.context_views,
         }
+        if self.pair is not None:
+            out["pair"] = list(self.pair)
+        return out
 
 
 @dataclass
@@ -360,8 +375,11 @@ def _check_case(dataset: EvalDataset, case: EvalCase, where: str) -> EvalCase:
     bad = [i for i in idx if not 0 <= i < n]
     if bad:
         raise DatasetError(f"{where}: frame index {bad[0]} out of range for scene {case.scene!r} ({n} frames)")
-    if case.context[0] == case.context[1]:
-        raise DatasetError(f"{where}: the two context frames of {case.key} are the same frame")
+    if len(case.context) < 2:
+        raise DatasetError(f"{where}: case {case.key} has {len(case.context)} context frame; at least two are needed")
+    if len(set(case.context)) < len(case.context):
+        what = "the two context frames" if len(case.context) == 2 else "the context frames"
+        raise DatasetError(f"{where}: {what} of {case.key} repeat a frame")
     if not case.targets:
         raise DatasetError(f"{where}: case {case.key} has no target")
     return case
@@ -371,7 +389,8 @@ def load_cases(path: str | os.PathLike[str], dataset: EvalDataset) -> CaseSelect
     """Read explicit test cases.
 
     Accepted: ``{"cases": [...]}`` or a list of ``{"scene", "split", "context": [c0, c1],
-    "targets": [...]}`` objects (``scene`` may be omitted for a one-scene data set), or
+    "targets": [...]}`` objects (``scene`` may be omitted for a one-scene data set; ``context`` may list more
+    than two frames, for ``--context-views``: :mod:`.contexts`), or
     Splatt3R's ``test_set_{φ}_{ψ}.json`` (a list of ``[scene, c0, c1, target]``; the split
     comes from the thresholds in the file name, and rows with the same context pair are
     merged). Indices refer to the scene's frames in loading order (for ScanNet++: the
@@ -391,17 +410,17 @@ def load_cases(path: str | os.PathLike[str], dataset: EvalDataset) -> CaseSelect
         phi = float(m.group(1))
         file_split = next((s for s, (f, _) in COVERAGE_THRESHOLDS.items() if abs(f - phi) < 1e-9), f"phi-{phi:g}")
     default_scene = dataset.scenes[0].name if len(dataset.scenes) == 1 else None
-    merged: dict[tuple[str, str, int, int], list[int]] = {}
+    merged: dict[tuple[str, str, tuple[int, ...]], list[int]] = {}
     for i, row in enumerate(rows):
         where = f"{p}: case {i}"
         try:
             if isinstance(row, list):
                 scene, c0, c1, t = str(row[0]), int(row[1]), int(row[2]), int(row[3])
-                key, targets = (scene, file_split, c0, c1), [t]
+                key, targets = (scene, file_split, (c0, c1)), [t]
             else:
                 scene = str(row.get("scene", default_scene))
-                c0, c1 = (int(x) for x in row["context"])
-                key, targets = (scene, str(row.get("split", file_split)), c0, c1), [int(t) for t in row["targets"]]
+                context = tuple(int(x) for x in row["context"])
+                key, targets = (scene, str(row.get("split", file_split)), context), [int(t) for t in row["targets"]]
         except (KeyError, TypeError, ValueError, IndexError) as e:
             raise DatasetError(
                 f"{where}: expected {{scene, split, context: [c0, c1], targets: [...]}} ({e!r})"
@@ -411,7 +430,7 @@ def load_cases(path: str | os.PathLike[str], dataset: EvalDataset) -> CaseSelect
         merged.setdefault(key, [])
         merged[key] += [t for t in targets if t not in merged[key]]
     cases = [
-        _check_case(dataset, EvalCase(scene, split, (c0, c1), tuple(t), "file"), str(p))
-        for (scene, split, c0, c1), t in merged.items()
+        _check_case(dataset, EvalCase(scene, split, context, tuple(t), "file"), str(p))
+        for (scene, split, context), t in merged.items()
     ]
     return CaseSelection(cases, modes={s.name: "file" for s in dataset.scenes})

@@ -3,8 +3,9 @@
 Per split (and ``all`` when there are several) and method (:func:`summarize`): image metrics averaged over targets
 (the reconstruction and ``points`` over the targets of successful cases, ``copy`` over the targets of all evaluated
 cases), median pose and focal errors over successful cases, AUC over successful and failed cases, depth metrics
-averaged over successful cases, and the mean reconstruction time. Cases with bad input (status ``"error"``) are
-counted apart and left out of every statistic.
+averaged over successful cases, and the mean reconstruction time; the context views per case and the mean number
+of them registered over successful cases. Cases with bad input (status ``"error"``) are counted apart and left out
+of every statistic.
 """
 
 from __future__ import annotations
@@ -72,6 +73,8 @@ def summarize(run: EvalRun) -> list[dict[str, Any]]:
             "depth_absrel": known_mean([r.depth.get("absrel", math.nan) for r in ok]),
             "depth_delta1": known_mean([r.depth.get("delta1", math.nan) for r in ok]),
             "time_s": known_mean([r.time_s for r in evaluated]),
+            "context_views": run.context_views,
+            "registered": known_mean([len(r.registered) for r in ok if r.registered is not None]),
         }
         rows.append(row)
         for base in run.config.baselines:
@@ -101,6 +104,8 @@ def summary_markdown(rows: Sequence[dict[str, Any]]) -> str:
         ("auc@10", "AUC@10", 3), ("auc@20", "AUC@20", 3), ("focal_error_pct", "focal err %", 1),
         ("depth_absrel", "AbsRel", 3), ("depth_delta1", "δ<1.25", 3), ("time_s", "time s", 2),
     )  # fmt: skip
+    if any(r.get("context_views", 2) > 2 for r in rows):  # more than two contexts: how many registered
+        geo = (*geo, ("registered", f"registered / {max(r.get('context_views', 2) for r in rows)}", 2))
     out = ["| split | method | cases | targets | " + " | ".join(h for _, h, _ in views) + " |"]
     out.append("|---|---|---:|---:|" + "---:|" * len(views))
     for r in rows:
