@@ -88,8 +88,7 @@ def colmap_available() -> bool:
 
 def _empty(n: int, seconds: float, n_models: int, error: str | None) -> ColmapRun:
     """No photo registered."""
-    return ColmapRun([False] * n, [None] * n, [None] * n, seconds, n_models, error,
-                     [None] * n, [None] * n, [None] * n)
+    return ColmapRun([False] * n, [None] * n, [None] * n, seconds, n_models, error, [None] * n, [None] * n, [None] * n)
 
 
 def _stage_photos(paths: Sequence[Path], images: Path) -> list[str]:
@@ -133,8 +132,16 @@ def _pipeline_options(pycolmap: Any, threads: int, fixed_K: bool, seed: int | No
     return po
 
 
-def _sfm(pycolmap: Any, work: Path, names: list[str], K: Sequence[np.ndarray] | None, max_image_size: int,
-         single_camera: bool, threads: int, seed: int | None) -> dict[int, Any]:
+def _sfm(
+    pycolmap: Any,
+    work: Path,
+    names: list[str],
+    K: Sequence[np.ndarray] | None,
+    max_image_size: int,
+    single_camera: bool,
+    threads: int,
+    seed: int | None,
+) -> dict[int, Any]:
     """Extraction, exhaustive matching and incremental mapping in ``work``; the mapper's models."""
     db_path, images, sparse = work / "database.db", work / "images", work / "sparse"
     reader = pycolmap.ImageReaderOptions()
@@ -147,8 +154,15 @@ def _sfm(pycolmap: Any, work: Path, names: list[str], K: Sequence[np.ndarray] | 
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.max_image_size = max_image_size
     extraction.num_threads = threads
-    pycolmap.extract_features(db_path, images, image_names=names, camera_mode=mode, reader_options=reader,
-                              extraction_options=extraction, device=pycolmap.Device.cpu)
+    pycolmap.extract_features(
+        db_path,
+        images,
+        image_names=names,
+        camera_mode=mode,
+        reader_options=reader,
+        extraction_options=extraction,
+        device=pycolmap.Device.cpu,
+    )
     if K is not None:
         _known_intrinsics(pycolmap, db_path, names, K)
     matching = pycolmap.FeatureMatchingOptions()
@@ -156,8 +170,9 @@ def _sfm(pycolmap: Any, work: Path, names: list[str], K: Sequence[np.ndarray] | 
     verification = pycolmap.TwoViewGeometryOptions()
     if seed is not None:
         verification.ransac.random_seed = seed
-    pycolmap.match_exhaustive(db_path, matching_options=matching, verification_options=verification,
-                              device=pycolmap.Device.cpu)
+    pycolmap.match_exhaustive(
+        db_path, matching_options=matching, verification_options=verification, device=pycolmap.Device.cpu
+    )
     sparse.mkdir(parents=True, exist_ok=True)
     options = _pipeline_options(pycolmap, threads, K is not None, seed)
     return dict(pycolmap.incremental_mapping(db_path, images, sparse, options=options))
@@ -192,9 +207,17 @@ def _read_model(rec: Any, names: list[str], seconds: float, n_models: int) -> Co
     return run
 
 
-def run_colmap(paths: Sequence[Path], *, K: Sequence[np.ndarray] | None = None, max_image_size: int = 512,
-               single_camera: bool = True, workdir: Path | None = None, threads: int = 2,
-               seed: int | None = 0, verbose: bool = False) -> ColmapRun:
+def run_colmap(
+    paths: Sequence[Path],
+    *,
+    K: Sequence[np.ndarray] | None = None,
+    max_image_size: int = 512,
+    single_camera: bool = True,
+    workdir: Path | None = None,
+    threads: int = 2,
+    seed: int | None = 0,
+    verbose: bool = False,
+) -> ColmapRun:
     """COLMAP's incremental SfM on ``paths`` (options: the module docstring).
 
     ``K``: one [3, 3] per photo at its original resolution (+0.5 pixel centres), held fixed; None lets COLMAP
@@ -262,8 +285,10 @@ def focal_errors_pct(est: Sequence[np.ndarray | None], gt: Sequence[np.ndarray])
     """|f_est / f_gt - 1| x 100 per registered photo, f = sqrt(fx fy) of each [3, 3] K (COLMAP's SIMPLE_RADIAL
     has one f; the ground truth may have fx != fy). [R] float64"""
     f = [np.sqrt(abs(k[0, 0] * k[1, 1])) for k in gt]
-    return np.asarray([abs(np.sqrt(e[0, 0] * e[1, 1]) / f[i] - 1.0) * 100.0 for i, e in enumerate(est)
-                       if e is not None], dtype=np.float64)
+    return np.asarray(
+        [abs(np.sqrt(e[0, 0] * e[1, 1]) / f[i] - 1.0) * 100.0 for i, e in enumerate(est) if e is not None],
+        dtype=np.float64,
+    )
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -314,8 +339,9 @@ def _row(label: str, with_K: bool, n: int, run: ColmapRun, gt_c2w: list[np.ndarr
     med, mx = (f"{np.median(rot):.2f}", f"{rot.max():.2f}") if rot.size else ("–", "–")
     fe = "fixed" if with_K else (f"{np.median(focal):.1f}" if focal.size else "–")
     note = run.error or (f"{run.n_models} models" if run.n_models > 1 else "")
-    return row([label, "yes" if with_K else "no", str(n), f"{run.n_registered}/{n}", med, mx, fe,
-                f"{run.seconds:.1f}", note])
+    return row(
+        [label, "yes" if with_K else "no", str(n), f"{run.n_registered}/{n}", med, mx, fe, f"{run.seconds:.1f}", note]
+    )
 
 
 def _check_run(run: ColmapRun, with_K: bool, gt_K: list[np.ndarray], sizes: list[tuple[int, int]]) -> None:
@@ -344,8 +370,20 @@ def main(argv: Sequence[str] | None = None) -> None:
     import pycolmap
 
     progress(f"pycolmap {pycolmap.__version__}, {args.threads} threads, max_image_size 512")
-    print_header(["scene", "known K", "photos", "registered", "median rel. rot. err °", "max rel. rot. err °",
-                  "focal err % (median)", "seconds", "note"], "llrrrrrrl")
+    print_header(
+        [
+            "scene",
+            "known K",
+            "photos",
+            "registered",
+            "median rel. rot. err °",
+            "max rel. rot. err °",
+            "focal err % (median)",
+            "seconds",
+            "note",
+        ],
+        "llrrrrrrl",
+    )
     for scene, label, idx in _cases(args.data):
         frames = [dev_frames(args.data, scene)[i] for i in idx]
         gt_c2w = [f.camera.cam_to_world for f in frames]

@@ -36,7 +36,7 @@ import json
 import logging
 import os
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar, Literal, get_args
 
@@ -309,7 +309,7 @@ class CameraSet:
     scale: Scale = "relative"
     world: str = "camera_0"
     pose_confidence: dict[str, Any] | None = None
-    unregistered: list[dict[str, Any]] = field(default_factory=list)
+    unregistered: list[dict[str, Any]] = dataclasses.field(default_factory=list)
     convention: ClassVar[str] = "opencv"
 
     def __post_init__(self) -> None:

@@ -381,7 +381,6 @@ def _check_photos(images: Sequence[str | Path], config: EngineConfig) -> None:
         )
 
 
-
 def _add_network(rec: Reconstruction, pipeline: Pipeline, config: EngineConfig, models: Models) -> None:
     """The neural backend's section of the report: the network, its pass and what the fusion did."""
     predictor = models.predictor

@@ -165,7 +165,7 @@ def _bench(
         raise InputError(f"--backend {unknown[0]!r}: available: {', '.join(sorted(BACKENDS))}")
     if any(s < 64 for s in sizes) or any(r < 0 for r in steps) or any(t is not None and t < 0 for t in taus):
         raise InputError("--size must be ≥ 64, --refine ≥ 0 and --conf-threshold ≥ 0")
-    check_context_views(context_views, backends=backends, refine_steps=steps)
+    check_context_views(context_views, backends=backends)
     from ..presets import check_quality
 
     qualities = [q.strip().lower() for q in qualities]

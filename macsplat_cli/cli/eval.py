@@ -392,7 +392,7 @@ def _eval(
     from ..lpips import load_lpips
 
     parse_splits(split)  # bad options fail before any work
-    check_context_views(context_views, backends=[engine.backend], refine_steps=[refine])
+    check_context_views(context_views, backends=[engine.backend])
     ResultWriter.check(out)  # and outputs that cannot be written (a link, a device, a read-only folder)
     check_no_clobber(
         [(f"--out {out}:", out / name) for name in ResultWriter.FILES],

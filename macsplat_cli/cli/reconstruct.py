@@ -198,7 +198,8 @@ def reconstruct_command(
 
 def reconstruct_config(
     *, size: int | None = None, quality: str = "balanced", budget: int | None = None, intrinsics: Path | None = None,
-    poses: Path | None = None, focal: float | None = None, conf_threshold: float | None = None, accept_low_confidence: bool = False,
+    poses: Path | None = None, focal: float | None = None, conf_threshold: float | None = None,
+    accept_low_confidence: bool = False,
     far_layer: bool = True, refine: str = "0", refine_scale: int = 2, no_mac: bool = False,
     lpips_weights: Path | None = None, backend: str = "classical", weights: Path | None = None,
     dino: Path | None = None, fusion: Path | None = None, gaussian_head: Path | None = None, device: str = "cpu",
@@ -225,8 +226,9 @@ def reconstruct_config(
         budget=budget,
         size=size,
         pipeline=ReconstructConfig(
-            views=ViewConfig(intrinsics=intrinsics if intrinsics is not None or focal is not None else poses,
-                             focal=focal),  # fmt: skip
+            views=ViewConfig(
+                intrinsics=intrinsics if intrinsics is not None or focal is not None else poses, focal=focal
+            ),  # fmt: skip
             search=PoseSearchConfig(accept_low_confidence=accept_low_confidence),
             background=BackgroundConfig(enabled=far_layer),
             multiview=MultiViewConfig(poses=poses),
@@ -301,7 +303,8 @@ def _reconstruct(
     config.validate()
     cameras = cameras or output.with_name(output.stem + ".cameras.json")
     n = config.neural
-    inputs = [*((f"photo {k + 1}", p) for k, p in enumerate(images)), ("--intrinsics", config.pipeline.views.intrinsics),
+    inputs = [*((f"photo {k + 1}", p) for k, p in enumerate(images)),
+              ("--intrinsics", config.pipeline.views.intrinsics),
               ("--poses", config.pipeline.multiview.poses),
               ("--weights", n.weights), ("--gaussian-head", n.gaussian_head), ("--dino", n.dino),
               ("--fusion", n.fusion), ("--lpips-weights", config.refine.lpips_weights)]  # fmt: skip
@@ -385,7 +388,9 @@ def _photos_line(mv: dict[str, Any]) -> str:
     line = (
         f"{ok} of {len(photos)} registered ({accepted} of {len(mv['pairs'])} pairs accepted, first pair "
         f"{' + '.join(mv['init_pair'] or [])}, {mv['points']:,} points, reprojection RMS "
-        f"{rms:.2f} px)" if rms is not None else f"{ok} of {len(photos)} registered"
+        f"{rms:.2f} px)"
+        if rms is not None
+        else f"{ok} of {len(photos)} registered"
     )
     left = [f"\n  left out: {p['name']}: {p['reason']}" for p in photos if not p["registered"]]
     return line + "".join(left)

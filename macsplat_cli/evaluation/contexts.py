@@ -47,14 +47,12 @@ BASELINE_RTOL = 1e-6
 """A candidate closer than this fraction of the scene's extent to a chosen context adds no baseline to it."""
 
 
-def check_context_views(
-    n: int, *, backends: Sequence[str] = ("classical",), refine_steps: Sequence[int] = (0,)
-) -> None:
+def check_context_views(n: int, *, backends: Sequence[str] = ("classical",)) -> None:
     """Refuse a context-view count the reconstruction cannot take, before any work.
 
     Raises:
         InputError: ``n`` outside 2 … :data:`~macsplat_cli._limits.MAX_PHOTOS`; more than two with the neural backend
-            or with refinement (the engine takes neither for more than two photos).
+            (the engine reconstructs more than two photos with the classical backend only).
     """
     if isinstance(n, bool) or not isinstance(n, int) or not 2 <= n <= MAX_PHOTOS:
         raise InputError(f"--context-views {n}: give 2 to {MAX_PHOTOS} (the photos one reconstruction takes)")
@@ -62,8 +60,6 @@ def check_context_views(
         return
     if "neural" in backends:
         raise InputError(f"--context-views {n}: the neural backend reconstructs two photos; use --backend classical")
-    if any(s > 0 for s in refine_steps):
-        raise InputError(f"--context-views {n}: --refine refines the Gaussians of two photos; leave it out")
 
 
 def _segment_position(centres: np.ndarray, pair: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:

@@ -105,7 +105,8 @@ def gaussians_from_depth(
 def view_gaussians(
     view: View, dm: DepthMap, K: np.ndarray, cam_to_world: np.ndarray, cfg: GaussianInitConfig
 ) -> GaussianMaps:
-    """One view's Gaussians in its camera frame (:func:`gaussians_from_depth`); ``K`` [3, 3], ``cam_to_world`` [4, 4]."""
+    """One view's Gaussians in its camera frame (:func:`gaussians_from_depth`); ``K`` [3, 3], ``cam_to_world``
+    [4, 4]."""
     h, w = dm.depth.shape
     ys, xs = np.mgrid[0:h, 0:w]
     pix = np.stack([xs + 0.5, ys + 0.5, np.ones((h, w))], -1)

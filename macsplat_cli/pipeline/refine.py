@@ -173,9 +173,7 @@ def _optimizer(params: list[GaussianMaps], cfg: RefineConfig) -> torch.optim.Ada
     )
 
 
-def _pair_matches(
-    geometry: TwoViewGeometry, depths: list[DepthMap] | None, cfg: RefineConfig
-) -> list[MatchSet]:
+def _pair_matches(geometry: TwoViewGeometry, depths: list[DepthMap] | None, cfg: RefineConfig) -> list[MatchSet]:
     """The two views' verified matches (and with ``mac_matches="dense"`` the depth-consistent pixels)."""
     m_xy0, m_xy1, m_w = geometry.inliers.xy0, geometry.inliers.xy1, geometry.inliers.conf
     if cfg.mac_matches == "dense" and depths is not None:
@@ -223,8 +221,9 @@ def _step_loss(
     if cfg.use_mac and matches:
         # every pair's MAC loss, averaged over the pairs (one pair: exactly the two-view loss)
         parts = [
-            mac_loss(params[m.a], params[m.b], m.xy0, m.xy1, m.batch, m.weights, *m.cam_to_world, cfg.mac,
-                     check_inputs=False)  # fmt: skip
+            mac_loss(
+                params[m.a], params[m.b], m.xy0, m.xy1, m.batch, m.weights, *m.cam_to_world, cfg.mac, check_inputs=False
+            )  # fmt: skip
             for m in matches
         ]
         n = len(parts)

@@ -304,7 +304,7 @@ class Pipeline:
         depths = [d for d in (mv.depths[k] for k in ks) if d is not None]
         given = c.multiview.poses is not None
         # the report's pair: the first registered pair, or with given poses the pair with the most matches
-        first = max(mv.pairs, key=lambda o: (o.inliers if given else (o.i, o.j) == reg.init_pair))
+        first = max(mv.pairs, key=lambda o: o.inliers if given else (o.i, o.j) == reg.init_pair)
         pose = first.result
         assert pose is not None
         scale = mv.scale or self.scale
@@ -329,8 +329,10 @@ class Pipeline:
             gaussians=count_gaussians(mv.maps) + n_layer,
             config=asdict(self.config),
             scale=scale,
-            fill={"depth": [getattr(d, "fill_counts", None) for d in depths],
-                  "background": mv.background.counts if mv.background is not None else None},
+            fill={
+                "depth": [getattr(d, "fill_counts", None) for d in depths],
+                "background": mv.background.counts if mv.background is not None else None,
+            },
             multiview=mv.report(),
         )
         poses = [reg.cam_to_world(k) for k in ks]

@@ -28,7 +28,8 @@ import numpy as np
 from ..cameras import Camera
 
 __all__ = [
-    "DepthMap", "Features", "FocalEvidence", "IntrinsicsSource", "MatchSet", "Matches", "PoseSource", "TwoViewGeometry", "View",
+    "DepthMap", "Features", "FocalEvidence", "IntrinsicsSource", "MatchSet", "Matches", "PoseSource", "TwoViewGeometry",
+    "View",
 ]  # fmt: skip
 
 IntrinsicsSource = Literal["file", "focal", "exif", "prior", "estimated"]

@@ -78,8 +78,6 @@ def test_bad_context_views_exit_2_before_any_work(capsys, plane: Path, tmp_path:
         assert len(err.strip().splitlines()) == 1 and not out.exists()
     code, _, err = run(capsys, command, "--data", plane, "--out", out, "--context-views", "3", "--backend", "neural")
     assert code == 2 and "the neural backend reconstructs two photos" in err and not out.exists()
-    code, _, err = run(capsys, command, "--data", plane, "--out", out, "--context-views", "3", "--refine", "5")
-    assert code == 2 and "--refine" in err and not out.exists()
 
 
 def test_cases_without_enough_frames_are_left_out(capsys, plane: Path, tmp_path: Path) -> None:  # noqa: ANN001

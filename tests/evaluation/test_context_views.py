@@ -36,7 +36,7 @@ from macsplat_cli.pipeline.gaussian_init import view_gaussians
 from macsplat_cli.pipeline.run import Reconstruction
 from macsplat_cli.pipeline.types import DepthMap
 
-from support.evaluation import ORACLE, PLANE_X, translated_camera, write_blank_dataset, write_plane_dataset
+from support.evaluation import ORACLE, PLANE_X, translated_camera, write_plane_dataset
 
 
 @pytest.fixture(scope="module")
@@ -105,12 +105,10 @@ def test_bad_context_view_counts() -> None:
     for bad in (1, 0, -3, 65, True):
         with pytest.raises(InputError, match="--context-views .*: give 2 to 64"):
             check_context_views(bad)  # type: ignore[arg-type]
-    check_context_views(2, backends=["neural"], refine_steps=[50])  # two views: today's protocol
+    check_context_views(2, backends=["neural"])  # two views: today's protocol
     check_context_views(64)
     with pytest.raises(InputError, match="neural backend reconstructs two photos"):
         check_context_views(3, backends=["classical", "neural"])
-    with pytest.raises(InputError, match="--refine"):
-        check_context_views(3, refine_steps=[0, 20])
 
 
 def test_nearest_context_of_many() -> None:

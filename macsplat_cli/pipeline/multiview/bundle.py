@@ -156,8 +156,17 @@ class _Problem:
     observations used (those of adjusted points), with the Jacobian's CSR structure built once."""
 
     def __init__(
-        self, R: np.ndarray, t: np.ndarray, K: np.ndarray, points: np.ndarray, cam_idx: np.ndarray,
-        point_idx: np.ndarray, xy: np.ndarray, free_cam: np.ndarray, group: np.ndarray, free_point: np.ndarray,
+        self,
+        R: np.ndarray,
+        t: np.ndarray,
+        K: np.ndarray,
+        points: np.ndarray,
+        cam_idx: np.ndarray,
+        point_idx: np.ndarray,
+        xy: np.ndarray,
+        free_cam: np.ndarray,
+        group: np.ndarray,
+        free_point: np.ndarray,
     ) -> None:
         """Cameras [C], points [P], observations [O] as :func:`bundle_adjust` takes them; ``free_cam`` [C] and
         ``free_point`` [P] bool say which are adjusted, ``group`` [C] the focal group ids (-1: focal fixed)."""
@@ -246,10 +255,20 @@ def _solve(prob: _Problem, cfg: BundleConfig):  # noqa: ANN202  (scipy's Optimiz
     """:func:`scipy.optimize.least_squares` on ``prob`` from its start, as the module docstring says."""
     analytic = cfg.jacobian == "analytic"
     return least_squares(
-        prob.residuals, prob.x0(), jac=prob.jacobian if analytic else cfg.jacobian,
-        jac_sparsity=None if analytic else prob.sparsity(), method="trf", loss=_huber_gauss_newton,
-        f_scale=cfg.loss_scale_px, x_scale="jac", ftol=cfg.ftol, xtol=cfg.xtol, gtol=cfg.gtol,
-        max_nfev=cfg.max_evaluations, tr_solver="lsmr", tr_options={"maxiter": cfg.lsmr_max_iterations},
+        prob.residuals,
+        prob.x0(),
+        jac=prob.jacobian if analytic else cfg.jacobian,
+        jac_sparsity=None if analytic else prob.sparsity(),
+        method="trf",
+        loss=_huber_gauss_newton,
+        f_scale=cfg.loss_scale_px,
+        x_scale="jac",
+        ftol=cfg.ftol,
+        xtol=cfg.xtol,
+        gtol=cfg.gtol,
+        max_nfev=cfg.max_evaluations,
+        tr_solver="lsmr",
+        tr_options={"maxiter": cfg.lsmr_max_iterations},
     )
 
 
@@ -314,8 +333,16 @@ def _options(
 
 
 def bundle_adjust(
-    R: np.ndarray, t: np.ndarray, K: np.ndarray, points: np.ndarray, cam_idx: np.ndarray, point_idx: np.ndarray,
-    xy: np.ndarray, *, fixed_pose: np.ndarray | None = None, focal_group: np.ndarray | None = None,
+    R: np.ndarray,
+    t: np.ndarray,
+    K: np.ndarray,
+    points: np.ndarray,
+    cam_idx: np.ndarray,
+    point_idx: np.ndarray,
+    xy: np.ndarray,
+    *,
+    fixed_pose: np.ndarray | None = None,
+    focal_group: np.ndarray | None = None,
     config: BundleConfig | None = None,
 ) -> BundleResult:
     """Refine poses, points and focal groups on the robust reprojection error (module docstring).
@@ -370,6 +397,14 @@ def bundle_adjust(
             t1, X1 = _restore_scale(R1, t1, X1, ~fixed, anchor, ref, distance)
     after = reprojection_errors(R1, t1, K1, X1, cam_idx, point_idx, xy)
     return BundleResult(
-        R=R1, t=t1, K=K1, points=X1, rms_before_px=_rms(before), rms_after_px=_rms(after), residual_px=after,
-        evaluations=evaluations, seconds=time.perf_counter() - start, success=success,
+        R=R1,
+        t=t1,
+        K=K1,
+        points=X1,
+        rms_before_px=_rms(before),
+        rms_after_px=_rms(after),
+        residual_px=after,
+        evaluations=evaluations,
+        seconds=time.perf_counter() - start,
+        success=success,
     )

@@ -23,8 +23,8 @@ from ..pose import PoseSearch
 from ..types import DepthMap, MatchSet, View
 from .config import MultiViewConfig
 from .depth import DepthFn, multiview_depths, pair_geometry
+from .known import known_pose_pairs, load_known_poses
 from .pairwise import PairOutcome, cached_search, match_pairs
-from .known import load_known_poses, known_pose_pairs
 from .register import Registration, register_known, register_views
 from .shortlist import select_pairs
 from .tracks import build_tracks
@@ -200,7 +200,8 @@ def _refusal(views: Sequence[View], reg: Registration, outcomes: Sequence[PairOu
     n_ok = sum(o.result is not None for o in outcomes)
     first = next((o.reason for o in outcomes if o.reason), None)
     if n_ok == 0:
-        why = f"no pair of the {len(views)} photos gave an accepted pose" + (f" (first refusal: {first})" if first else "")
+        why = f"no pair of the {len(views)} photos gave an accepted pose"
+        why += f" (first refusal: {first})" if first else ""
     else:
         why = f"only {int(reg.registered.sum())} of {len(views)} photos could be registered"
     return f"{why}; at least two registered photos are needed"

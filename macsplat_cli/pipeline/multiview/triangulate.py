@@ -62,7 +62,12 @@ def project(
 
 
 def reprojection_errors(
-    R: np.ndarray, t: np.ndarray, K: np.ndarray, points: np.ndarray, cam_idx: np.ndarray, point_idx: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    K: np.ndarray,
+    points: np.ndarray,
+    cam_idx: np.ndarray,
+    point_idx: np.ndarray,
     xy: np.ndarray,
 ) -> np.ndarray:
     """Reprojection error norm (px) of each observation ``xy`` [O, 2] of ``points[point_idx]`` in camera
@@ -72,7 +77,12 @@ def reprojection_errors(
 
 
 def _check_inputs(
-    R: np.ndarray, t: np.ndarray, K: np.ndarray, cam_idx: np.ndarray, point_idx: np.ndarray, xy: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    K: np.ndarray,
+    cam_idx: np.ndarray,
+    point_idx: np.ndarray,
+    xy: np.ndarray,
     n_points: int,
 ) -> None:
     """Raises ShapeError, NonFiniteError or ValueError (an index out of range)."""
@@ -147,8 +157,16 @@ def _max_ray_angle_deg(
 
 
 def triangulate_tracks(
-    R: np.ndarray, t: np.ndarray, K: np.ndarray, cam_idx: np.ndarray, point_idx: np.ndarray, xy: np.ndarray,
-    n_points: int, *, max_error_px: float = 4.0, min_angle_deg: float = 1.5,
+    R: np.ndarray,
+    t: np.ndarray,
+    K: np.ndarray,
+    cam_idx: np.ndarray,
+    point_idx: np.ndarray,
+    xy: np.ndarray,
+    n_points: int,
+    *,
+    max_error_px: float = 4.0,
+    min_angle_deg: float = 1.5,
 ) -> Triangulated:
     """Triangulate every track with the normalised multi-view DLT (module docstring), all points in one batch.
 
@@ -195,8 +213,16 @@ def triangulate_tracks(
 
 
 def _assess(
-    R: np.ndarray, t: np.ndarray, K: np.ndarray, cam_idx: np.ndarray, point_idx: np.ndarray, xy: np.ndarray,
-    X: np.ndarray, n_obs: np.ndarray, max_error_px: float, min_angle_deg: float,
+    R: np.ndarray,
+    t: np.ndarray,
+    K: np.ndarray,
+    cam_idx: np.ndarray,
+    point_idx: np.ndarray,
+    xy: np.ndarray,
+    X: np.ndarray,
+    n_obs: np.ndarray,
+    max_error_px: float,
+    min_angle_deg: float,
 ) -> Triangulated:
     """The checks of :class:`Triangulated` on the points ``X`` [P, 3] (NaN where undefined)."""
     n_points = X.shape[0]

@@ -113,9 +113,9 @@ def test_pixel_noise_leaves_the_rms_of_the_degrees_of_freedom() -> None:
     R, t, X = _perturbed(rng, s)
     xy = s["xy"] + sigma * rng.normal(size=s["xy"].shape)
     res = _run(s, R, t, X, xy)
-    O = len(xy)
+    n_obs = len(xy)
     n = 6 * (len(R) - 1) + 3 * len(X) - 1
-    expected = sigma * math.sqrt((2 * O - n) / O)
+    expected = sigma * math.sqrt((2 * n_obs - n) / n_obs)
     assert abs(res.rms_after_px / expected - 1) < 0.1, (res.rms_after_px, expected)
     rot, centre = _pose_errors(res, s)
     assert rot < 0.1 and centre < 0.01
@@ -241,8 +241,18 @@ def test_the_analytic_jacobian_equals_central_differences() -> None:
     R, t, X = _perturbed(rng, s)
     K = s["K"].copy()
     K[:, 0, 1] = 3.0  # a skew, scaled with the focal
-    prob = _Problem(R, t, K, X, s["cam_idx"], s["point_idx"], s["xy"], np.array([False, True, True, True]),
-                    np.array([-1, 0, 0, 1]), np.ones(len(X), bool))
+    prob = _Problem(
+        R,
+        t,
+        K,
+        X,
+        s["cam_idx"],
+        s["point_idx"],
+        s["xy"],
+        np.array([False, True, True, True]),
+        np.array([-1, 0, 0, 1]),
+        np.ones(len(X), bool),
+    )
     x = prob.x0() + 0.05 * rng.normal(size=prob.n_params)  # away from δ = 0: the left Jacobian of SO(3) counts
     J = prob.jacobian(x).toarray()
     h = 1e-6

@@ -49,7 +49,8 @@ def _orbit(root: Path, kind: str, n: int, step: float, fov: float, seed: int = 0
     photos = [save_image(root / c.name, syn.render(scene, c, supersample=2).image) for c in cams]
     save_cameras(root / "cameras.json", CameraSet(cams))
     save_cameras(root / "intrinsics.json", CameraSet([cams[0]]))
-    return Orbit(photos, root / "cameras.json", root / "intrinsics.json", {Path(c.name).stem: c.R for c in cams}, float(cams[0].K[0, 0]))
+    truth = {Path(c.name).stem: c.R for c in cams}
+    return Orbit(photos, root / "cameras.json", root / "intrinsics.json", truth, float(cams[0].K[0, 0]))
 
 
 @pytest.fixture(scope="module")
@@ -107,8 +108,8 @@ def cli_run(room: Orbit, tmp_path_factory: pytest.TempPathFactory) -> tuple[int,
     again = out / "again.png"
     again.write_bytes(room.photos[0].read_bytes())
     code, _, err = run_cli(["reconstruct", *room.photos, stranger, again, "-o", out / "scene.ply",
-                            "--intrinsics", room.one_camera, "--report", out / "report.json", "--renders", out / "views",
-                            "--num-renders", "6"])  # fmt: skip
+                            "--intrinsics", room.one_camera, "--report", out / "report.json",
+                            "--renders", out / "views", "--num-renders", "6"])  # fmt: skip
     return code, err, out
 
 

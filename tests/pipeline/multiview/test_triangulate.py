@@ -91,8 +91,9 @@ def test_a_small_angle_is_flagged_and_measured() -> None:
     expected = [2 * math.degrees(math.atan2(0.1, z)) for z in (5.0, 20.0)]
     np.testing.assert_allclose(tri.angle_deg, expected, rtol=1e-9)
     np.testing.assert_array_equal(tri.ok, [True, False])
-    assert triangulate_tracks(R, t, K, cam_idx, point_idx, _observe(R, t, K, cam_idx, point_idx, X), 2,
-                              min_angle_deg=0.5).ok.all()
+    assert triangulate_tracks(
+        R, t, K, cam_idx, point_idx, _observe(R, t, K, cam_idx, point_idx, X), 2, min_angle_deg=0.5
+    ).ok.all()
 
 
 def test_the_largest_pairwise_angle_is_exact() -> None:
