@@ -171,9 +171,13 @@ def reconstruct_views(
     for k, first in dups.items():
         reg.reasons[k] = f"the same photo as {views[first].name}"
     if int(reg.registered.sum()) < 2:
-        raise ReconstructionError(_refusal(views, reg, outcomes))
+        raise ReconstructionError(_refusal(views, reg, outcomes, len(live)))
     views = [_calibrated(v, reg, k) for k, v in enumerate(views)]
     depths, dpairs = timed("depth", lambda: multiview_depths(views, reg, two_view_depth, config.depth))
+    if not dpairs:
+        raise ReconstructionError(
+            f"no two registered photos share {config.depth.min_shared} triangulated points: no depth can be estimated"
+        )
 
     def gaussian_stage() -> tuple[list[GaussianMaps], list[int], BackgroundLayer | None]:
         ks = [k for k, d in enumerate(depths) if d is not None]
@@ -196,10 +200,12 @@ def _calibrated(v: View, reg: Registration, k: int) -> View:
     return v
 
 
-def _refusal(views: Sequence[View], reg: Registration, outcomes: Sequence[PairOutcome]) -> str:
+def _refusal(views: Sequence[View], reg: Registration, outcomes: Sequence[PairOutcome], distinct: int) -> str:
     n_ok = sum(o.result is not None for o in outcomes)
     first = next((o.reason for o in outcomes if o.reason), None)
-    if n_ok == 0:
+    if distinct < 2:
+        why = f"the {len(views)} photos are all the same photo"
+    elif n_ok == 0:
         why = f"no pair of the {len(views)} photos gave an accepted pose"
         why += f" (first refusal: {first})" if first else ""
     else:

@@ -244,3 +244,14 @@ def test_mixed_sizes_and_orientations_register(tmp_path: Path) -> None:
     mv = rec.report.multiview
     assert mv["registered"] == 5, mv["photos"]
     assert len({v.image.shape for v in rec.views}) == 3  # three working sizes, each with its own focal
+
+
+def test_cli_refuses_copies_of_one_photo(room: Orbit, tmp_path: Path) -> None:
+    copies = []
+    for k in range(3):
+        copies.append(tmp_path / f"copy{k}.png")
+        copies[-1].write_bytes(room.photos[0].read_bytes())
+    code, _, err = run_cli(["reconstruct", *copies, "-o", tmp_path / "s.ply"])
+    assert code == ReconstructionError.exit_code
+    assert "the 3 photos are all the same photo" in one_error_line(err)
+    assert not (tmp_path / "s.ply").exists()
