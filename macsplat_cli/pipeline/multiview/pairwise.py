@@ -14,13 +14,18 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from ...errors import ReconstructionError
 from ..pose import PoseResult, PoseSearch
 from ..pose.focal import FOCAL_DOUBT_START
 from ..slots import DescribeStage
 from ..types import Features, View
 
-__all__ = ["CachedDescriptors", "PairOutcome", "cached_search", "focal_doubts_only", "match_pairs"]
+__all__ = [
+    "CachedDescriptors", "PairOutcome", "cached_search", "focal_doubts_only", "match_all", "match_pairs",
+    "primary_only",
+]  # fmt: skip
 
 logger = logging.getLogger(__name__)
 
@@ -62,6 +67,46 @@ def cached_search(search: PoseSearch, *, accept_low_confidence: bool = False) ->
         wide=CachedDescriptors(search.wide) if search.wide is not None else None,
         warn_doubts=not accept_low_confidence,
     )
+
+
+def primary_only(search: PoseSearch) -> PoseSearch:
+    """``search`` with its primary descriptors only (the same cached ones): the fallback and wide-baseline tiers
+    are for the pairs that connect what the primary matches leave apart (:func:`match_all`)."""
+    return PoseSearch(search.config, search.pose_config, describe=search.describe, match=search.match,
+                      pose=search.pose, warn_doubts=search.warn_doubts)  # fmt: skip
+
+
+def _components(n: int, outcomes: Sequence[PairOutcome]) -> np.ndarray:
+    """The connected components of the accepted pairs' graph: a label per photo. [n] int"""
+    label = np.arange(n)
+
+    def root(a: int) -> int:
+        while label[a] != a:
+            label[a] = label[label[a]]
+            a = int(label[a])
+        return a
+
+    for o in outcomes:
+        if o.result is not None:
+            label[root(o.i)] = root(o.j)
+    return np.array([root(a) for a in range(n)])
+
+
+def match_all(views: Sequence[View], pairs: Sequence[tuple[int, int]], search: PoseSearch) -> list[PairOutcome]:
+    """Every pair with the primary tier; then, with every tier, the pairs that failed and would join two groups
+    of photos the accepted pairs leave apart (an isolated photo is a group): the slow tiers run where they can
+    change what registers."""
+    outs = match_pairs(views, pairs, primary_only(search))
+    if search.fallback is None and search.wide is None:
+        return outs
+    label = _components(len(views), outs)
+    for n, o in enumerate(outs):
+        if o.result is None and label[o.i] != label[o.j]:
+            again = match_pairs(views, [(o.i, o.j)], search)[0]
+            outs[n] = dataclasses.replace(again, seconds=o.seconds + again.seconds)
+            if again.result is not None:
+                label = _components(len(views), outs)
+    return outs
 
 
 @dataclass

@@ -23,6 +23,7 @@ from ...metrics import rotation_error_deg
 from ..types import View
 from .bundle import BundleConfig, bundle_adjust
 from .pairwise import PairOutcome
+from .resection import anchored_pose, pair_anchor, pnp_pose
 from .tracks import Tracks
 from .triangulate import triangulate_tracks
 
@@ -37,7 +38,10 @@ class RegisterConfig:
     init_min_parallax_deg: the first pair needs this median parallax (°): less, and its triangulation is too
         uncertain to register the others on (a pair below it still starts when no other pair has it).
     min_pnp_inliers: PnP inliers a photo needs (the two-view support minimum's order of magnitude).
-    min_pnp_share: and this share of its 2D–3D correspondences (a random pose explains few).
+    min_pnp_share: and this share of its 2D–3D correspondences (a random pose explains few; the correspondences
+        chained through epipolar-guided matches are often three-quarters wrong on wide real pairs).
+    min_anchor_inliers: a pose anchored on an accepted pair (one free parameter, the baseline's length) needs this
+        many points it reprojects within ``pnp_error_px``.
     pnp_error_px: PnP's RANSAC threshold (px at the working size: the matches' noise is ~1 px).
     max_pair_disagreement_deg: a registered pose's rotation relative to each registered photo it has an accepted
         pair with must agree with that pair's within this (°): the two-view poses are accurate to ~1°.
@@ -53,7 +57,8 @@ class RegisterConfig:
 
     init_min_parallax_deg: float = 2.0
     min_pnp_inliers: int = 30
-    min_pnp_share: float = 0.3
+    min_pnp_share: float = 0.2
+    min_anchor_inliers: int = 15
     pnp_error_px: float = 3.0
     max_pair_disagreement_deg: float = 5.0
     max_error_px: float = 4.0
@@ -210,28 +215,11 @@ class _State:
         e = np.where(Xc[:, 2] > 0, e, cap_px)
         return float(np.mean(np.minimum(e, cap_px) ** 2))
 
-    def pnp(self, k: int) -> tuple[np.ndarray, np.ndarray, int, int] | None:
-        """Photo ``k``'s pose from its observations of kept points: (R, t, inliers, correspondences) or None."""
+    def correspondences(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Photo ``k``'s observations of kept points: (points [M, 3], pixels [M, 2])."""
         tr = self.tracks
         sel = (tr.view == k) & self.inlier & self.point_ok[tr.track]
-        n = int(sel.sum())
-        if n < max(self.cfg.min_pnp_inliers, 6):
-            return None
-        obj, img = self.points[tr.track[sel]], tr.xy[sel] - 0.5  # OpenCV's pixel centres are at integers
-        K = self.K[k]
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, K, None, iterationsCount=2000,
-                                                 reprojectionError=self.cfg.pnp_error_px, confidence=0.9999,
-                                                 flags=cv2.SOLVEPNP_EPNP)  # fmt: skip
-        if not ok or inl is None or len(inl) < 6:
-            return None
-        inl = inl[:, 0]
-        rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], K, None, rvec, tvec)
-        R = cv2.Rodrigues(rvec)[0]
-        t = tvec[:, 0]
-        proj = (obj @ R.T + t) @ K.T
-        err = np.linalg.norm(proj[:, :2] / proj[:, 2:3] - img, axis=1)
-        n_in = int(((err <= self.cfg.pnp_error_px) & (proj[:, 2] > 0)).sum())
-        return R, t, n_in, n
+        return self.points[tr.track[sel]], tr.xy[sel]
 
 
 def _init_pair(outcomes: Sequence[PairOutcome], cfg: RegisterConfig) -> PairOutcome | None:
@@ -356,8 +344,8 @@ def _pose_at(o: PairOutcome, K0: np.ndarray, K1: np.ndarray, threshold_px: float
     """The pair's relative pose from its verified matches at the intrinsics ``K0``, ``K1`` (RANSAC on the essential
     matrix in normalised coordinates, then the cheirality test)."""
     m = o.result.geometry.inliers
-    n0 = cv2.undistortPoints(m.xy0[:, None] - 0.5, K0, None)[:, 0]
-    n1 = cv2.undistortPoints(m.xy1[:, None] - 0.5, K1, None)[:, 0]
+    n0 = cv2.undistortPoints(m.xy0[:, None], K0, None)[:, 0]
+    n1 = cv2.undistortPoints(m.xy1[:, None], K1, None)[:, 0]
     f = 0.5 * (K0[0, 0] + K1[0, 0])
     E, mask = cv2.findEssentialMat(n0, n1, np.eye(3), method=cv2.RANSAC, prob=0.9999, threshold=threshold_px / f)
     if E is None:
@@ -385,8 +373,9 @@ def _unpaired_reason(k: int, outcomes: Sequence[PairOutcome]) -> str:
 def _register_next(
     st: _State, outcomes: Sequence[PairOutcome], failed: dict[int, str]
 ) -> tuple[int | None, str | None]:
-    """Registers the unregistered photo with the most correspondences: (photo, None) when registered,
-    (photo, reason) when it failed, (None, None) when no photo is left to try."""
+    """Registers the unregistered photo with the most correspondences (PnP, else anchored on an accepted pair:
+    :mod:`.resection`): (photo, None) when registered, (photo, reason) when it failed, (None, None) when no photo
+    is left to try."""
     tr = st.tracks
     sel = st.inlier & st.point_ok[tr.track]
     counts = np.bincount(tr.view[sel], minlength=len(st.views))
@@ -394,20 +383,46 @@ def _register_next(
     for k in failed:
         counts[k] = -1
     k = int(np.argmax(counts))
-    if counts[k] < 0 or counts[k] < st.cfg.min_pnp_inliers:
+    if counts[k] < min(st.cfg.min_pnp_inliers, st.cfg.min_anchor_inliers):
         return None, None
-    found = st.pnp(k)
-    if found is None:
-        return k, f"PnP found no pose on its {counts[k]} matches to triangulated points"
-    R, t, n_in, n = found
-    if n_in < st.cfg.min_pnp_inliers or n_in < st.cfg.min_pnp_share * n:
-        return k, f"PnP pose explains only {n_in} of its {n} matches to triangulated points"
+    obj, xy = st.correspondences(k)
+    n, thr = len(obj), st.cfg.pnp_error_px
+    found = pnp_pose(obj, xy, st.K[k], thr) if n >= st.cfg.min_pnp_inliers else None
+    how = "PnP"
+    if found is None or found[2] < st.cfg.min_pnp_inliers or found[2] < st.cfg.min_pnp_share * n:
+        found, how = _anchored(st, k, obj, xy, outcomes), "anchored on an accepted pair"
+        if found is None:
+            return k, f"neither PnP nor its accepted pairs explain its {n} matches to triangulated points"
+    R, t, n_in = found
     worst, other = _disagreement(st, k, R, outcomes)
     if worst > st.cfg.max_pair_disagreement_deg:
-        return k, f"its PnP pose disagrees by {worst:.1f}° with its accepted pose relative to {other}"
+        return k, f"its pose disagrees by {worst:.1f}° with its accepted pose relative to {other}"
     st.add(k, R, t)
-    logger.debug("registered %s: %d of %d PnP inliers", st.views[k].name, n_in, n)
+    logger.debug("registered %s (%s): %d of %d inliers", st.views[k].name, how, n_in, n)
     return k, None
+
+
+def _anchored(
+    st: _State, k: int, obj: np.ndarray, xy: np.ndarray, outcomes: Sequence[PairOutcome]
+) -> tuple[np.ndarray, np.ndarray, int] | None:
+    """Photo ``k``'s pose from its best-supported accepted pair with a registered photo (the pair's rotation and
+    translation direction — re-estimated at the current focal for a provisional pair —, the length from the points),
+    when it explains ``min_anchor_inliers`` points."""
+    best = None
+    for o in outcomes:
+        if o.result is None or k not in (o.i, o.j):
+            continue
+        r = o.i if o.j == k else o.j
+        if not st.registered[r]:
+            continue
+        g = o.result.geometry
+        # a provisional pair's pose is re-estimated at the shared focal found so far
+        Rp, tp = _pose_at(o, st.K[o.i], st.K[o.j], st.cfg.pnp_error_px) if o.provisional else (g.R, g.t)
+        R, a, b = pair_anchor(Rp, tp, st.R[r], st.t[r], new_is_second=o.j == k)
+        fit = anchored_pose(obj, xy, st.K[k], R, a, b, st.cfg.pnp_error_px)
+        if fit is not None and (best is None or fit[1] > best[2]):
+            best = (R, fit[0], fit[1])
+    return best if best is not None and best[2] >= st.cfg.min_anchor_inliers else None
 
 
 def register_known(views: Sequence[View], tracks: Tracks, R: np.ndarray, t: np.ndarray,

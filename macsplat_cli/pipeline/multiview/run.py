@@ -24,7 +24,7 @@ from ..types import DepthMap, MatchSet, View
 from .config import MultiViewConfig
 from .depth import DepthFn, multiview_depths, pair_geometry
 from .known import known_pose_pairs, load_known_poses
-from .pairwise import PairOutcome, cached_search, match_pairs
+from .pairwise import PairOutcome, cached_search, match_all
 from .register import Registration, register_known, register_views
 from .shortlist import select_pairs
 from .tracks import build_tracks
@@ -154,7 +154,7 @@ def reconstruct_views(
         if known is not None:
             full = [(live[i], live[j]) for i, j in chosen]
             return known_pose_pairs(views, full, cached.describe, cached.match, known, config.known_pose_max_px)
-        outs = match_pairs(sub, chosen, cached)
+        outs = match_all(sub, chosen, cached)
         return [dataclasses.replace(o, i=live[o.i], j=live[o.j]) for o in outs]
 
     outcomes: list[PairOutcome] = timed("pairs", pairs_stage)
