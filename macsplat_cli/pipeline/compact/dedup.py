@@ -12,6 +12,9 @@ from .state import ViewState
 
 __all__ = ["dedup"]
 
+_SAMPLE = 64
+"""Every 64th Gaussian tells whether an earlier view sees any of a view's surface (an overlap is thousands)."""
+
 
 def dedup(views: list[ViewState], cfg: CompactConfig) -> str:
     """Step 3: a later view's Gaussian on a surface an earlier view saw is merged into that view's (in place)."""
@@ -23,6 +26,8 @@ def dedup(views: list[ViewState], cfg: CompactConfig) -> str:
             if idx.numel() == 0:
                 break
             Xw = vk.world_means().reshape(-1, 3)[idx]
+            if not vj.project(Xw[:: _SAMPLE])[3].any():  # many photos: most pairs see nothing of each other
+                continue
             col, row, z, inside = vj.project(Xw)
             hj, wj = vj.size
             zj = vj.means[..., 2].double()[row, col]
