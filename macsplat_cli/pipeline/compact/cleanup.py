@@ -43,36 +43,39 @@ def prune_floaters(views: list[ViewState], cfg: CompactConfig) -> str:
 
 def prune_occluded(views: list[ViewState], cfg: CompactConfig) -> str:
     """Step 4: Gaussians behind an opaque one (z-buffer of the centres) or off-image, in every view."""
-    worlds = [v.world_means().reshape(-1, 3) for v in views]
-    seen = [torch.zeros(v.size[0] * v.size[1], dtype=torch.bool) for v in views]
+    alive = [v.alive.reshape(-1).nonzero().squeeze(1) for v in views]  # only these can occlude or be kept
+    worlds = [v.world_means().reshape(-1, 3)[a] for v, a in zip(views, alive)]
+    opaque = [torch.sigmoid(v.logits.reshape(-1)[a]) >= cfg.occluder_min_opacity for v, a in zip(views, alive)]
+    seen = [torch.zeros(len(a), dtype=torch.bool) for a in alive]
     for c in views:
         h, w = c.size
         zbuf = torch.full((h * w,), math.inf, dtype=torch.float64)
         projected = []
-        for v, X in zip(views, worlds):
+        for X, occluder in zip(worlds, opaque):
             col, row, z, inside = c.project(X)
             projected.append((row * w + col, z, inside))
-            occ = inside & v.alive.reshape(-1) & (torch.sigmoid(v.logits.reshape(-1)) >= cfg.occluder_min_opacity)
+            occ = inside & occluder
             zbuf.scatter_reduce_(0, (row * w + col)[occ], z[occ], "amin")
         # a pixel hides what lies behind only if its 3×3 neighbourhood is covered too (the farthest of the
         # nearest depths): a lone occluder centre covers part of its pixel, and leaves no hole behind
         zbuf = F.max_pool2d(zbuf.reshape(1, 1, h, w), 3, stride=1, padding=1).reshape(-1)
         for s, (pix, z, inside) in zip(seen, projected):
             s |= inside & (z <= zbuf[pix] * (1.0 + cfg.occlusion_depth_tol))
-    for v, s in zip(views, seen):
-        v.alive &= s.reshape(v.size)
+    for v, a, s in zip(views, alive, seen):
+        v.alive.view(-1)[a[~s]] = False
     return f"hidden in every view (behind a Gaussian of opacity ≥ {cfg.occluder_min_opacity:g}, or off-image)"
 
 
 def prune_subpixel(views: list[ViewState], cfg: CompactConfig) -> str:
     """Step 5: Gaussians whose largest projected std is below ``subpixel_px`` in every view."""
-    worlds = [v.world_means().reshape(-1, 3) for v in views]
-    for v, X in zip(views, worlds):
-        sigma = torch.exp(v.log_scales.double().amax(-1)).reshape(-1)
+    for v in views:
+        a = v.alive.reshape(-1).nonzero().squeeze(1)
+        X = v.world_means().reshape(-1, 3)[a]
+        sigma = torch.exp(v.log_scales.double().amax(-1)).reshape(-1)[a]
         best = torch.zeros_like(sigma)
         for c in views:
             _, _, z, inside = c.project(X)
             px = torch.where(inside, sigma * c.focal / z.clamp_min(1e-12), torch.zeros_like(sigma))
             best = torch.maximum(best, px)
-        v.alive &= (best >= cfg.subpixel_px).reshape(v.size)
+        v.alive.view(-1)[a[best < cfg.subpixel_px]] = False
     return f"largest projected std below {cfg.subpixel_px:g} px in every view"
