@@ -259,7 +259,18 @@ class Pipeline:
         # the far layer around both photos is timed with the Gaussians (a few thousand, ~0.05 s)
         maps, background = timed("gaussians", gaussian_stage)
         n_layer = len(background.gaussians) if background is not None and background.gaussians is not None else 0
-        report = RunReport(
+        report = self._report(
+            paths, times, views, pose, depths, count_gaussians(maps) + n_layer, self.scale, background
+        )
+        return Reconstruction(views, geometry, depths, maps, report, scale=self.scale, background=background, pose=pose)
+
+    def _report(
+        self, paths: Sequence[str | Path], times: dict[str, float], views: Sequence[View], pose: PoseResult,
+        depths: Sequence[DepthMap], gaussians: int, scale: Literal["relative", "metric"],
+        background: BackgroundLayer | None, multiview: dict[str, Any] | None = None,
+    ) -> RunReport:  # fmt: skip
+        """The report of stages 1–6: the photos, the (first) pair's matches and pose, the depths, the Gaussians."""
+        return RunReport(
             macsplat_version=__version__,
             inputs=[str(p) for p in paths],
             backends=self.backends(),
@@ -270,20 +281,20 @@ class Pipeline:
             ],
             keypoints=[len(f) for f in pose.features],
             fallback_used=pose.fallback_used,
-            matches={**geometry.inliers.counts},
+            matches={**pose.geometry.inliers.counts},
             inlier_ratio=pose.inlier_ratio,
             pose=pose.report(),
             depth_coverage=[float(d.valid.mean()) for d in depths],
             depth_measured=[float(d.measured.mean()) if d.measured is not None else None for d in depths],
-            gaussians=count_gaussians(maps) + n_layer,
+            gaussians=gaussians,
             config=asdict(self.config),
-            scale=self.scale,
+            scale=scale,
             fill={
                 "depth": [getattr(d, "fill_counts", None) for d in depths],
                 "background": background.counts if background is not None else None,
             },
+            multiview=multiview,
         )
-        return Reconstruction(views, geometry, depths, maps, report, scale=self.scale, background=background, pose=pose)
 
     def _run_views(
         self, paths: Sequence[str | Path], loaded: list[View], times: dict[str, float], timed: Callable[..., Any]
@@ -310,31 +321,10 @@ class Pipeline:
         scale = mv.scale or self.scale
         layer = mv.background.gaussians if mv.background is not None else None
         n_layer = len(layer) if layer is not None else 0
-        report = RunReport(
-            macsplat_version=__version__,
-            inputs=[str(p) for p in paths],
-            backends=self.backends(),
-            times_s={**times, "total": sum(times.values())},
-            images=[
-                ImageReport(v.name, list(v.original_size), [v.width, v.height], v.intrinsics_source, float(v.K[0, 0]))
-                for v in mv.views
-            ],
-            keypoints=[len(f) for f in pose.features],
-            fallback_used=pose.fallback_used,
-            matches={**pose.geometry.inliers.counts},
-            inlier_ratio=pose.inlier_ratio,
-            pose={"given": str(c.multiview.poses)} if given else pose.report(),
-            depth_coverage=[float(d.valid.mean()) for d in depths],
-            depth_measured=[float(d.measured.mean()) if d.measured is not None else None for d in depths],
-            gaussians=count_gaussians(mv.maps) + n_layer,
-            config=asdict(self.config),
-            scale=scale,
-            fill={
-                "depth": [getattr(d, "fill_counts", None) for d in depths],
-                "background": mv.background.counts if mv.background is not None else None,
-            },
-            multiview=mv.report(),
-        )
+        report = self._report(paths, times, mv.views, pose, depths, count_gaussians(mv.maps) + n_layer, scale,
+                              mv.background, multiview=mv.report())  # fmt: skip
+        if given:
+            report.pose = {"given": str(c.multiview.poses)}
         poses = [reg.cam_to_world(k) for k in ks]
         return Reconstruction(views, None, depths, mv.maps, report, scale=scale, background=mv.background,
                               pose=None if given else pose, poses=poses, multiview=mv)  # fmt: skip
