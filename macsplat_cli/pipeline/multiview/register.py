@@ -232,13 +232,33 @@ class _State:
 
 
 def _init_pair(outcomes: Sequence[PairOutcome], cfg: RegisterConfig) -> PairOutcome | None:
-    """The accepted pair with the most verified matches among those with enough parallax (else among all)."""
+    """The accepted pair to start from: among those that close a consistent loop of three (when any does; else
+    all), those with enough parallax (else all), the one with the most verified matches."""
     ok = [o for o in outcomes if o.result is not None and not o.provisional]
     ok = ok or [o for o in outcomes if o.result is not None]
     if not ok:
         return None
+    ok = _in_consistent_loops(ok, cfg.max_pair_disagreement_deg) or ok
     wide = [o for o in ok if (o.result.geometry.median_parallax_deg or 0.0) >= cfg.init_min_parallax_deg]
     return max(wide or ok, key=lambda o: (o.inliers, -o.i, -o.j))
+
+
+def _in_consistent_loops(pairs: Sequence[PairOutcome], max_deg: float) -> list[PairOutcome]:
+    """The pairs on a loop of three photos whose relative rotations compose to within ``max_deg`` of the identity:
+    a wrong pose that two views accepted rarely closes a loop with two right ones (ICL: one 14.6° off, 596 matches,
+    the most of its set)."""
+    R = {(o.i, o.j): o.result.geometry.R for o in pairs}
+    rel = lambda a, b: R[(a, b)] if (a, b) in R else R[(b, a)].T if (b, a) in R else None  # noqa: E731
+    keep: set[tuple[int, int]] = set()
+    photos = sorted({k for o in pairs for k in (o.i, o.j)})
+    for i, j in R:
+        for k in photos:
+            if k in (i, j) or rel(j, k) is None or rel(i, k) is None:
+                continue
+            # i → j → k against i → k
+            if rotation_error_deg(rel(j, k) @ rel(i, j), rel(i, k)) <= max_deg:
+                keep |= {(i, j), (min(j, k), max(j, k)), (min(i, k), max(i, k))}
+    return [o for o in pairs if (o.i, o.j) in keep]
 
 
 def _disagreement(st: _State, k: int, R: np.ndarray, outcomes: Sequence[PairOutcome]) -> tuple[float, str | None]:

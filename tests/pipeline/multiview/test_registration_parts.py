@@ -99,3 +99,23 @@ def test_pnp_pose_on_exact_correspondences() -> None:
     assert found is not None
     R_fit, t_fit, n_in = found
     assert n_in == len(X) and np.abs(reprojection_px(X, xy, K, R_fit, t_fit)).max() < 1e-6
+
+
+def test_a_wrong_pair_outside_every_consistent_loop_does_not_start_the_registration() -> None:
+    from macsplat_cli.pipeline.multiview.register import RegisterConfig, _init_pair
+
+    truth = [_rot([0, 1, 0], a) for a in (0.0, 10.0, 20.0, 30.0)]  # world → camera of four photos
+    f = _features(3, 0)
+
+    def pair(i: int, j: int, n: int, error_deg: float = 0.0) -> PairOutcome:
+        o = _outcome(i, j, f, f, [0] * n, [0] * n)
+        o.result.geometry.R = _rot([1, 0, 0], error_deg) @ truth[j] @ truth[i].T
+        o.result.geometry.median_parallax_deg = 5.0
+        return o
+
+    # (0, 2) is 14° off and has the most matches; (0, 1), (1, 3), (0, 3) close a loop
+    outs = [pair(0, 2, 600, 14.0), pair(0, 1, 300), pair(1, 3, 200), pair(0, 3, 150), pair(2, 3, 100, 9.0)]
+    first = _init_pair(outs, RegisterConfig())
+    assert (first.i, first.j) == (0, 1)
+    # without a consistent loop, the most matches start it
+    assert (lambda o: (o.i, o.j))(_init_pair(outs[:1] + outs[4:], RegisterConfig())) == (0, 2)
