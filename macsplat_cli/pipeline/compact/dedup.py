@@ -26,7 +26,7 @@ def dedup(views: list[ViewState], cfg: CompactConfig) -> str:
             if idx.numel() == 0:
                 break
             Xw = vk.world_means().reshape(-1, 3)[idx]
-            if not vj.project(Xw[:: _SAMPLE])[3].any():  # many photos: most pairs see nothing of each other
+            if not vj.project(Xw[::_SAMPLE])[3].any():  # many photos: most pairs see nothing of each other
                 continue
             col, row, z, inside = vj.project(Xw)
             hj, wj = vj.size
