@@ -119,3 +119,23 @@ def test_a_wrong_pair_outside_every_consistent_loop_does_not_start_the_registrat
     assert (first.i, first.j) == (0, 1)
     # without a consistent loop, the most matches start it
     assert (lambda o: (o.i, o.j))(_init_pair(outs[:1] + outs[4:], RegisterConfig())) == (0, 2)
+
+
+def test_free_space_check_drops_a_floater_and_keeps_the_surface() -> None:
+    """Two cameras 0.5 apart facing a wall at z = 4: view 0's depth holds the wall and a block at z = 2 that view 1
+    sees through (it sees the wall there) → dropped; the wall is confirmed by view 1 → kept; a pixel view 1 cannot
+    see (outside its image) is kept: nobody sees through it."""
+    from macsplat_cli.pipeline.multiview.depth import DepthPlanConfig, free_space_check
+    from macsplat_cli.pipeline.types import DepthMap
+
+    h, w = 60, 80
+    Kc = np.array([[60.0, 0, w / 2], [0, 60.0, h / 2], [0, 0, 1]])
+    Ks, Rs, ts = np.stack([Kc, Kc]), np.stack([np.eye(3), np.eye(3)]), np.array([[0.0, 0, 0], [-0.5, 0, 0]])
+    wall = np.full((h, w), 4.0, np.float32)
+    d0 = wall.copy()
+    d0[25:35, 30:40] = 2.0  # the floater
+    maps = [DepthMap(d0, np.ones((h, w), np.float32)), DepthMap(wall, np.ones((h, w), np.float32))]
+    out = free_space_check(0, maps, Ks, Rs, ts, [1], DepthPlanConfig())
+    assert not out.valid[25:35, 30:40].any()
+    assert out.valid[:, 20:].sum() == (h * (w - 20) - 100)  # every wall pixel view 1 sees is confirmed
+    assert out.valid[:, :5].all()  # the wall's left edge: outside view 1's image (it moved right), kept
