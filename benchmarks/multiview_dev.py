@@ -164,16 +164,21 @@ def nearest_context(frames: Sequence[Frame], ctx: Sequence[int], ti: int) -> int
 
 
 # ------------------------------------------------------------------------------------------ our runs
+SETTINGS = {"quality": "balanced", "far_layer": True}
+"""``--quality`` and ``--no-far-layer``: for every run of ours, the N-view and the two-view ones alike."""
+
+
 def run_ours(frames: Sequence[Frame], ctx: Sequence[int], tgts: Sequence[int], known: bool, size: int) -> Outcome:
     """Ours on the context frames ``ctx`` (true intrinsics when ``known``), scored on ``tgts``."""
     cf = [frames[i] for i in ctx]
     cfg = ReconstructConfig()
+    cfg.background.enabled = bool(SETTINGS["far_layer"])
     with tempfile.TemporaryDirectory(prefix="mv_dev_") as tmp:
         if known:
             cfg.views.intrinsics = save_intrinsics(Path(tmp) / "cameras.json", cf)
         t0 = time.perf_counter()
         try:
-            rec = reconstruct([f.image for f in cf], EngineConfig(size=size, pipeline=cfg))
+            rec = reconstruct([f.image for f in cf], EngineConfig(size=size, quality=SETTINGS["quality"], pipeline=cfg))
         except ReconstructionError as e:
             return Outcome(time.perf_counter() - t0, error=str(e))
         out = Outcome(time.perf_counter() - t0)
@@ -181,8 +186,9 @@ def run_ours(frames: Sequence[Frame], ctx: Sequence[int], tgts: Sequence[int], k
     return out
 
 
-def score(rec: Reconstruction, frames: Sequence[Frame], ctx: Sequence[int], tgts: Sequence[int], known: bool,
-          out: Outcome) -> None:
+def score(
+    rec: Reconstruction, frames: Sequence[Frame], ctx: Sequence[int], tgts: Sequence[int], known: bool, out: Outcome
+) -> None:
     """Fill ``out``: registration, rotation and focal errors, the alignment and the targets' PSNR."""
     stem = {frames[i].image.stem: k for k, i in enumerate(ctx)}
     cams = {stem[c.name]: c for c in rec.cameras()}
@@ -221,8 +227,6 @@ def copy_psnr(frames: Sequence[Frame], ctx: Sequence[int], ti: int, size: tuple[
     """PSNR of the nearest context photo against target ``ti``, both resized to ``size`` = (W, H)."""
     near = frames[nearest_context(frames, ctx, ti)]
     return psnr(load_rgb(near.image, size), load_rgb(frames[ti].image, size))
-
-
 
 
 # ------------------------------------------------------------------------------------------ one scene
@@ -338,7 +342,7 @@ def notes(cases: Sequence[Case]) -> list[str]:
     lines = []
     for c in cases:
         tag = f"{c.scene} N={c.n} {'known' if c.known else 'unknown'} K"
-        for i, why in (c.ours.unregistered.items() if c.ours is not None else ()):
+        for i, why in c.ours.unregistered.items() if c.ours is not None else ():
             lines.append(f"- {tag}: frame {i} ({why})")
         if c.colmap is not None and c.colmap["error"]:
             lines.append(f"- {tag}: COLMAP: {c.colmap['error']}")
@@ -353,9 +357,12 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--frames", type=int, default=24, help="use the first this many frames of each sequence")
     ap.add_argument("--size", type=int, default=512, help="the working size (long side)")
     ap.add_argument("--no-colmap", action="store_true", help="skip the pycolmap peer")
+    ap.add_argument("--quality", default="balanced", help="our runs' --quality (fast, balanced, best)")
+    ap.add_argument("--no-far-layer", action="store_true", help="our runs without the far background layer")
     ap.add_argument("--table", action="store_true", help="print only the table (no progress, no notes)")
     ap.add_argument("--json", type=Path, help="also write every case as JSON")
     args = ap.parse_args(argv)
+    SETTINGS.update(quality=args.quality, far_layer=not args.no_far_layer)
     views = [int(v) for v in args.views.split(",")]
     with_colmap = not args.no_colmap and colmap_available()
     say = (lambda m: None) if args.table else progress
