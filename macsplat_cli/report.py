@@ -136,7 +136,7 @@ class RunReport:
     def to_json(self) -> dict[str, Any]:
         """The report as plain JSON values (sections that do not apply left out; NaN → null)."""
         out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        for optional in ("neural", "refine", "compact", "fill", "gaussians_written"):
+        for optional in ("neural", "refine", "compact", "fill", "multiview", "gaussians_written"):
             if out[optional] is None:
                 del out[optional]
         if not out["outputs"]:
