@@ -35,8 +35,8 @@ class DepthPlanConfig:
     contradicted: confidence factor of a pixel another estimate contradicts.
     check_views: each photo's fused depth is checked against this many co-visible photos' depths (0: no check).
     free_space: a point this much (relative) in front of what another photo sees there lies in space that photo
-        sees through: a floater, dropped when no checked photo confirms it (CO3D, 8 photos: held-out PSNR
-        15.42 → 16.00 dB, benchmarks/history/multiview.md).
+        sees through: a floater, dropped when no checked photo confirms it (measured: benchmarks/history/
+        multiview.md).
     """
 
     neighbours: int = 2

@@ -49,10 +49,10 @@ class RegisterConfig:
         outlier (dropped) — and a triangulated point needs all its observations within it.
     min_angle_deg: a point is triangulated when its rays span at least this angle (°).
     focal_scan: an unknown shared focal's starts, as factors of the pairs' estimate (or the prior's); the
-        registration whose truncated reprojection cost is lowest is kept. One start by default: on the synthetic
-        object orbit of the tests every start from ×0.6 to ×1.6 converged to the same focal (0.7 % off).
+        registration whose truncated reprojection cost is lowest is kept. One start by default: the adjustment
+        converges from far-off starts on the tests' object orbit (tests/pipeline/multiview/test_multiview.py).
     bundle_growth: the whole registration is adjusted each time the registered photos have grown by this factor
-        (and at the end): N − 1 ever larger adjustments grew with N² (49 s of 158 at N = 32).
+        (and at the end): N − 1 ever larger adjustments grow with N² (benchmarks/history/multiview_scaling.md).
     bundle: the bundle adjustment's settings; its cost tolerance 1e-4 (not 1e-6): the poses end within 0.01° of
         the fully converged ones (far below the matches' noise) in a third of the evaluations.
     """
