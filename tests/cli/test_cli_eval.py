@@ -14,10 +14,10 @@ import cv2
 import numpy as np
 import pytest
 
-from macsplat_cli.cli import main
 from macsplat_cli.datasets import synthetic as S
 from macsplat_cli.evaluation.reconstructors import BACKENDS
 
+from support.cli import run_captured
 from support.evaluation import ORACLE, translated_camera, write_blank_dataset, write_plane_dataset
 
 
@@ -31,10 +31,7 @@ def oracle_backend(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setitem(BACKENDS, "oracle", lambda config, models=None: ORACLE)
 
 
-def run(capsys: pytest.CaptureFixture[str], *args: str | Path) -> tuple[int, str, str]:
-    code = main([str(a) for a in args])
-    out = capsys.readouterr()
-    return code, out.out, out.err
+run = run_captured
 
 
 def _rows(stdout: str, method: str) -> list[dict]:

@@ -11,9 +11,9 @@ from pathlib import Path
 
 import pytest
 
-from macsplat_cli.cli import main
 from macsplat_cli.evaluation.reconstructors import BACKENDS
 
+from support.cli import run_captured
 from support.evaluation import ORACLE, write_plane_dataset
 
 
@@ -27,10 +27,7 @@ def oracle_backend(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setitem(BACKENDS, "oracle", lambda config, models=None: ORACLE)
 
 
-def run(capsys: pytest.CaptureFixture[str], *args: str | Path) -> tuple[int, str, str]:
-    code = main([str(a) for a in args])
-    out = capsys.readouterr()
-    return code, out.out, out.err
+run = run_captured
 
 
 def test_eval_with_three_context_views(capsys, plane: Path, tmp_path: Path, oracle_backend: None) -> None:  # noqa: ANN001

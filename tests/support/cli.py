@@ -20,6 +20,14 @@ def run_cli(args: list) -> tuple[int, str, str]:  # noqa: ANN001 - paths or stri
     return code, out.getvalue(), err.getvalue()
 
 
+def run_captured(capsys, *args) -> tuple[int, str, str]:  # noqa: ANN001 - pytest's capsys; paths or strings
+    """``macsplat ARGS`` in this process, its output read back through pytest's ``capsys``: (exit code, stdout,
+    stderr)."""
+    code = main([str(a) for a in args])
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
 def one_error_line(err: str) -> str:
     """The one ``error:`` line of a command's stderr (asserts there is exactly one)."""
     lines = [ln for ln in err.splitlines() if ln.startswith("error:")]
