@@ -33,6 +33,7 @@ LAYERS: dict[str, tuple[int, str]] = {
     "engine": (2, "load the models, build the pipeline, run it (the library boundary)"),
     "evaluation": (2, "eval and bench: run the engine over data sets"),
     "training": (2, "macsplat train: trains the predictor on data sets"),
+    "viewer": (2, "macsplat view: serves a scene and its cameras to a browser page"),
     # 3: the stages
     "pipeline": (3, "the stages of reconstruct (pose, depth, compact, refine, neural backend) and their chain"),
     "presets": (3, "quality / backend presets turned into the pipeline's config"),

@@ -20,7 +20,7 @@ from types import FrameType
 
 import typer
 
-from . import bench, eval, export_onnx, reconstruct, render, train  # noqa: F401 - registers the commands
+from . import bench, eval, export_onnx, reconstruct, render, train, view  # noqa: F401 - registers the commands
 from ._app import app
 from ._common import err_console, escape
 

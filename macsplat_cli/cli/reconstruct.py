@@ -163,6 +163,12 @@ def reconstruct_command(
     gaussian_head: GaussianHeadOpt = None,
     device: DeviceOpt = "cpu",
     precision: PrecisionOpt = "fp32",
+    view: Annotated[
+        bool, typer.Option("--view", help="Then show the scene in the browser (macsplat view; needs macsplat[view]).")
+    ] = False,
+    view_port: Annotated[
+        int, typer.Option("--view-port", min=0, max=65535, help="With --view: the port on 127.0.0.1 (0: a free one).")
+    ] = 8080,
     verbose: VerboseOpt = False,
     quiet: QuietOpt = False,
 ) -> None:
@@ -184,6 +190,10 @@ def reconstruct_command(
       macsplat reconstruct a.jpg b.jpg -o scene.ply --backend neural --weights mast3r.pth
     """
     with command_context(ctx, verbose, quiet) as state:
+        if view:  # the viewer's extra and its port are checked before the work, not after it
+            from .view import check_viewer
+
+            check_viewer("127.0.0.1", view_port)
         config = reconstruct_config(
             size=size, quality=quality, budget=budget, intrinsics=intrinsics, poses=poses, focal=focal,
             conf_threshold=conf_threshold, accept_low_confidence=accept_low_confidence, far_layer=far_layer,
@@ -194,6 +204,13 @@ def reconstruct_command(
             expand_photos(images), config, output=output, cameras=cameras, renders=renders, num_renders=num_renders,
             video=video, report=report, json_out=json_out, quiet=state.quiet,
         )  # fmt: skip
+        if view:
+            from .view import view_files
+
+            photos = expand_photos(images)
+            folders = list(dict.fromkeys(p.parent for p in photos))
+            cameras = cameras or output.with_name(output.stem + ".cameras.json")
+            view_files(output, cameras, folders, port=view_port, quiet=state.quiet)
 
 
 def reconstruct_config(

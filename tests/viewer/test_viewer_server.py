@@ -1,0 +1,73 @@
+"""The viewer's server (viser on loopback): what it serves, and its "render" button's image."""
+
+from __future__ import annotations
+
+import urllib.error
+import urllib.request
+
+import numpy as np
+import pytest
+import torch
+
+from macsplat_cli.errors import InputError
+from macsplat_cli.images import to_uint8
+from macsplat_cli.render import render
+from macsplat_cli.viewer import ViewerConfig, ViewerServer, camera_pose, resolve_port
+
+from support.viewer_scene import PlaneScene
+
+pytest.importorskip("viser")
+
+
+@pytest.fixture
+def server(plane_scene: PlaneScene):  # noqa: ANN201 - generator fixture
+    config = ViewerConfig(port=resolve_port("127.0.0.1", 0), render_long_side=160)
+    s = ViewerServer(plane_scene.gaussians, plane_scene.camera_list, title="plane.ply", config=config)
+    yield s
+    s.stop()
+
+
+def _get(url: str) -> tuple[int, bytes]:
+    try:
+        with urllib.request.urlopen(url, timeout=10) as r:
+            return r.status, r.read()
+    except urllib.error.HTTPError as e:
+        return e.code, e.read()
+
+
+def test_serves_the_page_on_loopback_and_no_files(server: ViewerServer, plane_scene: PlaneScene) -> None:
+    assert server.url == f"http://127.0.0.1:{server.port}"
+    status, body = _get(server.url + "/")
+    assert status == 200 and b"<html" in body.lower()
+    secret = plane_scene.ply.read_bytes()[:200]
+    for path in ("/plane.ply", "/../plane.ply", "/%2e%2e/%2e%2e/etc/passwd", f"/{plane_scene.ply}"):
+        status, body = _get(server.url + path)
+        assert secret not in body and b"root:" not in body, path
+    assert server.server.request_share_url() is None  # never a tunnel through a public relay
+
+
+def test_render_button_image_is_macsplats_render_of_that_view(server: ViewerServer, plane_scene: PlaneScene) -> None:
+    cam = plane_scene.camera_list[1]
+    pose = camera_pose(cam)
+    image = server.render_view(pose.wxyz, pose.position, pose.fov_y, pose.aspect)
+    assert image.shape == (120, 160, 3) and image.dtype == np.uint8  # long side 160, the camera's aspect
+    K = torch.tensor(cam.K, dtype=torch.float32)
+    K[:2] *= 0.5  # 320x240 -> 160x120; the principal point is the centre, as the viewer has it
+    viewmat = torch.from_numpy(np.linalg.inv(cam.cam_to_world)).float()
+    expected = to_uint8(render(plane_scene.gaussians, viewmat, K, 160, 120).rgb)
+    assert np.abs(image.astype(int) - expected.astype(int)).max() <= 1
+    assert image.std() > 10  # the plane's blocks, not an empty frame
+
+
+def test_too_many_gaussians_are_refused_with_a_budget_hint(plane_scene: PlaneScene) -> None:
+    config = ViewerConfig(port=resolve_port("127.0.0.1", 0), max_gaussians=1000)
+    with pytest.raises(InputError, match=r"6,912 Gaussians is more than the viewer takes \(1,000\).*--budget 500"):
+        ViewerServer(plane_scene.gaussians, plane_scene.camera_list, config=config)
+
+
+def test_a_scene_without_cameras_is_served(plane_scene: PlaneScene) -> None:
+    s = ViewerServer(plane_scene.gaussians, [], config=ViewerConfig(port=resolve_port("127.0.0.1", 0)))
+    try:
+        assert _get(s.url + "/")[0] == 200
+    finally:
+        s.stop()
