@@ -57,6 +57,10 @@ def view_command(
       macsplat view scene.ply --cameras scene.cameras.json --images photos/ --port 0 --no-open
     """
     with command_context(ctx, verbose, quiet) as state:
+        if images is not None and not images.is_dir():
+            from ..errors import InputError
+
+            raise InputError(f"--images {images}: not a folder")
         camera_file = cameras if cameras is not None else _default_cameras(scene)
         folders = [p for p in (images, camera_file.parent if camera_file else None, scene.parent) if p is not None]
         check_viewer(host, port)

@@ -53,6 +53,11 @@ def test_bad_scene_file_is_exit_2(tmp_path: Path) -> None:
     assert code == 2 and err.startswith("error:") and len(err.strip().splitlines()) == 1
 
 
+def test_images_must_be_a_folder(plane_scene: PlaneScene) -> None:
+    code, _, err = run_cli(["view", plane_scene.ply, "--images", plane_scene.ply, "--no-open"])
+    assert code == 2 and err.strip() == f"error: --images {plane_scene.ply}: not a folder"
+
+
 def test_another_host_is_warned_about(plane_scene: PlaneScene, monkeypatch: pytest.MonkeyPatch) -> None:
     """A host that is not loopback prints who can then see the scene (checked on loopback: is_loopback is told no,
     so that the test serves nothing beyond this machine)."""
