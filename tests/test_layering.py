@@ -47,6 +47,7 @@ LAYERS: dict[str, tuple[int, str]] = {
     "__init__": (5, "the package root: the version and the OpenMP default; imports nothing"),
     "errors": (5, "the typed errors and their exit codes"),
     "_atomic": (5, "atomic file writes"),
+    "_threads": (5, "the CPU kernels' threads"),
     "_limits": (5, "input size limits, safe JSON parsing"),
     "_checks": (5, "shape and value checks"),
     "_json": (5, "JSON conversion of dataclasses and arrays"),

@@ -12,6 +12,8 @@ import numba as nb
 import numpy as np
 import torch
 
+from .._threads import parallel_for
+
 __all__ = ["column_top2_update", "column_top2_update_reference"]
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
@@ -22,14 +24,14 @@ def column_top2_update(sim: np.ndarray, start: int, top: np.ndarray, arg: np.nda
     second-best value of every column, ``top`` [2, M1] float32, and the row of the best, ``arg`` [M1] int64, in
     place. Strict comparisons: of equal values the earlier row stays best (a global argmax's choice), and
     the second best equals the best when two rows tie."""
-    n_chunks = max(1, min(sim.shape[1] // 256, 4 * nb.get_num_threads()))
-    _column_top2(sim, start, top, arg, n_chunks)
+    n_chunks = max(1, sim.shape[1] // 256)  # each chunk owns a range of at least 256 columns
+    parallel_for(_chunks, n_chunks, sim, start, top, arg, n_chunks)
 
 
-@nb.njit(parallel=True, **_JIT)
-def _column_top2(sim, start, top, arg, n_chunks):  # noqa: ANN001, ANN202
+@nb.njit(**_JIT)
+def _chunks(k0, k1, sim, start, top, arg, n_chunks):  # noqa: ANN001, ANN202
     rows, cols = sim.shape
-    for k in nb.prange(n_chunks):  # each thread owns a range of columns
+    for k in range(k0, k1):
         c0 = k * cols // n_chunks
         c1 = (k + 1) * cols // n_chunks
         for r in range(rows):

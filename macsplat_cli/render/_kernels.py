@@ -6,8 +6,8 @@ Layout (Gaussian-outer, pixel-inner, as measured fastest on CPUs):
   Gaussians whose support rectangle touches it, in front-to-back order. The Gaussians
   arrive already sorted by depth, so a tile list holds increasing indices and the
   kernels read the per-Gaussian arrays in increasing memory order.
-* One thread handles one tile at a time (``prange`` over tiles). For each Gaussian of the
-  tile list, only the pixels of its support rectangle inside the tile are visited.
+* One thread handles one tile at a time (runs of tiles taken by the threads of ``_threads.parallel_for``). For
+  each Gaussian of the tile list, only the pixels of its support rectangle inside the tile are visited.
 * Forward: front-to-back compositing with alpha ≤ 0.99, samples with alpha < 1/255 or a
   negative exponent skipped, and a pixel stopped before the sample that would bring its
   transmittance to ≤ 1e-4 (that sample is not added). The index of the last added sample
@@ -26,6 +26,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from .._threads import parallel_for
 from .constants import ALPHA_MAX, ALPHA_MIN, T_MIN
 
 GRAD_COLS = 6  # per intersection: d mean2d (2), d conic (3), d opacity (1), then d features (C)
@@ -42,6 +43,8 @@ _LOG_255 = np.float32(np.log(255.0))
 _LEVEL_SLACK = np.float32(1e-3)  # the exp-free rejection must never reject alpha ≥ 1/255
 
 _JIT = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
+_TILE_CHUNKS = 8
+"""Chunks of tiles per thread: tiles differ in work, so threads take small runs of them as they come free."""
 
 
 @nb.njit(inline="always", **_JIT)
@@ -50,8 +53,7 @@ def _level(op):  # noqa: ANN001, ANN202
     return np.log(op) + _LOG_255 + _LEVEL_SLACK
 
 
-@nb.njit(parallel=True, **_JIT)
-def bin_tiles(pixel_rect, width, height, tile):  # noqa: ANN001, ANN201 - numba
+def bin_tiles(pixel_rect: np.ndarray, width: int, height: int, tile: int) -> tuple[np.ndarray, np.ndarray]:
     """Per-tile lists of the Gaussians touching each tile, in input (depth) order.
 
     Args:
@@ -64,25 +66,34 @@ def bin_tiles(pixel_rect, width, height, tile):  # noqa: ANN001, ANN201 - numba
     """
     tiles_x = (width + tile - 1) // tile
     tiles_y = (height + tile - 1) // tile
-    m = pixel_rect.shape[0]
     counts = np.zeros(tiles_x * tiles_y, np.int64)
-    # One tile row per thread: each thread writes only its own row's counters.
-    for ty in nb.prange(tiles_y):
-        for g in range(m):
-            if pixel_rect[g, 2] // tile <= ty <= pixel_rect[g, 3] // tile:
-                for tx in range(pixel_rect[g, 0] // tile, pixel_rect[g, 1] // tile + 1):
-                    counts[ty * tiles_x + tx] += 1
+    # one tile row per chunk: a chunk writes only its own rows' counters and list entries
+    parallel_for(_count_rows, tiles_y, pixel_rect, tile, tiles_x, counts)
     offsets = np.zeros(tiles_x * tiles_y + 1, np.int64)
     offsets[1:] = np.cumsum(counts)
     lists = np.empty(offsets[-1], np.int32)
-    for ty in nb.prange(tiles_y):
+    parallel_for(_fill_rows, tiles_y, pixel_rect, tile, tiles_x, offsets, lists)
+    return offsets, lists
+
+
+@nb.njit(**_JIT)
+def _count_rows(start, stop, pixel_rect, tile, tiles_x, counts):  # noqa: ANN001, ANN202
+    for ty in range(start, stop):
+        for g in range(pixel_rect.shape[0]):
+            if pixel_rect[g, 2] // tile <= ty <= pixel_rect[g, 3] // tile:
+                for tx in range(pixel_rect[g, 0] // tile, pixel_rect[g, 1] // tile + 1):
+                    counts[ty * tiles_x + tx] += 1
+
+
+@nb.njit(**_JIT)
+def _fill_rows(start, stop, pixel_rect, tile, tiles_x, offsets, lists):  # noqa: ANN001, ANN202
+    for ty in range(start, stop):
         cursor = offsets[ty * tiles_x : (ty + 1) * tiles_x].copy()
-        for g in range(m):
+        for g in range(pixel_rect.shape[0]):
             if pixel_rect[g, 2] // tile <= ty <= pixel_rect[g, 3] // tile:
                 for tx in range(pixel_rect[g, 0] // tile, pixel_rect[g, 1] // tile + 1):
                     lists[cursor[tx]] = g
                     cursor[tx] += 1
-    return offsets, lists
 
 
 @nb.njit(inline="always", **_JIT)
@@ -147,7 +158,6 @@ def _splat_forward(g, k, means2d, conics, opacities, features, pixel_rect, x0, y
     return n_done
 
 
-@nb.njit(parallel=True, **_JIT)
 def composite_forward(means2d, conics, opacities, features, pixel_rect, offsets, lists, width, height, tile):  # noqa: ANN001, ANN201
     """Front-to-back compositing of depth-sorted Gaussians.
 
@@ -160,14 +170,38 @@ def composite_forward(means2d, conics, opacities, features, pixel_rect, offsets,
         final transmittance [H, W], and per pixel the position in its tile list of the
         last sample added (-1 if none) [H, W] int32.
     """
-    tiles_x = (width + tile - 1) // tile
-    n_tiles = offsets.shape[0] - 1
     n_ch = features.shape[1]
     dtype = means2d.dtype
     feat = np.zeros((height, width, n_ch), dtype)
     trans = np.ones((height, width), dtype)
     last = np.full((height, width), -1, np.int32)
-    for t in nb.prange(n_tiles):
+    parallel_for(_forward_tiles, offsets.shape[0] - 1, means2d, conics, opacities, features, pixel_rect, offsets,
+                 lists, width, height, tile, feat, trans, last, chunks_per_thread=_TILE_CHUNKS)  # fmt: skip
+    return feat, trans, last
+
+
+@nb.njit(**_JIT)
+def _forward_tiles(
+    start_tile,
+    stop_tile,
+    means2d,
+    conics,
+    opacities,
+    features,
+    pixel_rect,
+    offsets,
+    lists,
+    width,
+    height,
+    tile,
+    feat,
+    trans,
+    last,
+):  # noqa: ANN001, ANN202
+    tiles_x = (width + tile - 1) // tile
+    n_ch = features.shape[1]
+    dtype = means2d.dtype
+    for t in range(start_tile, stop_tile):
         x0, y0, x1, y1 = _tile_rect(t, tiles_x, tile, width, height)
         tw = x1 - x0
         npix = tw * (y1 - y0)
@@ -191,7 +225,6 @@ def composite_forward(means2d, conics, opacities, features, pixel_rect, offsets,
                 last[py, px] = lst[p]
                 for ch in range(n_ch):
                     feat[py, px, ch] = acc[p, ch]
-    return feat, trans, last
 
 
 @nb.njit(inline="always", **_JIT)
@@ -267,7 +300,6 @@ def _splat_backward(g, k, means2d, conics, opacities, features, pixel_rect, x0, 
     return v_mx, v_my, v_a, v_b, v_c, v_op
 
 
-@nb.njit(parallel=True, **_JIT)
 def composite_backward(
     means2d, conics, opacities, features, pixel_rect, offsets, lists, width, height, tile, trans, last, v_feat, v_trans
 ):  # noqa: ANN001, ANN201
@@ -281,12 +313,37 @@ def composite_backward(
         One gradient row per intersection, aligned with ``lists``:
         (d mean x, d mean y, d conic a, b, c, d opacity, d feature 0..C-1). [n_isect, 6 + C]
     """
+    out = np.zeros((lists.shape[0], GRAD_COLS + features.shape[1]), means2d.dtype)
+    args = (means2d, conics, opacities, features, pixel_rect, offsets, lists, width, height, tile)
+    parallel_for(_backward_tiles, offsets.shape[0] - 1, *args, trans, last, v_feat, v_trans, out,
+                 chunks_per_thread=_TILE_CHUNKS)  # fmt: skip
+    return out
+
+
+@nb.njit(**_JIT)
+def _backward_tiles(
+    start_tile,
+    stop_tile,
+    means2d,
+    conics,
+    opacities,
+    features,
+    pixel_rect,
+    offsets,
+    lists,
+    width,
+    height,
+    tile,
+    trans,
+    last,
+    v_feat,
+    v_trans,
+    out,
+):  # noqa: ANN001, ANN202
     tiles_x = (width + tile - 1) // tile
-    n_tiles = offsets.shape[0] - 1
     n_ch = features.shape[1]
     dtype = means2d.dtype
-    out = np.zeros((lists.shape[0], GRAD_COLS + n_ch), dtype)
-    for t in nb.prange(n_tiles):
+    for t in range(start_tile, stop_tile):
         x0, y0, x1, y1 = _tile_rect(t, tiles_x, tile, width, height)
         npix = (x1 - x0) * (y1 - y0)
         T = np.empty(npix, dtype)  # transmittance after the current sample
@@ -310,4 +367,3 @@ def composite_backward(
             out[r, 5] = v_op
             for ch in range(n_ch):
                 out[r, GRAD_COLS + ch] = v_f[ch]
-    return out

@@ -20,6 +20,8 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from ..._threads import parallel_for
+
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
 INVALID = 2.0
@@ -127,18 +129,20 @@ def plane_cost(ref, src, A, b, y, x, rho, gu, gv, radius, step):  # noqa: ANN001
     return 0.5 * (1.0 - ncc)
 
 
-@nb.njit(parallel=True, **_JIT)
+@nb.njit(**_JIT)
+def _initial_rows(start, stop, ref, src, A, b, rho, gu, gv, radius, step, out):  # noqa: ANN001, ANN202
+    for y in range(start, stop):
+        for x in range(ref.shape[1]):
+            out[y, x] = plane_cost(ref, src, A, b, y, x, rho[y, x], gu[y, x], gv[y, x], radius, step)
+
+
 def initial_costs(ref, src, A, b, rho, gu, gv, radius, step):  # noqa: ANN001, ANN201
     """:func:`plane_cost` of every pixel's own plane. [h, w] float64"""
-    h, w = ref.shape
-    out = np.empty((h, w), np.float64)
-    for y in nb.prange(h):
-        for x in range(w):
-            out[y, x] = plane_cost(ref, src, A, b, y, x, rho[y, x], gu[y, x], gv[y, x], radius, step)
+    out = np.empty(ref.shape, np.float64)
+    parallel_for(_initial_rows, ref.shape[0], ref, src, A, b, rho, gu, gv, radius, step, out)
     return out
 
 
-@nb.njit(parallel=True, **_JIT)
 def refine(ref, src, A, b, rho, gu, gv, cost, active, rho_lo, rho_hi, f, slope_max, radius, step, iters, seed):  # noqa: ANN001, ANN201
     """Red-black PatchMatch, in place on ``rho``, ``gu``, ``gv``, ``cost`` (all [h, w] float64).
 
@@ -149,66 +153,75 @@ def refine(ref, src, A, b, rho, gu, gv, cost, active, rho_lo, rho_hi, f, slope_m
     length in pixels; ``|s| = tan`` of the plane's tilt from fronto-parallel about that axis, roughly), and
     kept within ``±slope_max``; inverse depths within ``[rho_lo, rho_hi]``.
     """
+    for it in range(iters):
+        for colour in range(2):  # a phase reads only the other colour: its rows can go to any thread
+            parallel_for(_refine_rows, ref.shape[0], ref, src, A, b, rho, gu, gv, cost, active, rho_lo, rho_hi, f,
+                         slope_max, radius, step, it, colour, seed)  # fmt: skip
+
+
+@nb.njit(**_JIT)
+def _refine_rows(
+    start, stop, ref, src, A, b, rho, gu, gv, cost, active, rho_lo, rho_hi, f, slope_max, radius, step, it, colour, seed
+):  # noqa: ANN001, ANN202
+    """One phase (iteration ``it``, pixels of ``colour``) of :func:`refine` on rows ``start … stop − 1``."""
     h, w = ref.shape
     n_nb = NEIGHBOURS.shape[0]
-    for it in range(iters):
-        scale = 0.5**it
-        for colour in range(2):
-            for y in nb.prange(h):
-                tried = np.empty((n_nb, 3), np.float64)
-                for x in range(w):
-                    if (x + y) % 2 != colour or not active[y, x]:
-                        continue
-                    best = cost[y, x]
-                    br = rho[y, x]
-                    bu = gu[y, x]
-                    bv = gv[y, x]
-                    n_tried = 0
-                    for k in range(n_nb):
-                        ny = y + NEIGHBOURS[k, 0]
-                        nx = x + NEIGHBOURS[k, 1]
-                        if ny < 0 or ny >= h or nx < 0 or nx >= w:
-                            continue
-                        cu = gu[ny, nx]
-                        cv = gv[ny, nx]
-                        cr = rho[ny, nx] + cu * (x - nx) + cv * (y - ny)
-                        if cr < rho_lo or cr > rho_hi:
-                            continue
-                        if abs(cr - rho[y, x]) <= 1e-9 * cr and cu == gu[y, x] and cv == gv[y, x]:
-                            continue  # the pixel's own plane (a converged neighbourhood): same cost
-                        seen = False
-                        for j in range(n_tried):
-                            if cu == tried[j, 1] and cv == tried[j, 2] and abs(cr - tried[j, 0]) <= 1e-9 * cr:
-                                seen = True
-                                break
-                        if seen:
-                            continue  # the plane of a neighbour already tried
-                        tried[n_tried, 0] = cr
-                        tried[n_tried, 1] = cu
-                        tried[n_tried, 2] = cv
-                        n_tried += 1
-                        c = plane_cost(ref, src, A, b, y, x, cr, cu, cv, radius, step)
-                        if c < best:
-                            best, br, bu, bv = c, cr, cu, cv
-                    pix = y * w + x
-                    for k in range(3):
-                        a = 1.0 if k == 0 else (0.0 if k == 1 else 0.25)
-                        m = 0.0 if k == 0 else (1.0 if k == 1 else 0.25)
-                        r1 = uniform(seed, it * 2 + colour, pix, 3 * k)
-                        r2 = uniform(seed, it * 2 + colour, pix, 3 * k + 1)
-                        r3 = uniform(seed, it * 2 + colour, pix, 3 * k + 2)
-                        cr = br * (1.0 + a * 0.2 * scale * (2.0 * r1 - 1.0))
-                        cr = min(max(cr, rho_lo), rho_hi)
-                        su = bu * f / br + m * 0.5 * slope_max * scale * (2.0 * r2 - 1.0)
-                        sv = bv * f / br + m * 0.5 * slope_max * scale * (2.0 * r3 - 1.0)
-                        su = min(max(su, -slope_max), slope_max)
-                        sv = min(max(sv, -slope_max), slope_max)
-                        cu = su * cr / f
-                        cv = sv * cr / f
-                        c = plane_cost(ref, src, A, b, y, x, cr, cu, cv, radius, step)
-                        if c < best:
-                            best, br, bu, bv = c, cr, cu, cv
-                    rho[y, x] = br
-                    gu[y, x] = bu
-                    gv[y, x] = bv
-                    cost[y, x] = best
+    scale = 0.5**it
+    for y in range(start, stop):
+        tried = np.empty((n_nb, 3), np.float64)
+        for x in range(w):
+            if (x + y) % 2 != colour or not active[y, x]:
+                continue
+            best = cost[y, x]
+            br = rho[y, x]
+            bu = gu[y, x]
+            bv = gv[y, x]
+            n_tried = 0
+            for k in range(n_nb):
+                ny = y + NEIGHBOURS[k, 0]
+                nx = x + NEIGHBOURS[k, 1]
+                if ny < 0 or ny >= h or nx < 0 or nx >= w:
+                    continue
+                cu = gu[ny, nx]
+                cv = gv[ny, nx]
+                cr = rho[ny, nx] + cu * (x - nx) + cv * (y - ny)
+                if cr < rho_lo or cr > rho_hi:
+                    continue
+                if abs(cr - rho[y, x]) <= 1e-9 * cr and cu == gu[y, x] and cv == gv[y, x]:
+                    continue  # the pixel's own plane (a converged neighbourhood): same cost
+                seen = False
+                for j in range(n_tried):
+                    if cu == tried[j, 1] and cv == tried[j, 2] and abs(cr - tried[j, 0]) <= 1e-9 * cr:
+                        seen = True
+                        break
+                if seen:
+                    continue  # the plane of a neighbour already tried
+                tried[n_tried, 0] = cr
+                tried[n_tried, 1] = cu
+                tried[n_tried, 2] = cv
+                n_tried += 1
+                c = plane_cost(ref, src, A, b, y, x, cr, cu, cv, radius, step)
+                if c < best:
+                    best, br, bu, bv = c, cr, cu, cv
+            pix = y * w + x
+            for k in range(3):
+                a = 1.0 if k == 0 else (0.0 if k == 1 else 0.25)
+                m = 0.0 if k == 0 else (1.0 if k == 1 else 0.25)
+                r1 = uniform(seed, it * 2 + colour, pix, 3 * k)
+                r2 = uniform(seed, it * 2 + colour, pix, 3 * k + 1)
+                r3 = uniform(seed, it * 2 + colour, pix, 3 * k + 2)
+                cr = br * (1.0 + a * 0.2 * scale * (2.0 * r1 - 1.0))
+                cr = min(max(cr, rho_lo), rho_hi)
+                su = bu * f / br + m * 0.5 * slope_max * scale * (2.0 * r2 - 1.0)
+                sv = bv * f / br + m * 0.5 * slope_max * scale * (2.0 * r3 - 1.0)
+                su = min(max(su, -slope_max), slope_max)
+                sv = min(max(sv, -slope_max), slope_max)
+                cu = su * cr / f
+                cv = sv * cr / f
+                c = plane_cost(ref, src, A, b, y, x, cr, cu, cv, radius, step)
+                if c < best:
+                    best, br, bu, bv = c, cr, cu, cv
+            rho[y, x] = br
+            gu[y, x] = bu
+            gv[y, x] = bv
+            cost[y, x] = best

@@ -12,7 +12,11 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from ..._threads import parallel_for
+
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
+_I = np.int64
+"""Integer arguments of ``_scan`` are cast to this, so that it compiles once for every caller."""
 
 
 @nb.njit(inline="always", **_JIT)
@@ -23,10 +27,8 @@ def _p2(p2, gamma, g_now, g_prev, p1):  # noqa: ANN001, ANN202
 
 @nb.njit(**_JIT)
 def _scan(cost, gray, out, y, x, dy, dx, n, p1, p2, gamma, prev, cur):  # noqa: ANN001, ANN202
-    """Aggregate one scan line starting at (y, x), stepping (dy, dx), for n pixels."""
-    # prange indices are unsigned; uint64 + int64 would type as float64 in Numba
-    y = np.int64(y)
-    x = np.int64(x)
+    """Aggregate one scan line starting at (y, x), stepping (dy, dx), for n pixels. Every integer argument is an
+    int64 (the callers cast them: ``_I``), so that this compiles once, not once per mix of integer types."""
     d_count = cost.shape[2]
     for d in range(d_count):
         prev[d] = cost[y, x, d]
@@ -60,59 +62,74 @@ def _scan(cost, gray, out, y, x, dy, dx, n, p1, p2, gamma, prev, cur):  # noqa: 
         prev_min = cur_min
 
 
-@nb.njit(parallel=True, **_JIT)
-def aggregate(cost, gray, p1, p2, gamma, eight_paths):  # noqa: ANN001, ANN201
-    """Sum of the SGM path costs. ``cost: [H, W, D]`` float32, ``gray: [H, W]`` → ``[H, W, D]``."""
+@nb.njit(**_JIT)
+def _rows(start, stop, cost, gray, out, p1, p2, gamma):  # noqa: ANN001, ANN202
+    """Left-to-right and right-to-left paths of rows ``start … stop − 1``."""
     h, w, d_count = cost.shape
-    out = np.zeros_like(cost)
-    # Each prange loop visits disjoint lines, so no two threads write one pixel at once.
-    for y in nb.prange(h):
-        prev = np.empty(d_count, cost.dtype)
-        cur = np.empty(d_count, cost.dtype)
-        _scan(cost, gray, out, y, 0, 0, 1, w, p1, p2, gamma, prev, cur)
-        _scan(cost, gray, out, y, w - 1, 0, -1, w, p1, p2, gamma, prev, cur)
-    for x in nb.prange(w):
-        prev = np.empty(d_count, cost.dtype)
-        cur = np.empty(d_count, cost.dtype)
-        _scan(cost, gray, out, 0, x, 1, 0, h, p1, p2, gamma, prev, cur)
-        _scan(cost, gray, out, h - 1, x, -1, 0, h, p1, p2, gamma, prev, cur)
-    if eight_paths:
-        # diagonals: one line per start pixel on the top row and left column (and mirrored)
-        n_diag = w + h - 1
-        for k in nb.prange(n_diag):
-            prev = np.empty(d_count, cost.dtype)
-            cur = np.empty(d_count, cost.dtype)
-            # direction (+1, +1): starts on the top row (x = k) or the left column (y = k − w + 1)
-            y0, x0 = (0, k) if k < w else (k - w + 1, 0)
+    w, one, zero = _I(w), _I(1), _I(0)
+    prev = np.empty(d_count, cost.dtype)
+    cur = np.empty(d_count, cost.dtype)
+    for y in range(start, stop):
+        _scan(cost, gray, out, _I(y), zero, zero, one, w, p1, p2, gamma, prev, cur)
+        _scan(cost, gray, out, _I(y), w - one, zero, -one, w, p1, p2, gamma, prev, cur)
+
+
+@nb.njit(**_JIT)
+def _cols(start, stop, cost, gray, out, p1, p2, gamma):  # noqa: ANN001, ANN202
+    """Top-to-bottom and bottom-to-top paths of columns ``start … stop − 1``."""
+    h, w, d_count = cost.shape
+    h, one, zero = _I(h), _I(1), _I(0)
+    prev = np.empty(d_count, cost.dtype)
+    cur = np.empty(d_count, cost.dtype)
+    for x in range(start, stop):
+        _scan(cost, gray, out, zero, _I(x), one, zero, h, p1, p2, gamma, prev, cur)
+        _scan(cost, gray, out, h - one, _I(x), -one, zero, h, p1, p2, gamma, prev, cur)
+
+
+@nb.njit(**_JIT)
+def _diagonals(start, stop, cost, gray, out, p1, p2, gamma, right):  # noqa: ANN001, ANN202
+    """The diagonal paths of lines ``start … stop − 1``, both ways: direction (+1, +1) when ``right`` (one line
+    per start pixel on the top row, x = k, or the left column, y = k − w + 1), else (+1, −1) (the top row or the
+    right column)."""
+    h, w, d_count = cost.shape
+    h, w, one, zero = _I(h), _I(w), _I(1), _I(0)
+    prev = np.empty(d_count, cost.dtype)
+    cur = np.empty(d_count, cost.dtype)
+    for k in range(start, stop):
+        kk = _I(k)
+        if right:
+            y0, x0 = (zero, kk) if kk < w else (kk - w + one, zero)
             n = min(h - y0, w - x0)
-            _scan(cost, gray, out, y0, x0, 1, 1, n, p1, p2, gamma, prev, cur)
-            _scan(cost, gray, out, y0 + n - 1, x0 + n - 1, -1, -1, n, p1, p2, gamma, prev, cur)
-        for k in nb.prange(n_diag):
-            prev = np.empty(d_count, cost.dtype)
-            cur = np.empty(d_count, cost.dtype)
-            # direction (+1, −1): starts on the top row (x = k) or the right column (y = k − w + 1)
-            y0, x0 = (0, k) if k < w else (k - w + 1, w - 1)
-            n = min(h - y0, x0 + 1)
-            _scan(cost, gray, out, y0, x0, 1, -1, n, p1, p2, gamma, prev, cur)
-            _scan(cost, gray, out, y0 + n - 1, x0 - n + 1, -1, 1, n, p1, p2, gamma, prev, cur)
+            _scan(cost, gray, out, y0, x0, one, one, n, p1, p2, gamma, prev, cur)
+            _scan(cost, gray, out, y0 + n - one, x0 + n - one, -one, -one, n, p1, p2, gamma, prev, cur)
+        else:
+            y0, x0 = (zero, kk) if kk < w else (kk - w + one, w - one)
+            n = min(h - y0, x0 + one)
+            _scan(cost, gray, out, y0, x0, one, -one, n, p1, p2, gamma, prev, cur)
+            _scan(cost, gray, out, y0 + n - one, x0 - n + one, -one, one, n, p1, p2, gamma, prev, cur)
+
+
+def aggregate(cost: np.ndarray, gray: np.ndarray, p1: float, p2: float, gamma: float, eight_paths: bool) -> np.ndarray:
+    """Sum of the SGM path costs. ``cost: [H, W, D]`` float32, ``gray: [H, W]`` → ``[H, W, D]``.
+
+    One direction pair at a time, its lines split among threads: the lines of one pass are disjoint, so no two
+    threads write one pixel at once, and every pixel sums its paths in the same order whatever the threads."""
+    h, w, _ = cost.shape
+    out = np.zeros_like(cost)
+    args = (cost, gray, out, float(p1), float(p2), float(gamma))
+    parallel_for(_rows, h, *args)
+    parallel_for(_cols, w, *args)
+    if eight_paths:
+        parallel_for(_diagonals, w + h - 1, *args, True)
+        parallel_for(_diagonals, w + h - 1, *args, False)
     return out
 
 
-@nb.njit(parallel=True, **_JIT)
-def winner(agg):  # noqa: ANN001, ANN201
-    """Best hypothesis per pixel, its parabolic sub-sample offset and uniqueness.
-
-    Returns:
-        ``(index, offset, uniqueness)``: the argmin [H, W] int32; the sub-sample offset in
-        [-0.5, 0.5] [H, W] float32; ``(second − best) / second`` where ``second`` is the
-        lowest cost more than one hypothesis away from the best, in [0, 1] [H, W] float32.
-    """
-    h, w, d_count = agg.shape
-    idx = np.zeros((h, w), np.int32)
-    off = np.zeros((h, w), np.float32)
-    uniq = np.zeros((h, w), np.float32)
-    for y in nb.prange(h):
-        for x in range(w):
+@nb.njit(**_JIT)
+def _winner_rows(start, stop, agg, idx, off, uniq):  # noqa: ANN001, ANN202
+    d_count = agg.shape[2]
+    for y in range(start, stop):
+        for x in range(agg.shape[1]):
             best = agg[y, x, 0]
             k = 0
             for d in range(1, d_count):
@@ -132,4 +149,19 @@ def winner(agg):  # noqa: ANN001, ANN201
                     off[y, x] = min(0.5, max(-0.5, o))
             if second < np.inf and second > 0:
                 uniq[y, x] = (second - best) / second
+
+
+def winner(agg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Best hypothesis per pixel, its parabolic sub-sample offset and uniqueness.
+
+    Returns:
+        ``(index, offset, uniqueness)``: the argmin [H, W] int32; the sub-sample offset in
+        [-0.5, 0.5] [H, W] float32; ``(second − best) / second`` where ``second`` is the
+        lowest cost more than one hypothesis away from the best, in [0, 1] [H, W] float32.
+    """
+    h, w, _ = agg.shape
+    idx = np.zeros((h, w), np.int32)
+    off = np.zeros((h, w), np.float32)
+    uniq = np.zeros((h, w), np.float32)
+    parallel_for(_winner_rows, h, agg, idx, off, uniq)
     return idx, off, uniq

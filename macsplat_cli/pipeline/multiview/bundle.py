@@ -28,13 +28,15 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.optimize import least_squares
 
 from ...errors import NonFiniteError, ShapeError
 from .triangulate import _check_inputs, reprojection_errors
+
+if TYPE_CHECKING:  # scipy is imported where it is used: two-photo runs never load it (start-up time)
+    import scipy.sparse as sp
 
 __all__ = ["BundleConfig", "BundleResult", "bundle_adjust"]
 
@@ -230,6 +232,8 @@ class _Problem:
 
     def jacobian(self, x: np.ndarray) -> sp.csr_matrix:
         """The analytic Jacobian [2O, n_params] (module docstring), as CSR on the structure of :meth:`_structure`."""
+        import scipy.sparse as sp
+
         R, t, K, X, d, _ = self.unpack(x)
         _, Jl = _rodrigues(d)
         Ro = R[self.cam]
@@ -248,12 +252,16 @@ class _Problem:
         return sp.csr_matrix((blocks[self.mask2], self.indices, self.indptr), shape=self.shape)
 
     def sparsity(self) -> sp.csr_matrix:
+        import scipy.sparse as sp
+
         return sp.csr_matrix((np.ones(self.indices.size), self.indices, self.indptr), shape=self.shape)
 
 
 def _solve(prob: _Problem, cfg: BundleConfig):  # noqa: ANN202  (scipy's OptimizeResult)
     """:func:`scipy.optimize.least_squares` on ``prob`` from its start, as the module docstring says."""
     analytic = cfg.jacobian == "analytic"
+    from scipy.optimize import least_squares
+
     return least_squares(
         prob.residuals,
         prob.x0(),

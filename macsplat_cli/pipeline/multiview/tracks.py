@@ -11,8 +11,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from .pairwise import PairOutcome
 
@@ -70,6 +68,9 @@ def build_tracks(outcomes: Sequence[PairOutcome]) -> Tracks:
     if not edges0:
         return Tracks(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)), 0)
     e0, e1 = np.concatenate(edges0), np.concatenate(edges1)
+    from scipy.sparse import coo_matrix  # here, not at the top: two-photo runs never load scipy
+    from scipy.sparse.csgraph import connected_components
+
     graph = coo_matrix((np.ones(len(e0), np.int8), (e0, e1)), shape=(total, total))
     _, label = connected_components(graph, directed=False)
     view = np.empty(total, np.int64)
