@@ -23,6 +23,7 @@ import copy
 import dataclasses
 import logging
 import math
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -350,6 +351,7 @@ def reconstruct(
     config = config or EngineConfig()
     notify = on_stage or (lambda stage, event: None)
     _check_photos(images, config)
+    _compile_kernels_in_background()
     models = _models_for(config, models, notify)
     settings = config.settings()
     pipeline = _build_pipeline(config, settings, models)
@@ -359,6 +361,33 @@ def reconstruct(
     if settings.refine.steps > 0:
         rec = _refine(rec, settings.refine, models, notify, on_refine_step)
     return _compact(rec, settings, config.budget, notify)
+
+
+_COMPILING: list[threading.Thread] = []
+
+
+def _compile_kernels_in_background() -> None:
+    """Once per process: compile the CPU kernels (or load them from Numba's cache) in a daemon thread, in the order
+    the stages need them, so that a first run's compilation overlaps the stages before them instead of adding to
+    them (``benchmarks/first_run.py``). A stage that gets to a kernel first compiles it itself (Numba's lock makes
+    the other wait); a failure here only costs that."""
+    if _COMPILING:
+        return
+
+    def work() -> None:
+        from .pipeline.depth import compile_kernels as depth_kernels
+        from .pipeline.matching import compile_kernels as matching_kernels
+        from .render import compile_kernels as render_kernels
+
+        for compile_kernels in (matching_kernels, depth_kernels, render_kernels):
+            try:
+                compile_kernels()
+            except Exception as e:  # noqa: BLE001 - the stage compiles its kernel on first use anyway
+                logger.debug("background compilation of %s failed: %s", compile_kernels.__module__, e)
+
+    thread = threading.Thread(target=work, name="macsplat-compile", daemon=True)
+    _COMPILING.append(thread)
+    thread.start()
 
 
 def _check_photos(images: Sequence[str | Path], config: EngineConfig) -> None:

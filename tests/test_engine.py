@@ -239,3 +239,35 @@ def test_render_path_renders_the_novel_views_in_one_call(pair: tuple[Path, Path,
     cams = interpolate_cameras(list(rec.cameras(original_size=False)), 3)
     with torch.no_grad():
         assert np.array_equal(views[1], to_uint8(render_camera(rec.gaussians, cams[1]).rgb))
+
+
+_COMPILE_CHECK = r"""
+import json
+import sys
+from macsplat_cli import engine
+from macsplat_cli.pipeline import _match_kernels as m
+from macsplat_cli.pipeline.depth import _patchmatch_kernels as p, _sgm_kernels as s
+from macsplat_cli.render import _kernels as r
+
+rec = engine.reconstruct(sys.argv[1:3])
+engine._COMPILING[0].join()
+engine.render_path(rec, 2)
+kernels = [m._chunks, s._rows, s._cols, s._winner_rows, p._initial_rows, p._refine_rows, r._count_rows,
+           r._fill_rows, r._forward_tiles]
+print(json.dumps({k.__name__: len(k.signatures) for k in kernels}))
+"""
+
+
+def test_background_compilation_compiles_the_signatures_the_stages_use(pair: tuple[Path, Path, Path]) -> None:
+    """The engine's background thread compiles each kernel for exactly the argument types the stages pass: after a
+    reconstruction and a rendered path in a fresh process, every kernel has one signature, not two."""
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    res = subprocess.run([sys.executable, "-c", _COMPILE_CHECK, str(pair[0]), str(pair[1])], capture_output=True,
+                         text=True, env={**os.environ, "PYTHONPATH": str(root)}, timeout=300)  # fmt: skip
+    assert res.returncode == 0, res.stderr[-2000:]
+    counts = json.loads(res.stdout.strip().splitlines()[-1])
+    assert counts and all(n == 1 for n in counts.values()), counts

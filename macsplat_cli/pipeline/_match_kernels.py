@@ -53,3 +53,8 @@ def column_top2_update_reference(sim: torch.Tensor, start: int, top: torch.Tenso
     arg.copy_(torch.where(new, row + start, arg))
     top[1] = torch.where(new, torch.maximum(top[0], second), torch.maximum(top[1], best))
     top[0] = torch.where(new, best, top[0])
+
+
+def compile_kernels() -> None:
+    """Compile (or load from the cache) the kernel for float32 blocks, on an empty range (for a background thread)."""
+    _chunks(0, 0, np.zeros((1, 1), np.float32), 0, np.zeros((2, 1), np.float32), np.zeros(1, np.int64), 1)

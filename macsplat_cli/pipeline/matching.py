@@ -30,6 +30,7 @@ from . import _match_kernels
 from .types import Features, Matches
 
 __all__ = [
+    "compile_kernels",
     "MatchConfig",
     "NearestNeighbours",
     "guided_matches",
@@ -203,3 +204,8 @@ def guided_matches(
     idx0, idx1 = idx0[keep], idx1[keep]
     w = (c0[keep] * c1[keep]).astype(np.float32)
     return Matches(f0.xy[idx0], f1.xy[idx1], w, idx0, idx1, counts={"guided": len(idx0)})
+
+
+def compile_kernels() -> None:
+    """Compile the stage's Numba kernel now (or load it from the cache): for a background thread."""
+    _match_kernels.compile_kernels()

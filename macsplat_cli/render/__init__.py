@@ -7,6 +7,7 @@ gsplat is installed and the Gaussians live on a CUDA device.
 
 from __future__ import annotations
 
+from ._kernels import compile_kernels
 from .rasterize import Backend, RenderOutput, render, render_camera
 
-__all__ = ["Backend", "RenderOutput", "render", "render_camera"]
+__all__ = ["Backend", "RenderOutput", "compile_kernels", "render", "render_camera"]

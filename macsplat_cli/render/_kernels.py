@@ -367,3 +367,18 @@ def _backward_tiles(
             out[r, 5] = v_op
             for ch in range(n_ch):
                 out[r, GRAD_COLS + ch] = v_f[ch]
+
+
+def compile_kernels() -> None:
+    """Compile (or load from the cache) the binning and the forward compositing for float32 Gaussians, on empty
+    ranges: no work, only the compilation, for a background thread (the backward compiles when first needed)."""
+    f1, f2, f3 = np.zeros(1, np.float32), np.zeros((1, 1), np.float32), np.zeros((1, 1, 1), np.float32)
+    r, o, li, last = (
+        np.zeros((1, 4), np.int32),
+        np.zeros(2, np.int64),
+        np.zeros(1, np.int32),
+        np.zeros((1, 1), np.int32),
+    )
+    _count_rows(0, 0, r, 16, 1, o)
+    _fill_rows(0, 0, r, 16, 1, o, li)
+    _forward_tiles(0, 0, f2, f2, f1, f2, r, o, li, 1, 1, 16, f3, f2, last)

@@ -24,6 +24,7 @@ Measured: benchmarks/history/depth.md.
 
 from __future__ import annotations
 
+from . import _patchmatch_kernels, _sgm_kernels
 from .checks import colour_outliers, remove_speckles
 from .config import FILL_RULES, DepthConfig, FilledDepthMap
 from .estimate import estimate_depths
@@ -36,6 +37,7 @@ __all__ = [
     "DepthConfig",
     "FilledDepthMap",
     "colour_outliers",
+    "compile_kernels",
     "depth_edges",
     "estimate_depths",
     "fill_depth",
@@ -46,3 +48,9 @@ __all__ = [
     "remove_speckles",
     "snap_depth_edges",
 ]
+
+
+def compile_kernels() -> None:
+    """Compile the stage's Numba kernels now (or load them from the cache): for a background thread."""
+    _sgm_kernels.compile_kernels()
+    _patchmatch_kernels.compile_kernels()

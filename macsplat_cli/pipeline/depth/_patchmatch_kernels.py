@@ -225,3 +225,11 @@ def _refine_rows(
             gu[y, x] = bu
             gv[y, x] = bv
             cost[y, x] = best
+
+
+def compile_kernels() -> None:
+    """Compile (or load from the cache) the kernels for the types :mod:`.slanted` passes (float64 C arrays), on
+    empty ranges: no work, only the compilation, for a background thread."""
+    a, v, m = np.zeros((1, 1)), np.zeros(3), np.zeros((1, 1), np.bool_)
+    _initial_rows(0, 0, a, a, a, v, a, a, a, 0, 0, a)
+    _refine_rows(0, 0, a, a, a, v, a, a, a, a, m, 0.0, 0.0, 0.0, 0.0, 0, 0, 0, 0, 0)

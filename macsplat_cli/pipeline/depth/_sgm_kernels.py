@@ -165,3 +165,12 @@ def winner(agg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     uniq = np.zeros((h, w), np.float32)
     parallel_for(_winner_rows, h, agg, idx, off, uniq)
     return idx, off, uniq
+
+
+def compile_kernels() -> None:
+    """Compile (or load from the cache) every kernel here for the argument types the sweep passes (float32 C arrays,
+    float64 penalties), on empty ranges: no work, only the compilation, for a background thread."""
+    c, g, i = np.zeros((1, 1, 1), np.float32), np.zeros((1, 1), np.float32), np.zeros((1, 1), np.int32)
+    _rows(0, 0, c, g, c, 0.0, 0.0, 0.0)
+    _cols(0, 0, c, g, c, 0.0, 0.0, 0.0)
+    _winner_rows(0, 0, c, i, g, g)
