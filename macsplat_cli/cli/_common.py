@@ -6,7 +6,7 @@ import contextlib
 import logging
 import os
 import warnings
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
@@ -155,7 +155,8 @@ def command_context(ctx: typer.Context, verbose: bool, quiet: bool) -> Iterator[
 class StageProgress:
     """One line per stage: a spinner while it runs, then a tick and its wall time."""
 
-    def __init__(self, disabled: bool) -> None:
+    def __init__(self, disabled: bool, also: Callable[[str, str], None] | None = None) -> None:
+        """``also``: called with every event too (``reconstruct --profile``)."""
         from rich.progress import Progress, SpinnerColumn, TextColumn
         from rich.text import Text
 
@@ -171,6 +172,7 @@ class StageProgress:
         )  # fmt: skip
         self.tasks: dict[str, Any] = {}
         self.started: dict[str, float] = {}
+        self.also = also
 
     def __enter__(self) -> StageProgress:
         self.progress.start()
@@ -193,6 +195,9 @@ class StageProgress:
 
     def event(self, stage: str, kind: str) -> None:
         import time
+
+        if self.also is not None:
+            self.also(stage, kind)
 
         if kind == "start":
             self.started[stage] = time.perf_counter()

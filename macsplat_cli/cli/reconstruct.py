@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
@@ -169,6 +170,9 @@ def reconstruct_command(
     view_port: Annotated[
         int, typer.Option("--view-port", min=0, max=65535, help="With --view: the port on 127.0.0.1 (0: a free one).")
     ] = 8080,
+    profile: Annotated[
+        bool, typer.Option("--profile", help="Then print each stage's seconds and memory (a table on stderr).")
+    ] = False,
     verbose: VerboseOpt = False,
     quiet: QuietOpt = False,
 ) -> None:
@@ -189,6 +193,7 @@ def reconstruct_command(
 
       macsplat reconstruct a.jpg b.jpg -o scene.ply --backend neural --weights mast3r.pth
     """
+    started = time.perf_counter()
     with command_context(ctx, verbose, quiet) as state:
         if view:  # the viewer's extra and its port are checked before the work, not after it
             from .view import check_viewer
@@ -202,7 +207,7 @@ def reconstruct_command(
         )  # fmt: skip
         _reconstruct(
             expand_photos(images), config, output=output, cameras=cameras, renders=renders, num_renders=num_renders,
-            video=video, report=report, json_out=json_out, quiet=state.quiet,
+            video=video, report=report, json_out=json_out, quiet=state.quiet, profile_from=started if profile else None,
         )  # fmt: skip
         if view:
             from .view import view_files
@@ -313,8 +318,10 @@ def _render_names(renders: Path | None, num_renders: int) -> list[Path]:
 def _reconstruct(
     images: list[Path], config: EngineConfig, *, output: Path, cameras: Path | None, renders: Path | None,
     num_renders: int, video: Path | None, report: Path | None, json_out: bool, quiet: bool,
+    profile_from: float | None = None,
 ) -> None:  # fmt: skip
-    """Options → engine → files: the outputs are checked, the engine runs, then the files are written."""
+    """Options → engine → files: the outputs are checked, the engine runs, then the files are written. With
+    ``profile_from`` (the command's start, ``perf_counter``), a table of each stage's time and memory follows."""
     from ..engine import reconstruct
 
     config.validate()
@@ -326,7 +333,10 @@ def _reconstruct(
               ("--weights", n.weights), ("--gaussian-head", n.gaussian_head), ("--dino", n.dino),
               ("--fusion", n.fusion), ("--lpips-weights", config.refine.lpips_weights)]  # fmt: skip
     _check_outputs(output, cameras, renders, num_renders, video, report, inputs)
-    with StageProgress(disabled=quiet) as progress:
+    from ._profile import StageProfile
+
+    profile = StageProfile(started=profile_from) if profile_from is not None else None
+    with StageProgress(disabled=quiet, also=profile.event if profile else None) as progress:
         steps = config.refine.steps
         result = reconstruct(
             images,
@@ -346,6 +356,8 @@ def _reconstruct(
         out_console.print_json(json.dumps(doc))
     if not quiet:
         _summary(doc, written)
+    if profile is not None:
+        err_console.print(profile.table())
 
 
 def _write_outputs(
