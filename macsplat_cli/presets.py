@@ -161,6 +161,17 @@ class StageSettings:
     neural: NeuralConfig | None = None
 
 
+def refine_steps(quality: Quality) -> int:
+    """``reconstruct``'s refinement when ``--refine`` is not given: ``best`` refines for
+    :data:`~.pipeline.refine.AUTO_STEPS` steps (about 6–8 s a 512-px pair on two cores for +0.1 to +1.1 dB on
+    held-out views of the development pairs, ``benchmarks/history/refine.md``); ``fast`` and ``balanced`` do not
+    (it would more than double their time)."""
+    from .pipeline.refine import AUTO_STEPS
+
+    check_quality(quality)
+    return AUTO_STEPS if quality == "best" else 0
+
+
 def configure(
     quality: Quality,
     backend: Backend,

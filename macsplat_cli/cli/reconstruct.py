@@ -101,7 +101,8 @@ RefineOpt = Annotated[
     typer.Option(
         "--refine",
         metavar="STEPS",
-        help="Refine the Gaussians on the two photos (+ MAC loss) for up to STEPS steps; 'auto' = 50. 0 = off.",
+        help="Refine the Gaussians on the photos (+ MAC loss) for STEPS steps; 'auto' = 25; 0 = off "
+        "[default: auto with --quality best, else 0].",
     ),
 ]
 RefineScaleOpt = Annotated[
@@ -153,7 +154,7 @@ def reconstruct_command(
     conf_threshold: ConfThresholdOpt = None,
     accept_low_confidence: AcceptLowConfidenceOpt = False,
     far_layer: FarLayerOpt = True,
-    refine: RefineOpt = "0",
+    refine: RefineOpt = "",
     refine_scale: RefineScaleOpt = 2,
     no_mac: NoMacOpt = False,
     lpips_weights: LpipsWeightsOpt = None,
@@ -222,7 +223,7 @@ def reconstruct_config(
     *, size: int | None = None, quality: str = "balanced", budget: int | None = None, intrinsics: Path | None = None,
     poses: Path | None = None, focal: float | None = None, conf_threshold: float | None = None,
     accept_low_confidence: bool = False,
-    far_layer: bool = True, refine: str = "0", refine_scale: int = 2, no_mac: bool = False,
+    far_layer: bool = True, refine: str = "", refine_scale: int = 2, no_mac: bool = False,
     lpips_weights: Path | None = None, backend: str = "classical", weights: Path | None = None,
     dino: Path | None = None, fusion: Path | None = None, gaussian_head: Path | None = None, device: str = "cpu",
     precision: str = "fp32",
@@ -258,9 +259,21 @@ def reconstruct_config(
         conf_threshold=conf_threshold,
         neural=neural_options(weights, gaussian_head, dino, fusion, device, precision),
         refine=RefineConfig(
-            steps=_refine_steps(refine), scale=refine_scale, use_mac=not no_mac, lpips_weights=lpips_weights
-        ),
+            steps=_refine_steps(refine) if refine.strip() else _preset_refine_steps(quality),
+            scale=refine_scale,
+            use_mac=not no_mac,
+            lpips_weights=lpips_weights,
+        ),  # fmt: skip
     )
+
+
+def _preset_refine_steps(quality: str) -> int:
+    """``--refine`` not given: the preset's (:func:`~macsplat_cli.presets.refine_steps`); an unknown quality gets 0
+    here and its error from ``EngineConfig.validate``."""
+    from ..presets import QUALITIES, refine_steps
+
+    q = quality.strip().lower()
+    return refine_steps(q) if q in QUALITIES else 0  # type: ignore[arg-type]
 
 
 def _refine_steps(text: str) -> int:

@@ -16,6 +16,7 @@ early once the loss plateaus (relative improvement of its running mean below
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -41,7 +42,7 @@ __all__ = ["AUTO_STEPS", "RefineConfig", "RefineResult", "check_scale", "refine"
 
 logger = logging.getLogger(__name__)
 
-AUTO_STEPS = 50
+AUTO_STEPS = 25
 """``--refine auto``: the elbow of time against held-out error (benchmarks/history/refine.md)."""
 RefineStep = Callable[[int, dict[str, float]], None]
 
@@ -69,6 +70,8 @@ class RefineConfig:
     lr_quats: learning rate of the quaternions.
     lr_opacity: learning rate of the opacity logits.
     lr_sh: learning rate of the SH coefficients.
+    lr_scale: every learning rate above times this.
+    lr_final: the learning rates fall (cosine) to this fraction of their start by the last step (1: constant).
     plateau_window: steps over which the improvement is measured.
     plateau_tol: stop when the running-mean loss improved by less than this fraction.
     min_steps: never stop before this many steps.
@@ -91,6 +94,8 @@ class RefineConfig:
     plateau_window: int = 25
     plateau_tol: float = 2e-3
     min_steps: int = 25
+    lr_scale: float = 1.5
+    lr_final: float = 0.3
 
 
 @dataclass
@@ -162,15 +167,28 @@ def _optimizer(params: list[GaussianMaps], cfg: RefineConfig) -> torch.optim.Ada
     """Adam over the five parameter maps; the means' rate scaled by the median scene depth."""
     depth = torch.cat([m.means[..., 2][m.valid_mask()] for m in params]).detach()
     scene = float(depth.median()) if depth.numel() else 1.0
-    return torch.optim.Adam(
+    s = cfg.lr_scale
+    opt = torch.optim.Adam(
         [
-            {"params": [m.means for m in params], "lr": cfg.lr_means * scene},
-            {"params": [m.log_scales for m in params], "lr": cfg.lr_log_scales},
-            {"params": [m.quats for m in params], "lr": cfg.lr_quats},
-            {"params": [m.opacity_logits for m in params], "lr": cfg.lr_opacity},
-            {"params": [m.sh for m in params], "lr": cfg.lr_sh},
+            {"params": [m.means for m in params], "lr": s * cfg.lr_means * scene},
+            {"params": [m.log_scales for m in params], "lr": s * cfg.lr_log_scales},
+            {"params": [m.quats for m in params], "lr": s * cfg.lr_quats},
+            {"params": [m.opacity_logits for m in params], "lr": s * cfg.lr_opacity},
+            {"params": [m.sh for m in params], "lr": s * cfg.lr_sh},
         ]
     )
+    for group in opt.param_groups:
+        group["initial_lr"] = group["lr"]
+    return opt
+
+
+def _set_learning_rates(opt: torch.optim.Adam, step: int, cfg: RefineConfig) -> None:
+    """Cosine from the initial rates (step 1) to ``lr_final`` of them (step ``cfg.steps``)."""
+    if cfg.lr_final == 1.0 or cfg.steps <= 1:
+        return
+    f = cfg.lr_final + (1.0 - cfg.lr_final) * 0.5 * (1.0 + math.cos(math.pi * (step - 1) / (cfg.steps - 1)))
+    for group in opt.param_groups:
+        group["lr"] = group["initial_lr"] * f
 
 
 def _pair_matches(geometry: TwoViewGeometry, depths: list[DepthMap] | None, cfg: RefineConfig) -> list[MatchSet]:
@@ -289,6 +307,7 @@ def refine(
     step = 0
     for step in range(1, cfg.steps + 1):
         opt.zero_grad(set_to_none=True)
+        _set_learning_rates(opt, step, cfg)
         loss, terms = _step_loss(params, targets, matches, cfg, lpips)
         loss.backward()
         opt.step()

@@ -89,14 +89,23 @@ def test_conf_threshold_is_the_matching_tau_of_either_backend() -> None:
 
 
 def test_refine_flags_make_one_refine_config() -> None:
-    assert _config("--refine", "auto").refine == RefineConfig(steps=AUTO_STEPS) and AUTO_STEPS == 50
-    assert _config("--refine", "AUTO").refine.steps == 50
+    assert _config("--refine", "auto").refine == RefineConfig(steps=AUTO_STEPS) and AUTO_STEPS == 25
+    assert _config("--refine", "AUTO").refine.steps == 25
     r = _config("--refine", "7", "--refine-scale", "1", "--no-mac", "--lpips-weights", "vgg").refine
     assert r == RefineConfig(steps=7, scale=1, use_mac=False, lpips_weights=Path("vgg"))
     assert _settings("--refine", "7").refine.steps == 7
     for bad in ("abc", "-2", "1.5"):
         with pytest.raises(InputError, match="--refine"):
             _config("--refine", bad)
+
+
+def test_refine_defaults_to_the_presets() -> None:
+    """Without --refine: ``best`` refines (auto), ``fast`` and ``balanced`` do not; --refine 0 turns it off."""
+    assert _config("--quality", "best").refine.steps == AUTO_STEPS
+    assert _config("--quality", "balanced").refine.steps == 0 and _config().refine.steps == 0
+    assert _config("--quality", "fast").refine.steps == 0
+    assert _config("--quality", "best", "--refine", "0").refine.steps == 0
+    assert _settings("--quality", "best").refine.steps == AUTO_STEPS
 
 
 def test_intrinsics_far_layer_and_low_confidence_reach_the_pipeline() -> None:
