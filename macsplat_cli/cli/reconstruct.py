@@ -7,7 +7,7 @@ import logging
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
@@ -20,7 +20,6 @@ from ._common import (
     check_no_clobber,
     command_context,
     err_console,
-    escape,
     expand_photos,
     out_console,
 )
@@ -368,7 +367,9 @@ def _reconstruct(
     if json_out:
         out_console.print_json(json.dumps(doc))
     if not quiet:
-        _summary(doc, written)
+        from ._summary import summary
+
+        summary(doc, written)
     if profile is not None:
         err_console.print(profile.table())
 
@@ -404,102 +405,3 @@ def _write_outputs(
             written["video"] = video
         progress.event("renders", "end")
     return written, n_written
-
-
-_TIERS = {
-    "wide": "the wide-baseline tier's matches",
-    "wide+plane-tiebreak": "the wide-baseline tier: the plane's two poses told apart by the scene off it",
-}
-
-
-def _matches_line(report: dict[str, Any]) -> str:
-    """The match counts of each step, and which descriptors gave them when it was not the first ones."""
-    line = " → ".join(f"{v} {k}" for k, v in report["matches"].items())
-    tier = _TIERS.get(str(report.get("pose", {}).get("descriptors_tier")))
-    if tier is None and report.get("fallback_used"):
-        tier = "the affine-simulated fallback's matches"
-    return line if tier is None else f"{line} ({tier})"
-
-
-def _photos_line(mv: dict[str, Any]) -> str:
-    """More than two photos: how many registered, from which pair, and each photo left out with its reason."""
-    photos = mv["photos"]
-    ok = sum(p["registered"] for p in photos)
-    accepted = sum(p["accepted"] for p in mv["pairs"])
-    rms = mv.get("reprojection_rms_px")
-    line = (
-        f"{ok} of {len(photos)} registered ({accepted} of {len(mv['pairs'])} pairs accepted, first pair "
-        f"{' + '.join(mv['init_pair'] or [])}, {mv['points']:,} points, reprojection RMS "
-        f"{rms:.2f} px)"
-        if rms is not None
-        else f"{ok} of {len(photos)} registered"
-    )
-    left = [f"\n  left out: {p['name']}: {p['reason']}" for p in photos if not p["registered"]]
-    return line + "".join(left)
-
-
-def _summary(report: dict[str, Any], written: dict[str, Any]) -> None:
-    from rich.table import Table
-
-    t = Table(title="macsplat reconstruct", show_header=False, title_justify="left")
-    t.add_column(style="bold")
-    t.add_column()
-    imgs = report["images"]
-    t.add_row(
-        "images",
-        "\n".join(
-            f"{escape(Path(p).name)}: {i['original_size'][0]}x{i['original_size'][1]} → {i['working_size'][0]}x"
-            f"{i['working_size'][1]}, focal {i['focal_px_working']:.0f} px ({escape(str(i['intrinsics_source']))})"
-            for p, i in zip(report["inputs"], imgs)
-        ),
-    )
-    mv = report.get("multiview")
-    if mv is not None:
-        t.add_row("photos", escape(_photos_line(mv)))
-    t.add_row("keypoints", " / ".join(str(k) for k in report["keypoints"]))
-    t.add_row("matches" if mv is None else "first pair", escape(_matches_line(report)))
-    pose = report["pose"]
-
-    def num(key: str, fmt: str) -> str:
-        v = pose.get(key)
-        return format(v, fmt) if isinstance(v, (int, float)) else "n/a"
-
-    line = (
-        f"rotation {num('rotation_deg', '.1f')}°, median parallax {num('median_parallax_deg', '.1f')}°, "
-        f"inlier ratio {num('inlier_ratio', '.2f')}, median epipolar error {num('median_sampson_px', '.2f')} px"
-    )
-    if "translation_norm" in pose:
-        line += f", baseline {num('translation_norm', '.3f')} m"
-    t.add_row("pose", escape(line))
-    if pose.get("confidence") is not None or pose.get("doubts"):
-        line = f"confidence {num('confidence', '.2f')}"
-        ev = pose.get("evidence") or {}
-        if isinstance(ev.get("log10_nfa"), (int, float)):  # what the acceptance weighed (issue 25)
-            line += (
-                f", {ev['inliers']} of {ev['putative_matches']} putative matches ({ev['tier']} tier), "
-                f"log10 NFA {ev['log10_nfa']:.0f}, rotation ±{3 * ev['rotation_sigma_deg']:.2f}° (3σ)"
-            )
-        if pose.get("accepted_low_confidence"):
-            line = (
-                "[yellow]warning: the pose may be wrong (written with --accept-low-confidence): "
-                + escape("; ".join(str(d) for d in pose.get("doubts", [])))
-                + "[/]"
-            )
-        else:
-            line = escape(line)
-        t.add_row("pose check", line)
-    if "neural" in report:
-        n = report["neural"]
-        t.add_row("backend", escape(f"neural ({n['device']}): forward pass {n['forward_s']:.2f} s"))
-        t.add_row("fusion", escape(str(n["fusion"]["detail"])))
-    t.add_row("depth", " / ".join(f"{100 * c:.0f} %" for c in report["depth_coverage"]) + " of pixels")
-    line = f"{report.get('gaussians_written', report['gaussians']):,}"
-    if "compact" in report:
-        c = report["compact"]
-        changed = [f"{s['name']} −{s['before'] - s['after']:,}" for s in c["steps"] if s["before"] != s["after"]]
-        line += f" of {c['before']:,} ({c['preset']}: {', '.join(changed) or 'nothing to remove'})"
-    t.add_row("Gaussians", escape(line))
-    times = report["times_s"]
-    t.add_row("time", escape(", ".join(f"{k} {v:.2f} s" for k, v in times.items())))
-    t.add_row("wrote", "\n".join(escape(str(v)) for v in written.values()))
-    err_console.print(t)

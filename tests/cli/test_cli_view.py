@@ -23,6 +23,12 @@ from support.viewer_scene import PlaneScene, write_plane_scene
 ROOT = Path(__file__).resolve().parents[2]
 
 
+def _sigint_default() -> None:
+    """In the child: Ctrl-C's default handling, even when this test runs where SIGINT is ignored (a background job
+    of a non-interactive shell ignores it, and an ignored signal stays ignored across exec)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.fixture
 def plane_scene(tmp_path: Path) -> PlaneScene:
     return write_plane_scene(tmp_path)
@@ -78,7 +84,7 @@ def test_view_serves_until_ctrl_c(plane_scene: PlaneScene) -> None:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen(
         [sys.executable, "-m", "macsplat_cli", "view", str(plane_scene.ply), "--port", "0", "--no-open"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, preexec_fn=_sigint_default,
     )  # fmt: skip
     try:
         url = proc.stdout.readline().strip()  # type: ignore[union-attr]

@@ -274,7 +274,7 @@ def test_cli_exits_0_and_prints_a_summary(cli_run: CliRun) -> None:
 
 def test_summary_names_the_descriptors_that_gave_the_pose(cli_run: CliRun) -> None:
     """The summary's matches row names the fallback or the wide-baseline tier when their matches were kept."""
-    from macsplat_cli.cli.reconstruct import _matches_line
+    from macsplat_cli.cli._summary import _matches_line
 
     report = json.loads((cli_run.folder / "report.json").read_text())
     plain = _matches_line(report)

@@ -32,6 +32,14 @@ pytestmark = pytest.mark.skipif(
     CHROMIUM is None, reason="no Chromium on PATH (.ci/run installs Debian's chromium with apt-get where it can)"
 )
 ROOT = Path(__file__).resolve().parents[2]
+
+
+def _sigint_default() -> None:
+    """In the child: Ctrl-C's default handling, even when this test runs where SIGINT is ignored (a background job
+    of a non-interactive shell ignores it, and an ignored signal stays ignored across exec)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 W, H = 800, 600
 
 
@@ -67,7 +75,7 @@ def served(plane_scene: PlaneScene):  # noqa: ANN201 - generator fixture
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen(
         [sys.executable, "-m", "macsplat_cli", "view", str(plane_scene.ply), "--port", "0", "--no-open"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, preexec_fn=_sigint_default,
     )  # fmt: skip
     url = proc.stdout.readline().strip()  # type: ignore[union-attr]
     try:
