@@ -20,7 +20,7 @@ from types import FrameType
 
 import typer
 
-from . import bench, eval, export_onnx, reconstruct, render, train, view  # noqa: F401 - registers the commands
+from . import bench, eval, eval_merge, export_onnx, reconstruct, render, train, view  # noqa: F401 - registers the commands
 from ._app import app
 from ._common import err_console, escape
 
@@ -70,6 +70,8 @@ def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else list(argv)
     if not args:
         args = ["--help"]
+    if args[:2] == ["eval", "merge"]:  # a sub-command of eval on the command line, its own command in Typer
+        args = ["eval-merge", *args[2:]]
     with _sigterm_as_interrupt() as terminated:
         code = _main(args)
         if terminated.received and code == EXIT_INTERRUPTED:

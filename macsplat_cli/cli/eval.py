@@ -327,6 +327,10 @@ def eval_command(
         bool, typer.Option("--no-baselines", help="Skip the point-cloud and copy baselines.")
     ] = False,
     json_out: Annotated[bool, typer.Option("--json", help="Print the summary as JSON on stdout.")] = False,
+    shard: Annotated[
+        str | None,
+        typer.Option("--shard", metavar="I/N", help="Only every N-th case from the I-th (0-based); then 'eval merge'."),
+    ] = None,
     weights: WeightsOpt = None,
     gaussian_head: GaussianHeadOpt = None,
     dino: DinoOpt = None,
@@ -365,7 +369,7 @@ def eval_command(
             refine=refine, max_pairs=max_pairs, max_targets=max_targets, split_by=split_by.value,
             assignment=assignment.value, seed=seed, context_views=context_views,
             splatt3r_compatible=splatt3r_compatible, baselines=not no_baselines, json_out=json_out, quiet=state.quiet,
-            lpips_weights=lpips_weights,
+            lpips_weights=lpips_weights, shard=shard,
             engine=engine_config(
                 backend, conf_threshold=conf_threshold, refine=refine, quality=quality,
                 neural=neural_options(weights, gaussian_head, dino, fusion, device, precision),
@@ -379,6 +383,7 @@ def _eval(
     refine: int, max_pairs: int,
     max_targets: int, split_by: str, assignment: str, seed: int, splatt3r_compatible: bool, baselines: bool,
     json_out: bool, quiet: bool, engine: EngineConfig, lpips_weights: Path | None = None, context_views: int = 2,
+    shard: str | None = None,
 ) -> None:  # fmt: skip
     import time
 
@@ -387,11 +392,13 @@ def _eval(
     from ..evaluation import EvalConfig, ReconstructSettings, ResultWriter, make_reconstructor
     from ..evaluation.contexts import check_context_views
     from ..evaluation.results import BASELINES
+    from ..evaluation.shards import parse_shard, shard_cases, shard_record
     from ..evaluation.splits import parse_splits
     from ..evaluation.summary import summarize
     from ..lpips import load_lpips
 
     parse_splits(split)  # bad options fail before any work
+    shard_at = parse_shard(shard) if shard is not None else None
     check_context_views(context_views, backends=[engine.backend])
     ResultWriter.check(out)  # and outputs that cannot be written (a link, a device, a read-only folder)
     check_no_clobber(
@@ -420,6 +427,9 @@ def _eval(
                     "assignment": assignment, "split_by": split_by, "backend": backend, "refine": refine,
                     "conf_threshold": conf_threshold, "context_views": context_views},
     }  # fmt: skip
+    if shard_at is not None:  # the run's cases and this shard's place in it, for eval merge
+        extra["shard"] = shard_record(sel.cases, *shard_at)
+        sel.cases = shard_cases(sel.cases, *shard_at)
     writer = ResultWriter(out, extra)
     writer.write_coverage(sel.coverage, {s.name: [f.name for f in s.frames] for s in dataset.scenes})
     if not quiet:

@@ -92,9 +92,13 @@ class ResultWriter:
     FILES = ("cases.jsonl", "results.json", "results.csv", "summary.md")
     """The files written into the folder (besides ``coverage/``)."""
 
-    def __init__(self, folder: str | Path, extra: dict[str, Any] | None = None) -> None:
+    def __init__(
+        self, folder: str | Path, extra: dict[str, Any] | None = None, *, config_json: dict[str, Any] | None = None
+    ) -> None:
+        """``config_json``: the ``config`` to write instead of the run's own (a merge of shards writes theirs)."""
         self.folder = Path(folder)
         self.extra = extra or {}
+        self.config_json = config_json
         self.check(self.folder)
         try:
             self.folder.mkdir(parents=True, exist_ok=True)
@@ -139,7 +143,9 @@ class ResultWriter:
             "layout": run.layout,
             "method": run.method,
             "context_views": run.context_views,
-            "config": to_jsonable({**asdict(replace(run.config, lpips=None)), "lpips": run.config.lpips is not None}),
+            "config": self.config_json
+            if self.config_json is not None
+            else to_jsonable({**asdict(replace(run.config, lpips=None)), "lpips": run.config.lpips is not None}),
             **to_jsonable(self.extra),
             "complete": run.complete,
             "cases_total": len(run.cases),
