@@ -21,10 +21,10 @@ from types import FrameType
 import typer
 
 from . import bench, eval, eval_merge, export_onnx, reconstruct, render, train, view  # noqa: F401 - registers the commands
-from ._app import app
+from ._app import app, invocation, set_invocation
 from ._common import err_console, escape
 
-__all__ = ["EXIT_INTERRUPTED", "EXIT_TERMINATED", "app", "main", "run"]
+__all__ = ["EXIT_INTERRUPTED", "EXIT_TERMINATED", "app", "invocation", "main", "run"]
 
 EXIT_INTERRUPTED = 130
 """Exit code after Ctrl-C (SIGINT): 128 + 2."""
@@ -72,6 +72,7 @@ def main(argv: list[str] | None = None) -> int:
         args = ["--help"]
     if args[:2] == ["eval", "merge"]:  # a sub-command of eval on the command line, its own command in Typer
         args = ["eval-merge", *args[2:]]
+    set_invocation(args)
     with _sigterm_as_interrupt() as terminated:
         code = _main(args)
         if terminated.received and code == EXIT_INTERRUPTED:

@@ -39,3 +39,15 @@ def _root(
 ) -> None:
     """Two photos in, a 3D Gaussian splat scene out (MAC-Splat)."""
     ctx.obj = State(verbose=verbose, quiet=quiet)
+
+_INVOCATION: list[str] = []
+
+
+def set_invocation(args: list[str]) -> None:
+    """Remember the arguments of the command running in this process (``eval --jobs`` starts its shards with them)."""
+    _INVOCATION[:] = [str(a) for a in args]
+
+
+def invocation() -> list[str]:
+    """The arguments :func:`macsplat_cli.cli.main` was given (the command name first)."""
+    return list(_INVOCATION)

@@ -331,6 +331,7 @@ def eval_command(
         str | None,
         typer.Option("--shard", metavar="I/N", help="Only every N-th case from the I-th (0-based); then 'eval merge'."),
     ] = None,
+    jobs: Annotated[int, typer.Option("--jobs", min=1, help="Run as this many processes (shards), then merge.")] = 1,
     weights: WeightsOpt = None,
     gaussian_head: GaussianHeadOpt = None,
     dino: DinoOpt = None,
@@ -362,6 +363,9 @@ def eval_command(
       macsplat eval --data co3d_apple/ --intrinsics estimated --max-pairs 3
     """
     with command_context(ctx, verbose, quiet) as state:
+        if jobs > 1:
+            _eval_jobs(jobs, out, shard, state.quiet, json_out, splatt3r_compatible)
+            return
         _eval(
             data=data, split=split, backend=backend, out=out, layout=layout.value, scannetpp_split=scannetpp_split,
             scenes=scenes, cases_file=cases, size=size, eval_size=eval_size, intrinsics=intrinsics.value,
@@ -455,6 +459,26 @@ def _eval(
             f"{len(run.errors)} of {len(run.results)} case(s) could not be evaluated because of bad input "
             f"(first: {first.case.key}: {first.error}); the other cases' results are in {out}"
         )
+
+
+def _eval_jobs(jobs: int, out: Path, shard: str | None, quiet: bool, json_out: bool, splatt3r_compatible: bool) -> None:
+    """``--jobs N``: :func:`.eval_jobs.run_jobs`, then the summary as one process prints it."""
+    from .._json import to_jsonable
+    from ..errors import InputError
+    from ..evaluation import ResultWriter
+    from ..evaluation.summary import summarize
+    from .eval_jobs import run_jobs
+
+    if shard is not None:
+        raise InputError("--jobs and --shard: give one (--jobs N runs the N shards itself)")
+    ResultWriter.check(out)
+    run, seconds = run_jobs(jobs, out, quiet=quiet)
+    rows = summarize(run)  # type: ignore[arg-type]
+    writer = ResultWriter(out)
+    if not quiet:
+        _print_summary(run, rows, writer, splatt3r_compatible, seconds)
+    if json_out:
+        out_console.print_json(json.dumps({"summary": to_jsonable(rows), "results": str(writer.json_path)}))
 
 
 def _print_summary(run: Any, rows: Any, writer: Any, splatt3r_compatible: bool, seconds: float) -> None:

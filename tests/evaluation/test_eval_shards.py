@@ -91,3 +91,35 @@ def test_merge_refuses_missing_repeated_or_foreign_shards(
     for why, (folders, message) in cases.items():
         code, _, err = run_captured(capsys, "eval", "merge", *folders, "--out", tmp_path / "m")
         assert code == 2 and message in err, (why, err)
+
+
+def _close(a, b, path: str = "") -> list[str]:  # noqa: ANN001 - JSON
+    """Where two JSON documents differ beyond float rounding (torch reductions round differently with other thread
+    counts); their paths."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        if a.keys() != b.keys():
+            return [f"{path}: keys {sorted(a.keys() ^ b.keys())}"]
+        return [d for k in a for d in _close(a[k], b[k], f"{path}/{k}")]
+    if isinstance(a, list) and isinstance(b, list):
+        if len(a) != len(b):
+            return [f"{path}: {len(a)} != {len(b)} items"]
+        return [d for i, (x, y) in enumerate(zip(a, b)) for d in _close(x, y, f"{path}/{i}")]
+    if isinstance(a, float) and isinstance(b, float):
+        return [] if abs(a - b) <= 1e-6 * max(1.0, abs(a), abs(b)) else [f"{path}: {a} != {b}"]
+    return [] if a == b else [f"{path}: {a!r} != {b!r}"]
+
+
+def test_jobs_runs_the_shards_as_processes_and_merges_them(capsys, plane: Path, tmp_path: Path) -> None:  # noqa: ANN001
+    """--jobs 2 (two real processes, the classical backend) writes what one process writes."""
+    common = ["eval", "--data", plane, "--split", "close,medium", "--max-pairs", "1", "--max-targets", "1",
+              "--no-baselines", "--size", "128", "-q"]  # fmt: skip
+    code, _, err = run_captured(capsys, *common, "--out", tmp_path / "one")
+    assert code == 0, err
+    code, _, err = run_captured(capsys, *common, "--jobs", "2", "--out", tmp_path / "jobs")
+    assert code == 0, err
+    one = json.loads((tmp_path / "one" / "results.json").read_text())
+    jobs = json.loads((tmp_path / "jobs" / "results.json").read_text())
+    assert len(jobs.pop("merged_from")) == 2 and one["cases_total"] >= 2
+    assert _close(_timeless(jobs), _timeless(one)) == []
+    code, _, err = run_captured(capsys, *common, "--jobs", "2", "--shard", "0/2", "--out", tmp_path / "x")
+    assert code == 2 and "--jobs and --shard" in err
