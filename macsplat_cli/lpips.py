@@ -104,6 +104,24 @@ class LPIPS(nn.Module):
             total = total + lin((a - b).square()).mean(dim=(1, 2, 3))
         return total[0] if single else total
 
+    def spatial(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """The distance per pixel (LPIPS's ``spatial=True``): each tap's map upsampled bilinearly (half-pixel
+        centres) to the image size, summed over the taps; its mean is :meth:`forward`'s distance when the image
+        sides are multiples of 16. ``pred``, ``target``: [H, W, 3] in [0, 1] → [H, W]"""
+        if pred.shape != target.shape or pred.dim() != 3:
+            raise InputError(f"LPIPS: give two [H, W, 3] images, got {tuple(pred.shape)} and {tuple(target.shape)}")
+        h, w = pred.shape[:2]
+        dtype = self.shift.dtype
+        x = torch.cat([pred.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None]]).to(dtype) * 2 - 1
+        x = (x - self.shift) / self.scale
+        total = torch.zeros(1, 1, h, w, dtype=dtype, device=x.device)
+        for feat, lin in zip(self._taps(x), self.lins):
+            f = feat / (feat.square().sum(1, keepdim=True).sqrt() + 1e-10)
+            a, b = f.chunk(2)
+            total = total + nn.functional.interpolate(lin((a - b).square()), size=(h, w), mode="bilinear",
+                                                      align_corners=False)  # fmt: skip
+        return total[0, 0]
+
 
 def _read(path: Path) -> dict[str, torch.Tensor]:
     log_sha256(path, logger, "LPIPS weights")

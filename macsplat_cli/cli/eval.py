@@ -251,8 +251,9 @@ def summary_tables(rows: list[dict[str, Any]], title: str) -> list[Any]:
         ("split", "split", None), ("method", "method", None), ("cases", "cases", None), ("targets", "targets", None),
         ("psnr", "PSNR", 2), ("ssim", "SSIM", 3), ("psnr_masked", "PSNR mask", 2), ("ssim_masked", "SSIM mask", 3),
     ]  # fmt: skip
+    views.append(("psnr_masked_rgbsum", "PSNR mask ΣRGB", 2))  # Σ over channels ÷ mask pixels (Splatt3R's)
     if any(r.get("lpips") is not None and r["lpips"] == r["lpips"] for r in rows):  # NaN when not measured
-        views.append(("lpips", "LPIPS", 3))
+        views += [("lpips", "LPIPS", 3), ("lpips_masked", "LPIPS mask", 3)]
     geometry = [
         ("split", "split", None), ("ok", "ok/cases", None), ("rotation_error_deg", "rot °", 2),
         ("translation_error_deg", "t °", 2), ("auc", "AUC@5/10/20", None), ("focal_error_pct", "focal %", 1),

@@ -18,8 +18,13 @@ conventions), pose AUC, depth and focal errors.
   sample covariance in SSIM (here population statistics: a factor 121/120 on the
   variances).
 
-**LPIPS** is not computed: it needs VGG-16 and LPIPS weights, which macsplat does not ship
-(and ``torchvision``/``lpips`` are not dependencies).
+In both conventions ``psnr_masked_rgbsum`` is the PSNR of the squared error summed over the three channels and
+divided by the mask pixels (Splatt3R's masked PSNR; ``psnr_masked`` − 4.77 dB in the standard one), so that the two
+formulas stand side by side.
+
+**LPIPS** (with user-supplied VGG and LPIPS weights, ``--lpips-weights``): ``lpips`` over the whole image (over the
+masked images in the Splatt3R convention) and ``lpips_masked``, the per-pixel LPIPS of the masked images averaged
+over the mask (the MAC-Splat release's masked LPIPS).
 
 **Pose AUC** (:func:`pose_auc`): the pose error of a pair is ``max(rotation error,
 translation-direction error)``; a failed reconstruction counts as 180°. AUC@τ is the area
@@ -127,13 +132,7 @@ def image_metrics(
     t = _arr(target)
     out: dict[str, float] = {}
     if lpips is not None:
-        lp, lt = p, t
-        if splatt3r and mask is not None:
-            mm = _arr(mask).astype(bool)[..., None]
-            lp, lt = p * mm, t * mm
-        with torch.no_grad():
-            out["lpips"] = float(lpips(torch.from_numpy(np.ascontiguousarray(lp, np.float32)),
-                                       torch.from_numpy(np.ascontiguousarray(lt, np.float32))))  # fmt: skip
+        out.update(_lpips(p, t, mask, lpips, splatt3r))
     if mask is None:
         out["psnr"], out["ssim"] = psnr(p, t), ssim_means(p, t)[0]
         return out
@@ -148,6 +147,31 @@ def image_metrics(
     else:
         out["psnr"], out["psnr_masked"] = psnr(p, t), psnr(p, t, m)
         out["ssim"], out["ssim_masked"] = ssim_means(p, t, m)
+    out["psnr_masked_rgbsum"] = splatt3r_psnr(p, t, m, average_over_mask=True)
+    return out
+
+
+def _t(a: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(a, np.float32))
+
+
+def _lpips(
+    p: np.ndarray, t: np.ndarray, mask: np.ndarray | None, lpips: torch.nn.Module, splatt3r: bool
+) -> dict[str, float]:
+    """``lpips`` over the whole image (over the masked images in the Splatt3R convention) and, with a mask,
+    ``lpips_masked``: the per-pixel LPIPS of the masked images averaged over the mask (the MAC-Splat release's
+    masked LPIPS)."""
+    out: dict[str, float] = {}
+    m = _arr(mask).astype(bool) if mask is not None else None
+    with torch.no_grad():
+        if m is not None:
+            pm, tm = p * m[..., None], t * m[..., None]
+            out["lpips"] = float(lpips(_t(pm), _t(tm))) if splatt3r else float(lpips(_t(p), _t(t)))
+            if m.any() and hasattr(lpips, "spatial"):
+                dmap = lpips.spatial(_t(pm), _t(tm)).double().numpy()
+                out["lpips_masked"] = float(dmap[m].mean())
+        else:
+            out["lpips"] = float(lpips(_t(p), _t(t)))
     return out
 
 

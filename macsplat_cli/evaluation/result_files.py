@@ -22,7 +22,8 @@ __all__ = ["CSV_COLUMNS", "ResultWriter", "csv_rows"]
 
 CSV_COLUMNS = (
     "scene", "split", "context_0", "context_1", "target", "target_name", "method", "status",
-    "psnr", "ssim", "psnr_masked", "ssim_masked", "lpips", "mask_fraction", "alpha_coverage",
+    "psnr", "ssim", "psnr_masked", "ssim_masked", "lpips", "mask_fraction", "alpha_coverage", "psnr_masked_rgbsum",
+    "lpips_masked",
     "rotation_error_deg", "translation_error_deg", "pose_error_deg", "focal_error_pct_0", "focal_error_pct_1",
     "depth_absrel", "depth_delta1", "time_s", "context_views", "contexts", "registered", "error",
 )  # fmt: skip

@@ -37,7 +37,7 @@ def known_median(values: Sequence[float | None]) -> float:
     return float(np.median(v)) if len(v) else math.nan
 
 
-_IMAGE_KEYS = ("psnr", "ssim", "psnr_masked", "ssim_masked", "lpips")
+_IMAGE_KEYS = ("psnr", "ssim", "psnr_masked", "ssim_masked", "psnr_masked_rgbsum", "lpips", "lpips_masked")
 
 
 def _image_summary(results: Sequence[CaseResult], method: str) -> dict[str, float]:
