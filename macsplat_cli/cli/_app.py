@@ -40,6 +40,7 @@ def _root(
     """Two photos in, a 3D Gaussian splat scene out (MAC-Splat)."""
     ctx.obj = State(verbose=verbose, quiet=quiet)
 
+
 _INVOCATION: list[str] = []
 
 

@@ -12,6 +12,7 @@ import typer
 
 from ._app import app
 from ._common import QuietOpt, VerboseOpt, check_no_clobber, command_context, err_console, escape, out_console
+from ._eval_report import print_summary
 from ._options import DeviceOpt, DinoOpt, FusionOpt, GaussianHeadOpt, PrecisionOpt, WeightsOpt, neural_options
 
 if TYPE_CHECKING:
@@ -129,6 +130,8 @@ def select_cases(
     seed: int,
     quiet: bool,
     context_views: int = 2,
+    every: int = 1,
+    exclude: tuple[str, ...] = (),
 ) -> CaseSelection:
     """Test cases from a file or from the splits, with a spinner while coverage is computed; with more than two
     context views, each case's pair extended (:mod:`~macsplat_cli.evaluation.contexts`)."""
@@ -141,7 +144,7 @@ def select_cases(
 
     splits = parse_splits(split)
     if cases_file is not None:
-        sel = load_cases(cases_file, dataset)
+        sel = load_cases(cases_file, dataset, every=every, exclude=exclude)
         if split.strip().lower() != "all":
             sel.cases = [c for c in sel.cases if c.split in splits]
         sel.cases, left = extend_cases(dataset, sel.cases, context_views)
@@ -240,55 +243,6 @@ def run_with_progress(
         raise
 
 
-def summary_tables(rows: list[dict[str, Any]], title: str) -> list[Any]:
-    """The summary rows as two Rich tables: novel views (every method), then geometry and time (the backend)."""
-    from rich import box
-    from rich.table import Table
-
-    from ..evaluation.summary import format_cell
-
-    views = [
-        ("split", "split", None), ("method", "method", None), ("cases", "cases", None), ("targets", "targets", None),
-        ("psnr", "PSNR", 2), ("ssim", "SSIM", 3), ("psnr_masked", "PSNR mask", 2), ("ssim_masked", "SSIM mask", 3),
-    ]  # fmt: skip
-    views.append(("psnr_masked_rgbsum", "PSNR mask ΣRGB", 2))  # Σ over channels ÷ mask pixels (Splatt3R's)
-    if any(r.get("lpips") is not None and r["lpips"] == r["lpips"] for r in rows):  # NaN when not measured
-        views += [("lpips", "LPIPS", 3), ("lpips_masked", "LPIPS mask", 3)]
-    geometry = [
-        ("split", "split", None), ("ok", "ok/cases", None), ("rotation_error_deg", "rot °", 2),
-        ("translation_error_deg", "t °", 2), ("auc", "AUC@5/10/20", None), ("focal_error_pct", "focal %", 1),
-        ("depth_absrel", "AbsRel", 3), ("depth_delta1", "δ<1.25", 3), ("time_s", "time s", 2),
-    ]  # fmt: skip
-    n_views = max((r.get("context_views", 2) for r in rows), default=2)
-    if n_views > 2:  # more than two contexts: how many of them were registered, on average
-        geometry.append(("registered", f"reg./{n_views}", 2))
-    backend_rows = [
-        {
-            **r,
-            "ok": f"{r['cases'] - r['failed']}/{r['cases']}",
-            "auc": " ".join(format_cell(r.get(f"auc@{t}"), 2) for t in (5, 10, 20)),
-        }
-        for r in rows
-        if "failed" in r
-    ]
-    tables = []
-    for cols, subset, sub in ((views, rows, "novel views"), (geometry, backend_rows, "pose, depth, time")):
-        method = f" ({backend_rows[0]['method']})" if sub != "novel views" and backend_rows else ""
-        table = Table(
-            title=escape(f"{title}: {sub}{method}"),
-            title_justify="left",
-            box=box.SIMPLE_HEAD,
-            pad_edge=False,
-            collapse_padding=True,
-        )
-        for key, head, _ in cols:
-            table.add_column(head, justify="left" if key in ("split", "method") else "right", no_wrap=True)
-        for row in subset:
-            table.add_row(*[escape(format_cell(row.get(key), digits or 0)) for key, _, digits in cols])
-        tables.append(table)
-    return tables
-
-
 @app.command("eval")
 def eval_command(
     ctx: typer.Context,
@@ -333,6 +287,10 @@ def eval_command(
         typer.Option("--shard", metavar="I/N", help="Only every N-th case from the I-th (0-based); then 'eval merge'."),
     ] = None,
     jobs: Annotated[int, typer.Option("--jobs", min=1, help="Run as this many processes (shards), then merge.")] = 1,
+    protocol: Annotated[
+        str | None,
+        typer.Option("--protocol", metavar="NAME", help="A paper's protocol: mac-splat (see models/mac-splat.md)."),
+    ] = None,
     weights: WeightsOpt = None,
     gaussian_head: GaussianHeadOpt = None,
     dino: DinoOpt = None,
@@ -374,7 +332,7 @@ def eval_command(
             refine=refine, max_pairs=max_pairs, max_targets=max_targets, split_by=split_by.value,
             assignment=assignment.value, seed=seed, context_views=context_views,
             splatt3r_compatible=splatt3r_compatible, baselines=not no_baselines, json_out=json_out, quiet=state.quiet,
-            lpips_weights=lpips_weights, shard=shard,
+            lpips_weights=lpips_weights, shard=shard, protocol=protocol,
             engine=engine_config(
                 backend, conf_threshold=conf_threshold, refine=refine, quality=quality,
                 neural=neural_options(weights, gaussian_head, dino, fusion, device, precision),
@@ -388,7 +346,7 @@ def _eval(
     refine: int, max_pairs: int,
     max_targets: int, split_by: str, assignment: str, seed: int, splatt3r_compatible: bool, baselines: bool,
     json_out: bool, quiet: bool, engine: EngineConfig, lpips_weights: Path | None = None, context_views: int = 2,
-    shard: str | None = None,
+    shard: str | None = None, protocol: str | None = None,
 ) -> None:  # fmt: skip
     import time
 
@@ -404,6 +362,9 @@ def _eval(
 
     parse_splits(split)  # bad options fail before any work
     shard_at = parse_shard(shard) if shard is not None else None
+    proto = _protocol(protocol, cases_file)
+    if proto is not None:
+        scannetpp_split = proto.scannetpp_split
     check_context_views(context_views, backends=[engine.backend])
     ResultWriter.check(out)  # and outputs that cannot be written (a link, a device, a read-only folder)
     check_no_clobber(
@@ -416,6 +377,7 @@ def _eval(
     sel = select_cases(
         dataset, cases_file=cases_file, split=split, split_by=split_by, assignment=assignment,
         max_pairs=max_pairs, max_targets=max_targets, seed=seed, quiet=quiet, context_views=context_views,
+        every=proto.every_nth_row if proto else 1, exclude=proto.exclude_scenes if proto else (),
     )  # fmt: skip
     config = EvalConfig(
         settings=ReconstructSettings(size=size, intrinsics=intrinsics),  # type: ignore[arg-type]
@@ -430,7 +392,7 @@ def _eval(
         "candidates": sel.candidates,
         "options": {"split": split, "max_pairs": max_pairs, "max_targets": max_targets, "seed": seed,
                     "assignment": assignment, "split_by": split_by, "backend": backend, "refine": refine,
-                    "conf_threshold": conf_threshold, "context_views": context_views},
+                    "conf_threshold": conf_threshold, "context_views": context_views, "protocol": protocol},
     }  # fmt: skip
     if shard_at is not None:  # the run's cases and this shard's place in it, for eval merge
         extra["shard"] = shard_record(sel.cases, *shard_at)
@@ -451,7 +413,7 @@ def _eval(
     run = run_with_progress(dataset, sel.cases, reconstructor, config, writer, quiet)
     rows = summarize(run)
     if not quiet:
-        _print_summary(run, rows, writer, splatt3r_compatible, time.perf_counter() - t0)
+        print_summary(run, rows, writer, splatt3r_compatible, time.perf_counter() - t0)
     if json_out:
         out_console.print_json(json.dumps({"summary": to_jsonable(rows), "results": str(writer.json_path)}))
     if run.errors:
@@ -460,6 +422,19 @@ def _eval(
             f"{len(run.errors)} of {len(run.results)} case(s) could not be evaluated because of bad input "
             f"(first: {first.case.key}: {first.error}); the other cases' results are in {out}"
         )
+
+
+def _protocol(name: str | None, cases_file: Path | None) -> Any:
+    """``--protocol``: the :class:`~macsplat_cli.evaluation.protocols.EvalProtocol`, its needs checked; None without."""
+    from ..errors import InputError
+    from ..evaluation.protocols import get_protocol
+
+    if name is None:
+        return None
+    proto = get_protocol(name)
+    if proto.needs_cases and cases_file is None:
+        raise InputError(f"--protocol {proto.name} evaluates published test sets: give --cases, {proto.cases_hint}")
+    return proto
 
 
 def _eval_jobs(jobs: int, out: Path, shard: str | None, quiet: bool, json_out: bool, splatt3r_compatible: bool) -> None:
@@ -477,20 +452,6 @@ def _eval_jobs(jobs: int, out: Path, shard: str | None, quiet: bool, json_out: b
     rows = summarize(run)  # type: ignore[arg-type]
     writer = ResultWriter(out)
     if not quiet:
-        _print_summary(run, rows, writer, splatt3r_compatible, seconds)
+        print_summary(run, rows, writer, splatt3r_compatible, seconds)
     if json_out:
         out_console.print_json(json.dumps({"summary": to_jsonable(rows), "results": str(writer.json_path)}))
-
-
-def _print_summary(run: Any, rows: Any, writer: Any, splatt3r_compatible: bool, seconds: float) -> None:
-    """The summary tables, the failed cases and the files written, on stderr."""
-    mode = "Splatt3R-compatible metrics" if splatt3r_compatible else "standard metrics"
-    for table in summary_tables(rows, f"macsplat eval ({mode})"):
-        err_console.print(table)
-    for r in run.failures:
-        failed = escape(f"{r.case.key}: {r.error}")
-        err_console.print(f"[yellow]failed[/] {failed}", highlight=False, soft_wrap=True)
-    files = f"{writer.json_path}, {writer.csv_path}, {writer.jsonl}"
-    err_console.print(
-        escape(f"{len(run.results)} case(s) in {seconds:.1f} s; wrote {files}"), highlight=False, soft_wrap=True
-    )

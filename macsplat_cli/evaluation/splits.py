@@ -385,7 +385,9 @@ def _check_case(dataset: EvalDataset, case: EvalCase, where: str) -> EvalCase:
     return case
 
 
-def load_cases(path: str | os.PathLike[str], dataset: EvalDataset) -> CaseSelection:
+def load_cases(
+    path: str | os.PathLike[str], dataset: EvalDataset, *, every: int = 1, exclude: Sequence[str] = ()
+) -> CaseSelection:
     """Read explicit test cases.
 
     Accepted: ``{"cases": [...]}`` or a list of ``{"scene", "split", "context": [c0, c1],
@@ -396,14 +398,25 @@ def load_cases(path: str | os.PathLike[str], dataset: EvalDataset) -> CaseSelect
     merged). Indices refer to the scene's frames in loading order (for ScanNet++: the
     filtered train list, as in Splatt3R).
 
+    ``path`` may be a folder: its ``test_set_*.json`` files (else its ``*.json``), in name order, one after the
+    other. ``every``: only every ``every``-th row of each file (the MAC-Splat release evaluates every 10th);
+    ``exclude``: scenes whose rows are dropped (before they are checked against the data set).
+
     Raises:
         DatasetError: unreadable file, unknown scene, index out of range.
     """
     p = Path(path)
+    if p.is_dir():
+        files = sorted(p.glob("test_set_*.json")) or sorted(p.glob("*.json"))
+        if not files:
+            raise DatasetError(f"{p}: no test_set_*.json or other .json cases file in this folder")
+        parts = [load_cases(f, dataset, every=every, exclude=exclude) for f in files]
+        return CaseSelection([c for part in parts for c in part.cases], modes=parts[0].modes)
     doc = read_json_file(p, DatasetError, "a JSON cases file")
     rows = doc.get("cases") if isinstance(doc, dict) else doc
     if not isinstance(rows, list) or not rows:
         raise DatasetError(f"{p}: expected a non-empty list of cases")
+    rows = rows[:: max(1, every)]
     m = re.search(r"test_set_([0-9.]+)_([0-9.]+)", p.name)
     file_split = "file"
     if m:
@@ -427,6 +440,8 @@ def load_cases(path: str | os.PathLike[str], dataset: EvalDataset) -> CaseSelect
             ) from None
         if key[0] == "None":
             raise DatasetError(f"{where}: no scene given, and the data set has {len(dataset.scenes)} scenes")
+        if key[0] in exclude:
+            continue
         merged.setdefault(key, [])
         merged[key] += [t for t in targets if t not in merged[key]]
     cases = [

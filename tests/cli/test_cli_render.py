@@ -262,11 +262,13 @@ def test_version_and_help_of_every_command(capsys) -> None:  # noqa: ANN001
     assert code == 0 and out.strip() == f"macsplat {__version__}"
     code, out, _ = run(capsys, "--help")
     assert code == 0
-    commands = [c.name for c in app.registered_commands]
+    commands = [c.name for c in app.registered_commands if not c.hidden]
     assert commands and all(name in out for name in commands)
     for name in commands:
         code, out, _ = run(capsys, name, "--help")
         assert code == 0 and "Usage" in out, name
+    code, out, _ = run(capsys, "eval", "merge", "--help")  # eval's sub-command (registered as eval-merge, hidden)
+    assert code == 0 and "Usage" in out and "SHARD..." in out
 
 
 def test_console_script_runs(tmp_path: Path, scene) -> None:  # noqa: ANN001
