@@ -379,49 +379,61 @@ def _eval(
         max_pairs=max_pairs, max_targets=max_targets, seed=seed, quiet=quiet, context_views=context_views,
         every=proto.every_nth_row if proto else 1, exclude=proto.exclude_scenes if proto else (),
     )  # fmt: skip
-    config = EvalConfig(
-        settings=ReconstructSettings(size=size, intrinsics=intrinsics),  # type: ignore[arg-type]
-        eval_size=eval_size,
-        splatt3r_compatible=splatt3r_compatible,
-        baselines=BASELINES if baselines else (),
-        lpips=lpips,
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="macsplat-crop-") as crops:
+        config = EvalConfig(
+            settings=ReconstructSettings(size=size, intrinsics=intrinsics),  # type: ignore[arg-type]
+            eval_size=eval_size,
+            splatt3r_compatible=splatt3r_compatible,
+            baselines=BASELINES if baselines else (),
+            lpips=lpips,
+        )
+        extra = {
+            "command": "macsplat eval",
+            "split_modes": sel.modes,
+            "candidates": sel.candidates,
+            "options": {"split": split, "max_pairs": max_pairs, "max_targets": max_targets, "seed": seed,
+                        "assignment": assignment, "split_by": split_by, "backend": backend, "refine": refine,
+                        "conf_threshold": conf_threshold, "context_views": context_views, "protocol": protocol},
+        }  # fmt: skip
+        if shard_at is not None:  # the run's cases and this shard's place in it, for eval merge
+            extra["shard"] = shard_record(sel.cases, *shard_at)
+            sel.cases = shard_cases(sel.cases, *shard_at)
+        if proto is not None and proto.crop is not None:  # the protocol's frames: cropped copies of this shard's
+            from ..evaluation.crop import crop_frames
+
+            dataset = crop_frames(dataset, sel.cases, proto.crop, Path(crops))
+        writer = ResultWriter(out, extra)
+        writer.write_coverage(sel.coverage, {s.name: [f.name for f in s.frames] for s in dataset.scenes})
+        if not quiet:
+            _announce(sel.cases, dataset, context_views, reconstructor.name)
+        t0 = time.perf_counter()
+        run = run_with_progress(dataset, sel.cases, reconstructor, config, writer, quiet)
+        rows = summarize(run)
+        if not quiet:
+            print_summary(run, rows, writer, splatt3r_compatible, time.perf_counter() - t0)
+        if json_out:
+            out_console.print_json(json.dumps({"summary": to_jsonable(rows), "results": str(writer.json_path)}))
+        if run.errors:
+            first = run.errors[0]
+            raise DatasetError(
+                f"{len(run.errors)} of {len(run.results)} case(s) could not be evaluated because of bad input "
+                f"(first: {first.case.key}: {first.error}); the other cases' results are in {out}"
+            )
+
+
+def _announce(cases: list[Any], dataset: Any, context_views: int, backend: str) -> None:
+    """What the run is about to do, on one line."""
+    err_console.print(
+        escape(
+            f"{len(cases)} case(s) from {len(dataset.scenes)} scene(s) ({dataset.layout}), "
+            f"{sum(len(c.targets) for c in cases)} target view(s)"
+            + (f", {context_views} context views each" if context_views > 2 else "")
+            + f"; backend {backend}"
+        ),
+        highlight=False,
     )
-    extra = {
-        "command": "macsplat eval",
-        "split_modes": sel.modes,
-        "candidates": sel.candidates,
-        "options": {"split": split, "max_pairs": max_pairs, "max_targets": max_targets, "seed": seed,
-                    "assignment": assignment, "split_by": split_by, "backend": backend, "refine": refine,
-                    "conf_threshold": conf_threshold, "context_views": context_views, "protocol": protocol},
-    }  # fmt: skip
-    if shard_at is not None:  # the run's cases and this shard's place in it, for eval merge
-        extra["shard"] = shard_record(sel.cases, *shard_at)
-        sel.cases = shard_cases(sel.cases, *shard_at)
-    writer = ResultWriter(out, extra)
-    writer.write_coverage(sel.coverage, {s.name: [f.name for f in s.frames] for s in dataset.scenes})
-    if not quiet:
-        err_console.print(
-            escape(
-                f"{len(sel.cases)} case(s) from {len(dataset.scenes)} scene(s) ({dataset.layout}), "
-                f"{sum(len(c.targets) for c in sel.cases)} target view(s)"
-                + (f", {context_views} context views each" if context_views > 2 else "")
-                + f"; backend {reconstructor.name}"
-            ),
-            highlight=False,
-        )
-    t0 = time.perf_counter()
-    run = run_with_progress(dataset, sel.cases, reconstructor, config, writer, quiet)
-    rows = summarize(run)
-    if not quiet:
-        print_summary(run, rows, writer, splatt3r_compatible, time.perf_counter() - t0)
-    if json_out:
-        out_console.print_json(json.dumps({"summary": to_jsonable(rows), "results": str(writer.json_path)}))
-    if run.errors:
-        first = run.errors[0]
-        raise DatasetError(
-            f"{len(run.errors)} of {len(run.results)} case(s) could not be evaluated because of bad input "
-            f"(first: {first.case.key}: {first.error}); the other cases' results are in {out}"
-        )
 
 
 def _protocol(name: str | None, cases_file: Path | None) -> Any:

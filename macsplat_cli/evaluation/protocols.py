@@ -2,9 +2,9 @@
 
 ``mac-splat``: the MAC-Splat authors' released evaluation (``models/mac-splat.md``): ScanNet++ ``nvs_sem_val``
 without the scene the release excludes, the published Splatt3R coverage test sets at (0.9, 0.7, 0.5, 0.3) given as
-``--cases`` (a folder of ``test_set_*.json``), every 10th row of each. The metrics are every run's (PSNR over the
-mask in both formulas, SSIM over the mask as a true mean, LPIPS over the mask beside the whole-image one); the
-release's 512×512 crop centred on the principal point is not applied yet (macsplat keeps the aspect).
+``--cases`` (a folder of ``test_set_*.json``), every 10th row of each, every frame cropped 512×512 about its principal
+point (:mod:`.crop`). The metrics are every run's (PSNR over the mask in both formulas, SSIM over the mask as a true
+mean, LPIPS over the mask beside the whole-image one).
 """
 
 from __future__ import annotations
@@ -25,6 +25,8 @@ class EvalProtocol:
     scannetpp_split: the ScanNet++ split file it evaluates.
     needs_cases: the protocol's cases come from files the user gives (``--cases``).
     cases_hint: what ``--cases`` should be, for the error when it is missing.
+    crop: the frames cropped square about the principal point and rescaled to this side (:mod:`.crop`); None: as
+        they are.
     """
 
     name: str
@@ -33,6 +35,7 @@ class EvalProtocol:
     scannetpp_split: str = "nvs_sem_val"
     needs_cases: bool = False
     cases_hint: str = ""
+    crop: int | None = None
 
 
 PROTOCOLS: dict[str, EvalProtocol] = {
@@ -44,6 +47,7 @@ PROTOCOLS: dict[str, EvalProtocol] = {
         needs_cases=True,
         cases_hint="a folder with Splatt3R's test_set_0.9_0.9.json, test_set_0.7_0.7.json, test_set_0.5_0.5.json "
         "and test_set_0.3_0.3.json",
+        crop=512,  # the release's 512x512 crop centred on the principal point
     ),
 }
 

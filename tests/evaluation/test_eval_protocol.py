@@ -66,3 +66,49 @@ def test_cli_protocol_needs_the_test_sets_and_runs(capsys, plane: Path, tmp_path
     assert doc["options"]["protocol"] == "mac-splat" and sum(len(c["targets"]) for c in doc["cases"]) == 6
     row = doc["summary"][0]
     assert {"psnr_masked", "psnr_masked_rgbsum", "ssim_masked"} <= row.keys()
+
+
+def test_crop_about_the_principal_point_keeps_the_projection() -> None:
+    """A 3-D point projects to the same place in the crop as in the photo carried through the crop's steps."""
+    import numpy as np
+
+    from macsplat_cli.cameras import Camera
+    from macsplat_cli.evaluation.crop import crop_camera
+
+    K = np.array([[700.0, 0.0, 410.3], [0.0, 690.0, 300.8], [0.0, 0.0, 1.0]])
+    cam = Camera("c", 800, 560, K, np.eye(4))
+    crop, (x0, y0, x1, y1), (rw, rh), (ox, oy) = crop_camera(cam, 512)
+    assert (crop.width, crop.height) == (512, 512)
+    assert (x0 + x1) / 2 == pytest.approx(410.3, abs=1.0) and (y0 + y1) / 2 == pytest.approx(300.8, abs=1.0)
+    assert min(rw, rh) == 512
+    X = np.array([0.3, -0.2, 2.5])
+    u = K @ X / X[2]
+    expected = ((u[0] - x0) * rw / (x1 - x0) - ox, (u[1] - y0) * rh / (y1 - y0) - oy)
+    v = crop.K @ X / X[2]
+    assert v[:2] == pytest.approx(expected, abs=1e-9)
+    assert crop.K[0, 2] == pytest.approx(256.0, abs=1.0) and crop.K[1, 2] == pytest.approx(256.0, abs=1.0)
+
+
+def test_cli_protocol_crops_the_frames(capsys, plane: Path, tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
+    """The oracle reconstructs from the frames it is given: with the protocol they are 512x512 crops."""
+    seen: list[set[int]] = []
+
+    class Spy:
+        name = "oracle"
+
+        def __getattr__(self, attr: str):  # noqa: ANN204 - everything else is the oracle's
+            return getattr(ORACLE, attr)
+
+        def __call__(self, scene, case, settings):  # noqa: ANN001, ANN204
+            seen.append(
+                {d for i in case.context for d in (scene.frames[i].camera.width, scene.frames[i].camera.height)}
+            )
+            return ORACLE(scene, case, settings)
+
+    monkeypatch.setitem(BACKENDS, "oracle", lambda config, models=None: Spy())
+    scene = load_dataset(plane, "auto").scenes[0].name
+    folder = _test_sets(tmp_path / "sets", scene)
+    code, _, err = run_captured(capsys, "eval", "--data", plane, "--protocol", "mac-splat", "--cases", folder,
+                                "--backend", "oracle", "--out", tmp_path / "r", "-q")  # fmt: skip
+    assert code == 0, err
+    assert seen and all(s == {512} for s in seen)
