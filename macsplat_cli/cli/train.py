@@ -82,6 +82,14 @@ def train_command(
     no_dino: Annotated[bool, typer.Option("--no-dino", help="No DINOv3 fusion (ablation).")] = False,
     no_mac: Annotated[bool, typer.Option("--no-mac", help="Photometric loss only (ablation).")] = False,
     mac_weight: Annotated[float, typer.Option("--mac-weight", help="λ of the MAC loss.")] = 0.25,
+    mac_weighting: Annotated[
+        str,
+        typer.Option(
+            "--mac-weighting",
+            metavar="c0c1p|c0c1",
+            help="Match weights: c0·c1·p (the fusion learns through p) or the paper's c0·c1.",
+        ),
+    ] = "c0c1p",
     lpips_weights: Annotated[
         Path | None, typer.Option("--lpips-weights", metavar="PATH", help="LPIPS VGG weights (else D-SSIM).")
     ] = None,
@@ -118,6 +126,7 @@ def train_command(
             coverage=_range(coverage, "--coverage"), val_every=val_every, val_pairs=val_pairs, ckpt_every=ckpt_every,
             seed=seed, workers=workers, model=model.strip().lower(), init=init.strip().lower(), weights=weights,
             gaussian_head=gaussian_head, dino=dino, no_dino=no_dino, mac_weight=0.0 if no_mac else mac_weight,
+            mac_weighting=mac_weighting.strip().lower(),
             lpips_weights=lpips_weights, train_backbone=train_backbone, device=device.strip().lower(),
             resume=resume, force=force, quiet=state.quiet,
         )  # fmt: skip
@@ -129,7 +138,7 @@ def _train(
     targets: int, coverage: tuple[float, float], val_every: int, val_pairs: int, ckpt_every: int, seed: int,
     workers: int, model: str, init: str, weights: Path | None, gaussian_head: Path | None, dino: Path | None,
     no_dino: bool, mac_weight: float, lpips_weights: Path | None, train_backbone: bool, device: str, resume: bool,
-    force: bool, quiet: bool,
+    force: bool, quiet: bool, mac_weighting: str = "c0c1p",
 ) -> None:  # fmt: skip
     from ..neural.predictor import resolve_device
     from ..training.config import TrainConfig
@@ -140,11 +149,18 @@ def _train(
     from ..training.trainer import Trainer
 
     _check_options(model, init, weights is not None or gaussian_head is not None, resume, force, mac_weight)
+    if mac_weighting not in ("c0c1p", "c0c1"):
+        from ..errors import InputError
+
+        raise InputError(f"--mac-weighting {mac_weighting!r}: use c0c1p or c0c1")
+    if mac_weighting == "c0c1" and not no_dino and mac_weight > 0:
+        logger.info("--mac-weighting c0c1: match weights c0·c1 (the paper's); the fusion module gets no gradient "
+                    "from MAC, and no other term trains it")  # fmt: skip
     resolve_device(device)
     config = TrainConfig(
         out=out, steps=steps, batch=batch, accumulate=accumulate, lr=lr, weight_decay=weight_decay, warmup=warmup,
         grad_clip=grad_clip, precision=precision, val_every=val_every, ckpt_every=ckpt_every, seed=seed,
-        workers=workers, device=device, loss=LossConfig(mac_weight=mac_weight),
+        workers=workers, device=device, loss=LossConfig(mac_weight=mac_weight, mac_weighting=mac_weighting),
     )  # fmt: skip
     config.validate()
     from .._atomic import check_writable

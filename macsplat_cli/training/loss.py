@@ -56,6 +56,8 @@ class LossConfig:
         conf_threshold: τ of the confidence gate on ``c0·c1``.
         match_temperature: temperature of the dual softmax giving each match's probability.
         descriptor_gradient: let the MAC weights' gradient reach the fused descriptors.
+        mac_weighting: ``"c0c1p"`` (default: w = c0·c1·p, the dual-softmax probability p gives the fusion module
+            its gradient) or ``"c0c1"`` (the paper's plain w = c0·c1: the fusion learns nothing from MAC).
         geometry_weight: weight of a point-map regression term (:func:`point_regression`) for a backbone
             trained from scratch (``--init random``), whose random point maps give the head nothing to render.
         background: colour behind the Gaussians.
@@ -69,6 +71,7 @@ class LossConfig:
     conf_threshold: float = 1.0
     match_temperature: float = 0.1
     descriptor_gradient: bool = True
+    mac_weighting: str = "c0c1p"
     geometry_weight: float = 0.0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
@@ -120,7 +123,8 @@ def sample_matches(
         desc_conf: their confidences (≥ 0). [2, H, W]
 
     Returns:
-        ``xy0 [M, 2]``, ``xy1 [M, 2]`` (pixel centres at +0.5) and ``w [M]`` = ``c0·c1·p`` (module docstring).
+        ``xy0 [M, 2]``, ``xy1 [M, 2]`` (pixel centres at +0.5) and ``w [M]`` = ``c0·c1·p`` (module docstring), or
+        ``c0·c1`` with ``mac_weighting="c0c1"``.
     """
     h, w = desc.shape[1:3]
     idx, grid = sample_descriptors(
@@ -134,11 +138,11 @@ def sample_matches(
     m = match_features(feats[0], feats[1], MatchConfig(conf_threshold=config.conf_threshold, ratio_confidence=False))
     i0 = torch.from_numpy(m.idx0).to(desc.device)
     i1 = torch.from_numpy(m.idx1).to(desc.device)
-    sim = flat[0] @ flat[1].T / config.match_temperature  # [N, N]
-    p = (sim.softmax(0) * sim.softmax(1))[i0, i1]  # dual softmax of each match
-    if not config.descriptor_gradient:
-        p = p.detach()
-    weight = conf[0, i0].detach() * conf[1, i1].detach() * p
+    weight = conf[0, i0].detach() * conf[1, i1].detach()
+    if config.mac_weighting == "c0c1p":
+        sim = flat[0] @ flat[1].T / config.match_temperature  # [N, N]
+        p = (sim.softmax(0) * sim.softmax(1))[i0, i1]  # dual softmax of each match
+        weight = weight * (p if config.descriptor_gradient else p.detach())
     return torch.from_numpy(m.xy0).float(), torch.from_numpy(m.xy1).float(), weight
 
 
