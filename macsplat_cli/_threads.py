@@ -74,6 +74,16 @@ class _Done:
 _POOL = _Pool()
 
 
+def _after_fork_in_child() -> None:
+    """A forked child (a data-loader worker) inherits the pool's state but none of its threads: start afresh."""
+    global _POOL
+    _POOL = _Pool()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_after_fork_in_child)
+
+
 class _Batch:
     """The chunks of one :func:`parallel_for` call, taken one at a time by whoever is free (the caller too)."""
 

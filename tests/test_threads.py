@@ -56,3 +56,21 @@ def test_kernel_threads_follows_numba_num_threads(monkeypatch: pytest.MonkeyPatc
     assert _threads.kernel_threads() == 3
     monkeypatch.delenv("NUMBA_NUM_THREADS")
     assert _threads.kernel_threads() >= 1
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="no fork on this platform")
+def test_a_forked_child_gets_its_own_workers(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The parent's workers do not exist in a forked child (a data-loader worker): the child starts its own."""
+    import multiprocessing as mp
+
+    monkeypatch.setenv("NUMBA_NUM_THREADS", "2")
+    _threads.parallel_for(lambda a, b: None, 4)  # the parent's pool has a worker now
+    ctx = mp.get_context("fork")
+    with ctx.Pool(1) as pool:
+        assert pool.apply_async(_child_sum, (100,)).get(timeout=30) == 100
+
+
+def _child_sum(n: int) -> int:
+    out = np.zeros(n, int)
+    _threads.parallel_for(_mark, n, out, [], chunks_per_thread=4)
+    return int(out.sum())
