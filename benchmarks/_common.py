@@ -78,3 +78,22 @@ def write_json(path: Path, obj: Any, *, indent: int = 2, default: Callable[[Any]
 def progress(message: str) -> None:
     """A line on stderr (the tables go to stdout)."""
     print(message, file=sys.stderr, flush=True)
+
+
+def render_scene_params(n: int, seed: int = 0):  # noqa: ANN201 - torch imported lazily
+    """The rasterizer benchmarks' scene (``bench_render.py``, ``gsplat_parity.py``, ``projection_peer.py``): ``n``
+    Gaussians uniform in [-1, 1]² × [2, 4] before an identity camera, scales 0.005–0.03, random rotations, opacity
+    logits U(-2, 2), SH degree 0 — ``(generator, [means, log_scales, quats, opacity_logits, sh])``, the generator
+    left where the scene's draws end (the callers draw their target image from it)."""
+    import torch
+
+    g = torch.Generator().manual_seed(seed)
+    means = torch.rand(n, 3, generator=g) * 2.0 - torch.tensor([1.0, 1.0, -2.0])
+    params = [
+        means,
+        torch.log(torch.rand(n, 3, generator=g) * 0.025 + 0.005),
+        torch.randn(n, 4, generator=g),
+        torch.rand(n, generator=g) * 4 - 2,
+        torch.randn(n, 1, 3, generator=g) * 0.5,
+    ]
+    return g, params

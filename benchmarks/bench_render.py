@@ -18,7 +18,7 @@ import subprocess
 import sys
 import time
 
-from benchmarks._common import peak_rss_mib, print_header, row
+from benchmarks._common import peak_rss_mib, print_header, render_scene_params, row
 
 DEFAULT = ["50000:256x256", "100000:256x256", "250000:256x256", "50000:512x384", "100000:512x384", "250000:512x384"]
 
@@ -30,15 +30,7 @@ def _one(n: int, w: int, h: int, reps: int, backend: str) -> dict:
     from macsplat_cli.render import render
 
     base_rss = peak_rss_mib()
-    g = torch.Generator().manual_seed(0)
-    means = torch.rand(n, 3, generator=g) * torch.tensor([2.0, 2.0, 2.0]) - torch.tensor([1.0, 1.0, -2.0])
-    params = [
-        means,
-        torch.log(torch.rand(n, 3, generator=g) * 0.025 + 0.005),
-        torch.randn(n, 4, generator=g),
-        torch.rand(n, generator=g) * 4 - 2,
-        torch.randn(n, 1, 3, generator=g) * 0.5,
-    ]
+    g, params = render_scene_params(n)
     for p in params:
         p.requires_grad_(True)
     gs = Gaussians(*params)

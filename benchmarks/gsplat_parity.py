@@ -20,7 +20,7 @@ import sys
 import time
 from collections.abc import Callable
 
-from benchmarks._common import print_header, row
+from benchmarks._common import print_header, render_scene_params, row
 
 PARAMS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 
@@ -30,15 +30,7 @@ def _scene(n: int, w: int, h: int, device: str):  # noqa: ANN202 - torch importe
 
     from macsplat_cli.gaussians import Gaussians
 
-    g = torch.Generator().manual_seed(0)
-    means = torch.rand(n, 3, generator=g) * 2.0 - torch.tensor([1.0, 1.0, -2.0])
-    params = [
-        means,
-        torch.log(torch.rand(n, 3, generator=g) * 0.025 + 0.005),
-        torch.randn(n, 4, generator=g),
-        torch.rand(n, generator=g) * 4 - 2,
-        torch.randn(n, 1, 3, generator=g) * 0.5,
-    ]
+    g, params = render_scene_params(n)
     params = [p.to(device).requires_grad_(True) for p in params]
     K = torch.tensor([[float(w), 0.0, w / 2], [0.0, float(w), h / 2], [0.0, 0.0, 1.0]], device=device)
     target = torch.rand(h, w, 3, generator=g).to(device)

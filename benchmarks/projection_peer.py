@@ -16,7 +16,7 @@ import importlib.util
 import sys
 import time
 
-from benchmarks._common import print_header, row
+from benchmarks._common import print_header, render_scene_params, row
 
 
 def _timed(fn, params, reps: int) -> float:  # noqa: ANN001
@@ -38,12 +38,8 @@ def _compare(n: int, w: int, h: int, K, V, reps: int) -> tuple[float, float]:  #
 
     from macsplat_cli.render.projection import project_gaussians
 
-    g = torch.Generator().manual_seed(0)
-    means = torch.rand(n, 3, generator=g) * 2 - torch.tensor([1.0, 1.0, -2.0])
-    logs = torch.log(torch.rand(n, 3, generator=g) * 0.025 + 0.005)
-    quats, opl = torch.randn(n, 4, generator=g), torch.rand(n, generator=g) * 4 - 2
-    sh = torch.randn(n, 1, 3, generator=g) * 0.5
-    params = [means, logs, quats, opl, sh]
+    _, params = render_scene_params(n)
+    means, logs, quats, opl, sh = params
     for t in params:
         t.requires_grad_(True)
 
