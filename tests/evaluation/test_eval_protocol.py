@@ -60,7 +60,7 @@ def test_cli_protocol_needs_the_test_sets_and_runs(capsys, plane: Path, tmp_path
     scene = load_dataset(plane, "auto").scenes[0].name
     folder = _test_sets(tmp_path / "sets", scene)
     code, _, err = run_captured(capsys, "eval", "--data", plane, "--protocol", "mac-splat", "--cases", folder,
-                                "--backend", "oracle", "--out", tmp_path / "r", "-q")  # fmt: skip
+                                "--backend", "oracle", "--size", "128", "--out", tmp_path / "r", "-q")  # fmt: skip
     assert code == 0, err
     doc = json.loads((tmp_path / "r" / "results.json").read_text())
     assert doc["options"]["protocol"] == "mac-splat" and sum(len(c["targets"]) for c in doc["cases"]) == 6
@@ -109,6 +109,6 @@ def test_cli_protocol_crops_the_frames(capsys, plane: Path, tmp_path: Path, monk
     scene = load_dataset(plane, "auto").scenes[0].name
     folder = _test_sets(tmp_path / "sets", scene)
     code, _, err = run_captured(capsys, "eval", "--data", plane, "--protocol", "mac-splat", "--cases", folder,
-                                "--backend", "oracle", "--out", tmp_path / "r", "-q")  # fmt: skip
+                                "--backend", "oracle", "--size", "128", "--out", tmp_path / "r", "-q")  # fmt: skip
     assert code == 0, err
     assert seen and all(s == {512} for s in seen)
