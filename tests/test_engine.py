@@ -252,7 +252,7 @@ from macsplat_cli.render import _kernels as r
 rec = engine.reconstruct(sys.argv[1:3])
 engine._COMPILING[0].join()
 engine.render_path(rec, 2)
-kernels = [m._chunks, s._rows, s._cols, s._winner_rows, p._initial_rows, p._refine_rows, r._count_rows,
+kernels = [m._chunks, s._straight, s._winner_rows, p._initial_rows, p._refine_rows, r._count_rows,
            r._fill_rows, r._forward_tiles]
 print(json.dumps({k.__name__: len(k.signatures) for k in kernels}))
 """

@@ -99,12 +99,11 @@ def _same_run(docs: list[tuple[Path, dict[str, Any]]]) -> None:
                                                            "pending", "errors", "cases_total")}  # fmt: skip
         return {**keep, "run_cases": doc["shard"]["case_keys"], "count": doc["shard"]["count"]}
 
-    first_path, first = docs[0]
+    first_path, first = docs[0][0], identity(docs[0][1])
     for path, doc in docs[1:]:
-        if identity(doc) != identity(first):
-            diff = sorted(
-                k for k in set(identity(doc)) | set(identity(first)) if identity(doc).get(k) != identity(first).get(k)
-            )
+        other = identity(doc)
+        if other != first:
+            diff = sorted(k for k in first.keys() | other.keys() if first.get(k) != other.get(k))
             raise InputError(f"{path} and {first_path} are shards of different runs (they differ in {', '.join(diff)})")
 
 

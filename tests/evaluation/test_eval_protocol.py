@@ -13,12 +13,7 @@ from macsplat_cli.evaluation.protocols import PROTOCOLS
 from macsplat_cli.evaluation.reconstructors import BACKENDS
 
 from support.cli import run_captured
-from support.evaluation import ORACLE, write_plane_dataset
-
-
-@pytest.fixture(scope="module")
-def plane(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return write_plane_dataset(tmp_path_factory.mktemp("protocol") / "plane")
+from support.evaluation import ORACLE
 
 
 def _test_sets(folder: Path, scene: str) -> Path:

@@ -8,21 +8,9 @@ from pathlib import Path
 import pytest
 
 from macsplat_cli.errors import InputError
-from macsplat_cli.evaluation.reconstructors import BACKENDS
 from macsplat_cli.evaluation.shards import parse_shard, result_from_dict, shard_cases
 
 from support.cli import run_captured
-from support.evaluation import ORACLE, write_plane_dataset
-
-
-@pytest.fixture(scope="module")
-def plane(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return write_plane_dataset(tmp_path_factory.mktemp("shards") / "plane")
-
-
-@pytest.fixture
-def oracle_backend(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setitem(BACKENDS, "oracle", lambda config, models=None: ORACLE)
 
 
 def _timeless(obj):  # noqa: ANN001, ANN202 - JSON

@@ -63,27 +63,20 @@ def _scan(cost, gray, out, y, x, dy, dx, n, p1, p2, gamma, prev, cur):  # noqa: 
 
 
 @nb.njit(**_JIT)
-def _rows(start, stop, cost, gray, out, p1, p2, gamma):  # noqa: ANN001, ANN202
-    """Left-to-right and right-to-left paths of rows ``start … stop − 1``."""
+def _straight(start, stop, cost, gray, out, p1, p2, gamma, vertical):  # noqa: ANN001, ANN202
+    """Both paths of lines ``start … stop − 1``: rows (left-to-right and back) or, when ``vertical``, columns
+    (top-to-bottom and back)."""
     h, w, d_count = cost.shape
-    w, one, zero = _I(w), _I(1), _I(0)
+    h, w, one, zero = _I(h), _I(w), _I(1), _I(0)
     prev = np.empty(d_count, cost.dtype)
     cur = np.empty(d_count, cost.dtype)
-    for y in range(start, stop):
-        _scan(cost, gray, out, _I(y), zero, zero, one, w, p1, p2, gamma, prev, cur)
-        _scan(cost, gray, out, _I(y), w - one, zero, -one, w, p1, p2, gamma, prev, cur)
-
-
-@nb.njit(**_JIT)
-def _cols(start, stop, cost, gray, out, p1, p2, gamma):  # noqa: ANN001, ANN202
-    """Top-to-bottom and bottom-to-top paths of columns ``start … stop − 1``."""
-    h, w, d_count = cost.shape
-    h, one, zero = _I(h), _I(1), _I(0)
-    prev = np.empty(d_count, cost.dtype)
-    cur = np.empty(d_count, cost.dtype)
-    for x in range(start, stop):
-        _scan(cost, gray, out, zero, _I(x), one, zero, h, p1, p2, gamma, prev, cur)
-        _scan(cost, gray, out, h - one, _I(x), -one, zero, h, p1, p2, gamma, prev, cur)
+    for k in range(start, stop):
+        if vertical:
+            _scan(cost, gray, out, zero, _I(k), one, zero, h, p1, p2, gamma, prev, cur)
+            _scan(cost, gray, out, h - one, _I(k), -one, zero, h, p1, p2, gamma, prev, cur)
+        else:
+            _scan(cost, gray, out, _I(k), zero, zero, one, w, p1, p2, gamma, prev, cur)
+            _scan(cost, gray, out, _I(k), w - one, zero, -one, w, p1, p2, gamma, prev, cur)
 
 
 @nb.njit(**_JIT)
@@ -117,8 +110,8 @@ def aggregate(cost: np.ndarray, gray: np.ndarray, p1: float, p2: float, gamma: f
     h, w, _ = cost.shape
     out = np.zeros_like(cost)
     args = (cost, gray, out, float(p1), float(p2), float(gamma))
-    parallel_for(_rows, h, *args)
-    parallel_for(_cols, w, *args)
+    parallel_for(_straight, h, *args, False)
+    parallel_for(_straight, w, *args, True)
     if eight_paths:
         parallel_for(_diagonals, w + h - 1, *args, True)
         parallel_for(_diagonals, w + h - 1, *args, False)
@@ -171,6 +164,5 @@ def compile_kernels() -> None:
     """Compile (or load from the cache) every kernel here for the argument types the sweep passes (float32 C arrays,
     float64 penalties), on empty ranges: no work, only the compilation, for a background thread."""
     c, g, i = np.zeros((1, 1, 1), np.float32), np.zeros((1, 1), np.float32), np.zeros((1, 1), np.int32)
-    _rows(0, 0, c, g, c, 0.0, 0.0, 0.0)
-    _cols(0, 0, c, g, c, 0.0, 0.0, 0.0)
+    _straight(0, 0, c, g, c, 0.0, 0.0, 0.0, False)
     _winner_rows(0, 0, c, i, g, g)
