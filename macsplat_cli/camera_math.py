@@ -11,7 +11,7 @@ import math
 import numpy as np
 import torch
 
-__all__ = ["project_points", "rescale_intrinsics", "scale_focal"]
+__all__ = ["principal_point_window", "project_points", "rescale_intrinsics", "scale_focal"]
 
 
 def rescale_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
@@ -21,6 +21,22 @@ def rescale_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
     out[0] *= sx
     out[1] *= sy
     return out
+
+
+def principal_point_window(K: np.ndarray, width: int, height: int) -> tuple[int, int, int, int] | None:
+    """``(x0, y0, x1, y1)`` (x1, y1 exclusive) of the largest window centred on the principal point of an image
+    ``width × height``, in whole pixels: half sides ``min(cx, W − cx)``, ``min(cy, H − cy)`` rounded down, so the
+    principal point is within half a pixel of the window's centre (``K`` shifted by ``(x0, y0)`` says where). None
+    when the principal point is less than a pixel from the image's border or outside it (no window)."""
+    cx, cy = float(K[0, 2]), float(K[1, 2])
+    if not (math.isfinite(cx) and math.isfinite(cy)):
+        return None
+    hw = math.floor(min(cx, width - cx))
+    hh = math.floor(min(cy, height - cy))
+    if hw < 1 or hh < 1:
+        return None
+    x0, y0 = round(cx - hw), round(cy - hh)
+    return x0, y0, x0 + 2 * hw, y0 + 2 * hh
 
 
 def scale_focal(K: np.ndarray, log_scale: float) -> np.ndarray:

@@ -29,6 +29,12 @@ Huber: ``Huber_δ(x) = x²/(2δ)`` for ``x < δ``, else ``x − δ/2`` (the smoo
 tail has unit slope). ``δ = 0.01`` scene units for positions (1 % of the baseline in a
 relative-scale reconstruction, about 1 cm in a metric one), ``δs = 0.1`` for shapes (a 10 %
 difference of a standard deviation).
+
+**The release's form** (``reduction="mean"`` and the clamps; ``macsplat train --recipe released-code``): the
+MAC-Splat authors' code averages where the paper sums — the position L1 over x, y, z (``‖Δμ‖₁/3``), the shape
+over the three log standard deviations (``‖Δ log λ‖₁/6``, as ``log σ = ½ log λ``), the colour over the SH
+coefficients — and clamps each match's terms (Huber'd position and shape at 1, opacity at 1, colour at 2). The
+default is the paper's form, unclamped.
 """
 
 from __future__ import annotations
@@ -57,6 +63,12 @@ class MACConfig:
         delta_shape: Huber threshold of the shape term, log units.
         eps: added to the weight sum.
         weight: λ_MAC, the MAC loss's weight in the total loss.
+        reduction: ``"sum"`` (the paper's L1 norms) or ``"mean"`` (the release's means: module docstring).
+        clamp_pos: each match's Huber'd position term is at most this (None: no clamp; the release: 1).
+        clamp_shape: the same for the shape term (the release: 1).
+        clamp_opacity: the same for the opacity difference (the release: 1, which an opacity in [0, 1] never
+            reaches).
+        clamp_colour: the same for the colour difference (the release: 2).
     """
 
     lambda_pos: float = 1.0
@@ -66,6 +78,19 @@ class MACConfig:
     delta_shape: float = 0.1
     eps: float = 1e-6
     weight: float = 0.25
+    reduction: str = "sum"
+    clamp_pos: float | None = None
+    clamp_shape: float | None = None
+    clamp_opacity: float | None = None
+    clamp_colour: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.reduction not in ("sum", "mean"):
+            raise InputError(f"MAC reduction {self.reduction!r}: use sum or mean")
+
+
+def _clamped(x: torch.Tensor, bound: float | None) -> torch.Tensor:
+    return x if bound is None else x.clamp(max=bound)
 
 
 def huber(x: torch.Tensor, delta: float) -> torch.Tensor:
@@ -184,12 +209,12 @@ def mac_loss(
     mu1 = (R1 @ mu1c[..., None])[..., 0] + t1
     mu2 = (R2 @ mu2c[..., None])[..., 0] + t2
     in_front = ((mu1c[:, 2] > 0) & (mu2c[:, 2] > 0)).to(mu1.dtype)
-    l_pos = huber((mu1 - mu2).abs().sum(-1), cfg.delta_pos) * in_front
+    mean = cfg.reduction == "mean"
+    d_pos = (mu1 - mu2).abs()
+    l_pos = _clamped(huber(d_pos.mean(-1) if mean else d_pos.sum(-1), cfg.delta_pos), cfg.clamp_pos) * in_front
 
-    l_shape = huber(
-        (_log_eigs(view1, cov1, xy1, batch, R1) - _log_eigs(view2, cov2, xy2, batch, R2)).abs().sum(-1),
-        cfg.delta_shape,
-    )
+    d_log = (_log_eigs(view1, cov1, xy1, batch, R1) - _log_eigs(view2, cov2, xy2, batch, R2)).abs()
+    l_shape = _clamped(huber(0.5 * d_log.mean(-1) if mean else d_log.sum(-1), cfg.delta_shape), cfg.clamp_shape)
 
     a1 = sample_maps(torch.sigmoid(view1.opacity_logits)[..., None], xy1, batch)[:, 0]
     a2 = sample_maps(torch.sigmoid(view2.opacity_logits)[..., None], xy2, batch)[:, 0]
@@ -197,7 +222,10 @@ def mac_loss(
     c1 = sample_maps(view1.sh.reshape(b, h, w, -1), xy1, batch)
     b2, h2, w2 = view2.sh.shape[:3]
     c2 = sample_maps(view2.sh.reshape(b2, h2, w2, -1), xy2, batch)
-    l_app = (a1 - a2).abs() + (c1 - c2).abs().sum(-1)
+    d_col = (c1 - c2).abs()
+    l_app = _clamped((a1 - a2).abs(), cfg.clamp_opacity) + _clamped(
+        d_col.mean(-1) if mean else d_col.sum(-1), cfg.clamp_colour
+    )
 
     w = weights.to(mu1.dtype)
     norm = w.sum() + cfg.eps

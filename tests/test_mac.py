@@ -123,6 +123,51 @@ def test_terms_match_a_hand_computation() -> None:
     assert float(out.loss) == pytest.approx(w * (pos + 0.02 * shape + 0.1 * app), **rel)
 
 
+def test_release_form_means_and_clamps_match_a_hand_computation() -> None:
+    """``reduction="mean"`` with the release's clamps: position ‖Δμ‖₁/3, shape ‖Δ log λ‖₁/6 (the mean |Δ log σ|),
+    colour mean |Δc|, each match's terms clamped; a second match far off hits every clamp."""
+    cfg = MACConfig(delta_pos=0.05, delta_shape=0.05, reduction="mean", clamp_pos=1.0, clamp_shape=1.0,
+                    clamp_opacity=1.0, clamp_colour=2.0)  # fmt: skip
+
+    def one(mu, ls, op, sh):  # noqa: ANN001, ANN202
+        t = lambda x: torch.tensor(x, dtype=D).reshape(1, 1, 2, -1)  # noqa: E731
+        quats = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=D).repeat(1, 1, 2, 1)
+        return GaussianMaps(t(mu), t(ls), quats, torch.logit(t(op))[..., 0], t(sh).reshape(1, 1, 2, 1, 3))
+
+    # pixel 0: a near pair; pixel 1: 9 m apart, scales e⁴ apart, colours 5 apart (every clamp binds)
+    a = one(
+        [[0.0, 0.0, 2.0], [0.0, 0.0, 2.0]],
+        [[0.0, -1.0, -2.0], [0.0, 0.0, 0.0]],
+        [0.9, 0.5],
+        [[0.1, 0.2, 0.3], [5.0, 5.0, 5.0]],
+    )
+    b = one(
+        [[0.03, -0.06, 2.0], [3.0, 3.0, 5.0]],
+        [[-2.0, 0.5, -1.0], [4.0, 4.0, 4.0]],
+        [0.5, 0.5],
+        [[0.0, 0.2, -0.3], [0.0, 0.0, 0.0]],
+    )
+    T = torch.eye(4, dtype=D)[None]
+    xy = torch.tensor([[0.5, 0.5], [1.5, 0.5]], dtype=D)
+    wts = torch.tensor([2.0, 1.0], dtype=D)
+    out = mac_loss(a, b, xy, xy, torch.tensor([0, 0]), wts, T, T, cfg)
+    pos0 = 0.03**2 / (2 * 0.05)  # mean |Δμ| = 0.09/3 = 0.03 < δ = 0.05: quadratic
+    # sorted log λ = 2·log s: a → (-4, -2, 0), b → (-4, -2, 1): mean |Δ log σ| = (1/2)/3 ≥ δ → 1/6 − 0.025
+    shape0 = 1.0 / 6.0 - 0.025
+    app0 = 0.4 + (0.1 + 0.0 + 0.6) / 3.0
+    pos1, shape1, app1 = 1.0, 1.0, 0.0 + 2.0  # Huber(3) and Huber(4) clamped at 1; colour mean 5 clamped at 2
+    norm = 3.0 + cfg.eps
+    rel = dict(rel=gamma(40, D), abs=0.0)  # as in the paper-form hand test, a few more roundings for the means
+    assert float(out.position) == pytest.approx((2 * pos0 + pos1) / norm, **rel)
+    assert float(out.shape) == pytest.approx((2 * shape0 + shape1) / norm, **rel)
+    assert float(out.appearance) == pytest.approx((2 * app0 + app1) / norm, **rel)
+    # the clamps stop the far match's gradient; the near one's still flows
+    means = b.means.clone().requires_grad_(True)
+    b2 = GaussianMaps(means, b.log_scales, b.quats, b.opacity_logits, b.sh)
+    mac_loss(a, b2, xy, xy, torch.tensor([0, 0]), wts, T, T, cfg).loss.backward()
+    assert torch.all(means.grad[0, 0, 1] == 0) and torch.any(means.grad[0, 0, 0] != 0)
+
+
 def test_position_term_only_where_both_depths_are_positive() -> None:
     m1, m2 = _maps(1, 4, 4, 3), _maps(1, 4, 4, 4)
     m1.means[0, 0, 0, 2] = -1.0  # behind camera 1 at pixel (0, 0)

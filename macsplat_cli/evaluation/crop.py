@@ -12,13 +12,13 @@ Steps for an image ``W × H`` with principal point ``(cx, cy)`` (continuous pixe
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from ..camera_math import principal_point_window
 from ..cameras import Camera
 from ..datasets import EvalDataset, EvalScene, Frame
 from ..errors import DatasetError
@@ -30,13 +30,11 @@ __all__ = ["crop_camera", "crop_frames", "crop_window"]
 
 def crop_window(camera: Camera) -> tuple[int, int, int, int]:
     """``(x0, y0, x1, y1)`` (x1, y1 exclusive) of step 1, in whole pixels."""
-    cx, cy = float(camera.K[0, 2]), float(camera.K[1, 2])
-    hw = math.floor(min(cx, camera.width - cx))
-    hh = math.floor(min(cy, camera.height - cy))
-    if hw < 1 or hh < 1:
+    window = principal_point_window(camera.K, camera.width, camera.height)
+    if window is None:
+        cx, cy = float(camera.K[0, 2]), float(camera.K[1, 2])
         raise DatasetError(f"camera {camera.name!r}: the principal point ({cx:.1f}, {cy:.1f}) is outside the image")
-    x0, y0 = round(cx - hw), round(cy - hh)
-    return x0, y0, x0 + 2 * hw, y0 + 2 * hh
+    return window
 
 
 def crop_camera(

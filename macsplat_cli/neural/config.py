@@ -350,15 +350,20 @@ class GaussianHeadConfig:
             coefficients, not the degree: 1 → DC only, the released model). Must be 1, 4, 9 or 16.
         use_offsets: means = point map + predicted offset (else the point map itself).
         detach_points: the means use the point map without gradient (Splatt3R's behaviour).
+        max_scale: the Gaussians' scales are clamped at this, in the point map's units (None: no cap, as
+            Splatt3R; the MAC-Splat release caps them at 0.5 in training and at test).
     """
 
     sh_coeffs: int = 1
     use_offsets: bool = True
     detach_points: bool = True
+    max_scale: float | None = None
 
     def __post_init__(self) -> None:
         if self.sh_coeffs not in (1, 4, 9, 16):
             raise ModelConfigError(f"sh_coeffs={self.sh_coeffs} must be (degree + 1)² for a degree 0..3")
+        if self.max_scale is not None and not (math.isfinite(self.max_scale) and self.max_scale > 0):
+            raise ModelConfigError(f"max_scale={self.max_scale} must be a finite number > 0 (or None: no cap)")
 
     @property
     def out_channels(self) -> int:

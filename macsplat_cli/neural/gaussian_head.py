@@ -130,6 +130,8 @@ class GaussianHead(nn.Module):
         xyzw = rot_raw / (torch.linalg.vector_norm(rot_raw, dim=-1, keepdim=True) + 1e-8)  # Splatt3R's (x, y, z, w)
         sh = sh_raw.reshape(*sh_raw.shape[:-1], 3, k)  # colour-major, as Splatt3R
         sh = torch.cat((sh[..., :1] + rgb_to_sh0(rgb)[..., None], sh[..., 1:]), dim=-1)
+        if self.config.max_scale is not None:  # log-scales: clamping them clamps the scales (no gradient above)
+            scale_raw = scale_raw.clamp(max=math.log(self.config.max_scale))
         fields = (
             points + offsets,
             scale_raw,

@@ -10,7 +10,9 @@ sample does not depend on the worker that makes it, nor on the order of the requ
 
 **Images** (:func:`resize_and_crop`): scaled, keeping the aspect ratio, to the smallest size covering
 ``size`` = (W, H), then centre-cropped to ``size``; ``K`` is scaled by the per-axis resize factors and
-shifted by the crop offset (exact with macsplat's pixel-centre-at-+0.5 convention).
+shifted by the crop offset (exact with macsplat's pixel-centre-at-+0.5 convention). With
+``crop="principal-point"`` the image (and depth) is first cut to the largest window centred on the
+principal point (:func:`~macsplat_cli.camera_math.principal_point_window`), as the MAC-Splat release does.
 
 **Unreadable images.** A sample with an image that cannot be decoded is replaced by another one drawn
 with ``(seed, epoch, i, attempt)``; each file is named once in a warning, and ``PairDataset.skipped``
@@ -37,6 +39,7 @@ import torch.nn.functional as F
 from torch.utils.data import DataLoader, Dataset, Sampler, default_collate
 from torch.utils.data.distributed import DistributedSampler
 
+from ..camera_math import principal_point_window
 from ..datasets import EvalDataset, EvalScene, resize_depth_nearest
 from ..errors import DatasetError, ImageReadError, InputError
 from ..images import load_image
@@ -236,12 +239,22 @@ class PairDataset(Dataset):
         except ImageReadError as e:
             self._bad[key] = str(e)
             raise _Unreadable(key, str(e)) from None
-        img, K = resize_and_crop(rgb, f.camera.K, self.config.size)
+        K = np.array(f.camera.K, dtype=np.float64)
+        x0, y0, x1, y1 = 0, 0, rgb.shape[1], rgb.shape[0]
+        if self.config.crop == "principal-point":
+            window = principal_point_window(K, f.camera.width, f.camera.height)
+            if window is None:
+                raise DatasetError(f"{key}: the principal point ({K[0, 2]:.1f}, {K[1, 2]:.1f}) is on the image's "
+                                   "border or outside it: no window centred on it to crop")  # fmt: skip
+            x0, y0, x1, y1 = window
+            K[0, 2] -= x0
+            K[1, 2] -= y0
+        img, K = resize_and_crop(rgb[y0:y1, x0:x1], K, self.config.size)
         d = None
         if self.depth:
             raw = scene.depth(j)
             W, H = self.config.size
-            d = _crop_depth(raw, self.config.size) if raw is not None else np.zeros((H, W), np.float32)
+            d = _crop_depth(raw[y0:y1, x0:x1], self.config.size) if raw is not None else np.zeros((H, W), np.float32)
         return img, K, d
 
     def sample(self, i: int) -> tuple[dict[str, torch.Tensor], list[tuple[str, str]]]:

@@ -61,6 +61,8 @@ class PairSamplingConfig:
         targets: target views per sample (fixed, for batching).
         size: ``(W, H)`` of every image of a sample, multiples of 16.
         samples_per_epoch: samples in an epoch; None: every candidate pair once.
+        crop: ``"centre"`` (cover ``size`` keeping the aspect, centre crop) or ``"principal-point"`` (first the
+            largest window centred on the principal point, then the same: the MAC-Splat release's 512×512 frames).
 
     Raises:
         InputError: a value out of range.
@@ -72,6 +74,7 @@ class PairSamplingConfig:
     targets: int = 2
     size: tuple[int, int] = (256, 192)
     samples_per_epoch: int | None = None
+    crop: str = "centre"
 
     def __post_init__(self) -> None:
         lo, hi = (float(x) for x in self.coverage)
@@ -92,6 +95,8 @@ class PairSamplingConfig:
             int(self.samples_per_epoch) != self.samples_per_epoch or self.samples_per_epoch < 1
         ):
             raise InputError(f"samples_per_epoch must be a positive integer or None, got {self.samples_per_epoch!r}")
+        if self.crop not in ("centre", "principal-point"):
+            raise InputError(f"crop {self.crop!r}: use centre or principal-point")
 
 
 @dataclass(frozen=True)

@@ -5,6 +5,7 @@ from __future__ import annotations
 # First, before torch: importing macsplat_cli sets OMP_WAIT_POLICY=PASSIVE, which OpenMP reads when torch
 # loads (on 2 busy cores the default spinning made this file ~4x slower).
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -21,6 +22,7 @@ from macsplat_cli.neural import (
     depth_activation,
     patch_positions,
 )
+from macsplat_cli.neural.constructor import ModelConfigError
 from macsplat_cli.rotations import quat_to_rotmat
 from macsplat_cli.sh import C0, rgb_to_sh0
 
@@ -386,6 +388,29 @@ def test_gaussian_head_opacity_logits_are_the_raw_channel() -> None:
     assert torch.equal(maps.log_scales, raw[..., 3:6])
     lossy = torch.logit(torch.sigmoid(opacity), eps=1e-6)  # the former conversion: far off at |raw| = 30
     assert (lossy - opacity).abs().max() > 10
+
+
+def test_gaussian_head_max_scale_caps_scales_and_their_gradient(tmp_path: Path) -> None:
+    """``max_scale``: scales above the cap come out at the cap with no gradient, those below unchanged; the cap
+    travels with a macsplat checkpoint (so ``reconstruct`` applies it at test, as the MAC-Splat release does)."""
+    head = GaussianHead(TINY, GaussianHeadConfig(sh_coeffs=1, max_scale=0.5))
+    raw = torch.zeros(1, 1, 2, 14)
+    raw[0, 0, :, 3:6] = torch.tensor([[-3.0, math.log(0.4), 0.0], [math.log(0.5), 2.0, -1.0]])
+    raw.requires_grad_(True)
+    maps, _ = head.activate(raw, torch.zeros(1, 1, 2, 3), torch.zeros(1, 1, 2, 3))
+    cap = math.log(0.5)
+    want = torch.where(raw[..., 3:6] > cap, torch.full_like(raw[..., 3:6], cap), raw[..., 3:6])
+    assert torch.equal(maps.log_scales, want)
+    maps.log_scales.sum().backward()
+    assert torch.equal(raw.grad[..., 3:6], (raw[..., 3:6] <= cap).float())  # clamp: gradient 1 up to the cap
+    with pytest.raises(ModelConfigError, match="max_scale"):
+        GaussianHeadConfig(max_scale=0.0)
+    from macsplat_cli.neural.predictor import PairPredictor
+    from macsplat_cli.neural.predictor_io import load_predictor_checkpoint, save_predictor_checkpoint
+
+    predictor = PairPredictor(MASt3RBackbone(TINY), head)
+    back, _ = load_predictor_checkpoint(save_predictor_checkpoint(tmp_path / "p.pt", predictor))
+    assert back.gaussian_head is not None and back.gaussian_head.config.max_scale == 0.5
 
 
 def test_gaussian_head_outputs(net: MASt3RBackbone, gauss_head: GaussianHead) -> None:

@@ -144,6 +144,7 @@ def test_config_is_validated() -> None:
         {"targets": 0},
         {"min_angle_deg": 70.0},
         {"samples_per_epoch": 0},
+        {"crop": "center"},
     ):
         with pytest.raises(InputError):
             PairSamplingConfig(**bad)  # type: ignore[arg-type]
@@ -325,9 +326,17 @@ def test_resize_and_crop_keep_K_consistent(tmp_path: Path) -> None:
         save_image(root / "images" / f"{cam.name}.png", img)
     save_cameras(root / "cameras.json", CameraSet(cams, world="world"))
     data = load_dataset(root)
-    for size in ((64, 48), (48, 64), (160, 96)):  # crop x (77x48 → 64), crop y (64x40 → 48), no resize in x
-        ds = PairDataset(data, [TrainPair(0, (0, 1), (2,))], PairSamplingConfig(size=size, targets=1))
-        s = ds[0]
+    # crop x (77x48 → 64), crop y (64x40 → 48), no resize in x; then the release's principal-point window first
+    # (x 0..140, y 11..99 around (70.3, 55.1)): the point still lands on its blob, and the principal point sits
+    # within half a window pixel (scaled) of the image's centre
+    for size, crop in (((64, 48), "centre"), ((48, 64), "centre"), ((160, 96), "centre"), ((64, 64), "principal-point"),
+                       ((96, 64), "principal-point")):  # fmt: skip
+        config = PairSamplingConfig(size=size, targets=1, crop=crop)
+        s = PairDataset(data, [TrainPair(0, (0, 1), (2,))], config)[0]
+        if crop == "principal-point":
+            scale = max(size[0] / 140, size[1] / 88)
+            centre = np.array(size) / 2
+            assert np.all(abs(s["context_K"][:, :2, 2].numpy() - centre) <= 0.5 * scale + 1e-9)
         imgs = torch.cat([s["context"], s["target"]]).numpy()
         Ks = torch.cat([s["context_K"], s["target_K"]]).numpy()
         c2ws = torch.cat([s["context_c2w"], s["target_c2w"]]).numpy()
