@@ -54,16 +54,32 @@ def train_command(
     split: Annotated[
         str, typer.Option("--split", help="ScanNet++: training split list (validation: nvs_sem_val when present).")
     ] = "nvs_sem_train",
-    steps: Annotated[int, typer.Option("--steps", min=1, help="Optimiser steps.")] = 1000,
-    batch: Annotated[int, typer.Option("--batch", min=1, help="Pairs per process and step.")] = 2,
+    recipe: Annotated[
+        str,
+        typer.Option(
+            "--recipe",
+            metavar="paper|released-code",
+            help="The settings to reproduce: the paper's, or what the authors' released code computes (less its "
+            "bugs). The options below override single values.",
+        ),
+    ] = "paper",  # fmt: skip
+    steps: Annotated[
+        int | None, typer.Option("--steps", min=1, help="Optimiser steps [paper: 1000; released-code: 200/scene].")
+    ] = None,
+    batch: Annotated[int | None, typer.Option("--batch", min=1, help="Pairs per process and step [2; 1].")] = None,
     accumulate: Annotated[int, typer.Option("--accumulate", min=1, help="Gradient accumulation steps.")] = 1,
-    lr: Annotated[float, typer.Option("--lr", help="AdamW learning rate.")] = 1e-5,
-    weight_decay: Annotated[float, typer.Option("--weight-decay", help="AdamW weight decay.")] = 0.05,
-    warmup: Annotated[int, typer.Option("--warmup", min=0, help="Warm-up steps (then cosine).")] = 50,
-    grad_clip: Annotated[float, typer.Option("--grad-clip", help="Gradient-norm clip (0: off).")] = 0.5,
+    lr: Annotated[float | None, typer.Option("--lr", help="Learning rate [AdamW 1e-5; Adam 1e-6].")] = None,
+    weight_decay: Annotated[float | None, typer.Option("--weight-decay", help="Weight decay [0.05; 0].")] = None,
+    warmup: Annotated[
+        int | None,
+        typer.Option("--warmup", min=0, help="Warm-up steps, then the schedule [50, cosine; 0, ×0.1 at half]."),
+    ] = None,
+    grad_clip: Annotated[float | None, typer.Option("--grad-clip", help="Gradient-norm clip, 0: off [0.5].")] = None,
     precision: Annotated[str, typer.Option("--precision", metavar="fp32|bf16|fp16", help="AMP.")] = "fp32",
-    size: Annotated[str, typer.Option("--size", metavar="WxH", help="Training image size.")] = "256x192",
-    targets: Annotated[int, typer.Option("--targets", min=1, help="Target views per pair.")] = 2,
+    size: Annotated[
+        str | None, typer.Option("--size", metavar="WxH", help="Training image size [256x192; 512x512].")
+    ] = None,
+    targets: Annotated[int | None, typer.Option("--targets", min=1, help="Target views per pair [2; 3].")] = None,
     coverage: Annotated[
         str, typer.Option("--coverage", metavar="LOW,HIGH", help="Covisibility range of the context pairs.")
     ] = "0.3,1.0",
@@ -81,15 +97,15 @@ def train_command(
     dino: DinoOpt = None,
     no_dino: Annotated[bool, typer.Option("--no-dino", help="No DINOv3 fusion (ablation).")] = False,
     no_mac: Annotated[bool, typer.Option("--no-mac", help="Photometric loss only (ablation).")] = False,
-    mac_weight: Annotated[float, typer.Option("--mac-weight", help="λ of the MAC loss.")] = 0.25,
+    mac_weight: Annotated[float | None, typer.Option("--mac-weight", help="λ of the MAC loss [0.25; 0.2].")] = None,
     mac_weighting: Annotated[
-        str,
+        str | None,
         typer.Option(
             "--mac-weighting",
             metavar="c0c1p|c0c1",
-            help="Match weights: c0·c1·p (the fusion learns through p) or the paper's c0·c1.",
+            help="Match weights: c0·c1·p (the fusion learns through p) or the paper's c0·c1 [c0c1p; c0c1].",
         ),
-    ] = "c0c1p",
+    ] = None,
     lpips_weights: Annotated[
         Path | None, typer.Option("--lpips-weights", metavar="PATH", help="LPIPS VGG weights (else D-SSIM).")
     ] = None,
@@ -101,6 +117,10 @@ def train_command(
     quiet: QuietOpt = False,
 ) -> None:
     """Train the Gaussian head and the Residual Semantic Fusion with the photometric + MAC loss.
+
+    --recipe picks every setting at once: [bold]paper[/] (default: the paper's values, macsplat's where it is
+    silent) or [bold]released-code[/] (what the authors' released code computes, less its bugs, which run.json
+    names); the options in brackets show both recipes' values and override them one by one.
 
     The MASt3R backbone and DINOv3 stay frozen (--train-backbone unfreezes the backbone; with --init random
     the backbone trains too, with a point-map regression on ground-truth depth). On one CPU or
@@ -114,74 +134,89 @@ def train_command(
 
       macsplat train --data my_scenes/ --out runs/tiny --model tiny --init random --steps 200
 
+      macsplat train --data scannetpp/ --out runs/o --recipe released-code --gaussian-head splatt3r.ckpt ...
+
       torchrun --nproc-per-node 4 -m macsplat_cli train --data scannetpp/ --out runs/x --device cuda ...
     """
     with command_context(ctx, verbose, quiet) as state:
         if int(os.environ.get("RANK", "0")) > 0:  # under torchrun only rank 0 reports
             logging.getLogger("macsplat_cli").setLevel(logging.WARNING)
+        chosen = {
+            "steps": steps, "batch": batch, "lr": lr, "weight_decay": weight_decay, "warmup": warmup,
+            "grad_clip": grad_clip, "size": _size(size) if size is not None else None, "targets": targets,
+            "mac_weight": 0.0 if no_mac else mac_weight,
+            "mac_weighting": mac_weighting.strip().lower() if mac_weighting is not None else None,
+        }  # fmt: skip
         _train(
-            data=data, out=out, layout=layout, scenes=scenes, split=split, steps=steps, batch=batch,
-            accumulate=accumulate, lr=lr, weight_decay=weight_decay, warmup=warmup, grad_clip=grad_clip,
-            precision=precision.strip().lower(), size=_size(size), targets=targets,
-            coverage=_range(coverage, "--coverage"), val_every=val_every, val_pairs=val_pairs, ckpt_every=ckpt_every,
-            seed=seed, workers=workers, model=model.strip().lower(), init=init.strip().lower(), weights=weights,
-            gaussian_head=gaussian_head, dino=dino, no_dino=no_dino, mac_weight=0.0 if no_mac else mac_weight,
-            mac_weighting=mac_weighting.strip().lower(),
+            data=data, out=out, layout=layout, scenes=scenes, split=split,
+            recipe=_recipe(recipe.strip().lower(), chosen), accumulate=accumulate,
+            precision=precision.strip().lower(), coverage=_range(coverage, "--coverage"), val_every=val_every,
+            val_pairs=val_pairs, ckpt_every=ckpt_every, seed=seed, workers=workers, model=model.strip().lower(),
+            init=init.strip().lower(), weights=weights, gaussian_head=gaussian_head, dino=dino, no_dino=no_dino,
             lpips_weights=lpips_weights, train_backbone=train_backbone, device=device.strip().lower(),
             resume=resume, force=force, quiet=state.quiet,
         )  # fmt: skip
 
 
+def _recipe(name: str, chosen: dict[str, Any]) -> tuple[Any, list[str]]:
+    """The named recipe with the options given on the command line in place of its values, and their names."""
+    import dataclasses
+
+    from ..errors import InputError
+    from ..training.recipes import get_recipe
+
+    recipe = get_recipe(name)
+    given = {k: v for k, v in chosen.items() if v is not None}
+    loss = {k: given.pop(k) for k in ("mac_weight", "mac_weighting") if k in given}
+    if loss.get("mac_weighting", "c0c1p") not in ("c0c1p", "c0c1"):
+        raise InputError(f"--mac-weighting {loss['mac_weighting']!r}: use c0c1p or c0c1")
+    if "steps" in given:
+        given["steps_per_scene"] = None
+    recipe = dataclasses.replace(recipe, **given, loss=dataclasses.replace(recipe.loss, **loss))
+    overridden = ["--" + k.replace("_", "-") for k, v in chosen.items() if v is not None]
+    return recipe, overridden
+
+
 def _train(
-    *, data: Path, out: Path, layout: str, scenes: str | None, split: str, steps: int, batch: int, accumulate: int,
-    lr: float, weight_decay: float, warmup: int, grad_clip: float, precision: str, size: tuple[int, int],
-    targets: int, coverage: tuple[float, float], val_every: int, val_pairs: int, ckpt_every: int, seed: int,
-    workers: int, model: str, init: str, weights: Path | None, gaussian_head: Path | None, dino: Path | None,
-    no_dino: bool, mac_weight: float, lpips_weights: Path | None, train_backbone: bool, device: str, resume: bool,
-    force: bool, quiet: bool, mac_weighting: str = "c0c1p",
+    *, data: Path, out: Path, layout: str, scenes: str | None, split: str, recipe: tuple[Any, list[str]],
+    accumulate: int, precision: str, coverage: tuple[float, float], val_every: int, val_pairs: int, ckpt_every: int,
+    seed: int, workers: int, model: str, init: str, weights: Path | None, gaussian_head: Path | None,
+    dino: Path | None, no_dino: bool, lpips_weights: Path | None, train_backbone: bool, device: str, resume: bool,
+    force: bool, quiet: bool,
 ) -> None:  # fmt: skip
     from ..neural.predictor import resolve_device
-    from ..training.config import TrainConfig
     from ..training.data import PairSamplingConfig
-    from ..training.loss import LossConfig
     from ..training.model import ModelSpec, build_training_model, freeze_for_training
+    from ..training.recipes import recipe_record
     from ..training.setup import load_training_data
     from ..training.trainer import Trainer
 
-    _check_options(model, init, weights is not None or gaussian_head is not None, resume, force, mac_weight)
-    if mac_weighting not in ("c0c1p", "c0c1"):
-        from ..errors import InputError
-
-        raise InputError(f"--mac-weighting {mac_weighting!r}: use c0c1p or c0c1")
-    if mac_weighting == "c0c1" and not no_dino and mac_weight > 0:
-        logger.info("--mac-weighting c0c1: match weights c0·c1 (the paper's); the fusion module gets no gradient "
-                    "from MAC, and no other term trains it")  # fmt: skip
+    rec, overridden = recipe
+    has_weights = weights is not None or gaussian_head is not None
+    _check_options(model, init, has_weights, resume, force, rec.loss.mac_weight)
     resolve_device(device)
-    config = TrainConfig(
-        out=out, steps=steps, batch=batch, accumulate=accumulate, lr=lr, weight_decay=weight_decay, warmup=warmup,
-        grad_clip=grad_clip, precision=precision, val_every=val_every, ckpt_every=ckpt_every, seed=seed,
-        workers=workers, device=device, loss=LossConfig(mac_weight=mac_weight, mac_weighting=mac_weighting),
-    )  # fmt: skip
-    config.validate()
+    if rec.loss.mac_weighting == "c0c1" and rec.loss.mac_weight > 0 and not no_dino:
+        logger.info("match weights c0·c1 (the paper's): the fusion module gets no gradient from MAC, and no other "
+                    "term trains it")  # fmt: skip
+    config = _train_config(rec, out=out, accumulate=accumulate, precision=precision, val_every=val_every,
+                           ckpt_every=ckpt_every, seed=seed, workers=workers, device=device)  # fmt: skip
     from .._atomic import check_writable
 
     for name in ("run.json", "metrics.csv", "last.pt", "best.pt"):  # before the data and the model load
         check_writable(out / name)
-    lpips = None
-    if lpips_weights is not None:
-        from ..lpips import load_lpips
-
-        lpips = load_lpips(lpips_weights)
-    else:
-        logger.info("no --lpips-weights: the photometric loss uses D-SSIM instead of LPIPS")
-    sampling = PairSamplingConfig(coverage=coverage, targets=targets, size=size)
+    lpips = _lpips(lpips_weights, rec)
+    sampling = PairSamplingConfig(coverage=coverage, targets=rec.targets, size=rec.size, crop=rec.crop)
     names = [s.strip() for s in scenes.split(",") if s.strip()] if scenes else None
     train_data, val_data, info = load_training_data(
-        data, layout=layout, split=split, scenes=names, sampling=sampling, val_pairs=val_pairs, seed=seed
-    )
+        data, layout=layout, split=split, scenes=names, sampling=sampling, val_pairs=val_pairs, seed=seed,
+        exclude=rec.exclude_scenes,
+    )  # fmt: skip
+    config.steps = rec.steps_for(info["scenes"], int(os.environ.get("WORLD_SIZE", "1")))
+    config.validate()
     spec = ModelSpec(
-        model=model, init=init, weights=weights, gaussian_head=gaussian_head, dino=dino, no_dino=no_dino, seed=seed
-    )  # type: ignore[arg-type]
+        model=model, init=init, weights=weights, gaussian_head=gaussian_head, dino=dino, no_dino=no_dino, seed=seed,
+        dino_variant=rec.dino, max_scale=rec.max_scale,
+    )  # type: ignore[arg-type]  # fmt: skip
     if init == "random":  # a random backbone has no geometry to keep: it learns it, from ground-truth depth
         train_backbone = True
         config.loss.geometry_weight = 1.0
@@ -190,8 +225,9 @@ def _train(
     n_train = sum(p.numel() for p in predictor.parameters() if p.requires_grad)
     files = {"weights": weights, "gaussian_head": gaussian_head, "dino": dino}
     options = {"model": model, "init": init, "no_dino": no_dino, "train_backbone": train_backbone}
-    run_info = {"data": info, "model": {**options, **files, "trainable_parameters": n_train}}
-    with _TrainProgress(steps, disabled=quiet) as progress:
+    run_info = {"recipe": recipe_record(rec, overridden), "data": info,
+                "model": {**options, **files, "trainable_parameters": n_train}}  # fmt: skip
+    with _TrainProgress(config.steps, disabled=quiet) as progress:
         trainer = Trainer(predictor, train_data, val_data, config, lpips=lpips, run_info=run_info,
                           on_step=progress.update)  # fmt: skip
         progress.disabled = progress.disabled or not trainer.ctx.is_main
@@ -200,15 +236,40 @@ def _train(
         if not quiet and trainer.ctx.is_main:
             err_console.print(
                 escape(
-                    f"{info['train_pairs']} training pair(s), {info['val_pairs']} validation pair(s) from "
-                    f"{info['scenes']} scene(s); {n_train:,} trainable parameters; {trainer.ctx.world_size} "
-                    "process(es)"
+                    f"recipe {rec.name}: {info['train_pairs']} training pair(s), {info['val_pairs']} validation "
+                    f"pair(s) from {info['scenes']} scene(s); {config.steps} step(s); {n_train:,} trainable "
+                    f"parameters; {trainer.ctx.world_size} process(es)"
                 ),
                 highlight=False,
             )
         result = trainer.fit()
     if not quiet and trainer.ctx.is_main:
         err_console.print(escape(_summary(result, out)), highlight=False, soft_wrap=True)
+
+
+def _train_config(rec: Any, **loop: Any) -> Any:
+    """The loop's settings from the recipe (its steps are set once the data's scenes are counted)."""
+    import copy
+
+    from ..training.config import TrainConfig
+
+    config = TrainConfig(
+        steps=rec.steps or 1, batch=rec.batch, lr=rec.lr, weight_decay=rec.weight_decay, warmup=rec.warmup,
+        optimizer=rec.optimizer, schedule=rec.schedule, lr_drop_at=rec.lr_drop_at, lr_drop=rec.lr_drop,
+        grad_clip=rec.grad_clip, loss=copy.deepcopy(rec.loss), **loop,
+    )  # fmt: skip
+    config.validate()
+    return config
+
+
+def _lpips(path: Path | None, rec: Any) -> Any:
+    if path is None:
+        logger.info("no --lpips-weights: the photometric loss uses D-SSIM (weight %g) instead of LPIPS (%g)",
+                    rec.loss.ssim_weight, rec.loss.lpips_weight)  # fmt: skip
+        return None
+    from ..lpips import load_lpips
+
+    return load_lpips(path)
 
 
 def _check_options(model: str, init: str, has_weights: bool, resume: bool, force: bool, mac_weight: float) -> None:

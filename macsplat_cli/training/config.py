@@ -21,9 +21,13 @@ class TrainConfig:
         steps: optimiser steps in all.
         batch: pairs per process and micro-step.
         accumulate: micro-steps per optimiser step.
-        lr: AdamW learning rate (the paper: 1e-5).
-        weight_decay: AdamW weight decay.
-        warmup: linear warm-up steps, then a cosine decay to 0 at ``steps``.
+        lr: learning rate (the paper: 1e-5).
+        weight_decay: weight decay (decoupled with AdamW, an L2 term with Adam).
+        warmup: linear warm-up steps, then the schedule.
+        optimizer: ``"adamw"`` or ``"adam"`` (:mod:`.optim`).
+        schedule: ``"cosine"`` (to 0 at ``steps``) or ``"step"`` (× ``lr_drop`` from ``lr_drop_at · steps`` on).
+        lr_drop_at: where the step schedule drops, as a fraction of ``steps``.
+        lr_drop: the step schedule's factor.
         grad_clip: gradient-norm clip (0: off).
         precision: ``"fp32"``, ``"bf16"`` or ``"fp16"`` (autocast; fp16 with a gradient scaler, CUDA only).
         val_every: validate (and keep ``best.pt``) every this many steps (0: only at the end).
@@ -42,6 +46,10 @@ class TrainConfig:
     lr: float = 1e-5
     weight_decay: float = 0.05
     warmup: int = 50
+    optimizer: str = "adamw"
+    schedule: str = "cosine"
+    lr_drop_at: float = 0.5
+    lr_drop: float = 0.1
     grad_clip: float = 0.5
     precision: str = "fp32"
     val_every: int = 100
@@ -64,6 +72,12 @@ class TrainConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise InputError(f"--{name.replace('_', '-')} {v}: give a finite number ≥ 0")
+        if self.optimizer not in ("adamw", "adam"):
+            raise InputError(f"optimizer {self.optimizer!r}: use adamw or adam")
+        if self.schedule not in ("cosine", "step"):
+            raise InputError(f"schedule {self.schedule!r}: use cosine or step")
+        if not (0.0 <= self.lr_drop_at <= 1.0 and 0.0 <= self.lr_drop <= 1.0):
+            raise InputError(f"lr_drop_at {self.lr_drop_at} and lr_drop {self.lr_drop}: both must be in [0, 1]")
         if self.precision not in ("fp32", "bf16", "fp16"):
             raise InputError(f"--precision {self.precision!r}: use fp32, bf16 or fp16")
         if self.precision == "fp16" and self.device != "cuda":

@@ -5,11 +5,14 @@
   perceptual term when no VGG weights are given; the trainer logs which). Targets are rendered from the
   predicted Gaussians of both context views with the differentiable rasterizer (gsplat on CUDA when
   installed), from their ground-truth cameras re-expressed in context 0's frame (metric, as Splatt3R).
-  With a visibility mask (Splatt3R's loss mask, from ground-truth depth) both images are masked first.
+  With a visibility mask (Splatt3R's loss mask, from ground-truth depth) both images are masked first, and
+  the means run over the whole images (``photo_reduction="image"``) or over the mask's pixels
+  (``"mask"``, the MAC-Splat release's: ``Σ err² / (3 · mask pixels)``, and LPIPS's per-pixel map
+  averaged over the mask; D-SSIM's map likewise), over all the sample's targets at once.
 * ``L_MAC`` (:func:`macsplat_cli.mac.mac_loss`, λp = 1, λs = 0.02, λa = 0.1, weight 0.25): matched
   Gaussians of the two views pulled together in world space (the ground-truth frame of context 0). Matches
   come from the fused descriptors through the shared filtered matcher (reciprocal nearest neighbours on a
-  ``match_stride`` grid, gated by ``c0·c1 > τ``).
+  ``match_stride`` grid, gated by ``c0·c1 > τ``), at most ``max_matches`` of them (a random subset).
 
 **How the fusion module learns.** Reciprocal matching is discrete, so neither term would reach the fused
 descriptors through the match pixels. Each match's MAC weight is therefore ``w = c0·c1·p``, with ``p`` the
@@ -24,6 +27,7 @@ gradients) give the gradients of one process with batch ``N·b``.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -31,6 +35,7 @@ import torch
 
 from ..cameras import Camera
 from ..datasets.coverage import visibility_mask
+from ..errors import InputError
 from ..gaussians import GaussianMaps
 from ..mac import MACConfig, mac_loss
 from ..metrics import ssim_map
@@ -58,6 +63,11 @@ class LossConfig:
         descriptor_gradient: let the MAC weights' gradient reach the fused descriptors.
         mac_weighting: ``"c0c1p"`` (default: w = c0·c1·p, the dual-softmax probability p gives the fusion module
             its gradient) or ``"c0c1"`` (the paper's plain w = c0·c1: the fusion learns nothing from MAC).
+        conf_floor: the weights use ``conf_floor + c`` for each confidence ``c = exp(x)`` (MASt3R's and the
+            release's ``1 + exp(x)``: 1; macsplat: 0). The gate always tests ``c0·c1 > τ`` without it.
+        max_matches: a random subset of at most this many matches per sample (None: all; the release: 4096).
+        photo_reduction: ``"image"`` (means over the whole masked images) or ``"mask"`` (over the mask's
+            pixels; module docstring).
         geometry_weight: weight of a point-map regression term (:func:`point_regression`) for a backbone
             trained from scratch (``--init random``), whose random point maps give the head nothing to render.
         background: colour behind the Gaussians.
@@ -72,8 +82,21 @@ class LossConfig:
     match_temperature: float = 0.1
     descriptor_gradient: bool = True
     mac_weighting: str = "c0c1p"
+    conf_floor: float = 0.0
+    max_matches: int | None = None
+    photo_reduction: str = "image"
     geometry_weight: float = 0.0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        if self.mac_weighting not in ("c0c1p", "c0c1"):
+            raise InputError(f"--mac-weighting {self.mac_weighting!r}: use c0c1p or c0c1")
+        if self.photo_reduction not in ("image", "mask"):
+            raise InputError(f"photometric reduction {self.photo_reduction!r}: use image or mask")
+        if not (self.conf_floor >= 0 and math.isfinite(self.conf_floor)):
+            raise InputError(f"conf_floor {self.conf_floor}: give a finite number ≥ 0")
+        if self.max_matches is not None and (int(self.max_matches) != self.max_matches or self.max_matches < 1):
+            raise InputError(f"max_matches {self.max_matches!r}: give a positive integer or None")
 
 
 @dataclass
@@ -124,7 +147,8 @@ def sample_matches(
 
     Returns:
         ``xy0 [M, 2]``, ``xy1 [M, 2]`` (pixel centres at +0.5) and ``w [M]`` = ``c0·c1·p`` (module docstring), or
-        ``c0·c1`` with ``mac_weighting="c0c1"``.
+        ``c0·c1`` with ``mac_weighting="c0c1"`` (each ``c`` plus ``conf_floor``); with ``max_matches``, a random
+        subset (torch's global generator, so a resumed run draws the same).
     """
     h, w = desc.shape[1:3]
     idx, grid = sample_descriptors(
@@ -136,14 +160,18 @@ def sample_matches(
     conf = desc_conf.reshape(2, h * w)[:, torch.from_numpy(idx).to(desc.device)].float()  # [2, N]
     feats = [Features(uv, flat[k].detach().cpu().numpy(), conf[k].detach().cpu().numpy(), grid=grid) for k in (0, 1)]
     m = match_features(feats[0], feats[1], MatchConfig(conf_threshold=config.conf_threshold, ratio_confidence=False))
-    i0 = torch.from_numpy(m.idx0).to(desc.device)
-    i1 = torch.from_numpy(m.idx1).to(desc.device)
-    weight = conf[0, i0].detach() * conf[1, i1].detach()
+    keep = torch.arange(len(m.idx0))
+    if config.max_matches is not None and len(keep) > config.max_matches:
+        keep = torch.randperm(len(keep))[: config.max_matches].sort().values
+    i0 = torch.from_numpy(m.idx0)[keep].to(desc.device)
+    i1 = torch.from_numpy(m.idx1)[keep].to(desc.device)
+    weight = (config.conf_floor + conf[0, i0].detach()) * (config.conf_floor + conf[1, i1].detach())
     if config.mac_weighting == "c0c1p":
         sim = flat[0] @ flat[1].T / config.match_temperature  # [N, N]
         p = (sim.softmax(0) * sim.softmax(1))[i0, i1]  # dual softmax of each match
         weight = weight * (p if config.descriptor_gradient else p.detach())
-    return torch.from_numpy(m.xy0).float(), torch.from_numpy(m.xy1).float(), weight
+    xy0, xy1 = torch.from_numpy(m.xy0)[keep].float(), torch.from_numpy(m.xy1)[keep].float()
+    return xy0, xy1, weight
 
 
 def point_regression(
@@ -199,6 +227,39 @@ def loss_masks(batch: dict[str, torch.Tensor]) -> torch.Tensor | None:
     return torch.from_numpy(masks)
 
 
+def _photometric(
+    rgb: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None, config: LossConfig, lpips: torch.nn.Module | None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(MSE, LPIPS or 1 − SSIM)`` of one sample's rendered targets (module docstring).
+
+    Args:
+        rgb: the renders. [T, 3, H, W]
+        gt: the targets. [T, 3, H, W]
+        mask: the targets' visibility masks (None: none). [T, H, W]
+    """
+    t = rgb.shape[0]
+    if mask is None:
+        m = None
+    else:
+        m = mask.to(device=rgb.device, dtype=rgb.dtype)[:, None]
+        rgb, gt = rgb * m, gt * m
+    if m is not None and config.photo_reduction == "mask":
+        px = m.sum().clamp_min(1.0)
+        mse = ((rgb - gt) ** 2).sum() / (3.0 * px)
+        if lpips is not None:
+            dmap = torch.stack([lpips.spatial(rgb[i].permute(1, 2, 0), gt[i].permute(1, 2, 0)) for i in range(t)])
+            return mse, (dmap.to(rgb.dtype) * m[:, 0]).sum() / px
+        dmap = 1.0 - torch.stack([ssim_map(rgb[i].permute(1, 2, 0), gt[i].permute(1, 2, 0)) for i in range(t)])
+        r = (m.shape[-1] - dmap.shape[-1]) // 2  # SSIM's map covers where its window fits: the mask there
+        mv = m[:, 0, r : m.shape[-2] - r, r : m.shape[-1] - r]
+        return mse, (dmap * mv).sum() / mv.sum().clamp_min(1.0)
+    mse = ((rgb - gt) ** 2).mean()
+    if lpips is not None:
+        return mse, lpips(rgb, gt).mean()
+    ssim = torch.stack([ssim_map(rgb[i].permute(1, 2, 0), gt[i].permute(1, 2, 0)).mean() for i in range(t)])
+    return mse, 1.0 - ssim.mean()
+
+
 def training_loss(
     pred: PairPrediction, batch: dict[str, torch.Tensor], config: LossConfig, lpips: torch.nn.Module | None = None
 ) -> LossTerms:
@@ -226,22 +287,8 @@ def training_loss(
             pred.gaussians, b, batch["target_K"][b], batch["target_c2w"][b], batch["context_c2w"][b, 0], (h, w),
             config.background,
         )  # fmt: skip
-        gt = target[b].to(rgb.dtype)
-        if mask is not None:
-            m = mask[b].to(device=rgb.device, dtype=rgb.dtype)[:, None]
-            rgb, gt = rgb * m, gt * m
-        mse = ((rgb - gt) ** 2).mean()
-        if lpips is not None:
-            perceptual = lpips(rgb, gt).mean()
-            photo = mse + config.lpips_weight * perceptual
-        else:
-            perceptual = (
-                1.0
-                - torch.stack(
-                    [ssim_map(rgb[i].permute(1, 2, 0), gt[i].permute(1, 2, 0)).mean() for i in range(t)]
-                ).mean()
-            )
-            photo = mse + config.ssim_weight * perceptual
+        mse, perceptual = _photometric(rgb, target[b].to(rgb.dtype), None if mask is None else mask[b], config, lpips)
+        photo = mse + (config.lpips_weight if lpips is not None else config.ssim_weight) * perceptual
         loss = photo
         if config.mac_weight > 0:
             xy0, xy1, weight = sample_matches(pred.desc[b], pred.desc_conf[b], config)

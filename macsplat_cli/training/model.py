@@ -1,7 +1,8 @@
 """The model ``macsplat train`` optimises: a :class:`~macsplat_cli.neural.predictor.PairPredictor` with a Gaussian
 head and Residual Semantic Fusion, built from the user's checkpoints or at random, and which parts are frozen.
 
-* ``--model full``: the released architectures (MASt3R ViT-L/ViT-B, Splatt3R head, DINOv3 ViT-S/16 + fusion);
+* ``--model full``: the released architectures (MASt3R ViT-L/ViT-B, Splatt3R head, DINOv3 + fusion: ViT-L/16 by
+  default, the variant the MAC-Splat authors used);
   with ``--init random`` they start from random weights (no download), else from ``--weights`` (MASt3R),
   ``--gaussian-head`` (Splatt3R), ``--dino`` (DINOv3), and optionally ``--checkpoint`` (a macsplat checkpoint
   to continue from);
@@ -14,6 +15,7 @@ unless ``train_backbone`` (DINOv3 is always frozen).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,6 +48,9 @@ class ModelSpec:
         dino: DINOv3 weights (with ``init="weights"``; a fresh fusion module is added on top).
         no_dino: build no DINOv3/fusion at all (the "w/o DINO" ablation).
         seed: seed of the random initialisation.
+        dino_variant: DINOv3 preset of ``model="full"`` at random (with ``dino``, the file's variant).
+        max_scale: cap of the Gaussian head's scales (:class:`~macsplat_cli.neural.config.GaussianHeadConfig`);
+            None keeps a loaded macsplat checkpoint's cap (a fresh head: none).
     """
 
     model: Literal["tiny", "full"] = "tiny"
@@ -55,20 +60,25 @@ class ModelSpec:
     dino: Path | None = None
     no_dino: bool = False
     seed: int = 0
+    dino_variant: str = "vitl16"
+    max_scale: float | None = None
 
 
-def _random(model: str, no_dino: bool) -> PairPredictor:
-    if model == "tiny":
+def _random(spec: ModelSpec) -> PairPredictor:
+    if spec.model == "tiny":
         backbone_cfg = BackboneConfig.tiny()
         dino_cfg = DINOv3Config.preset("tiny")
-    elif model == "full":
+    elif spec.model == "full":
         backbone_cfg = BackboneConfig()
-        dino_cfg = DINOv3Config.preset("vits16")
+        try:
+            dino_cfg = DINOv3Config.preset(spec.dino_variant)
+        except ValueError as e:
+            raise InputError(str(e)) from None
     else:
-        raise InputError(f"--model {model!r}: use tiny or full")
+        raise InputError(f"--model {spec.model!r}: use tiny or full")
     backbone = MASt3RBackbone(backbone_cfg)
-    head = GaussianHead(backbone_cfg.replace(head_type="gaussian_head"), GaussianHeadConfig())
-    if no_dino:
+    head = GaussianHead(backbone_cfg.replace(head_type="gaussian_head"), GaussianHeadConfig(max_scale=spec.max_scale))
+    if spec.no_dino:
         return PairPredictor(backbone, head)
     fusion = ResidualSemanticFusion(FusionConfig(desc_dim=backbone_cfg.local_feat_dim, dino_dim=dino_cfg.embed_dim))
     return PairPredictor(backbone, head, DINOv3Encoder(dino_cfg), fusion)
@@ -84,7 +94,7 @@ def build_training_model(spec: ModelSpec) -> PairPredictor:
         if any(v is not None for v in (spec.weights, spec.gaussian_head, spec.dino)):
             raise InputError("--init random builds the model from scratch: drop --weights, --gaussian-head and --dino")
         torch.manual_seed(spec.seed)
-        predictor = _random(spec.model, spec.no_dino)
+        predictor = _random(spec)
         logger.info("model %s, random initialisation (seed %d)", spec.model, spec.seed)
         return predictor
     if spec.init != "weights":
@@ -111,6 +121,11 @@ def build_training_model(spec: ModelSpec) -> PairPredictor:
             predictor = PairPredictor(predictor.backbone, predictor.gaussian_head, dino, fusion)
     if spec.no_dino and predictor.fusion_enabled:
         predictor = PairPredictor(predictor.backbone, predictor.gaussian_head)
+    head = predictor.gaussian_head
+    if head is not None and spec.max_scale is not None:
+        head.config = dataclasses.replace(head.config, max_scale=spec.max_scale)
+    elif head is not None and head.config.max_scale is not None:
+        logger.info("the Gaussian head keeps its checkpoint's scale cap %g", head.config.max_scale)
     return predictor
 
 

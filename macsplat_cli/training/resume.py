@@ -7,8 +7,8 @@ checks, in this order, and names the first problem:
 * the file: a zip/pickle that ``torch.load(weights_only=True)`` reads (a truncated, empty or foreign file is refused);
 * the layout: ``format``, the model ``config`` (the same as this run's), ``state_dict`` and ``training`` dicts;
 * the weights: the model's keys exactly, each a dense tensor of the model's shape and dtype, finite;
-* the optimiser (AdamW): as many parameter groups of the same sizes, known hyper-parameters of the right types and
-  ranges, per-parameter state (``step``, ``exp_avg``, ``exp_avg_sq``) of each parameter's shape, finite,
+* the optimiser (Adam or AdamW): as many parameter groups of the same sizes, known hyper-parameters of the right types
+  and ranges, per-parameter state (``step``, ``exp_avg``, ``exp_avg_sq``) of each parameter's shape, finite,
   ``exp_avg_sq ≥ 0``;
 * the scheduler: only keys this scheduler has, ``last_epoch`` equal to the step, finite learning rates;
 * the gradient scaler (fp16): finite, positive settings;
@@ -189,7 +189,7 @@ def _check_optimizer(sd: Any, optimizer: torch.optim.Optimizer) -> None:
         sw = f"{where}.state[{pid!r}]"
         _expect(pid in params_by_id, f"{sw} belongs to no parameter")
         keys = _ADAM_STATE + (("max_exp_avg_sq",) if amsgrad else ())
-        _expect(isinstance(s, dict) and set(s) == set(keys), f"{sw} is not an AdamW state ({', '.join(keys)})")
+        _expect(isinstance(s, dict) and set(s) == set(keys), f"{sw} is not an Adam(W) state ({', '.join(keys)})")
         p = params_by_id[pid]
         step = s["step"]
         if isinstance(step, torch.Tensor):

@@ -2,19 +2,22 @@
 
 Validation pairs come from the held-out split when the data set has one (ScanNet++ ``nvs_sem_val``, the
 scenes Splatt3R evaluates on); otherwise ``val_pairs`` candidate pairs are held out (drawn with the seed),
-and the training pairs are the rest. The pairs stay compact (:class:`~.data.CandidatePairs`: ``O(N²)`` memory for
-a scene of ``N`` frames, targets derived per sample), so a scene of thousands of frames starts at once.
+and the training pairs are the rest. Scenes named in ``exclude`` are left out of both (the MAC-Splat release leaves
+out ScanNet++ ``303745abc7`` and ``cc5237fd77``). The pairs stay compact (:class:`~.data.CandidatePairs`:
+``O(N²)`` memory for a scene of ``N`` frames, targets derived per sample), so a scene of thousands of frames starts
+at once.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..datasets import detect_layout, load_dataset
+from ..datasets import EvalDataset, detect_layout, load_dataset
 from ..errors import DatasetError
 from .data import PairDataset, PairSamplingConfig, candidate_pairs
 
@@ -34,6 +37,7 @@ def load_training_data(
     sampling: PairSamplingConfig | None = None,
     val_pairs: int = 8,
     seed: int = 0,
+    exclude: tuple[str, ...] = (),
 ) -> tuple[PairDataset, PairDataset | None, dict[str, Any]]:
     """The training and validation :class:`PairDataset` of a data folder, and a summary for ``run.json``.
 
@@ -45,14 +49,14 @@ def load_training_data(
     if not root.is_dir():
         raise DatasetError(f"--data {root}: no such folder")
     kind = detect_layout(root) if layout == "auto" else layout
-    dataset = load_dataset(root, kind, scannetpp_split=split, scenes=scenes)
+    dataset = _without(load_dataset(root, kind, scannetpp_split=split, scenes=scenes), exclude)
     pairs = candidate_pairs(dataset, sampling)
     val_ds: PairDataset | None = None
     has_val_split = kind == "scannetpp" and any(
         (root / d / "splits" / f"{VAL_SPLIT}.txt").is_file() for d in (".", "raw")
     )
     if has_val_split and scenes is None:
-        val_set = load_dataset(root, kind, scannetpp_split=VAL_SPLIT)
+        val_set = _without(load_dataset(root, kind, scannetpp_split=VAL_SPLIT), exclude)
         val_candidates = candidate_pairs(val_set, sampling)
         rng = np.random.default_rng(seed)
         keep = np.sort(rng.permutation(len(val_candidates))[:val_pairs])
@@ -75,6 +79,22 @@ def load_training_data(
         "train_pairs": len(train_pairs),
         "val_pairs": 0 if val_ds is None else len(val_ds),
         "validation": "split " + VAL_SPLIT if has_val_split and scenes is None else "held-out pairs",
-        "sampling": {"coverage": list(sampling.coverage), "targets": sampling.targets, "size": list(sampling.size)},
+        "sampling": {
+            "coverage": list(sampling.coverage),
+            "targets": sampling.targets,
+            "size": list(sampling.size),
+            "crop": sampling.crop,
+        },
+        "excluded_scenes": list(exclude),
     }
     return train_ds, val_ds, info
+
+
+def _without(dataset: EvalDataset, exclude: tuple[str, ...]) -> EvalDataset:
+    """``dataset`` without the scenes named in ``exclude`` (refused when that leaves none)."""
+    if not exclude:
+        return dataset
+    kept = [s for s in dataset.scenes if s.name not in exclude]
+    if not kept:
+        raise DatasetError(f"{dataset.root}: no scene left once {', '.join(exclude)} are excluded")
+    return dataclasses.replace(dataset, scenes=kept)

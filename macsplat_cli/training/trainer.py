@@ -1,5 +1,6 @@
-"""The training loop of ``macsplat train``: AdamW with warm-up + cosine, clipping, accumulation, AMP, validation,
-atomic checkpoints, exact resume, and data-parallel training over processes started by ``torchrun``.
+"""The training loop of ``macsplat train``: AdamW or Adam and their schedule (:mod:`.optim`), clipping,
+accumulation, AMP, validation, atomic checkpoints, exact resume, and data-parallel training over processes started
+by ``torchrun``.
 
 Files in the run folder (only rank 0 writes):
 
@@ -52,6 +53,7 @@ from .distributed import all_ranks, barrier, distributed_context
 from .interrupts import interrupts_held
 from .loss import training_loss
 from .model import trainable_parameters
+from .optim import build_optimizer, build_scheduler
 from .resume import check_training_checkpoint, read_training_checkpoint, rng_state, set_rng_state
 from .run_log import MetricsLog, check_appendable
 from .validation import validation_metrics
@@ -89,13 +91,6 @@ class TrainResult:
 
 
 # ============================================================================================= the loop
-def _lr_factor(step: int, warmup: int, total: int) -> float:
-    if warmup > 0 and step < warmup:
-        return (step + 1) / warmup
-    progress = (step - warmup) / max(1, total - warmup)
-    return 0.5 * (1.0 + math.cos(math.pi * min(1.0, progress)))
-
-
 class Trainer:
     """Trains a :class:`PairPredictor` (its trainable parameters) on a :class:`~.data.PairDataset`.
 
@@ -148,10 +143,8 @@ class Trainer:
                 predictor, device_ids=[self.ctx.local_rank] if config.device == "cuda" else None,
                 find_unused_parameters=True,
             )  # fmt: skip
-        self.optimizer = torch.optim.AdamW(params, lr=config.lr, weight_decay=config.weight_decay)
-        self.scheduler = torch.optim.lr_scheduler.LambdaLR(
-            self.optimizer, lambda s: _lr_factor(s, config.warmup, config.steps)
-        )
+        self.optimizer = build_optimizer(params, config)
+        self.scheduler = build_scheduler(self.optimizer, config)
         self.scaler = torch.amp.GradScaler("cuda", enabled=config.precision == "fp16")
         self.step = 0
         self.epoch = 0
