@@ -40,7 +40,10 @@ weights give no consistent pose):
 * ``train``: ``train --precision bf16`` for ``--train-steps`` (20) steps on the ScanNet++ tree (512×384, or
   64×48 with ``--tiny``), backbone and DINOv3 frozen (from the random files), Gaussian head and fusion trained
   (bf16 autocast works on the CPU too; ``--precision fp32`` to change it);
-* ``torchrun``: the same through ``torchrun --standalone --nproc-per-node 1 -m macsplat_cli train`` (run as
+* ``train-released``: ``train --recipe released-code`` (the authors' released code's settings: fp32 Adam, batch 1,
+  512×512 principal-point crops, 3 targets, the release's MAC form and scale cap) for ``--train-steps`` steps
+  (64×64 frames with ``--tiny``);
+* ``torchrun``: the same as ``train`` through ``torchrun --standalone --nproc-per-node 1 -m macsplat_cli train`` (run as
   ``python -m torch.distributed.run``: torchrun's own module, with this interpreter);
 * ``render``: ``render scene.ply --cameras ... --path 10 --backend gsplat --device cuda`` on the scene of
   ``reconstruct``, when ``import gsplat`` works (else a skipped row); on the CPU ``--backend numba``.
@@ -72,7 +75,16 @@ from pathlib import Path
 from benchmarks._gpu_process import Result, gpu_present, nvidia_gpus, run_process
 
 ROOT = Path(__file__).resolve().parents[1]
-STEPS = ("reconstruct", "reconstruct-bf16", "export-onnx", "reconstruct-onnx", "train", "torchrun", "render")
+STEPS = (
+    "reconstruct",
+    "reconstruct-bf16",
+    "export-onnx",
+    "reconstruct-onnx",
+    "train",
+    "train-released",
+    "torchrun",
+    "render",
+)
 ALIASES = {"onnx": ("export-onnx", "reconstruct-onnx"), "all": STEPS}
 NEEDS = {"reconstruct-onnx": "export-onnx", "render": "reconstruct"}
 """A step that uses another step's output: selecting it selects that step too; its failure skips it."""
@@ -204,6 +216,13 @@ class Plan:
             return self.reconstruct("reconstruct-onnx", "--weights", Path("onnx", "predictor.onnx"))
         if step == "train":
             return self.cli(*self.train_args("train"))
+        if step == "train-released":
+            f = self.files
+            size = ["--size", "64x64"] if self.tiny else []  # else the recipe's 512x512
+            return self.cli("train", "--data", self.data, "--out", step, "--recipe", "released-code", "--weights",
+                            f["mast3r"], "--gaussian-head", f["splatt3r"], "--dino", f["dino"], "--steps",
+                            self.train_steps, "--val-every", 0, "--ckpt-every", self.train_steps, "--device",
+                            self.device, *size, "--workers", 0 if self.tiny else 2, "-q")  # fmt: skip
         if step == "torchrun":
             return [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "1",
                     "-m", "macsplat_cli", *map(str, self.train_args("torchrun"))]  # fmt: skip
@@ -247,14 +266,15 @@ class Plan:
                 rows = [r for r in csv.DictReader(f) if r.get("kind") == "train"]
             last = int(rows[-1]["step"]) if rows else 0
             assert last == self.train_steps, f"metrics.csv ends at step {last}, not {self.train_steps}"
-            return f"{self.train_steps} steps {self.train_precision}, loss {float(rows[-1]['loss']):.3g}"
+            precision = "fp32 released-code" if step == "train-released" else self.train_precision
+            return f"{self.train_steps} steps {precision}, loss {float(rows[-1]['loss']):.3g}"
 
         def render() -> str:
             frames = sorted((self.work / "render").glob("*.png"))
             assert len(frames) == RENDER_VIEWS, f"{len(frames)} of {RENDER_VIEWS} views written"
             return f"{len(frames)} views, " + ("gsplat" if self.device == "cuda" else "numba (gsplat needs CUDA)")
 
-        checks = {"export-onnx": export, "train": train, "torchrun": train, "render": render}
+        checks = {"export-onnx": export, "train": train, "train-released": train, "torchrun": train, "render": render}
         return checks.get(step, reconstruct)
 
 
