@@ -5,13 +5,19 @@ from __future__ import annotations
 import logging
 import os
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
 from ._app import app
 from ._common import QuietOpt, VerboseOpt, command_context, err_console, escape
 from ._options import DeviceOpt, DinoOpt, GaussianHeadOpt, WeightsOpt
+
+if TYPE_CHECKING:  # the command imports torch only once it runs
+    import torch
+
+    from ..training.config import TrainConfig
+    from ..training.recipes import TrainRecipe
 
 logger = logging.getLogger("macsplat_cli.cli.train")
 
@@ -149,7 +155,8 @@ def train_command(
         }  # fmt: skip
         _train(
             data=data, out=out, layout=layout, scenes=scenes, split=split,
-            recipe=_recipe(recipe.strip().lower(), chosen), accumulate=accumulate,
+            recipe=_recipe(recipe.strip().lower(), chosen, {"mac_weight": "--no-mac"} if no_mac else {}),
+            accumulate=accumulate,
             precision=precision.strip().lower(), coverage=_range(coverage, "--coverage"), val_every=val_every,
             val_pairs=val_pairs, ckpt_every=ckpt_every, seed=seed, workers=workers, model=model.strip().lower(),
             init=init.strip().lower(), weights=weights, gaussian_head=gaussian_head, dino=dino, no_dino=no_dino,
@@ -158,27 +165,25 @@ def train_command(
         )  # fmt: skip
 
 
-def _recipe(name: str, chosen: dict[str, Any]) -> tuple[Any, list[str]]:
-    """The named recipe with the options given on the command line in place of its values, and their names."""
+def _recipe(name: str, chosen: dict[str, Any], labels: dict[str, str]) -> tuple[TrainRecipe, list[str]]:
+    """The named recipe with the options given on the command line in place of its values, and the options' names
+    (``labels``: a value's option when it is not ``--`` + its name)."""
     import dataclasses
 
-    from ..errors import InputError
     from ..training.recipes import get_recipe
 
     recipe = get_recipe(name)
     given = {k: v for k, v in chosen.items() if v is not None}
     loss = {k: given.pop(k) for k in ("mac_weight", "mac_weighting") if k in given}
-    if loss.get("mac_weighting", "c0c1p") not in ("c0c1p", "c0c1"):
-        raise InputError(f"--mac-weighting {loss['mac_weighting']!r}: use c0c1p or c0c1")
     if "steps" in given:
         given["steps_per_scene"] = None
-    recipe = dataclasses.replace(recipe, **given, loss=dataclasses.replace(recipe.loss, **loss))
-    overridden = ["--" + k.replace("_", "-") for k, v in chosen.items() if v is not None]
+    recipe = dataclasses.replace(recipe, **given, loss=dataclasses.replace(recipe.loss, **loss))  # checks them
+    overridden = [labels.get(k, "--" + k.replace("_", "-")) for k, v in chosen.items() if v is not None]
     return recipe, overridden
 
 
 def _train(
-    *, data: Path, out: Path, layout: str, scenes: str | None, split: str, recipe: tuple[Any, list[str]],
+    *, data: Path, out: Path, layout: str, scenes: str | None, split: str, recipe: tuple[TrainRecipe, list[str]],
     accumulate: int, precision: str, coverage: tuple[float, float], val_every: int, val_pairs: int, ckpt_every: int,
     seed: int, workers: int, model: str, init: str, weights: Path | None, gaussian_head: Path | None,
     dino: Path | None, no_dino: bool, lpips_weights: Path | None, train_backbone: bool, device: str, resume: bool,
@@ -247,7 +252,7 @@ def _train(
         err_console.print(escape(_summary(result, out)), highlight=False, soft_wrap=True)
 
 
-def _train_config(rec: Any, **loop: Any) -> Any:
+def _train_config(rec: TrainRecipe, **loop: Any) -> TrainConfig:
     """The loop's settings from the recipe (its steps are set once the data's scenes are counted)."""
     import copy
 
@@ -262,7 +267,7 @@ def _train_config(rec: Any, **loop: Any) -> Any:
     return config
 
 
-def _lpips(path: Path | None, rec: Any) -> Any:
+def _lpips(path: Path | None, rec: TrainRecipe) -> torch.nn.Module | None:
     if path is None:
         logger.info("no --lpips-weights: the photometric loss uses D-SSIM (weight %g) instead of LPIPS (%g)",
                     rec.loss.ssim_weight, rec.loss.lpips_weight)  # fmt: skip
