@@ -4,10 +4,16 @@ after, with and without the MAC loss, and throughput / peak memory by batch size
     python -m benchmarks.train_tiny                       # synthetic room + object scenes
     python -m benchmarks.train_tiny --data ../shared/data/co3d_apple --layout co3d-json
     python -m benchmarks.train_tiny --throughput          # pairs/s and peak RSS for batch 1, 2, 4
+    python -m benchmarks.train_tiny --losses paper,released-code,none   # the two recipes' objectives, and no MAC
 
 Validation: held-out pairs of the same scenes (PSNR/SSIM of the rendered targets, full images), and the
 disagreement of matched Gaussians on the validation pairs (MAC's position and shape terms with unit weights and
 no Huber: mean L1 distance of matched means in scene units, and mean L1 of their sorted log-eigenvalues).
+
+``--losses``: whose objective each run trains with — ``paper`` (``train --recipe paper``'s loss), ``released-code``
+(``--recipe released-code``'s: masked photometric terms, 0.2 · MAC averaged, δ 0.05, clamped, (1 + c) weights) or
+``none`` (the paper's without MAC); everything else (optimiser, rate, sizes) is this script's, the same for all, so
+that only the objective differs.
 """
 
 from __future__ import annotations
@@ -32,6 +38,7 @@ from macsplat_cli.training.config import TrainConfig
 from macsplat_cli.training.data import PairSamplingConfig, make_loader
 from macsplat_cli.training.loss import LossConfig, sample_matches
 from macsplat_cli.training.model import ModelSpec, build_training_model, freeze_for_training
+from macsplat_cli.training.recipes import get_recipe
 from macsplat_cli.training.setup import load_training_data
 from macsplat_cli.training.trainer import Trainer
 
@@ -71,14 +78,20 @@ def disagreement(trainer: Trainer) -> dict[str, float]:
     }
 
 
-def run(data: Path, layout: str, args: argparse.Namespace, mac_weight: float, out: Path) -> dict:
+def objective(name: str) -> LossConfig:
+    """``--losses`` entry → the loss of that recipe (``none``: the paper's without MAC), with the point-map term
+    a from-scratch backbone needs."""
+    loss = get_recipe("paper" if name == "none" else name).loss
+    return dataclasses.replace(loss, geometry_weight=1.0, mac_weight=0.0 if name == "none" else loss.mac_weight)
+
+
+def run(data: Path, layout: str, args: argparse.Namespace, loss: LossConfig, out: Path) -> dict:
     sampling = PairSamplingConfig(size=tuple(args.size), targets=args.targets)
     train_ds, val_ds, info = load_training_data(
         data, layout=layout, sampling=sampling, val_pairs=args.val_pairs, seed=0
     )
     model = build_training_model(ModelSpec(model="tiny", init="random", seed=0))
     predictor = freeze_for_training(model, train_backbone=True)  # as `macsplat train --init random`
-    loss = LossConfig(mac_weight=mac_weight, geometry_weight=1.0)
     cfg = TrainConfig(out=out, steps=args.steps, batch=args.batch, lr=args.lr, warmup=20, val_every=0,
                       ckpt_every=args.steps, loss=loss)  # fmt: skip
     trainer = Trainer(predictor, train_ds, val_ds, cfg)
@@ -132,8 +145,12 @@ def main() -> None:
     ap.add_argument("--targets", type=int, default=2)
     ap.add_argument("--val-pairs", type=int, default=8)
     ap.add_argument("--throughput", action="store_true")
+    ap.add_argument("--losses", default="paper,none", help="comma-separated: paper, released-code, none")
     ap.add_argument("--_one", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    unknown = set(args.losses.split(",")) - {"paper", "released-code", "none"}
+    if unknown:
+        ap.error(f"--losses: unknown {', '.join(sorted(unknown))} (use paper, released-code, none)")
     torch.set_num_threads(2)
     with tempfile.TemporaryDirectory() as tmp:
         data = args.data or synthetic_data(Path(tmp) / "data", (160, 120))
@@ -142,9 +159,11 @@ def main() -> None:
         if args.throughput:
             return throughput(data, args.layout, args)
         rows = {}
-        for name, w in (("+ MAC", 0.25), ("w/o MAC", 0.0)):
-            rows[name] = run(data, args.layout, args, w, Path(tmp) / name.replace(" ", "").replace("/", ""))
-        info = rows["+ MAC"]["info"]
+        for name in args.losses.split(","):
+            label = {"paper": "+ MAC (paper)", "released-code": "+ MAC (released-code)", "none": "w/o MAC"}[name]
+            rows[label] = run(data, args.layout, args, objective(name), Path(tmp) / name)
+        first = next(iter(rows))
+        info = rows[first]["info"]
         print(f"data: {info['root'] if args.data else 'synthetic room + object'} ({info['train_pairs']} training, "
               f"{info['val_pairs']} validation pairs); tiny model, {args.steps} steps × batch {args.batch}, "
               f"{args.size[0]}x{args.size[1]}, lr {args.lr:g}\n")  # fmt: skip
@@ -155,8 +174,8 @@ def main() -> None:
             print(f"| {name} | {b['psnr']:.2f} → {a['psnr']:.2f} | {b['ssim']:.3f} → {a['ssim']:.3f} | "
                   f"{b['position']:.4f} → {a['position']:.4f} | {b['shape']:.3f} → {a['shape']:.3f} | "
                   f"{r['seconds']:.0f} | {r['pairs_per_s']:.2f} |")  # fmt: skip
-        print("\nloss curve (+ MAC), mean over windows of steps:")
-        print(" ".join(f"{s}:{v:.4f}" for s, v in rows["+ MAC"]["curve"]))
+        print(f"\nloss curve ({first}), mean over windows of steps:")
+        print(" ".join(f"{s}:{v:.4f}" for s, v in rows[first]["curve"]))
 
 
 if __name__ == "__main__":
