@@ -176,6 +176,7 @@ class Trainer:
         if resume:
             if not (self.out / "last.pt").is_file():
                 raise OutputPathError(f"--resume {self.out}: no last.pt to resume from")
+            self._check_same_recipe(run_json)
             if self.ctx.is_main:
                 check_appendable(self.out / "metrics.csv")  # before any work, not at the first step
             self.load_checkpoint(self.out / "last.pt")
@@ -196,6 +197,17 @@ class Trainer:
             except OSError as e:
                 raise OutputPathError(f"{run_json}: the run folder could not be written ({e.strerror or e})") from None
         barrier(self.ctx)  # the other processes start once rank 0 has accepted the folder
+
+    def _check_same_recipe(self, run_json: Path) -> None:
+        """A resumed run keeps its recipe: another one is refused naming both (before the checkpoint is read)."""
+        try:
+            before = json.loads(run_json.read_text())["recipe"]["name"]
+        except (OSError, ValueError, KeyError, TypeError):
+            return  # no readable recipe (an older run): the checkpoint's own checks decide
+        now = (self.run_info.get("recipe") or {}).get("name")
+        if now is not None and now != before:
+            raise OutputPathError(f"{self.out} was trained with --recipe {before}: resume it with --recipe {before}, "
+                                  f"or start over with --recipe {now} --force")  # fmt: skip
 
     def _meta(self) -> dict[str, Any]:
         return {"step": self.step, "best_psnr": self.best_psnr, "config": to_jsonable(dataclasses.asdict(self.config))}

@@ -161,9 +161,9 @@ def test_cli_released_code_recipe_end_to_end(scannetpp: Path, tmp_path: Path) ->
     """The recipe's values in the run: Adam (no decoupled decay) at 1e-6, ×0.1 from half the steps, batch 1,
     3 targets, principal-point crops, the release's loss; run.json names each omitted bug and each override."""
     out = tmp_path / "run"
-    code, _, err = run_cli(["train", "--data", scannetpp, "--out", out, "--recipe", "released-code", "--model", "tiny",
-                            "--init", "random", "--size", "64x64", "--steps", "4", "--val-every", "0", "--workers",
-                            "0", "-q"])  # fmt: skip
+    args = ["train", "--data", scannetpp, "--out", out, "--model", "tiny", "--init", "random", "--size", "64x64",
+            "--steps", "4", "--val-every", "0", "--workers", "0", "-q"]  # fmt: skip
+    code, _, err = run_cli([*args, "--recipe", "released-code"])
     assert code == 0, err
     run = json.loads((out / "run.json").read_text())
     cfg = run["config"]
@@ -184,6 +184,15 @@ def test_cli_released_code_recipe_end_to_end(scannetpp: Path, tmp_path: Path) ->
     with (out / "metrics.csv").open() as f:
         lrs = [float(r["lr"]) for r in csv.DictReader(f) if r["kind"] == "train"]
     assert lrs == pytest.approx([1e-6, 1e-7, 1e-7, 1e-7], rel=1e-12)  # each row: the rate of the next step
+
+    # resuming it under another recipe is refused, naming both, before anything is touched
+    before = (out / "last.pt").read_bytes()
+    code, _, err = run_cli([*args, "--resume"])
+    assert code == 2 and err.strip() == (
+        f"error: {out} was trained with --recipe released-code: resume it with --recipe released-code, or start "
+        "over with --recipe paper --force"
+    )
+    assert (out / "last.pt").read_bytes() == before
 
 
 def test_cli_refuses_an_unknown_recipe_in_one_line(tmp_path: Path) -> None:
