@@ -210,7 +210,9 @@ def _train(
     for name in ("run.json", "metrics.csv", "last.pt", "best.pt"):  # before the data and the model load
         check_writable(out / name)
     lpips = _lpips(lpips_weights, rec)
-    sampling = PairSamplingConfig(coverage=coverage, targets=rec.targets, size=rec.size, crop=rec.crop)
+    sampling = PairSamplingConfig(
+        coverage=coverage, targets=rec.targets, size=rec.size, crop=rec.crop, per_scene=rec.per_scene
+    )
     names = [s.strip() for s in scenes.split(",") if s.strip()] if scenes else None
     train_data, val_data, info = load_training_data(
         data, layout=layout, split=split, scenes=names, sampling=sampling, val_pairs=val_pairs, seed=seed,

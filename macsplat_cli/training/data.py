@@ -3,7 +3,9 @@
 **Candidate pairs**: :mod:`.pairs` (which ordered pairs of frames are contexts, and their targets).
 
 **Samples** (:class:`PairDataset`). Sample ``i`` of an epoch uses pair ``i`` (every candidate once per
-epoch), or — with ``samples_per_epoch`` — pair ``perm[i mod P]`` of a per-epoch permutation. Its
+epoch), or — with ``samples_per_epoch`` — pair ``perm[i mod P]`` of a per-epoch permutation, or — with
+``per_scene`` (``per_scene × scenes`` samples an epoch) — a pair drawn scene first
+(:meth:`~.pairs.CandidatePairs.draw_by_scene`) with ``(seed, epoch, i)``. Its
 ``targets`` target views are drawn from the pair's candidates without replacement (with repetition
 when the pair has fewer). Every draw comes from a generator seeded with ``(seed, epoch, i)`` only, so a
 sample does not depend on the worker that makes it, nor on the order of the requests.
@@ -63,6 +65,7 @@ MAX_ATTEMPTS = 100
 """Most draws for one sample before giving up on unreadable images."""
 _SAMPLE_TAG = 0x5A17
 _PERM_TAG = 0x9E12
+_SCENE_TAG = 0x5CE7
 
 
 # ------------------------------------------------------------------------------------ images
@@ -182,6 +185,8 @@ class PairDataset(Dataset):
         self._perms.clear()
 
     def __len__(self) -> int:
+        if self.config.per_scene is not None:
+            return self.config.per_scene * self._pairs.num_scenes
         n = self.config.samples_per_epoch
         return self.num_pairs if n is None else int(n)
 
@@ -208,6 +213,8 @@ class PairDataset(Dataset):
         return self._images
 
     def _pair_index(self, i: int) -> int:
+        if self.config.per_scene is not None:
+            return self._pairs.draw_by_scene(np.random.default_rng([_SCENE_TAG, self.seed, self.epoch % 2**63, i]))
         if self.config.samples_per_epoch is None:
             return i
         block, k = divmod(i, self.num_pairs)

@@ -63,6 +63,8 @@ class PairSamplingConfig:
         samples_per_epoch: samples in an epoch; None: every candidate pair once.
         crop: ``"centre"`` (cover ``size`` keeping the aspect, centre crop) or ``"principal-point"`` (first the
             largest window centred on the principal point, then the same: the MAC-Splat release's 512×512 frames).
+        per_scene: samples per scene in an epoch, each drawn scene first (:meth:`CandidatePairs.draw_by_scene`,
+            the MAC-Splat release's sampling, 20 there); None: every candidate pair once (or ``samples_per_epoch``).
 
     Raises:
         InputError: a value out of range.
@@ -75,6 +77,7 @@ class PairSamplingConfig:
     size: tuple[int, int] = (256, 192)
     samples_per_epoch: int | None = None
     crop: str = "centre"
+    per_scene: int | None = None
 
     def __post_init__(self) -> None:
         lo, hi = (float(x) for x in self.coverage)
@@ -95,6 +98,10 @@ class PairSamplingConfig:
             int(self.samples_per_epoch) != self.samples_per_epoch or self.samples_per_epoch < 1
         ):
             raise InputError(f"samples_per_epoch must be a positive integer or None, got {self.samples_per_epoch!r}")
+        if self.per_scene is not None and (int(self.per_scene) != self.per_scene or self.per_scene < 1):
+            raise InputError(f"per_scene must be a positive integer or None, got {self.per_scene!r}")
+        if self.per_scene is not None and self.samples_per_epoch is not None:
+            raise InputError("per_scene and samples_per_epoch both set an epoch's length: give one")
         if self.crop not in ("centre", "principal-point"):
             raise InputError(f"crop {self.crop!r}: use centre or principal-point")
 
@@ -205,6 +212,7 @@ class CandidatePairs(Sequence[TrainPair]):
         self._context = np.ascontiguousarray(context, dtype=np.int32).reshape(-1, 2)
         self._rules = dict(rules) if rules is not None else None
         self._explicit = explicit  # (offsets [M + 1] int64, targets [Σ] int32)
+        self._groups: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # draw_by_scene's, built on first use
 
     @classmethod
     def from_pairs(cls, pairs: Sequence[TrainPair]) -> CandidatePairs:
@@ -234,6 +242,30 @@ class CandidatePairs(Sequence[TrainPair]):
 
     def scene(self, k: int) -> int:
         return int(self._scene[k])
+
+    @property
+    def num_scenes(self) -> int:
+        """Scenes with at least one pair."""
+        return len(np.unique(self._scene))
+
+    def draw_by_scene(self, rng: np.random.Generator) -> int:
+        """A pair index drawn as the MAC-Splat release draws a sample: a scene uniformly, then a first context
+        uniformly among that scene's frames that are the first context of a pair, then a second uniformly among
+        its partners (the release draws the first context among all frames, with fallbacks for one without a
+        partner in range). Three draws from ``rng``. Raises IndexError without pairs."""
+        if self._groups is None:
+            order = np.lexsort((self._context[:, 0], self._scene))  # by scene, then first context (stable)
+            keys = np.stack([self._scene[order], self._context[order, 0]], 1)
+            first = np.flatnonzero(np.r_[True, np.any(keys[1:] != keys[:-1], axis=1)])  # each (scene, a) block
+            scene_of_first = keys[first, 0]
+            scenes = np.flatnonzero(np.r_[True, scene_of_first[1:] != scene_of_first[:-1]])
+            self._groups = (order, np.r_[first, len(order)], np.r_[scenes, len(first)])
+        order, first, scenes = self._groups
+        if not len(order):
+            raise IndexError("no pair to draw")
+        s = int(rng.integers(len(scenes) - 1))
+        f = int(rng.integers(scenes[s], scenes[s + 1]))
+        return int(order[rng.integers(first[f], first[f + 1])])
 
     def context(self, k: int) -> tuple[int, int]:
         c = self._context[k]

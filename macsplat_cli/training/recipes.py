@@ -9,9 +9,9 @@
   point-by-point comparison is ``models/mac-splat.md``) — Adam at 1e-6, ×0.1 at half the steps, batch 1,
   512×512 frames cut around the principal point, 3 targets, masked MSE ÷ (3 · mask pixels) + 0.1 · masked LPIPS,
   0.2 · MAC with its means, δ 0.05 and clamps, ``c = 1 + exp(x)`` weights on at most 4096 matches, scales capped
-  at 0.5, 10 epochs of 20 samples per scene — **except its bugs** (:data:`RELEASED_CODE_BUGS`, written to
-  ``run.json`` with what this recipe does instead) and the parts macsplat does not rebuild
-  (:data:`RELEASED_CODE_NOT_REPRODUCED`).
+  at 0.5, samples drawn scene first, 10 epochs of 20 samples per scene — **except its bugs**
+  (:data:`RELEASED_CODE_BUGS`, written to ``run.json`` with what this recipe does instead) and the parts macsplat
+  does not rebuild (:data:`RELEASED_CODE_NOT_REPRODUCED`).
 
 Options given on the command line override a recipe's values (``run.json`` records the values used).
 """
@@ -57,6 +57,7 @@ class TrainRecipe:
         size: ``(W, H)`` of the training frames.
         crop: ``centre`` or ``principal-point`` (:class:`~.pairs.PairSamplingConfig`).
         targets: target views per sample.
+        per_scene: samples per scene and epoch, drawn scene first (None: every candidate pair once an epoch).
         loss: the objective (:class:`~.loss.LossConfig`, with its :class:`~macsplat_cli.mac.MACConfig`).
         max_scale: cap of the Gaussians' scales (None: none), kept in the checkpoint.
         dino: DINOv3 variant of a ``--model full --init random`` model (with ``--dino``, the file's).
@@ -82,6 +83,7 @@ class TrainRecipe:
     max_scale: float | None = None
     dino: str = "vitl16"
     exclude_scenes: tuple[str, ...] = ()
+    per_scene: int | None = None
 
     def steps_for(self, scenes: int, world_size: int) -> int:
         """The run's steps: ``steps``, or ``steps_per_scene · scenes / world_size`` rounded up."""
@@ -112,6 +114,7 @@ def _released_code() -> TrainRecipe:
         name="released-code", optimizer="adam", lr=1e-6, weight_decay=0.0, schedule="step", warmup=0, lr_drop_at=0.5,
         lr_drop=0.1, grad_clip=0.5, batch=1, steps=None, steps_per_scene=10 * 20, size=(512, 512),
         crop="principal-point", targets=3, loss=loss, max_scale=0.5, exclude_scenes=("303745abc7", "cc5237fd77"),
+        per_scene=20,
     )  # fmt: skip
 
 
@@ -140,8 +143,9 @@ RELEASED_CODE_BUGS: dict[str, str] = {
 """The release's bugs (``models/mac-splat.md``), each with what ``--recipe released-code`` does instead."""
 
 RELEASED_CODE_NOT_REPRODUCED: tuple[str, ...] = (
-    "sampling: the release draws a scene per sample (scenes x 20 a epoch), then a second context and targets by "
-    "coverage > 0.3; here every candidate pair (coverage in --coverage) once per epoch",
+    "sampling: both draw a scene, a first context, then a second among its partners (scenes x 20 samples an epoch); "
+    "the release's first context is any frame (with fallbacks to the best overlap when none is in range), here a "
+    "frame with a partner in --coverage",
     "matching: the release seeds reciprocal nearest neighbours on a stride-8 grid and converges them over all pixels; "
     "here mutual nearest neighbours on a stride-4 grid of both views",
     "fusion: the release's 2816->3200->6400 token MLP per view is not built (inert there: B4); macsplat's "

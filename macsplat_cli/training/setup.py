@@ -51,6 +51,7 @@ def load_training_data(
     kind = detect_layout(root) if layout == "auto" else layout
     dataset = _without(load_dataset(root, kind, scannetpp_split=split, scenes=scenes), exclude)
     pairs = candidate_pairs(dataset, sampling)
+    once = dataclasses.replace(sampling, per_scene=None, samples_per_epoch=None)  # validation: each pair once
     val_ds: PairDataset | None = None
     has_val_split = kind == "scannetpp" and any(
         (root / d / "splits" / f"{VAL_SPLIT}.txt").is_file() for d in (".", "raw")
@@ -60,14 +61,14 @@ def load_training_data(
         val_candidates = candidate_pairs(val_set, sampling)
         rng = np.random.default_rng(seed)
         keep = np.sort(rng.permutation(len(val_candidates))[:val_pairs])
-        val_ds = PairDataset(val_set, val_candidates.subset(keep), sampling, seed=seed, depth=True)
+        val_ds = PairDataset(val_set, val_candidates.subset(keep), once, seed=seed, depth=True)
         train_pairs = pairs
     elif len(pairs) > 1:
         n_val = min(val_pairs, max(1, len(pairs) // 5))
         held = np.zeros(len(pairs), dtype=bool)
         held[np.random.default_rng(seed).permutation(len(pairs))[:n_val]] = True
         train_pairs = pairs.subset(np.flatnonzero(~held))
-        val_ds = PairDataset(dataset, pairs.subset(np.flatnonzero(held)), sampling, seed=seed, depth=True)
+        val_ds = PairDataset(dataset, pairs.subset(np.flatnonzero(held)), once, seed=seed, depth=True)
     else:
         train_pairs = pairs
         logger.warning("only one training pair: no validation (best.pt is the last model)")
@@ -84,6 +85,7 @@ def load_training_data(
             "targets": sampling.targets,
             "size": list(sampling.size),
             "crop": sampling.crop,
+            "per_scene": sampling.per_scene,
         },
         "excluded_scenes": list(exclude),
     }

@@ -172,7 +172,7 @@ def test_cli_released_code_recipe_end_to_end(scannetpp: Path, tmp_path: Path) ->
     assert cfg["loss"]["mac_weight"] == 0.2 and cfg["loss"]["mac"]["reduction"] == "mean"
     assert cfg["loss"]["photo_reduction"] == "mask" and cfg["loss"]["conf_floor"] == 1.0
     assert run["data"]["sampling"] == {"coverage": [0.3, 1.0], "targets": 3, "size": [64, 64],
-                                       "crop": "principal-point"}  # fmt: skip
+                                       "crop": "principal-point", "per_scene": 20}  # fmt: skip
     recipe = run["recipe"]
     assert recipe["name"] == "released-code" and set(recipe["omitted_bugs"]) == set(RELEASED_CODE_BUGS)
     assert sorted(recipe["overridden"]) == ["--size", "--steps"] and recipe["not_reproduced"]

@@ -17,6 +17,7 @@ from macsplat_cli.datasets.coverage import coverage_matrix
 from macsplat_cli.errors import DatasetError, InputError
 from macsplat_cli.images import save_image
 from macsplat_cli.training.data import (
+    CandidatePairs,
     PairDataset,
     PairSamplingConfig,
     TrainPair,
@@ -220,6 +221,28 @@ def test_samples_per_epoch_draws_a_permutation_of_pairs(plane_ds: EvalDataset, p
     assert sorted(ks[:16]) == list(range(16)) and sorted(ks[16:]) == list(range(16)) and ks[:16] != ks[16:]
     ds.set_epoch(1)
     assert [ds._pair_index(i) for i in range(32)] != ks
+
+
+def test_per_scene_draws_a_scene_then_a_first_context_then_a_partner(plane_ds: EvalDataset) -> None:
+    """The release's sampling: scenes equally often whatever their pair counts, then first contexts equally often,
+    then partners; ``per_scene × scenes`` samples an epoch, each a function of (seed, epoch, i)."""
+    listed = [(0, (0, 2)), (1, (0, 1)), (0, (1, 0)), (0, (0, 1)), (0, (0, 3))]  # unsorted on purpose
+    pairs = CandidatePairs.from_pairs([TrainPair(sc, ctx, (4,)) for sc, ctx in listed])
+    rng = np.random.default_rng(0)
+    n = 24_000
+    counts = np.bincount([pairs.draw_by_scene(rng) for _ in range(n)], minlength=len(listed)) / n
+    want = np.array([1 / 12, 1 / 2, 1 / 4, 1 / 12, 1 / 12])  # scene ½ × first context ½ × partner ⅓ (or 1)
+    assert np.all(np.abs(counts - want) < 5 * np.sqrt(want * (1 - want) / n)), counts  # 5 binomial s.d.
+    assert pairs.num_scenes == 2
+    one_scene = candidate_pairs(plane_ds, PairSamplingConfig(size=SMALL))
+    ds = PairDataset(plane_ds, one_scene, PairSamplingConfig(size=SMALL, per_scene=12), seed=3)
+    assert len(ds) == 12
+    ks = [ds._pair_index(i) for i in range(12)]
+    assert ks == [ds._pair_index(i) for i in range(12)] and len(set(ks)) > 3
+    ds.set_epoch(1)
+    assert [ds._pair_index(i) for i in range(12)] != ks
+    with pytest.raises(InputError, match="give one"):
+        PairSamplingConfig(per_scene=20, samples_per_epoch=10)
 
 
 def test_distributed_ranks_split_the_samples(plane_ds: EvalDataset, plane_pairs: list[TrainPair]) -> None:
