@@ -37,6 +37,7 @@ __all__ = [
     "match_features",
     "ratio_distinctiveness",
     "reciprocal_nearest_neighbours",
+    "seeded_reciprocal_neighbours",
 ]
 
 logger = logging.getLogger(__name__)
@@ -114,6 +115,53 @@ def reciprocal_nearest_neighbours(
         top2_0=row_top.numpy(),
         top2_1=col_top.T.numpy(),
     )
+
+
+def _nearest(queries: torch.Tensor, database: torch.Tensor, max_block_elems: int) -> torch.Tensor:
+    """Index of each query's most similar database row (the first of equals), in blocks of queries. [Q] int64"""
+    out = torch.empty(queries.shape[0], dtype=torch.int64, device=queries.device)
+    rows = max(1, max_block_elems // max(1, database.shape[0]))
+    for start in range(0, queries.shape[0], rows):
+        out[start : start + rows] = (queries[start : start + rows] @ database.T).argmax(dim=1)
+    return out
+
+
+@torch.no_grad()
+def seeded_reciprocal_neighbours(
+    desc0: torch.Tensor,  # [N0, D]
+    desc1: torch.Tensor,  # [N1, D]
+    seeds: torch.Tensor,  # [S]
+    *,
+    max_iters: int = 10,
+    max_block_elems: int = 1 << 24,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Reciprocal nearest neighbours over *every* descriptor of both views, found from seeds in view 0 (the
+    MAC-Splat release's matcher, after MASt3R's): each seed ``x`` goes to its nearest neighbour ``y`` in view 1 and
+    back to ``x'``, the nearest of ``y`` in view 0; ``x' = x`` is a reciprocal pair, else the walk goes on from ``x'``
+    (at most ``max_iters`` rounds; the similarity never falls along a walk, and walks that meet merge). Unlike
+    :func:`reciprocal_nearest_neighbours` on a subsampled grid, a match can land on any pixel of either view.
+
+    Args:
+        desc0: view 0's descriptors (unit length: cosine similarity = dot product). [N0, D]
+        desc1: view 1's. [N1, D]
+        seeds: view-0 indices to start from. [S] int64
+
+    Returns:
+        ``(idx0 [K], idx1 [K])`` int64, the distinct reciprocal pairs reached, sorted by ``idx0``.
+    """
+    x = torch.unique(seeds.to(desc0.device))
+    found = torch.zeros(0, dtype=torch.int64, device=desc0.device)
+    n1 = desc1.shape[0]
+    for _ in range(max_iters):
+        if not len(x):
+            break
+        y = _nearest(desc0[x], desc1, max_block_elems)
+        back = _nearest(desc1[y], desc0, max_block_elems)
+        done = back == x
+        found = torch.cat([found, x[done] * n1 + y[done]])
+        x = torch.unique(back[~done])
+    pairs = torch.unique(found)
+    return pairs // n1, pairs % n1
 
 
 def ratio_distinctiveness(top2: np.ndarray) -> np.ndarray:

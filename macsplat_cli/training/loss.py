@@ -40,7 +40,7 @@ from ..gaussians import GaussianMaps
 from ..mac import MACConfig, mac_loss
 from ..metrics import ssim_map
 from ..neural.predictor import PairPrediction
-from ..pipeline.matching import MatchConfig, match_features
+from ..pipeline.matching import MatchConfig, match_features, seeded_reciprocal_neighbours
 from ..pipeline.neural.geometry import sample_descriptors
 from ..pipeline.types import Features
 from ..render import render
@@ -68,6 +68,11 @@ class LossConfig:
         max_matches: a random subset of at most this many matches per sample (None: all; the release: 4096).
         photo_reduction: ``"image"`` (means over the whole masked images) or ``"mask"`` (over the mask's
             pixels; module docstring).
+        matcher: ``"grid"`` (mutual nearest neighbours on the ``match_stride`` grid) or ``"seeded"`` (reciprocal
+            nearest neighbours over all pixels from a ``seed_stride`` grid of seeds, ≤ ``seed_iters`` rounds: the
+            MAC-Splat release's; no match probability, so ``mac_weighting="c0c1"`` only).
+        seed_stride: step of the seed grid of ``"seeded"``.
+        seed_iters: most rounds of ``"seeded"``'s walks.
         geometry_weight: weight of a point-map regression term (:func:`point_regression`) for a backbone
             trained from scratch (``--init random``), whose random point maps give the head nothing to render.
         background: colour behind the Gaussians.
@@ -85,12 +90,22 @@ class LossConfig:
     conf_floor: float = 0.0
     max_matches: int | None = None
     photo_reduction: str = "image"
+    matcher: str = "grid"
+    seed_stride: int = 8
+    seed_iters: int = 10
     geometry_weight: float = 0.0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
         if self.mac_weighting not in ("c0c1p", "c0c1"):
             raise InputError(f"--mac-weighting {self.mac_weighting!r}: use c0c1p or c0c1")
+        if self.matcher not in ("grid", "seeded"):
+            raise InputError(f"matcher {self.matcher!r}: use grid or seeded")
+        if self.matcher == "seeded" and self.mac_weighting != "c0c1":
+            raise InputError("the seeded matcher (--recipe released-code) gives no match probability p: use "
+                             "--mac-weighting c0c1")  # fmt: skip
+        if self.seed_stride < 1 or self.seed_iters < 1:
+            raise InputError(f"seed_stride {self.seed_stride} and seed_iters {self.seed_iters} must be ≥ 1")
         if self.photo_reduction not in ("image", "mask"):
             raise InputError(f"photometric reduction {self.photo_reduction!r}: use image or mask")
         if not (self.conf_floor >= 0 and math.isfinite(self.conf_floor)):
@@ -141,36 +156,56 @@ def sample_matches(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Filtered matches between the two views of one sample, with a differentiable weight each.
 
+    ``matcher="grid"``: mutual nearest neighbours among the pixels of a ``match_stride`` grid in both views;
+    ``"seeded"``: reciprocal nearest neighbours over every pixel, walked to from a ``seed_stride`` grid of view 0
+    (:func:`~macsplat_cli.pipeline.matching.seeded_reciprocal_neighbours`, the MAC-Splat release's). Then the gate
+    ``c0·c1 > τ`` and, with ``max_matches``, a random subset (torch's global generator: a resumed run draws the same).
+
     Args:
         desc: the (fused) descriptors of both views. [2, H, W, D]
         desc_conf: their confidences (≥ 0). [2, H, W]
 
     Returns:
         ``xy0 [M, 2]``, ``xy1 [M, 2]`` (pixel centres at +0.5) and ``w [M]`` = ``c0·c1·p`` (module docstring), or
-        ``c0·c1`` with ``mac_weighting="c0c1"`` (each ``c`` plus ``conf_floor``); with ``max_matches``, a random
-        subset (torch's global generator, so a resumed run draws the same).
+        ``c0·c1`` with ``mac_weighting="c0c1"`` (each ``c`` plus ``conf_floor``).
     """
     h, w = desc.shape[1:3]
-    idx, grid = sample_descriptors(
-        desc_conf[0].detach().float().cpu().numpy(), sampling="grid", stride=config.match_stride
-    )
-    uv = np.stack([idx % w + 0.5, idx // w + 0.5], 1).astype(np.float64)
-    flat = desc.reshape(2, h * w, -1)[:, torch.from_numpy(idx).to(desc.device)]  # [2, N, D]
-    flat = torch.nn.functional.normalize(flat.float(), dim=-1)
-    conf = desc_conf.reshape(2, h * w)[:, torch.from_numpy(idx).to(desc.device)].float()  # [2, N]
-    feats = [Features(uv, flat[k].detach().cpu().numpy(), conf[k].detach().cpu().numpy(), grid=grid) for k in (0, 1)]
-    m = match_features(feats[0], feats[1], MatchConfig(conf_threshold=config.conf_threshold, ratio_confidence=False))
-    keep = torch.arange(len(m.idx0))
-    if config.max_matches is not None and len(keep) > config.max_matches:
-        keep = torch.randperm(len(keep))[: config.max_matches].sort().values
-    i0 = torch.from_numpy(m.idx0)[keep].to(desc.device)
-    i1 = torch.from_numpy(m.idx1)[keep].to(desc.device)
+    if config.matcher == "seeded":
+        flat = torch.nn.functional.normalize(desc.reshape(2, h * w, -1).float(), dim=-1)  # [2, H·W, D]
+        conf = desc_conf.reshape(2, h * w).float()
+        rows, cols = torch.meshgrid(torch.arange(0, h, config.seed_stride), torch.arange(0, w, config.seed_stride),
+                                    indexing="ij")  # fmt: skip
+        i0, i1 = seeded_reciprocal_neighbours(flat[0].detach(), flat[1].detach(), (rows * w + cols).reshape(-1),
+                                              max_iters=config.seed_iters)  # fmt: skip
+        gate = conf[0, i0].detach() * conf[1, i1].detach() > config.conf_threshold
+        i0, i1 = i0[gate], i1[gate]
+        pix = torch.arange(h * w, device=desc.device)
+    else:
+        idx, grid = sample_descriptors(
+            desc_conf[0].detach().float().cpu().numpy(), sampling="grid", stride=config.match_stride
+        )
+        pix = torch.from_numpy(idx).to(desc.device)
+        uv = np.stack([idx % w + 0.5, idx // w + 0.5], 1).astype(np.float64)
+        flat = torch.nn.functional.normalize(desc.reshape(2, h * w, -1)[:, pix].float(), dim=-1)  # [2, N, D]
+        conf = desc_conf.reshape(2, h * w)[:, pix].float()  # [2, N]
+        feats = [
+            Features(uv, flat[k].detach().cpu().numpy(), conf[k].detach().cpu().numpy(), grid=grid) for k in (0, 1)
+        ]
+        m = match_features(
+            feats[0], feats[1], MatchConfig(conf_threshold=config.conf_threshold, ratio_confidence=False)
+        )
+        i0, i1 = torch.from_numpy(m.idx0).to(desc.device), torch.from_numpy(m.idx1).to(desc.device)
+    if config.max_matches is not None and len(i0) > config.max_matches:
+        keep = torch.randperm(len(i0))[: config.max_matches].sort().values.to(desc.device)
+        i0, i1 = i0[keep], i1[keep]
     weight = (config.conf_floor + conf[0, i0].detach()) * (config.conf_floor + conf[1, i1].detach())
-    if config.mac_weighting == "c0c1p":
+    if config.mac_weighting == "c0c1p":  # the grid matcher only (LossConfig refuses it with "seeded")
         sim = flat[0] @ flat[1].T / config.match_temperature  # [N, N]
         p = (sim.softmax(0) * sim.softmax(1))[i0, i1]  # dual softmax of each match
         weight = weight * (p if config.descriptor_gradient else p.detach())
-    xy0, xy1 = torch.from_numpy(m.xy0)[keep].float(), torch.from_numpy(m.xy1)[keep].float()
+    p0, p1 = pix[i0].cpu(), pix[i1].cpu()
+    xy0 = torch.stack([p0 % w + 0.5, p0 // w + 0.5], 1).float()
+    xy1 = torch.stack([p1 % w + 0.5, p1 // w + 0.5], 1).float()
     return xy0, xy1, weight
 
 

@@ -15,6 +15,7 @@ from macsplat_cli.pipeline.matching import (
     match_features,
     ratio_distinctiveness,
     reciprocal_nearest_neighbours,
+    seeded_reciprocal_neighbours,
 )
 from macsplat_cli.pipeline.pose import fundamental_from_pose
 from macsplat_cli.pipeline.types import Features
@@ -124,6 +125,41 @@ def test_reciprocal_nn_recovers_a_permutation() -> None:
         nn = reciprocal_nearest_neighbours(d0, d1, max_block_elems=block)
         assert len(nn.idx0) == 100
         np.testing.assert_array_equal(perm[nn.idx1], nn.idx0)
+
+
+@pytest.mark.parametrize(("m0", "m1", "dim"), [(37, 53, 4), (120, 90, 3), (64, 64, 8)])
+def test_seeded_reciprocal_neighbours_reach_only_mutual_pairs(m0: int, m1: int, dim: int) -> None:
+    """Seeded walks end at mutual nearest neighbours of the full sets (brute force); seeded everywhere, they find
+    them all; from sparse seeds, a subset containing the pairs of the seeds that are mutual; any block size."""
+    rng = np.random.default_rng(m0 + m1 + dim)
+    d0, d1 = _random_desc(m0, dim, rng), _random_desc(m1, dim, rng)
+    pairs, top_rows, top_cols = _brute_force(d0, d1)
+    err = _sim_err(d0, d1)
+    _assert_separated(top_rows, err)  # no near-ties: float32 argmax agrees with float64's
+    _assert_separated(top_cols, err)
+    t0, t1 = torch.from_numpy(d0), torch.from_numpy(d1)
+    for block in (1, 50, 1 << 24):
+        i0, i1 = seeded_reciprocal_neighbours(t0, t1, torch.arange(m0), max_block_elems=block)
+        assert set(zip(i0.tolist(), i1.tolist())) == pairs
+    seeds = torch.arange(0, m0, 7)
+    i0, i1 = seeded_reciprocal_neighbours(t0, t1, seeds)
+    got = set(zip(i0.tolist(), i1.tolist()))
+    assert len(got) == len(i0) and torch.all(i0[1:] >= i0[:-1])  # distinct, sorted by idx0
+    sim = d0.astype(np.float64) @ d1.astype(np.float64).T
+
+    def walk(x: int, rounds: int) -> tuple[int, int] | None:  # the definition, in float64
+        for _ in range(rounds):
+            y = int(sim[x].argmax())
+            back = int(sim[:, y].argmax())
+            if back == x:
+                return x, y
+            x = back
+        return None
+
+    for rounds in (1, 10):
+        want = {e for e in (walk(int(x), rounds) for x in seeds) if e is not None}
+        i0, i1 = seeded_reciprocal_neighbours(t0, t1, seeds, max_iters=rounds)
+        assert set(zip(i0.tolist(), i1.tolist())) == want and want <= pairs
 
 
 @pytest.mark.parametrize(("m0", "m1"), [(0, 5), (5, 0), (0, 0)])

@@ -91,16 +91,16 @@ def _huber(x: torch.Tensor, d: float) -> torch.Tensor:
 
 def test_a_released_code_step_loss_equals_its_formula() -> None:
     """training_loss under the released-code recipe = Σerr²·m/(3·Σm) + 0.1·Σ(LPIPS map·m)/Σm + 0.2·MAC, MAC with
-    weights (1+c₀)(1+c₁), means over xyz / log σ / SH, Huber δ 0.05, clamps, one normaliser — recomputed here from
-    the definitions (random LPIPS weights, float64)."""
-    h, w, t = 16, 16, 3
+    weights (1+c₀)(1+c₁) on the seeded matcher's pairs, means over xyz / log σ / SH, Huber δ 0.05, clamps, one
+    normaliser — recomputed here from the definitions (random LPIPS weights, float64)."""
+    h, w, t = 32, 32, 3
     loss_cfg = get_recipe("released-code").loss
     pred = _prediction(h, w, 0)
     g = torch.Generator().manual_seed(1)
     c2w = torch.eye(4, dtype=D).repeat(1, 2, 1, 1)
     tc2w = torch.eye(4, dtype=D).repeat(1, t, 1, 1)
     tc2w[0, :, 0, 3] = torch.tensor([0.0, 0.05, -0.05], dtype=D)
-    K = torch.tensor([[20.0, 0, 8], [0, 20.0, 8], [0, 0, 1]], dtype=D).repeat(1, t, 1, 1)
+    K = torch.tensor([[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]], dtype=D).repeat(1, t, 1, 1)
     batch = {
         "target": torch.rand(1, t, 3, h, w, generator=g, dtype=D), "target_K": K, "target_c2w": tc2w,
         "context_c2w": c2w, "target_mask": torch.rand(1, t, h, w, generator=g) > 0.3,
@@ -115,14 +115,15 @@ def test_a_released_code_step_loss_equals_its_formula() -> None:
     mse = (((rgb * m[:, None] - gt) ** 2) * m[:, None]).sum() / (3 * m.sum())
     dmap = torch.stack([lpips.spatial((rgb[i] * m[i]).permute(1, 2, 0), gt[i].permute(1, 2, 0)) for i in range(t)])
     perceptual = (dmap * m).sum() / m.sum()
-    # MAC by hand: the matches are the stride-4 grid pixels, each with itself (identical descriptors), gated by
-    # c₀·c₁ > 1; at pixel centres the bilinear sampling returns the pixel's own values. The matcher takes the
-    # confidences and forms the weights in float32, as the network gives them
+    # MAC by hand: the seeded matcher starts from the stride-8 grid of view 0, whose pixels are their own reciprocal
+    # nearest neighbours (identical descriptors), gated by c₀·c₁ > 1; at pixel centres the bilinear sampling
+    # returns the pixel's own values. The matcher takes the confidences and forms the weights in float32, as the
+    # network gives them
     g0, g1 = pred.gaussians
     conf = pred.desc_conf[0].float()
     num = den = 0.0
-    for y in range(2, h, 4):  # the grid's pixels: sample_descriptors' stride-4 grid, offset 2
-        for x in range(2, w, 4):
+    for y in range(0, h, 8):  # the seeds
+        for x in range(0, w, 8):
             c0, c1 = float(conf[0, y, x]), float(conf[1, y, x])
             if c0 * c1 <= loss_cfg.conf_threshold:
                 continue
