@@ -73,6 +73,7 @@ class LossConfig:
             MAC-Splat release's; no match probability, so ``mac_weighting="c0c1"`` only).
         seed_stride: step of the seed grid of ``"seeded"``.
         seed_iters: most rounds of ``"seeded"``'s walks.
+        near_plane: the target renders' near plane, camera z (the rasterizer's 0.01; the release: 0.1).
         geometry_weight: weight of a point-map regression term (:func:`point_regression`) for a backbone
             trained from scratch (``--init random``), whose random point maps give the head nothing to render.
         background: colour behind the Gaussians.
@@ -93,6 +94,7 @@ class LossConfig:
     matcher: str = "grid"
     seed_stride: int = 8
     seed_iters: int = 10
+    near_plane: float = 0.01
     geometry_weight: float = 0.0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
@@ -129,6 +131,7 @@ class LossTerms:
 def render_targets(
     maps: tuple[GaussianMaps, GaussianMaps], b: int, target_K: torch.Tensor, target_c2w: torch.Tensor,
     context_c2w: torch.Tensor, size: tuple[int, int], background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    near: float = 0.01,
 ) -> torch.Tensor:  # fmt: skip
     """Sample ``b``'s Gaussians (both views, context-0 frame) rendered into its targets. [T, 3, H, W]
 
@@ -139,6 +142,7 @@ def render_targets(
         target_c2w: the targets' camera-to-world (data set frame). [T, 4, 4]
         context_c2w: context 0's camera-to-world (data set frame). [4, 4]
         size: (H, W) of the targets.
+        near: the renders' near plane (camera z).
     """
     gaussians = GaussianMaps.cat([maps[0].view(b), maps[1].view(b)]).to_gaussians()
     dt, dev = gaussians.dtype, gaussians.device
@@ -146,7 +150,9 @@ def render_targets(
     out = []
     for K, c2w in zip(target_K, target_c2w):
         viewmat = torch.linalg.inv(c2w.to(device=dev, dtype=torch.float64)) @ c2w0  # context 0 → target
-        rgb = render(gaussians, viewmat.to(dt), K.to(device=dev, dtype=dt), size[1], size[0], background=background).rgb
+        rgb = render(
+            gaussians, viewmat.to(dt), K.to(device=dev, dtype=dt), size[1], size[0], background=background, near=near
+        ).rgb
         out.append(rgb.permute(2, 0, 1))
     return torch.stack(out)
 
@@ -320,7 +326,7 @@ def training_loss(
     for b in range(n):
         rgb = render_targets(
             pred.gaussians, b, batch["target_K"][b], batch["target_c2w"][b], batch["context_c2w"][b, 0], (h, w),
-            config.background,
+            config.background, config.near_plane,
         )  # fmt: skip
         mse, perceptual = _photometric(rgb, target[b].to(rgb.dtype), None if mask is None else mask[b], config, lpips)
         photo = mse + (config.lpips_weight if lpips is not None else config.ssim_weight) * perceptual

@@ -349,7 +349,8 @@ class Trainer:
             self.predictor.eval()
             loader = make_loader(self.val_data, batch_size=1, workers=0, shuffle=False, seed=self.config.seed)
             return validation_metrics(self.predictor, loader, device=self.device, autocast=self._autocast,
-                                      background=self.config.loss.background, lpips=self.lpips)  # fmt: skip
+                                      background=self.config.loss.background, lpips=self.lpips,
+                                      near=self.config.loss.near_plane)  # fmt: skip
         finally:
             set_rng_state(rng)
 

@@ -28,6 +28,7 @@ def validation_metrics(
     autocast: Callable[[], Any],
     background: tuple[float, float, float],
     lpips: torch.nn.Module | None = None,
+    near: float = 0.01,
 ) -> dict[str, float]:
     """Mean image metrics of the targets of every batch (of one pair) that ``loader`` gives.
 
@@ -38,6 +39,7 @@ def validation_metrics(
         autocast: a new autocast context of the run's precision.
         background: colour behind the Gaussians (``LossConfig.background``).
         lpips: the LPIPS model, or None (no ``lpips`` key).
+        near: the renders' near plane (``LossConfig.near_plane``).
 
     Returns:
         ``{"psnr", "ssim"}`` (and ``"lpips"``), means over the targets.
@@ -50,7 +52,7 @@ def validation_metrics(
         pred = prediction_from_outputs([o.float() for o in outputs])
         h, w = batch["target"].shape[-2:]
         rgb = render_targets(pred.gaussians, 0, batch["target_K"][0], batch["target_c2w"][0],
-                             batch["context_c2w"][0, 0], (h, w), background)  # fmt: skip
+                             batch["context_c2w"][0, 0], (h, w), background, near)  # fmt: skip
         gt = batch["target"][0].to(rgb.device)
         for r, g in zip(rgb.clamp(0, 1), gt):
             psnrs.append(float(psnr(r.permute(1, 2, 0), g.permute(1, 2, 0))))

@@ -45,6 +45,7 @@ def test_recipes_hold_what_they_claim() -> None:
     loss = released.loss
     assert (loss.mac_weight, loss.lpips_weight, loss.photo_reduction, loss.mac_weighting) == (0.2, 0.1, "mask", "c0c1")
     assert (loss.conf_floor, loss.max_matches, loss.mac.delta_pos, loss.mac.reduction) == (1.0, 4096, 0.05, "mean")
+    assert (loss.matcher, loss.seed_stride, loss.near_plane, released.per_scene) == ("seeded", 8, 0.1, 20)
     assert released.max_scale == 0.5 and set(released.exclude_scenes) == {"303745abc7", "cc5237fd77"}
     assert released.steps_for(scenes=7, world_size=4) == math.ceil(200 * 7 / 4)  # 10 epochs × 20 samples a scene
     assert get_recipe("released-code").loss is not loss  # fresh objects: a run's changes never leak
@@ -109,7 +110,7 @@ def test_a_released_code_step_loss_equals_its_formula() -> None:
     lpips = LPIPS().double()
     terms = training_loss(pred, batch, loss_cfg, lpips)
 
-    rgb = render_targets(pred.gaussians, 0, K[0], tc2w[0], c2w[0, 0], (h, w))
+    rgb = render_targets(pred.gaussians, 0, K[0], tc2w[0], c2w[0, 0], (h, w), near=loss_cfg.near_plane)
     m = batch["target_mask"][0].to(D)
     gt = batch["target"][0] * m[:, None]
     mse = (((rgb * m[:, None] - gt) ** 2) * m[:, None]).sum() / (3 * m.sum())
@@ -172,6 +173,7 @@ def test_cli_released_code_recipe_end_to_end(scannetpp: Path, tmp_path: Path) ->
         "adam", 1e-6, 0.0, "step", 1)  # fmt: skip
     assert cfg["loss"]["mac_weight"] == 0.2 and cfg["loss"]["mac"]["reduction"] == "mean"
     assert cfg["loss"]["photo_reduction"] == "mask" and cfg["loss"]["conf_floor"] == 1.0
+    assert cfg["loss"]["matcher"] == "seeded" and cfg["loss"]["near_plane"] == 0.1
     assert run["data"]["sampling"] == {"coverage": [0.3, 1.0], "targets": 3, "size": [64, 64],
                                        "crop": "principal-point", "per_scene": 20}  # fmt: skip
     recipe = run["recipe"]
