@@ -1,5 +1,6 @@
-"""Shared pytest configuration: the ``slow`` marker, isolated environment for CLI tests, and the session fixtures of
-``support/`` (the synthetic pairs' photos, the tiny checkpoints).
+"""Shared pytest configuration: the ``slow`` marker, isolated environment for CLI tests, the session fixtures of
+``support/`` (the synthetic pairs' photos, the tiny checkpoints) and the evaluation tests' plane data set and oracle
+backend (a module may define its own ``plane``).
 
 ``tests/`` mirrors ``macsplat_cli/`` in folders without ``__init__.py`` (pytest's default ``prepend`` import mode): a
 test module is imported by its basename, so basenames are unique across the folders, and this file's folder,
@@ -64,3 +65,21 @@ def tiny_checkpoints(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path
     from support.checkpoints import write_tiny_checkpoints
 
     return write_tiny_checkpoints(tmp_path_factory.mktemp("tiny_checkpoints"))
+
+
+@pytest.fixture(scope="module")
+def plane(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """:func:`support.evaluation.write_plane_dataset`, once per module that asks for it."""
+    from support.evaluation import write_plane_dataset
+
+    return write_plane_dataset(tmp_path_factory.mktemp("plane") / "plane")
+
+
+@pytest.fixture
+def oracle_backend(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--backend oracle``: the ground-truth reconstructor (:data:`support.evaluation.ORACLE`), for this test."""
+    from macsplat_cli.evaluation.reconstructors import BACKENDS
+
+    from support.evaluation import ORACLE
+
+    monkeypatch.setitem(BACKENDS, "oracle", lambda config, models=None: ORACLE)

@@ -15,21 +15,9 @@ import numpy as np
 import pytest
 
 from macsplat_cli.datasets import synthetic as S
-from macsplat_cli.evaluation.reconstructors import BACKENDS
 
 from support.cli import run_captured
-from support.evaluation import ORACLE, translated_camera, write_blank_dataset, write_plane_dataset
-
-
-@pytest.fixture(scope="module")
-def plane(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return write_plane_dataset(tmp_path_factory.mktemp("cli-plane") / "plane")
-
-
-@pytest.fixture
-def oracle_backend(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setitem(BACKENDS, "oracle", lambda config, models=None: ORACLE)
-
+from support.evaluation import translated_camera, write_blank_dataset, write_plane_dataset
 
 run = run_captured
 

@@ -11,21 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from macsplat_cli.evaluation.reconstructors import BACKENDS
-
 from support.cli import run_captured
-from support.evaluation import ORACLE, write_plane_dataset
-
-
-@pytest.fixture(scope="module")
-def plane(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return write_plane_dataset(tmp_path_factory.mktemp("cli-plane-n") / "plane")
-
-
-@pytest.fixture
-def oracle_backend(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setitem(BACKENDS, "oracle", lambda config, models=None: ORACLE)
-
 
 run = run_captured
 

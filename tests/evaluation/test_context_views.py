@@ -36,12 +36,7 @@ from macsplat_cli.pipeline.gaussian_init import view_gaussians
 from macsplat_cli.pipeline.run import Reconstruction
 from macsplat_cli.pipeline.types import DepthMap
 
-from support.evaluation import ORACLE, PLANE_X, translated_camera, write_plane_dataset
-
-
-@pytest.fixture(scope="module")
-def plane(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return write_plane_dataset(tmp_path_factory.mktemp("plane-n") / "plane")
+from support.evaluation import ORACLE, PLANE_X, translated_camera
 
 
 def _line(n: int = 11, step: float = 0.1) -> list[Camera]:

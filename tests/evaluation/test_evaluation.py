@@ -76,11 +76,6 @@ def plane_coverage(xa: float, xb: float) -> float:
     return 1.0 - abs(xb - xa) * K[0, 0] / Z / W
 
 
-@pytest.fixture(scope="module")
-def plane(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return write_plane_dataset(tmp_path_factory.mktemp("plane") / "plane")
-
-
 # ------------------------------------------------------------------------------------ loaders
 def test_generic_loader_reads_what_write_dataset_writes(plane: Path) -> None:
     ds = load_dataset(plane)
