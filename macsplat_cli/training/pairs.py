@@ -212,7 +212,7 @@ class CandidatePairs(Sequence[TrainPair]):
         self._context = np.ascontiguousarray(context, dtype=np.int32).reshape(-1, 2)
         self._rules = dict(rules) if rules is not None else None
         self._explicit = explicit  # (offsets [M + 1] int64, targets [Σ] int32)
-        self._groups: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # draw_by_scene's, built on first use
+        self._groups: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # _scene_groups, built on first use
 
     @classmethod
     def from_pairs(cls, pairs: Sequence[TrainPair]) -> CandidatePairs:
@@ -243,24 +243,29 @@ class CandidatePairs(Sequence[TrainPair]):
     def scene(self, k: int) -> int:
         return int(self._scene[k])
 
+    def _scene_groups(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(order, first, scenes)``: the pairs sorted by scene then first context (stable), the bounds in
+        ``order`` of each (scene, first context) block, and the bounds in ``first`` of each scene's blocks."""
+        if self._groups is None:
+            order = np.lexsort((self._context[:, 0], self._scene))
+            keys = np.stack([self._scene[order], self._context[order, 0]], 1)
+            first = np.flatnonzero(np.r_[True, np.any(keys[1:] != keys[:-1], axis=1)]) if len(order) else order
+            scene_of_first = keys[first, 0]
+            scenes = np.flatnonzero(np.r_[True, scene_of_first[1:] != scene_of_first[:-1]]) if len(first) else first
+            self._groups = (order, np.r_[first, len(order)], np.r_[scenes, len(first)])
+        return self._groups
+
     @property
     def num_scenes(self) -> int:
         """Scenes with at least one pair."""
-        return len(np.unique(self._scene))
+        return len(self._scene_groups()[2]) - 1
 
     def draw_by_scene(self, rng: np.random.Generator) -> int:
         """A pair index drawn as the MAC-Splat release draws a sample: a scene uniformly, then a first context
         uniformly among that scene's frames that are the first context of a pair, then a second uniformly among
         its partners (the release draws the first context among all frames, with fallbacks for one without a
         partner in range). Three draws from ``rng``. Raises IndexError without pairs."""
-        if self._groups is None:
-            order = np.lexsort((self._context[:, 0], self._scene))  # by scene, then first context (stable)
-            keys = np.stack([self._scene[order], self._context[order, 0]], 1)
-            first = np.flatnonzero(np.r_[True, np.any(keys[1:] != keys[:-1], axis=1)])  # each (scene, a) block
-            scene_of_first = keys[first, 0]
-            scenes = np.flatnonzero(np.r_[True, scene_of_first[1:] != scene_of_first[:-1]])
-            self._groups = (order, np.r_[first, len(order)], np.r_[scenes, len(first)])
-        order, first, scenes = self._groups
+        order, first, scenes = self._scene_groups()
         if not len(order):
             raise IndexError("no pair to draw")
         s = int(rng.integers(len(scenes) - 1))
