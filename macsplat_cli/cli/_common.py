@@ -50,9 +50,15 @@ class State:
     quiet: bool = False
 
 
+MAX_ERROR_CHARS = 2000
+"""An error line is cut to this many characters: a message may quote a name from a file (megabytes, at worst)."""
+
+
 def _one_line(msg: str) -> str:
-    """The message on one line, escaped for Rich markup (paths and values may hold ``[...]``)."""
-    return escape(" ".join(str(msg).split()))
+    """The message on one line, at most :data:`MAX_ERROR_CHARS` characters ("…" where cut), escaped for Rich
+    markup (paths and values may hold ``[...]``)."""
+    line = " ".join(str(msg).split())
+    return escape(line if len(line) <= MAX_ERROR_CHARS else line[: MAX_ERROR_CHARS - 1] + "…")
 
 
 def _identity(path: Path) -> tuple[str, tuple[int, int] | None]:

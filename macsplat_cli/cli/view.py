@@ -57,7 +57,7 @@ def view_command(
       macsplat view scene.ply --cameras scene.cameras.json --images photos/ --port 0 --no-open
     """
     with command_context(ctx, verbose, quiet) as state:
-        if images is not None and not images.is_dir():
+        if images is not None and not _is_folder(images):
             from ..errors import InputError
 
             raise InputError(f"--images {images}: not a folder")
@@ -141,9 +141,20 @@ def serve_scene(
         server.stop()
 
 
+def _is_folder(path: Path) -> bool:
+    """``path.is_dir()``, False where the system refuses the path itself (too long a name, say)."""
+    try:
+        return path.is_dir()
+    except (OSError, ValueError):
+        return False
+
+
 def _default_cameras(scene: Path) -> Path | None:
     candidate = scene.with_name(scene.stem + ".cameras.json")
-    return candidate if candidate.is_file() else None
+    try:
+        return candidate if candidate.is_file() else None
+    except (OSError, ValueError):  # a name the system refuses (a 250-byte scene name gives a 259-byte one)
+        return None
 
 
 def _load_cameras(path: Path | None) -> list[Camera]:

@@ -8,6 +8,7 @@ so a camera's ``cam_to_world`` is its frustum's pose unchanged.
 from __future__ import annotations
 
 import logging
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -101,24 +102,59 @@ def camera_pose(camera: Camera) -> ViewPose:
 
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".webp", ".tif", ".tiff", ".bmp")
+MAX_NAME_BYTES = 255
+"""Longest file name (UTF-8 bytes) a camera's photo can have: the limit of every common file system (NAME_MAX);
+a longer camera name has no photo (the system would refuse the look-up)."""
+SHOWN_NAME_CHARS = 80
+"""A camera name in a log line or the page is cut to this many characters: a cameras file may hold megabytes."""
+
+
+def short_name(name: str) -> str:
+    """``name`` as logs and the page show it: at most :data:`SHOWN_NAME_CHARS` characters, "…" where cut."""
+    return name if len(name) <= SHOWN_NAME_CHARS else name[: SHOWN_NAME_CHARS - 1] + "…"
 
 
 def find_image(name: str, folders: list[Path]) -> Path | None:
     """The photo of the camera ``name`` in the first folder that has it: ``folder / name``, its base name, or the
-    name with an image suffix (``reconstruct`` names cameras by the photo's stem). None when none is found."""
-    base = Path(name).name
+    name with an image suffix (``reconstruct`` names cameras by the photo's stem). None when none is found.
+
+    A photo is only looked for inside ``folders``, as the data-set loaders read their files
+    (:func:`~macsplat_cli.datasets.base.member_path`, :func:`~macsplat_cli.datasets.base.check_inside`): a name
+    that is absolute, has a ``..`` component or a part over :data:`MAX_NAME_BYTES` has no photo, and neither has a
+    candidate that is a link leading out of its folder."""
+    return _locate(name, folders)[0]
+
+
+def _locate(name: str, folders: list[Path]) -> tuple[Path | None, str | None]:
+    """:func:`find_image`'s answer, and why a photo that was named is not taken (None: not refused, maybe absent)."""
+    from ..datasets.base import check_inside, member_path
+    from ..errors import DatasetError
+
+    parts = [p for p in re.split(r"[\\/]", name) if p]
+    try:
+        member_path(Path("."), name, "camera", subfolders=True)
+    except DatasetError:
+        return None, "its name is no file name inside the photo folders (absolute, with a '..' part, or empty)"
+    if any(len(p.encode("utf-8", "surrogatepass")) > MAX_NAME_BYTES for p in parts):
+        return None, f"its name is longer than a file name can be ({MAX_NAME_BYTES} bytes)"
+    why = None
     for folder in folders:
-        candidates = [folder / name, folder / base] + [folder / (base + s) for s in IMAGE_SUFFIXES]
-        candidates += [folder / (base + s.upper()) for s in IMAGE_SUFFIXES]
+        candidates = [folder / name, folder / parts[-1]] + [folder / (parts[-1] + s) for s in IMAGE_SUFFIXES]
+        candidates += [folder / (parts[-1] + s.upper()) for s in IMAGE_SUFFIXES]
         for candidate in candidates:
-            if candidate.is_file():
-                return candidate
-    return None
+            try:
+                if candidate.is_file():
+                    return check_inside(candidate, [folder], "photo"), None
+            except DatasetError:
+                why = f"its photo {short_name(str(candidate))} is a link out of {folder}"
+            except (OSError, ValueError):  # a path the system refuses (too long as a whole)
+                continue
+    return None, why
 
 
 def load_thumbnails(cameras: list[Camera], folders: list[Path], long_side: int) -> dict[str, np.ndarray]:
     """Camera name → its photo, at most ``long_side`` px, [h, w, 3] uint8, for the cameras whose photo is found
-    and readable (the others are drawn without one; logged)."""
+    inside ``folders`` (:func:`find_image`) and readable (the others are drawn without one; logged)."""
     import cv2
 
     from ..errors import MacsplatError
@@ -126,14 +162,17 @@ def load_thumbnails(cameras: list[Camera], folders: list[Path], long_side: int) 
 
     out: dict[str, np.ndarray] = {}
     for camera in cameras:
-        path = find_image(camera.name, folders)
+        path, why = _locate(camera.name, folders)
         if path is None:
-            logger.debug("no photo found for camera %s", camera.name)
+            if why is None:
+                logger.debug("no photo found for camera %s", short_name(camera.name))
+            else:
+                logger.warning("camera %s is drawn without a photo: %s", short_name(camera.name), why)
             continue
         try:
             rgb = load_image(path).rgb
         except MacsplatError as e:
-            logger.warning("photo of camera %s not shown: %s", camera.name, e)
+            logger.warning("photo of camera %s not shown: %s", short_name(camera.name), e)
             continue
         h, w = rgb.shape[:2]
         f = min(1.0, long_side / max(h, w))

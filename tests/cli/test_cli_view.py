@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import socket
@@ -10,13 +11,14 @@ import sys
 import urllib.request
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import macsplat_cli.viewer as viewer
 from macsplat_cli.cli import view as view_cli
 from macsplat_cli.viewer import ViewerServer
 
-from support.cli import run_cli
+from support.cli import one_error_line, run_cli
 from support.scenes import PairSpec
 from support.viewer_scene import PlaneScene, write_plane_scene
 
@@ -77,6 +79,61 @@ def test_another_host_is_warned_about(plane_scene: PlaneScene, monkeypatch: pyte
     assert code == 130
     assert "warning: serving on 127.0.0.1: anyone who can reach this machine on port" in " ".join(err.split())
     assert out.startswith("http://127.0.0.1:")
+
+
+def _served_once(monkeypatch: pytest.MonkeyPatch, args: list) -> tuple[int, str, str]:  # noqa: ANN001
+    """``macsplat view ARGS --port 0 --no-open``, its page built and served, then Ctrl-C (exit 130)."""
+
+    def interrupt(self: ViewerServer, *a: object, **kw: object) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ViewerServer, "wait", interrupt)
+    return run_cli(["view", *args, "--port", "0", "--no-open"])
+
+
+def _cameras_named(plane_scene: PlaneScene, folder: Path, *names: str) -> Path:
+    data = json.loads(plane_scene.cameras.read_text())
+    data["cameras"] = [{**data["cameras"][0], "name": n} for n in names]
+    folder.mkdir(exist_ok=True)
+    (folder / "c.cameras.json").write_text(json.dumps(data))
+    return folder / "c.cameras.json"
+
+
+def test_a_camera_name_shows_no_photo_outside_the_folders(
+    plane_scene: PlaneScene, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Cameras named by a path out of ``--images``, the cameras' and the scene's folders have no photo (issue 37,
+    V1); the photo inside ``--images`` is shown."""
+    from PIL import Image
+
+    for where in ("private/secret.png", "photos/left.png"):
+        (tmp_path / where).parent.mkdir(exist_ok=True)
+        Image.fromarray(np.full((24, 32, 3), 90, np.uint8)).save(tmp_path / where)
+    secret = tmp_path / "private" / "secret.png"
+    cams = _cameras_named(plane_scene, tmp_path / "c", str(secret), "../private/secret.png", "left")
+    code, out, err = _served_once(monkeypatch, [plane_scene.ply, "--cameras", cams, "--images", tmp_path / "photos"])
+    assert code == 130 and out.startswith("http://127.0.0.1:")
+    assert "viewer: 6,912 Gaussians, 3 cameras, 1 photos" in err
+    assert " ".join(err.split()).count("is drawn without a photo: its name is no file name inside the photo") == 2
+
+
+def test_a_long_camera_name_is_drawn_without_a_photo(
+    plane_scene: PlaneScene, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A name longer than a file name can be (was: 'internal error: OSError: File name too long', a 2 MB line for a
+    2 MB name) is a camera without a photo, said in a short line (issue 37, V4)."""
+    cams = _cameras_named(plane_scene, tmp_path / "c", "x" * 300, "y" * 2_000_000)
+    code, out, err = _served_once(monkeypatch, [plane_scene.ply, "--cameras", cams])
+    assert code == 130 and out.startswith("http://127.0.0.1:"), err[:500]
+    assert "viewer: 6,912 Gaussians, 2 cameras, 0 photos" in err and len(err) < 2000
+
+
+def test_an_error_line_is_cut(plane_scene: PlaneScene) -> None:
+    """A value quoted in an error is cut, so the line stays short (issue 37, V4): a 5,000-character --images name
+    (was: 'internal error: OSError: File name too long' and the whole name)."""
+    code, _, err = run_cli(["view", plane_scene.ply, "--images", "d" * 5000, "--no-open"])
+    line = one_error_line(err)
+    assert code == 2 and line.startswith("error: --images ddd") and line.endswith("…") and len(line) <= 2007
 
 
 def test_view_serves_until_ctrl_c(plane_scene: PlaneScene) -> None:

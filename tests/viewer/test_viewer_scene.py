@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+import os
 import socket
 from pathlib import Path
 
@@ -9,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 
+from macsplat_cli.cameras import Camera
 from macsplat_cli.errors import InputError
 from macsplat_cli.rotations import quat_to_rotmat_np
 from macsplat_cli.sh import sh0_to_rgb
@@ -17,6 +20,7 @@ from macsplat_cli.viewer import (
     camera_pose,
     find_image,
     is_loopback,
+    load_thumbnails,
     resolve_port,
     splat_arrays,
     thin_out,
@@ -74,6 +78,50 @@ def test_find_image_by_name_or_stem(tmp_path: Path) -> None:
     assert find_image("right.png", folders) == tmp_path / "a" / "right.png"
     assert find_image("sub/right.png", folders) == tmp_path / "a" / "right.png"
     assert find_image("middle", folders) is None
+
+
+def _photo(path: Path) -> Path:
+    from PIL import Image
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.full((12, 16, 3), 200, np.uint8)).save(path)
+    return path
+
+
+def test_find_image_stays_inside_its_folders(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A camera's name cannot make the viewer read a photo outside the folders it looks in (issue 37, V1)."""
+    photos = tmp_path / "photos"
+    secret = _photo(tmp_path / "private" / "secret.png")
+    _photo(photos / "inside.png")
+    (photos / "sub").mkdir()
+    os.symlink(secret, photos / "link.png")  # a link in the folder that leads out of it
+    os.symlink(tmp_path / "private", photos / "sub" / "out")  # a linked folder that leads out
+    for name in (str(secret), "../private/secret.png", "sub/../../private/secret.png", "link", "link.png",
+                 "sub/out/secret.png", "..\\private\\secret.png"):  # fmt: skip
+        assert find_image(name, [photos]) is None, name
+    assert find_image("inside", [photos]) == photos / "inside.png"
+    assert find_image("sub/inside.png", [photos]) == photos / "inside.png"  # the base name, inside
+    # the photo is not shown, and the log says why, once per camera
+    cams = [Camera(n, 16, 12, np.eye(3), np.eye(4)) for n in (str(secret), "link", "inside")]
+    with caplog.at_level(logging.INFO, logger="macsplat_cli"):
+        thumbs = load_thumbnails(cams, [photos], 8)
+    assert list(thumbs) == ["inside"]
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 2 and all("is drawn without a photo" in m for m in said), said
+    assert "absolute" in said[0] and "link out of" in said[1]
+
+
+def test_find_image_takes_any_name_length(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A name longer than a file name can be has no photo (was OSError 'File name too long'), and the log line that
+    says so is short (issue 37, V4)."""
+    _photo(tmp_path / ("y" * 250 + ".png"))
+    assert find_image("y" * 250, [tmp_path]) == tmp_path / ("y" * 250 + ".png")  # 254 bytes: a file name
+    for name in ("x" * 300, "é" * 200, "x" * 2_000_000, "a/" * 5000 + "b", "y" * 250 + "/" + "z" * 256):
+        assert find_image(name, [tmp_path]) is None, name[:20]
+    cam = Camera("x" * 2_000_000, 16, 12, np.eye(3), np.eye(4))
+    with caplog.at_level(logging.DEBUG, logger="macsplat_cli"):
+        assert load_thumbnails([cam], [tmp_path], 8) == {}
+    assert len(caplog.records) == 1 and len(caplog.records[0].getMessage()) < 300
 
 
 def test_loopback_hosts() -> None:
