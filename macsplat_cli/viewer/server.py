@@ -26,6 +26,7 @@ import torch
 from ..cameras import Camera
 from ..errors import InputError
 from ..gaussians import Gaussians
+from .origin import origin_checked_serve
 from .scene import ViewPose, camera_pose, splat_arrays
 
 __all__ = ["PortInUseError", "ViewerConfig", "ViewerServer", "is_loopback", "resolve_port", "viser_module"]
@@ -130,8 +131,16 @@ class ViewerServer:
         self.config = config
         self._scene = _Scene(gaussians.detach().to("cpu", torch.float32), list(cameras), dict(thumbnails or {}))
         self._render_lock = threading.Lock()
-        with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner of its own; the CLI says the URL
+        with origin_checked_serve(config.host) as guard, contextlib.redirect_stdout(io.StringIO()):
+            # (viser prints a banner of its own; the CLI says the URL)
             self.server = viser.ViserServer(host=config.host, port=config.port, verbose=False)
+        if not guard.installed:  # a viser that starts its server otherwise: refused, not served unchecked
+            self.server.stop()
+            raise InputError(
+                f"the viewer cannot check its clients' web origin with viser {viser.__version__} (it starts its "
+                "server otherwise than viser 1.1 does)"
+            )
+        self.origin_guard = guard
         # viser's share link tunnels the page through a public relay: never, whatever a client asks for
         self.server.request_share_url = lambda *args, **kwargs: None
         self.port = int(self.server.get_port())

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import urllib.error
 import urllib.request
 
@@ -16,7 +17,7 @@ from macsplat_cli.viewer import ViewerConfig, ViewerServer, camera_pose, resolve
 
 from support.viewer_scene import PlaneScene
 
-pytest.importorskip("viser")
+viser = pytest.importorskip("viser")
 
 
 @pytest.fixture
@@ -71,3 +72,60 @@ def test_a_scene_without_cameras_is_served(plane_scene: PlaneScene) -> None:
         assert _get(s.url + "/")[0] == 200
     finally:
         s.stop()
+
+
+def _connect(server: ViewerServer, origin: str | None, **headers: str):  # noqa: ANN202 - a websockets connection
+    from websockets.sync.client import connect
+
+    return connect(
+        server.url.replace("http://", "ws://"), subprotocols=[f"viser-v{viser.__version__}"], max_size=None,
+        open_timeout=10, origin=origin, additional_headers=headers or None,
+    )  # fmt: skip
+
+
+def test_websocket_takes_only_the_viewers_own_page(server: ViewerServer, caplog: pytest.LogCaptureFixture) -> None:
+    """Another web site's page cannot open the WebSocket and read the scene (issue 37, V2): refused with 403 before
+    any message; the viewer's own page (any loopback spelling) and clients without an Origin are served."""
+    from websockets.exceptions import InvalidStatus
+
+    port = server.port
+    with caplog.at_level(logging.WARNING, logger="macsplat_cli"):
+        for origin in ("http://evil.example", f"http://evil.example:{port}", f"http://127.0.0.1:{port + 1}",
+                       f"https://127.0.0.1:{port}", "null", f"http://127.0.0.1.evil.example:{port}"):  # fmt: skip
+            with pytest.raises(InvalidStatus) as refused:
+                _connect(server, origin)
+            assert refused.value.response.status_code == 403, origin
+        with pytest.raises(InvalidStatus):  # the first of two Origin headers is not enough
+            _connect(server, f"http://127.0.0.1:{port}", Origin="http://evil.example")
+    assert len(caplog.records) == 7 and "refused a connection from the web page at 'http://evil.example'" in (
+        caplog.records[0].getMessage()
+    )
+    for origin in (f"http://127.0.0.1:{port}", f"http://localhost:{port}", f"http://LOCALHOST:{port}/",
+                   f"http://[::1]:{port}", None):  # fmt: skip
+        with _connect(server, origin) as ws:
+            assert len(ws.recv(timeout=20)) > 1000, origin  # the scene's messages
+
+
+def test_origin_rules_for_another_host() -> None:
+    """With ``--host`` other than loopback, the page's origin is the address the browser reached (or --host)."""
+    from macsplat_cli.viewer.origin import origin_allowed
+
+    lan = ("192.168.1.5", 8080)
+    assert origin_allowed("http://192.168.1.5:8080", "0.0.0.0", lan)
+    assert origin_allowed("http://192.168.1.5:8080", "0.0.0.0", ("::ffff:192.168.1.5", 8080, 0, 0))
+    assert origin_allowed("http://viewer.lan:8080", "viewer.lan", lan)
+    assert not origin_allowed("http://192.168.1.6:8080", "0.0.0.0", lan)  # another machine's page
+    assert not origin_allowed("http://rebound.example:8080", "0.0.0.0", lan)  # a DNS-rebinding page
+    assert origin_allowed("http://127.0.0.1", "127.0.0.1", ("127.0.0.1", 80))  # port 80 is left out
+    assert not origin_allowed("http://127.0.0.1:99999", "127.0.0.1", ("127.0.0.1", 8080))
+
+
+def test_a_viser_that_starts_otherwise_is_refused(plane_scene: PlaneScene, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Where viser would start its server without the origin check (another viser version), nothing is served."""
+    from macsplat_cli.viewer.origin import OriginGuard
+
+    monkeypatch.setattr(OriginGuard, "wrap", lambda self, serve: serve)  # viser's serve, unchecked
+    port = resolve_port("127.0.0.1", 0)
+    with pytest.raises(InputError, match=r"cannot check its clients' web origin with viser 1\."):
+        ViewerServer(plane_scene.gaussians, [], config=ViewerConfig(port=port))
+    assert resolve_port("127.0.0.1", port) == port  # stopped: the port is free again
