@@ -24,18 +24,35 @@ import numpy as np
 import torch
 
 from ..cameras import Camera
-from ..errors import InputError
+from ..errors import InputError, MacsplatError
 from ..gaussians import Gaussians
 from .origin import origin_checked_serve
-from .scene import ViewPose, camera_pose, splat_arrays
+from .scene import ViewPose, camera_pose, short_name, splat_arrays
 
-__all__ = ["PortInUseError", "ViewerConfig", "ViewerServer", "is_loopback", "resolve_port", "viser_module"]
+__all__ = [
+    "PortInUseError",
+    "ViewerConfig",
+    "ViewerServer",
+    "client_view",
+    "is_loopback",
+    "resolve_port",
+    "viser_module",
+]
 
 logger = logging.getLogger(__name__)
 
 EXTRA_HINT = "pip install 'macsplat[view]'"
 FRUSTUM_RGB = (230, 120, 20)
 """The cameras' colour: orange, rare in photos of scenes."""
+
+
+MAX_ASPECT = 100.0
+"""Widest (and, inverted, tallest) client view rendered: a page is never near it; 0 or 1e9 would be no image."""
+MAX_POSITION = 1e12
+"""Farthest client camera position rendered (scene units; beyond it float32 view matrices lose the scene), and
+the largest quaternion component taken (its length is then no overflow)."""
+SHOWN_REASON_CHARS = 200
+"""Why a client's view was not rendered, cut to this length in the log and the panel."""
 
 
 class PortInUseError(InputError):
@@ -165,13 +182,13 @@ class ViewerServer:
             initial.look_at = tuple(poses[0].position + distance * (poses[0].look_at - poses[0].position))
             initial.up = tuple(poses[0].up)
             initial.fov = poses[0].fov_y
-        for camera, pose in zip(scene.cameras, poses):
+        for camera, pose, shown in zip(scene.cameras, poses, shown_names([c.name for c in scene.cameras])):
             handle = server.scene.add_camera_frustum(
-                f"/cameras/{_node_name(camera.name)}", fov=pose.fov_y, aspect=pose.aspect,
+                f"/cameras/{_node_name(shown)}", fov=pose.fov_y, aspect=pose.aspect,
                 scale=self.config.frustum_scale * distance, image=scene.thumbnails.get(camera.name),
                 wxyz=pose.wxyz, position=pose.position, color=FRUSTUM_RGB, thickness=2.0, thickness_units="screen",
             )  # fmt: skip
-            server.scene.add_label(f"/cameras/{_node_name(camera.name)}/label", camera.name)
+            server.scene.add_label(f"/cameras/{_node_name(shown)}/label", shown)
             handle.on_click(lambda event, pose=pose: self._go_to(event.client, pose))
         self._panel(title, len(splats), poses)
 
@@ -179,18 +196,20 @@ class ViewerServer:
         gui, scene = self.server.gui, self._scene
         gui.add_markdown(f"**{title}** · {n_shown:,} Gaussians · {len(scene.cameras)} cameras")
         if scene.cameras:
-            names = [c.name for c in scene.cameras]
+            names = shown_names([c.name for c in scene.cameras])
             choice = gui.add_dropdown("Camera", tuple(names), initial_value=names[0])
             go = gui.add_button("Go to camera")
-            go.on_click(lambda event: self._go_to(event.client, poses[names.index(choice.value)]))
+            pose_of = dict(zip(names, poses))
+            # a value the client made up is in no camera's name: no jump
+            go.on_click(lambda event: self._go_to(event.client, pose_of.get(choice.value)))
         render = gui.add_button("Render with macsplat")
         self._render_note = gui.add_markdown("Renders this viewpoint with macsplat's rasterizer (full SH).")
         self._render_image = gui.add_image(np.zeros((9, 16, 3), np.uint8), label="macsplat render", visible=False)
         render.on_click(lambda event: self._render_for(event.client))
 
     @staticmethod
-    def _go_to(client: Any, pose: ViewPose) -> None:
-        if client is None:
+    def _go_to(client: Any, pose: ViewPose | None) -> None:
+        if client is None or pose is None:
             return
         with client.atomic():
             client.camera.wxyz = pose.wxyz
@@ -198,18 +217,32 @@ class ViewerServer:
             client.camera.fov = pose.fov_y
 
     def _render_for(self, client: Any) -> None:
+        """The "render" button of ``client``: its viewpoint rendered into the panel. A camera that cannot be
+        rendered (any client may send one) is one log line and a note in the panel; the viewer keeps serving."""
         if client is None or not self._render_lock.acquire(blocking=False):
             return
         try:
-            cam = client.camera
+            view, why = client_view(client.camera)
+            if view is None:
+                self._refuse_render(why)
+                return
             t0 = time.perf_counter()
-            image = self.render_view(np.asarray(cam.wxyz), np.asarray(cam.position), float(cam.fov), float(cam.aspect))
+            try:
+                image = self.render_view(*view)
+            except MacsplatError as e:
+                self._refuse_render(str(e))
+                return
             seconds = time.perf_counter() - t0
             self._render_image.image = image
             self._render_image.visible = True
             self._render_note.content = f"macsplat render, {image.shape[1]}×{image.shape[0]} px, {seconds:.2f} s"
         finally:
             self._render_lock.release()
+
+    def _refuse_render(self, why: str) -> None:
+        why = " ".join(why.split())[:SHOWN_REASON_CHARS]
+        logger.warning("viewer: a client's view was not rendered: %s", why)
+        self._render_note.content = f"cannot render this view: {why}"
 
     def render_view(self, wxyz: np.ndarray, position: np.ndarray, fov_y: float, aspect: float) -> np.ndarray:
         """macsplat's render of a viewer camera (camera-to-world ``wxyz`` [4], ``position`` [3], OpenCV axes;
@@ -241,6 +274,44 @@ class ViewerServer:
 
     def stop(self) -> None:
         self.server.stop()
+
+
+def client_view(camera: Any) -> tuple[tuple[np.ndarray, np.ndarray, float, float] | None, str]:
+    """A client's camera (viser's ``CameraHandle``: what the page last sent) as :meth:`ViewerServer.render_view`
+    takes it, ``(wxyz unit [4], position [3], fov_y, aspect)``, or None and why it cannot be rendered: a value
+    that is not finite or beyond :data:`MAX_POSITION`, a quaternion of (near) zero length, a field of view outside (0, π), an image size that is
+    not positive or an aspect beyond :data:`MAX_ASPECT`."""
+    try:
+        wxyz = np.asarray(camera.wxyz, dtype=np.float64).reshape(4)
+        position = np.asarray(camera.position, dtype=np.float64).reshape(3)
+        fov, width, height = float(camera.fov), float(camera.image_width), float(camera.image_height)
+    except (TypeError, ValueError, AttributeError) as e:
+        return None, f"malformed camera ({type(e).__name__})"
+    values = np.concatenate([wxyz, position, [fov, width, height]])
+    if not np.isfinite(values).all() or np.abs(values[:7]).max() > MAX_POSITION:
+        return None, "the camera holds non-finite or huge values"
+    norm = float(np.linalg.norm(wxyz))
+    if norm < 1e-6:
+        return None, "the camera's orientation is a zero quaternion"
+    if not 0.0 < fov < np.pi:
+        return None, f"field of view {fov:.3g} rad is outside (0, π)"
+    if width < 1 or height < 1 or not 1 / MAX_ASPECT <= width / height <= MAX_ASPECT:
+        return None, f"image size {width:.0f}×{height:.0f} px is empty or too narrow"
+    return (wxyz / norm, position, fov, width / height), ""
+
+
+def shown_names(names: list[str]) -> list[str]:
+    """The cameras' names as the page shows them: cut (:func:`.scene.short_name`), made unique with ``#i``."""
+    out: list[str] = []
+    seen: set[str] = set()
+    for i, name in enumerate(names):
+        shown = short_name(name)
+        shown = f"{shown} #{i + 1}" if shown in seen else shown
+        while shown in seen:  # a name of that form was already taken
+            shown += "'"
+        seen.add(shown)
+        out.append(shown)
+    return out
 
 
 def _node_name(name: str) -> str:

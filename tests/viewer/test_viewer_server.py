@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import logging
+import time
 import urllib.error
 import urllib.request
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -129,3 +131,93 @@ def test_a_viser_that_starts_otherwise_is_refused(plane_scene: PlaneScene, monke
     with pytest.raises(InputError, match=r"cannot check its clients' web origin with viser 1\."):
         ViewerServer(plane_scene.gaussians, [], config=ViewerConfig(port=port))
     assert resolve_port("127.0.0.1", port) == port  # stopped: the port is free again
+
+
+class _Camera:
+    """What a client's page last sent as its camera (viser's CameraHandle's fields)."""
+
+    def __init__(  # noqa: ANN001
+        self, wxyz=(1.0, 0, 0, 0), position=(0.0, 0, 0), fov=1.0, image_width=640, image_height=480
+    ) -> None:
+        self.wxyz, self.position, self.fov = np.asarray(wxyz, float), np.asarray(position, float), fov
+        self.image_width, self.image_height = image_width, image_height
+
+    @property
+    def aspect(self) -> float:
+        return float(self.image_width) / self.image_height
+
+
+def test_a_degenerate_client_camera_is_one_log_line(server: ViewerServer, caplog: pytest.LogCaptureFixture) -> None:
+    """Any client can send a camera that cannot be rendered; "Render with macsplat" then logs one line and notes
+    it in the panel instead of raising (issue 37, V3)."""
+    nan = float("nan")
+    bad = [
+        _Camera(image_height=0), _Camera(wxyz=(0.0, 0, 0, 0)), _Camera(position=(nan, 0, 0)), _Camera(fov=nan),
+        _Camera(fov=0.0), _Camera(fov=4.0), _Camera(image_width=10**9, image_height=1), _Camera(position=(1e300, 0, 0)),
+        _Camera(wxyz=(1e300, 1e300, 0, 0)),
+    ]  # fmt: skip
+    for cam in bad:
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="macsplat_cli"):
+            server._render_for(SimpleNamespace(camera=cam))
+        assert len(caplog.records) == 1 and "a client's view was not rendered" in caplog.records[0].getMessage()
+        assert server._render_note.content.startswith("cannot render this view: ")
+    server._render_for(SimpleNamespace(camera=_Camera(wxyz=(2.0, 0, 0, 0))))  # any length: the rotation is taken
+    assert server._render_note.content.startswith("macsplat render, 160×120 px")
+
+
+def test_a_client_sending_a_degenerate_camera_gets_no_traceback(
+    server: ViewerServer, capfd: pytest.CaptureFixture, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The campaign's client (issue 37, V3): a camera of height 0, then a click on the render button, over the
+    WebSocket; the viewer writes no traceback and still renders the next, sound view."""
+    import msgspec
+    import zstandard
+    from viser import _messages as M
+
+    def send(ws, message) -> None:  # noqa: ANN001
+        ws.send(msgspec.msgpack.encode(message.as_serializable_dict()))
+
+    def camera(height: int) -> M.ViewerCameraMessage:
+        return M.ViewerCameraMessage(
+            wxyz=(1.0, 0.0, 0.0, 0.0), position=(0.0, 0.0, 0.0), fov=1.0, near=0.01, far=100.0, image_height=height,
+            image_width=640, look_at=(0.0, 0.0, 1.0), up_direction=(0.0, -1.0, 0.0),
+        )  # fmt: skip
+
+    def wait_for(text: str) -> None:
+        deadline = time.monotonic() + 20
+        while text not in server._render_note.content:
+            assert time.monotonic() < deadline, server._render_note.content
+            time.sleep(0.05)
+
+    with _connect(server, None) as ws:
+        raw = ws.recv(timeout=20)
+        n_in, n_c = int.from_bytes(raw[:8], "little"), int.from_bytes(raw[8:16], "little")
+        doc = msgspec.msgpack.decode(zstandard.ZstdDecompressor().decompress(raw[16 : 16 + n_c], max_output_size=n_in))
+        button = next(
+            m["uuid"] for m in doc["messages"]
+            if m.get("type") == "GuiButtonMessage" and "Render with macsplat" in str(m.get("props"))
+        )  # fmt: skip
+        with caplog.at_level(logging.WARNING, logger="macsplat_cli"):
+            send(ws, camera(0))
+            time.sleep(0.3)
+            send(ws, M.GuiUpdateMessage(uuid=button, updates={"value": True}))
+            wait_for("cannot render this view")
+            send(ws, camera(480))
+            time.sleep(0.3)
+            send(ws, M.GuiUpdateMessage(uuid=button, updates={"value": True}))
+            wait_for("macsplat render, 160×120 px")
+    assert [r.getMessage() for r in caplog.records] == [
+        "viewer: a client's view was not rendered: image size 640×0 px is empty or too narrow"
+    ]
+    assert "Traceback" not in capfd.readouterr().err
+
+
+def test_camera_names_are_shown_cut_and_unique() -> None:
+    """The page shows a camera's name cut to 80 characters (a 2 MB name is not sent as a label), one entry each."""
+    from macsplat_cli.viewer.server import shown_names
+
+    shown = shown_names(["left", "x" * 2_000_000, "x" * 300, "left", "left #4"])
+    assert shown[0] == "left" and shown[1] == "x" * 79 + "…" and len(set(shown)) == 5
+    assert shown[2] == "x" * 79 + "… #3" and shown[3] == "left #4" and shown[4] == "left #4 #5"
+    assert shown_names(["a", "a #3", "a"]) == ["a", "a #3", "a #3'"]
