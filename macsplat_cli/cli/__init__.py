@@ -22,7 +22,7 @@ import typer
 
 from . import bench, eval, eval_merge, export_onnx, reconstruct, render, train, view  # noqa: F401 - registers the commands
 from ._app import app, invocation, set_invocation
-from ._common import err_console, escape
+from ._common import _one_line, err_console
 
 __all__ = ["EXIT_INTERRUPTED", "EXIT_TERMINATED", "app", "invocation", "main", "run"]
 
@@ -94,8 +94,8 @@ def _main(args: list[str]) -> int:
     except typer.TyperException as e:  # usage errors: unknown option, bad value, missing argument
         ctx = getattr(e, "ctx", None)
         hint = f" (see '{ctx.command_path} --help')" if ctx is not None else ""
-        message = " ".join(f"{e.format_message()}{hint}".split())
-        err_console.print(f"[bold red]error:[/] {escape(message)}", markup=True, highlight=False, soft_wrap=True)
+        message = _one_line(f"{e.format_message()}{hint}")
+        err_console.print(f"[bold red]error:[/] {message}", markup=True, highlight=False, soft_wrap=True)
         return int(e.exit_code)
     return rv if isinstance(rv, int) else 0
 

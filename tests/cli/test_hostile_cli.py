@@ -249,6 +249,14 @@ def test_markup_in_names_and_values_is_printed_verbatim(
     assert verbatim in line, line
 
 
+def test_a_usage_error_line_is_cut(capsys: pytest.CaptureFixture[str]) -> None:
+    """A usage error quoting a huge option name is one short line, cut like every error line (issue 37, V4: the
+    option parser's errors were printed whole)."""
+    got = main(["reconstruct", "--bogus-" + "q" * 5000])
+    line = _one_error_line(capsys.readouterr().err)
+    assert got == 2 and "--bogus-qqq" in line and line.endswith("…") and len(line) <= 2010, len(line)
+
+
 def test_reconstruct_with_markup_in_every_name_succeeds_and_prints_them(
     capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path, pair: tuple[Path, Path]
 ) -> None:
