@@ -279,8 +279,8 @@ class ViewerServer:
 def client_view(camera: Any) -> tuple[tuple[np.ndarray, np.ndarray, float, float] | None, str]:
     """A client's camera (viser's ``CameraHandle``: what the page last sent) as :meth:`ViewerServer.render_view`
     takes it, ``(wxyz unit [4], position [3], fov_y, aspect)``, or None and why it cannot be rendered: a value
-    that is not finite or beyond :data:`MAX_POSITION`, a quaternion of (near) zero length, a field of view outside (0, π), an image size that is
-    not positive or an aspect beyond :data:`MAX_ASPECT`."""
+    that is not finite or beyond :data:`MAX_POSITION`, a quaternion of (near) zero length, a field of view outside
+    (0, π), an image size that is not positive or an aspect beyond :data:`MAX_ASPECT`."""
     try:
         wxyz = np.asarray(camera.wxyz, dtype=np.float64).reshape(4)
         position = np.asarray(camera.position, dtype=np.float64).reshape(3)
