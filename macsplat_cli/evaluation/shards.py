@@ -165,8 +165,9 @@ def _read(folder: Path) -> dict[str, Any]:
     doc = parse_json(text, str(path), InputError)
     if not isinstance(doc, dict) or not isinstance(doc.get("shard"), dict):
         raise InputError(f"{path}: not a shard's results (run eval with --shard I/N)")
-    for name, kind in (("dataset", str), ("layout", str), ("method", str), ("config", dict), ("cases", list)):
-        _check(path, doc, name, lambda v, kind=kind: isinstance(v, kind), kind.__name__)  # type: ignore[misc]
+    for name, kind, what in (("dataset", str, "a name"), ("layout", str, "a name"), ("method", str, "a name"),
+                             ("config", dict, "an object"), ("cases", list, "a list")):  # fmt: skip
+        _check(path, doc, name, lambda v, kind=kind: isinstance(v, kind), what)  # type: ignore[misc]
     _check(path, doc["config"], "baselines", _strs, "a list of names", "config.", required=False)
     shard = doc["shard"]
     for name in ("index", "count", "cases_total"):
@@ -282,7 +283,7 @@ def _results(path: Path, doc: dict[str, Any]) -> list[CaseResult]:
     want = shard["case_keys"][shard["index"] :: shard["count"]]
     got = [r.case.key for r in results]
     if got != want:
-        first = next((f"{g!r} where {w!r} belongs" for g, w in zip(got, want) if g != w), f"{len(got)} of {len(want)}")
+        first = next((f"{g!r} where {w!r} belongs" for g, w in zip(got, want) if g != w), f"it has {len(got)} of its {len(want)} cases")
         raise InputError(f"{path}: its cases are not shard {shard['index']}/{shard['count']}'s share of the run "
                          f"({_cut(first, 120)})")  # fmt: skip
     return results

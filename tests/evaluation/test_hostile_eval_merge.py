@@ -107,7 +107,7 @@ MALFORMED: dict[str, tuple[Callable[[dict[str, Any]], None], str]] = {
     "case_keys too short": (lambda d: d["shard"]["case_keys"].pop(), "shard.case_keys is not the run's"),
     "bogus case": (lambda d: d.__setitem__("cases", [{"x": 1}]), "cases[0].scene is missing"),
     "no cases": (lambda d: d.__setitem__("cases", []), "its cases are not shard 0/2's share"),
-    "cases not a list": (lambda d: d.__setitem__("cases", {"a": 1}), "field cases is not list"),
+    "cases not a list": (lambda d: d.__setitem__("cases", {"a": 1}), "field cases is not a list"),
     "a case of another shard": (
         lambda d: _first_case(d).__setitem__("context", [9, 8]), "its cases are not shard 0/2's share"
     ),
@@ -117,7 +117,7 @@ MALFORMED: dict[str, tuple[Callable[[dict[str, Any]], None], str]] = {
     ),
     "an unknown status": (lambda d: _first_case(d).__setitem__("status", "great"), "cases[0].status"),
     "a string time": (lambda d: _first_case(d).__setitem__("time_s", "fast"), "cases[0].time_s is not a number"),
-    "config a list": (lambda d: d.__setitem__("config", []), "field config is not dict"),
+    "config a list": (lambda d: d.__setitem__("config", []), "field config is not an object"),
 }
 
 
