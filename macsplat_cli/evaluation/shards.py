@@ -110,9 +110,10 @@ def result_from_dict(d: dict[str, Any]) -> CaseResult:
     )  # fmt: skip
 
 
-
 @dataclass(frozen=True)
 class MergeSummary:
+    """What a merge wrote: the merged run, its number of shards and of cases."""
+
     run: EvalRun
     shards: int
     cases: int
@@ -193,7 +194,11 @@ def _read_coverage(folder: Path) -> dict[str, str]:
         kind = "a symbolic link" if stat.S_ISLNK(st.st_mode) else "not a folder"
         raise InputError(f"{coverage}: {kind}; eval merge reads only the shards' own files")
     texts = {}
-    for name in sorted(e.name for e in os.scandir(coverage)):
+    try:
+        names = sorted(e.name for e in os.scandir(coverage))
+    except OSError as e:
+        raise InputError(f"{coverage}: cannot be read: {e.strerror or e}") from None
+    for name in names:
         if name.endswith(".json") and not name.startswith("."):
             try:
                 texts[name] = _read_file(coverage / name, folder)
