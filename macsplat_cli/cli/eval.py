@@ -323,7 +323,17 @@ def eval_command(
     """
     with command_context(ctx, verbose, quiet) as state:
         if jobs > 1:
-            _eval_jobs(jobs, out, shard, state.quiet, json_out, splatt3r_compatible)
+            from .eval_jobs import eval_jobs
+
+            def count_cases() -> int:  # as each shard will select them
+                return len(_select(
+                    data=data, layout=layout.value, scannetpp_split=scannetpp_split, scenes=scenes, cases_file=cases,
+                    split=split, split_by=split_by.value, assignment=assignment.value, max_pairs=max_pairs,
+                    max_targets=max_targets, seed=seed, quiet=state.quiet, context_views=context_views,
+                    proto=_protocol(protocol, cases),
+                )[1].cases)  # fmt: skip
+
+            eval_jobs(jobs, out, shard, state.quiet, json_out, splatt3r_compatible, count_cases)
             return
         _eval(
             data=data, split=split, backend=backend, out=out, layout=layout.value, scannetpp_split=scannetpp_split,
@@ -363,8 +373,6 @@ def _eval(
     parse_splits(split)  # bad options fail before any work
     shard_at = parse_shard(shard) if shard is not None else None
     proto = _protocol(protocol, cases_file)
-    if proto is not None:
-        scannetpp_split = proto.scannetpp_split
     check_context_views(context_views, backends=[engine.backend])
     ResultWriter.check(out)  # and outputs that cannot be written (a link, a device, a read-only folder)
     check_no_clobber(
@@ -373,11 +381,10 @@ def _eval(
     )
     lpips = load_lpips(lpips_weights) if lpips_weights is not None else None
     reconstructor = make_reconstructor(engine)
-    dataset = load_data(data, layout, scannetpp_split, scenes)
-    sel = select_cases(
-        dataset, cases_file=cases_file, split=split, split_by=split_by, assignment=assignment,
-        max_pairs=max_pairs, max_targets=max_targets, seed=seed, quiet=quiet, context_views=context_views,
-        every=proto.every_nth_row if proto else 1, exclude=proto.exclude_scenes if proto else (),
+    dataset, sel = _select(
+        data=data, layout=layout, scannetpp_split=scannetpp_split, scenes=scenes, cases_file=cases_file, split=split,
+        split_by=split_by, assignment=assignment, max_pairs=max_pairs, max_targets=max_targets, seed=seed, quiet=quiet,
+        context_views=context_views, proto=proto,
     )  # fmt: skip
     import tempfile
 
@@ -423,6 +430,23 @@ def _eval(
             )
 
 
+def _select(
+    *, data: Path, layout: str, scannetpp_split: str, scenes: str | None, cases_file: Path | None, split: str,
+    split_by: str, assignment: str, max_pairs: int, max_targets: int, seed: int, quiet: bool, context_views: int,
+    proto: Any,
+) -> tuple[EvalDataset, CaseSelection]:  # fmt: skip
+    """The data set (the protocol's ScanNet++ split, if any) and the run's cases (:func:`select_cases`)."""
+    from ..evaluation.splits import parse_splits
+
+    parse_splits(split)  # a bad --split fails before the data set is read
+    dataset = load_data(data, layout, proto.scannetpp_split if proto is not None else scannetpp_split, scenes)
+    return dataset, select_cases(
+        dataset, cases_file=cases_file, split=split, split_by=split_by, assignment=assignment,
+        max_pairs=max_pairs, max_targets=max_targets, seed=seed, quiet=quiet, context_views=context_views,
+        every=proto.every_nth_row if proto else 1, exclude=proto.exclude_scenes if proto else (),
+    )  # fmt: skip
+
+
 def _announce(cases: list[Any], dataset: Any, context_views: int, backend: str) -> None:
     """What the run is about to do, on one line."""
     err_console.print(
@@ -447,23 +471,3 @@ def _protocol(name: str | None, cases_file: Path | None) -> Any:
     if proto.needs_cases and cases_file is None:
         raise InputError(f"--protocol {proto.name} evaluates published test sets: give --cases, {proto.cases_hint}")
     return proto
-
-
-def _eval_jobs(jobs: int, out: Path, shard: str | None, quiet: bool, json_out: bool, splatt3r_compatible: bool) -> None:
-    """``--jobs N``: :func:`.eval_jobs.run_jobs`, then the summary as one process prints it."""
-    from .._json import to_jsonable
-    from ..errors import InputError
-    from ..evaluation import ResultWriter
-    from ..evaluation.summary import summarize
-    from .eval_jobs import run_jobs
-
-    if shard is not None:
-        raise InputError("--jobs and --shard: give one (--jobs N runs the N shards itself)")
-    ResultWriter.check(out)
-    run, seconds = run_jobs(jobs, out, quiet=quiet)
-    rows = summarize(run)  # type: ignore[arg-type]
-    writer = ResultWriter(out)
-    if not quiet:
-        print_summary(run, rows, writer, splatt3r_compatible, seconds)
-    if json_out:
-        out_console.print_json(json.dumps({"summary": to_jsonable(rows), "results": str(writer.json_path)}))

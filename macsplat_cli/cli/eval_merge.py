@@ -35,10 +35,6 @@ def eval_merge_command(
         from ..evaluation.shards import merge_shards
 
         ResultWriter.check(out)
-        if any(s.resolve() == out.resolve() for s in shards):
-            from ..errors import InputError
-
-            raise InputError(f"--out {out}: one of the shards; merge into another folder")
         check_no_clobber([(f"--out {out}:", out / name) for name in ResultWriter.FILES], [])
         merged = merge_shards(list(shards), out)
         if not state.quiet:

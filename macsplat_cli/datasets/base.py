@@ -155,9 +155,21 @@ def read_depth(path: str | os.PathLike[str], scale: float = 1.0) -> np.ndarray:
         raise DatasetError(f"{p}: cannot read the depth map ({e})") from None
     if raw is None or raw.ndim != 2:
         raise DatasetError(f"{p}: not a single-channel depth map")
+    _check_depth_dtype(raw, p)
     d = raw.astype(np.float32) * np.float32(scale) if np.issubdtype(raw.dtype, np.integer) else raw.astype(np.float32)
     d[~np.isfinite(d) | (d < 0)] = 0.0
     return d
+
+
+DEPTH_KINDS = "iuf"
+"""The NumPy dtype kinds a depth map may hold: signed and unsigned integers, floats (not strings, objects, booleans,
+complex numbers, dates or records)."""
+
+
+def _check_depth_dtype(depth: np.ndarray, path: Path) -> None:
+    """Raise DatasetError naming ``path`` unless ``depth`` holds numbers (:data:`DEPTH_KINDS`)."""
+    if depth.dtype.kind not in DEPTH_KINDS or depth.dtype.fields is not None:
+        raise DatasetError(f"{path}: not a numeric depth map (dtype {depth.dtype.str}); give integers or floats")
 
 
 def resize_depth_nearest(depth: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -250,6 +262,7 @@ def _depth_size(path: Path) -> tuple[int, int]:
             raise DatasetError(f"{path}: not a readable .npy depth map ({e})") from None
         if arr.ndim != 2:
             raise DatasetError(f"{path}: depth must be a 2D array, got shape {list(arr.shape)}")
+        _check_depth_dtype(arr, path)
         return int(arr.shape[1]), int(arr.shape[0])
     return image_size(path)
 

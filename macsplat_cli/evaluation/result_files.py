@@ -135,10 +135,14 @@ class ResultWriter:
         self.write(run)
 
     def write(self, run: EvalRun) -> None:
+        for path, text in self.texts(run).items():
+            atomic_write_text(path, text)
+
+    def texts(self, run: EvalRun) -> dict[Path, str]:
+        """What :meth:`write` writes: path → text, in the order written (``cases.jsonl`` first)."""
         from dataclasses import asdict, replace
 
         cases = [r.to_dict() for r in run.results]
-        atomic_write_text(self.jsonl, "".join(json.dumps(c) + "\n" for c in cases))
         doc = {
             "dataset": run.dataset,
             "layout": run.layout,
@@ -156,11 +160,14 @@ class ResultWriter:
             "summary": to_jsonable(summarize(run)),
             "cases": cases,
         }
-        atomic_write_text(self.json_path, json.dumps(doc, indent=1) + "\n")
         buf = io.StringIO()
         w = csv.DictWriter(buf, fieldnames=CSV_COLUMNS, extrasaction="ignore", lineterminator="\n")
         w.writeheader()
         for row in csv_rows(run):
             w.writerow({k: _fmt_csv(v) for k, v in row.items()})
-        atomic_write_text(self.csv_path, buf.getvalue())
-        atomic_write_text(self.folder / "summary.md", summary_markdown(doc["summary"]))
+        return {
+            self.jsonl: "".join(json.dumps(c) + "\n" for c in cases),
+            self.json_path: json.dumps(doc, indent=1) + "\n",
+            self.csv_path: buf.getvalue(),
+            self.folder / "summary.md": summary_markdown(doc["summary"]),
+        }

@@ -12,6 +12,7 @@ exact resume), nothing partial left, nothing written outside the run folder.
   uninterrupted run;
 * 2,000 frames build their sampler without listing every pair's targets (the ``O(N³)`` tuples of before);
 * a ``--batch`` larger than the training pairs is refused (it used to loop forever looking for a batch).
+* a depth ``.npy`` holding strings is refused naming the file (issue 37, D1).
 """
 
 from __future__ import annotations
@@ -411,3 +412,17 @@ def test_a_batch_larger_than_the_training_pairs_is_refused(data: Path, tmp_path:
     with pytest.raises(InputError, match="--batch 64 is more than the [0-9]+ training pair"):
         _trainer(data, tmp_path / "r", steps=1, batch=64)
     assert not (tmp_path / "r").exists()
+
+
+# ------------------------------------------------------------------------------------------------ 7. a depth .npy of text
+def test_a_depth_npy_of_strings_is_refused_naming_the_file(data: Path, tmp_path: Path) -> None:
+    """Issue 37 (D1): it crashed with "ValueError: could not convert string to float", naming no file."""
+    root = tmp_path / "data"
+    shutil.copytree(data, root)
+    first = sorted(root.rglob("depth/*.png"))[0]
+    first.unlink()
+    np.save(first.with_suffix(".npy"), np.full((64, 96), "x", dtype="<U1"))  # the photos are 96 x 64
+    code, err = _run(["train", "--data", root, "--out", tmp_path / "run", "--steps", "1", "--batch", "1", *FAST, "-q"])
+    assert code == 2 and _lines(err) == [f"error: {first.with_suffix('.npy')}: not a numeric depth map (dtype <U1); "
+                                         "give integers or floats"], err  # fmt: skip
+    assert not (tmp_path / "run").exists()
