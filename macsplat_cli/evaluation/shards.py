@@ -288,7 +288,10 @@ def _results(path: Path, doc: dict[str, Any]) -> list[CaseResult]:
     want = shard["case_keys"][shard["index"] :: shard["count"]]
     got = [r.case.key for r in results]
     if got != want:
-        first = next((f"{g!r} where {w!r} belongs" for g, w in zip(got, want) if g != w), f"it has {len(got)} of its {len(want)} cases")
+        first = next(
+            (f"{g!r} where {w!r} belongs" for g, w in zip(got, want) if g != w),
+            f"it has {len(got)} of its {len(want)} cases",
+        )
         raise InputError(f"{path}: its cases are not shard {shard['index']}/{shard['count']}'s share of the run "
                          f"({_cut(first, 120)})")  # fmt: skip
     return results

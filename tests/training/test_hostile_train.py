@@ -414,7 +414,7 @@ def test_a_batch_larger_than_the_training_pairs_is_refused(data: Path, tmp_path:
     assert not (tmp_path / "r").exists()
 
 
-# ------------------------------------------------------------------------------------------------ 7. a depth .npy of text
+# -------------------------------------------------------------------------------------------- 7. a depth .npy of text
 def test_a_depth_npy_of_strings_is_refused_naming_the_file(data: Path, tmp_path: Path) -> None:
     """Issue 37 (D1): it crashed with "ValueError: could not convert string to float", naming no file."""
     root = tmp_path / "data"
