@@ -115,7 +115,7 @@ def _apply_orientation(img: np.ndarray, orientation: int) -> np.ndarray:
     return np.ascontiguousarray(out)
 
 
-def _header_size(data: bytes) -> tuple[int, int] | None:
+def _pillow_size(data: bytes) -> tuple[int, int] | None:
     """(width, height) from the image header (Pillow's lazy open decodes no pixels); None if Pillow cannot tell."""
     from PIL import Image
 
@@ -124,10 +124,55 @@ def _header_size(data: bytes) -> tuple[int, int] | None:
     try:
         with Image.open(io.BytesIO(data)) as im:
             return int(im.size[0]), int(im.size[1])
-    except Exception:  # noqa: BLE001 - not something Pillow reads: OpenCV decides (under its own 1 GP cap)
+    except Exception:  # noqa: BLE001 - not something Pillow reads: the headers below, else refused
         return None
     finally:
         Image.MAX_IMAGE_PIXELS = saved
+
+
+_HEADER_PROBE = 4096
+"""Bytes of a Radiance, PFM or PAM file searched for its size (their text headers are a few lines)."""
+
+
+def _radiance_size(head: bytes) -> tuple[int, int] | None:
+    """(width, height) of a Radiance RGBE file: the line after the blank line ending its header, such as
+    ``-Y 480 +X 640`` (Y first: rows of X; X first: the image is stored transposed)."""
+    if not (head.startswith(b"#?RADIANCE") or head.startswith(b"#?RGBE")):
+        return None
+    end = head.find(b"\n\n")
+    words = head[end + 2 :].split(b"\n", 1)[0].split() if end >= 0 else []
+    if len(words) != 4 or not (words[1].isdigit() and words[3].isdigit()):
+        return None
+    sides = {words[0][-1:].upper(): int(words[1]), words[2][-1:].upper(): int(words[3])}
+    return (sides[b"X"], sides[b"Y"]) if set(sides) == {b"X", b"Y"} else None
+
+
+def _pfm_size(head: bytes) -> tuple[int, int] | None:
+    """(width, height) of a portable float map: ``PF`` or ``Pf``, then the width and the height."""
+    words = head.split(maxsplit=3)
+    if len(words) < 3 or words[0] not in (b"PF", b"Pf") or not (words[1].isdigit() and words[2].isdigit()):
+        return None
+    return int(words[1]), int(words[2])
+
+
+def _pam_size(head: bytes) -> tuple[int, int] | None:
+    """(width, height) of a portable arbitrary map: ``P7``, then ``WIDTH w`` and ``HEIGHT h`` lines."""
+    if not head.startswith(b"P7"):
+        return None
+    lines = head.split(b"ENDHDR", 1)[0].split(b"\n")
+    fields = dict(line.split(None, 1) for line in lines if len(line.split()) == 2)
+    w, h = fields.get(b"WIDTH", b"").strip(), fields.get(b"HEIGHT", b"").strip()
+    return (int(w), int(h)) if w.isdigit() and h.isdigit() else None
+
+
+def _header_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from the image's header, without decoding it: Pillow's formats, and the ones OpenCV
+    decodes that Pillow does not read (Radiance HDR, PFM, PAM). None when no header tells it."""
+    size = _pillow_size(data)
+    if size is None:
+        head = data[:_HEADER_PROBE]
+        size = _radiance_size(head) or _pfm_size(head) or _pam_size(head)
+    return size
 
 
 _ALPHA_MODES = frozenset({"LA", "La", "PA", "RGBA", "RGBa"})
@@ -150,10 +195,14 @@ def _pil_alpha(data: bytes) -> np.ndarray | None:
 
 
 def _check_pixel_count(p: Path, data: bytes) -> None:
-    """Refuse an image whose header declares more pixels than ``MACSPLAT_MAX_MEGAPIXELS``."""
+    """Refuse an image whose header declares more pixels than ``MACSPLAT_MAX_MEGAPIXELS``, or whose header gives
+    no size (:func:`_header_size`): the cap holds for every format OpenCV decodes."""
     size = _header_size(data)
-    if size is None:
-        return
+    if size is None:  # OpenCV would decode it to whatever size it declares: refused before decoding
+        raise ImageReadError(
+            f"{p}: not an image macsplat reads (JPEG, PNG, WebP, TIFF, BMP, ...): its size cannot be read from its "
+            "header before decoding"
+        )
     w, h = size
     limit = max_image_pixels()
     if w * h > limit:
@@ -173,11 +222,12 @@ def load_image(path: str | os.PathLike[str]) -> LoadedImage:
 
     The image's size is read from its header before it is decoded: images above
     ``MACSPLAT_MAX_MEGAPIXELS`` megapixels (default 100) are refused, so a small file that
-    decodes to gigabytes (a "decompression bomb") fails fast.
+    decodes to gigabytes (a "decompression bomb") fails fast; so is a file whose header gives
+    no size (Pillow's formats, and Radiance HDR, PFM and PAM, which OpenCV decodes, are read).
 
     Raises:
         ImageReadError: the file is missing, not a regular file, unreadable, not a decodable
-            image, or larger than the megapixel cap.
+            image, larger than the megapixel cap, or of a size its header does not give.
         InputError: ``MACSPLAT_MAX_MEGAPIXELS`` is not a positive number.
     """
     p = Path(path)

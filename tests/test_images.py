@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from macsplat_cli.errors import InputError, OutputPathError
+from macsplat_cli.errors import ImageReadError, InputError, OutputPathError
 from macsplat_cli.images import load_image, save_depth, save_image, to_uint8, write_video
 
 
@@ -168,3 +168,64 @@ def test_sixteen_bit_grey_png_keeps_its_values(tmp_path: Path) -> None:
     assert img.bit_depth == 16 and img.alpha is None
     for c in range(3):
         np.testing.assert_array_equal(img.rgb[..., c], raw.astype(np.float32) / 65535.0)
+
+
+# ------------------------------------------------------------------------------ the megapixel cap (issue 37 I1)
+def _radiance_rle(width: int, height: int) -> bytes:
+    """A flat Radiance RGBE image, run-length encoded: a few bytes per row whatever its width."""
+
+    def runs(value: int, n: int) -> bytes:
+        out = bytearray()
+        while n > 0:
+            k = min(127, n)
+            out += bytes([128 + k, value])
+            n -= k
+        return bytes(out)
+
+    row = bytes([2, 2, width >> 8, width & 255]) + b"".join(runs(v, width) for v in (128, 100, 60, 129))
+    return b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y %d +X %d\n" % (height, width) + row * height
+
+
+def _float_images(width: int, height: int) -> dict[str, bytes]:
+    """The formats OpenCV decodes and Pillow cannot size: Radiance HDR, PFM, PAM."""
+    rgb = np.full((height, width, 3), 0.5, np.float32)
+    files = {".hdr": _radiance_rle(width, height)}
+    for ext, img in ((".pfm", rgb), (".pam", (rgb * 255).astype(np.uint8))):
+        ok, buf = cv2.imencode(ext, img)
+        assert ok
+        files[ext] = buf.tobytes()
+    return files
+
+
+@pytest.mark.parametrize("ext", [".hdr", ".pfm", ".pam"])
+def test_megapixel_cap_holds_for_formats_pillow_cannot_size(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, ext: str
+) -> None:
+    """A 1.1 MP photo OpenCV decodes but Pillow cannot size is refused under a 1 MP cap, before decoding, as a
+    PNG of that size is; under the cap it loads at its size."""
+    path = tmp_path / f"big{ext}"
+    path.write_bytes(_float_images(1100, 1000)[ext])
+    decoded: list[object] = []
+    monkeypatch.setattr(cv2, "imdecode", lambda *a: decoded.append(a))
+    monkeypatch.setenv("MACSPLAT_MAX_MEGAPIXELS", "1")
+    with pytest.raises(ImageReadError, match=rf"big\{ext}: 1100x1000 is 1\.1 megapixels, above the limit of 1 "):
+        load_image(path)
+    assert decoded == []
+    monkeypatch.undo()
+    small = tmp_path / f"small{ext}"
+    small.write_bytes(_float_images(40, 30)[ext])
+    img = load_image(small)
+    assert (img.width, img.height) == (40, 30)
+
+
+def test_image_whose_size_no_header_gives_is_refused_before_decoding(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Bytes with no size that Pillow or the Radiance/PFM/PAM headers give are not handed to OpenCV."""
+    path = tmp_path / "odd.hdr"
+    path.write_bytes(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y many +X 10\n" + bytes(64))
+    decoded: list[object] = []
+    monkeypatch.setattr(cv2, "imdecode", lambda *a: decoded.append(a))
+    with pytest.raises(ImageReadError, match=r"odd\.hdr: .*its size cannot be read from its header"):
+        load_image(path)
+    assert decoded == []
