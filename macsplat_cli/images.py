@@ -25,6 +25,7 @@ __all__ = [
     "IMAGE_FORMATS",
     "LoadedImage",
     "MAX_VIDEO_FPS",
+    "MIN_VIDEO_FPS",
     "check_fps",
     "load_image",
     "VIDEO_FORMATS",
@@ -43,6 +44,9 @@ VIDEO_FORMATS = (".mp4", ".gif")
 MAX_VIDEO_FPS = 240.0
 """Highest video frame rate: what players show, well within the MPEG-4 time base (its denominator is at most
 65535; OpenCV's writer refuses more with native log lines, and never returns for an infinite rate)."""
+MIN_VIDEO_FPS = 0.01
+"""Lowest video frame rate, a frame every 100 s: a GIF frame lasts at most 655 s (Pillow overflows beyond) and
+OpenCV's MPEG-4 writer does not open below 0.002."""
 _FFMPEG_QUIET = "-8"
 """``OPENCV_FFMPEG_LOGLEVEL`` for the video writer: ffmpeg's ``AV_LOG_QUIET`` (macsplat reports a failure in one
 line)."""
@@ -362,9 +366,9 @@ def save_depth(path: str | os.PathLike[str], depth: torch.Tensor | np.ndarray) -
 
 
 def check_fps(fps: float) -> None:
-    """Raise :class:`InputError` unless ``0 < fps ≤`` :data:`MAX_VIDEO_FPS` (a finite number)."""
-    if not (math.isfinite(fps) and 0.0 < fps <= MAX_VIDEO_FPS):
-        raise InputError(f"--fps {fps:g}: the frame rate must be above 0 and at most {MAX_VIDEO_FPS:g}")
+    """Raise :class:`InputError` unless :data:`MIN_VIDEO_FPS` ``≤ fps ≤`` :data:`MAX_VIDEO_FPS` (a finite number)."""
+    if not (math.isfinite(fps) and MIN_VIDEO_FPS <= fps <= MAX_VIDEO_FPS):
+        raise InputError(f"--fps {fps:g}: give a frame rate from {MIN_VIDEO_FPS:g} to {MAX_VIDEO_FPS:g}")
 
 
 @contextlib.contextmanager
@@ -438,7 +442,8 @@ def video_writer(path: str | os.PathLike[str], fps: float = 24.0) -> Iterator[Ca
     until the end (:data:`~macsplat_cli._limits.MAX_GIF_BYTES` bounds them).
 
     Raises:
-        InputError: an unsupported format, a frame rate outside ``(0,`` :data:`MAX_VIDEO_FPS` ``]``, or no frame.
+        InputError: an unsupported format, a frame rate outside [:data:`MIN_VIDEO_FPS`, :data:`MAX_VIDEO_FPS`], or
+            no frame.
         OutputPathError: the video cannot be written, or came out unreadable.
     """
     ext = _suffix(path, VIDEO_FORMATS, "video")

@@ -229,3 +229,18 @@ def test_image_whose_size_no_header_gives_is_refused_before_decoding(
     with pytest.raises(ImageReadError, match=r"odd\.hdr: .*its size cannot be read from its header"):
         load_image(path)
     assert decoded == []
+
+
+@pytest.mark.parametrize("ext", [".mp4", ".gif"])
+def test_video_frame_rates_at_both_ends_of_the_range_are_written(tmp_path: Path, ext: str) -> None:
+    """MIN_VIDEO_FPS and MAX_VIDEO_FPS give readable videos in both formats; just outside, InputError and no file
+    (below, Pillow's GIF frame duration overflowed and OpenCV's MPEG-4 writer did not open)."""
+    from macsplat_cli.images import MAX_VIDEO_FPS, MIN_VIDEO_FPS
+
+    frames = [np.full((16, 24, 3), 40 * i, np.uint8) for i in range(3)]
+    for fps in (MIN_VIDEO_FPS, MAX_VIDEO_FPS):
+        write_video(tmp_path / f"v{fps:g}{ext}", frames, fps=fps)
+    for fps in (MIN_VIDEO_FPS / 2, MAX_VIDEO_FPS * 1.01, float("inf")):
+        with pytest.raises(InputError, match="--fps"):
+            write_video(tmp_path / f"bad{ext}", frames, fps=fps)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(f"v{f:g}{ext}" for f in (MIN_VIDEO_FPS, MAX_VIDEO_FPS))

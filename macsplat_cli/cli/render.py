@@ -90,7 +90,7 @@ def render_command(
     video: Annotated[
         Path | None, typer.Option("--video", help="With --path: also write the frames as .mp4 or .gif.")
     ] = None,
-    fps: Annotated[float, typer.Option("--fps", help="Video frame rate (above 0, at most 240).")] = 24.0,
+    fps: Annotated[float, typer.Option("--fps", help="Video frame rate (0.01 to 240).")] = 24.0,
     backend: Annotated[BackendChoice, typer.Option("--backend", help="Rasterizer.")] = BackendChoice.auto,
     device: Annotated[DeviceChoice, typer.Option("--device", help="Where to render.")] = DeviceChoice.cpu,
     verbose: VerboseOpt = False,

@@ -446,13 +446,14 @@ def fake_video(monkeypatch: pytest.MonkeyPatch) -> list[str]:
     return events
 
 
-@pytest.mark.parametrize("fps", ["inf", "nan", "0", "-1", "241", "1000000", "1e308"])
-def test_render_fps_outside_0_240_is_refused_before_any_work(
+@pytest.mark.parametrize("fps", ["inf", "nan", "0", "-1", "1e-6", "0.009", "241", "1000000", "1e308"])
+def test_render_fps_outside_its_range_is_refused_before_any_work(
     capsys: pytest.CaptureFixture[str], tmp_path: Path, scene_files: tuple[Path, Path], fake_video: list[str],
     fps: str,
 ) -> None:  # fmt: skip
     """Issue 37 R1: ``--fps inf`` made OpenCV's writer hang for good (SIGTERM ignored); every rate outside
-    (0, 240] is refused with exit 2 before a view is rendered or a writer opened, and nothing is written."""
+    [0.01, 240] (1e-6 overflowed Pillow's GIF frame duration) is refused with exit 2 before a view is rendered or a
+    writer opened, and nothing is written."""
     before = _snapshot(tmp_path)
     args = ["render", str(scene_files[0]), "--cameras", str(scene_files[1]), "--path", "3", "--fps", fps]
     got = main([*args, "--video", str(tmp_path / "v.mp4"), "-q"])
@@ -466,7 +467,7 @@ def test_render_video_frames_are_encoded_as_they_are_rendered(
     capsys: pytest.CaptureFixture[str], tmp_path: Path, scene_files: tuple[Path, Path], fake_video: list[str]
 ) -> None:
     """Issue 37 N1: ``render --path N --video`` hands each view to the encoder before rendering the next (no list of
-    every frame); a fractional rate within (0, 240] is taken."""
+    every frame); a fractional rate within [0.01, 240] is taken."""
     args = ["render", str(scene_files[0]), "--cameras", str(scene_files[1]), "--path", "4", "--fps", "0.5"]
     assert main([*args, "--video", str(tmp_path / "v.mp4"), "-q"]) == 0, capsys.readouterr().err
     assert fake_video == ["render", "write"] * 4 and _FakeVideoWriter.fps == [0.5]
