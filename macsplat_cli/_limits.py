@@ -5,6 +5,7 @@
 * :func:`max_image_pixels`: the decoded-size cap of input photos (``MACSPLAT_MAX_MEGAPIXELS``).
 * :func:`check_render_size`: the cap on rendered image sizes.
 * :func:`check_photo_count`: 2 to ``MAX_PHOTOS`` photos per reconstruction.
+* :func:`check_path_views`: the views rendered along a path (``render --path``, ``reconstruct --num-renders``).
 
 Every check raises the caller's error class (a subclass of :class:`~macsplat_cli.errors.InputError`),
 so the CLI exits with status 2 and one line naming the file and the limit.
@@ -23,7 +24,10 @@ from typing import Any
 from .errors import InputError
 
 __all__ = [
+    "MAX_PATH_VIEWS",
+    "MAX_GIF_BYTES",
     "MAX_PHOTOS",
+    "check_path_views",
     "check_photo_count",
     "DEFAULT_MAX_MEGAPIXELS",
     "MAX_IMAGE_FILE_BYTES",
@@ -203,3 +207,32 @@ def check_photo_count(n: int, max_photos: int = MAX_PHOTOS) -> None:
         raise InputError(f"{n} photo{'s' if n != 1 else ''} given: a scene needs at least two photos of it")
     if n > max_photos:
         raise InputError(f"{n} photos given: at most {max_photos} are taken in one run")
+
+
+MAX_PATH_VIEWS = 10_000
+"""Most views rendered along a path, ``render --path`` and ``reconstruct --num-renders`` alike (7 minutes of video at
+24 fps); they are written as they are rendered, so this bounds the time and the files, not the memory."""
+MAX_GIF_BYTES = 4 * 2**30
+"""Most memory the frames of a ``.gif`` may hold: Pillow's GIF writer keeps every frame (one byte a pixel once
+quantised) until it writes the file; an ``.mp4`` is encoded frame by frame and holds none."""
+
+
+def check_path_views(option: str, n: int, width: int, height: int, video: str | os.PathLike[str] | None) -> None:
+    """The one check of a path's views, before any is rendered: ``1 ≤ n ≤`` :data:`MAX_PATH_VIEWS`, and a ``.gif``
+    ``video`` of ``n`` frames of ``width × height`` within :data:`MAX_GIF_BYTES`.
+
+    Args:
+        option: the option that asked for ``n`` views, for messages (``--path``, ``--num-renders``).
+        width, height: the frames' size (an upper bound when it is not known yet).
+
+    Raises:
+        InputError: too many views, or a GIF too large to hold.
+    """
+    if not 1 <= n <= MAX_PATH_VIEWS:
+        raise InputError(f"{option} {n}: give 1 to {MAX_PATH_VIEWS:,} views along the path")
+    need = n * width * height
+    if video is not None and Path(video).suffix.lower() == ".gif" and need > MAX_GIF_BYTES:
+        raise InputError(
+            f"--video {video}: {n} GIF frames of {width}x{height} would hold {need / 2**30:.1f} GiB in memory "
+            f"(at most {MAX_GIF_BYTES / 2**30:.0f} GiB): use an .mp4, fewer views or smaller frames"
+        )

@@ -35,7 +35,7 @@ import dataclasses
 import json
 import logging
 import os
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar, Literal, get_args
@@ -52,6 +52,7 @@ __all__ = [
     "Camera",
     "CameraSet",
     "Scale",
+    "cameras_for_photos",
     "load_cameras",
     "quat_to_rotmat_np",
     "rotmat_to_quat_np",
@@ -64,6 +65,10 @@ Scale = Literal["relative", "metric"]
 _SCALES: tuple[str, ...] = get_args(Scale)
 RIGID_TOL = 1e-4
 """Largest accepted deviation of ``RᵀR`` from ``I`` (max abs entry) and of ``det R`` from 1."""
+MAX_TRANSLATION = 1e8
+"""Largest accepted camera position (each coordinate of ``cam_to_world[:3, 3]``): geo-referenced frames (UTM, Earth-
+centred metres, a few 10⁶) fit, and the pipeline's products of positions (10¹⁶) stay far from overflow; 1e160
+made the pose stages' linear algebra fail."""
 _STRUCTURAL_TOL = 1e-9
 """Tolerance on the entries of ``K`` and ``cam_to_world`` that must be exactly 0 or 1."""
 _GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -90,6 +95,11 @@ def _pose_problem(T: np.ndarray) -> str | None:
         return "cam_to_world holds NaN or Inf"
     if np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() > _STRUCTURAL_TOL:
         return f"cam_to_world bottom row must be [0, 0, 0, 1], got {T[3].tolist()}"
+    if np.abs(T[:3, 3]).max() > MAX_TRANSLATION:
+        return (
+            f"cam_to_world translation {T[:3, 3].tolist()} is out of range: each coordinate at most "
+            f"{MAX_TRANSLATION:g} in magnitude"
+        )
     R = T[:3, :3]
     det = float(np.linalg.det(R))
     if det < 0:
@@ -120,7 +130,8 @@ class Camera:
     raises :class:`~macsplat_cli.errors.CameraFileError` if the camera is invalid:
     non-positive size, a ``K`` that is not an upper-triangular pinhole matrix with
     positive focal lengths, or a ``cam_to_world`` that is not rigid (rotation
-    orthonormal with det +1 within :data:`RIGID_TOL`). Entries that must be exactly
+    orthonormal with det +1 within :data:`RIGID_TOL`) or whose position exceeds
+    :data:`MAX_TRANSLATION`. Entries that must be exactly
     0 or 1 are snapped when within 1e-9. Equality compares all fields exactly.
     """
 
@@ -431,3 +442,46 @@ def save_cameras(path: str | os.PathLike[str], camera_set: CameraSet) -> None:
         OutputPathError: ``path`` cannot be written.
     """
     _write_text(path, json.dumps(camera_set.to_dict(), indent=2) + "\n")
+
+
+# ------------------------------------------------------------------------------------ cameras of photos
+def cameras_for_photos(cams: CameraSet, photos: Sequence[Path], where: str | os.PathLike[str]) -> list[Camera]:
+    """The camera of each photo (``--poses``, ``--intrinsics``): the one named after it, by file name or stem
+    (``a.jpg`` or ``a``), each camera to one photo (the same file given twice shares it). Only when no camera is
+    named after any photo, and there are as many cameras as photos, are they taken in order, and the log says so.
+
+    Args:
+        where: the camera file, for messages.
+
+    Raises:
+        CameraFileError: some photos have a camera by name and others none; a photo has two (``a`` and ``a.jpg``);
+            two photos claim one camera; or no name matches and the counts differ. The message names them.
+    """
+    by_name = {c.name: c for c in cams}
+    found = [[by_name[n] for n in dict.fromkeys((p.name, p.stem)) if n in by_name] for p in photos]
+    if not any(found):
+        if len(cams) != len(photos):
+            raise CameraFileError(
+                f"{where}: no camera is named after a photo, and {len(cams)} cameras for {len(photos)} photos: "
+                "give one camera per photo, named after it (file name or stem), or in the photos' order"
+            )
+        logger.info("%s: no camera is named after a photo: the %d cameras are taken in the photos' order (%s)",
+                    where, len(cams), ", ".join(f"{p.name} → {c.name}" for p, c in zip(photos, cams)))  # fmt: skip
+        return list(cams)
+    missing = [p.name for p, f in zip(photos, found) if not f]
+    if missing:
+        raise CameraFileError(
+            f"{where}: no camera named after {', '.join(repr(n) for n in missing)} (file name or stem), while other "
+            "photos have theirs by name: name every photo's camera after it"
+        )
+    for p, f in zip(photos, found):
+        if len(f) > 1:
+            raise CameraFileError(f"{where}: photo {p.name!r} has two cameras, {f[0].name!r} and {f[1].name!r}")
+    claims: dict[str, dict[str, str]] = {}  # camera name → {resolved photo path: photo name}
+    for p, f in zip(photos, found):
+        claims.setdefault(f[0].name, {})[os.path.realpath(p)] = str(p)
+    for name, claimants in claims.items():
+        if len(claimants) > 1:
+            a, b = list(claimants.values())[:2]
+            raise CameraFileError(f"{where}: photos {a!r} and {b!r} both claim camera {name!r}: one camera per photo")
+    return [f[0] for f in found]

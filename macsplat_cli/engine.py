@@ -25,7 +25,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
@@ -58,6 +58,7 @@ __all__ = [
     "build_pipeline",
     "load_models",
     "reconstruct",
+    "path_views",
     "render_path",
 ]
 
@@ -458,13 +459,14 @@ def _compact(rec: Reconstruction, settings: StageSettings, budget: int | None, n
     return dataclasses.replace(rec, compacted=gaussians, background=background)
 
 
-def render_path(rec: Reconstruction, n: int) -> list[np.ndarray]:
-    """``n`` novel views of the scene along the path between the two cameras (both included), at the working size.
+def path_views(rec: Reconstruction, n: int) -> Iterator[np.ndarray]:
+    """``n`` novel views of the scene along the path between the two cameras (both included), at the working size,
+    each yielded as soon as it is rendered (a caller that writes them holds one at a time).
 
     The cameras' rotations are slerped and their centres and intrinsics interpolated
     (:func:`~macsplat_cli.trajectory.interpolate_cameras`); each view is rendered on the scene's device.
 
-    Returns:
+    Yields:
         ``n`` images ``[H, W, 3] uint8`` (what ``--renders`` and ``--video`` write).
     """
     import torch
@@ -474,5 +476,16 @@ def render_path(rec: Reconstruction, n: int) -> list[np.ndarray]:
     from .trajectory import interpolate_cameras
 
     path = interpolate_cameras(list(rec.cameras(original_size=False)), n)
-    with torch.no_grad():
-        return [to_uint8(render_camera(rec.gaussians, cam).rgb) for cam in path]
+    for cam in path:
+        with torch.no_grad():
+            frame = to_uint8(render_camera(rec.gaussians, cam).rgb)
+        yield frame
+
+
+def render_path(rec: Reconstruction, n: int) -> list[np.ndarray]:
+    """The ``n`` views of :func:`path_views` in one list (all held in memory: for a few views).
+
+    Returns:
+        ``n`` images ``[H, W, 3] uint8``.
+    """
+    return list(path_views(rec, n))

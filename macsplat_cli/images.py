@@ -3,11 +3,12 @@ writing rendered images, depth maps and videos (atomically)."""
 
 from __future__ import annotations
 
+import contextlib
 import io
 import logging
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,8 +24,12 @@ __all__ = [
     "DEPTH_FORMATS",
     "IMAGE_FORMATS",
     "LoadedImage",
+    "MAX_VIDEO_FPS",
+    "MIN_VIDEO_FPS",
+    "check_fps",
     "load_image",
     "VIDEO_FORMATS",
+    "video_writer",
     "save_depth",
     "save_image",
     "to_uint8",
@@ -36,6 +41,15 @@ logger = logging.getLogger(__name__)
 IMAGE_FORMATS = (".png", ".jpg", ".jpeg", ".webp", ".tif", ".tiff", ".bmp")
 DEPTH_FORMATS = (".npy", ".png", ".tif", ".tiff")
 VIDEO_FORMATS = (".mp4", ".gif")
+MAX_VIDEO_FPS = 240.0
+"""Highest video frame rate: what players show, well within the MPEG-4 time base (its denominator is at most
+65535; OpenCV's writer refuses more with native log lines, and never returns for an infinite rate)."""
+MIN_VIDEO_FPS = 0.01
+"""Lowest video frame rate, a frame every 100 s: a GIF frame lasts at most 655 s (Pillow overflows beyond) and
+OpenCV's MPEG-4 writer does not open below 0.002."""
+_FFMPEG_QUIET = "-8"
+"""``OPENCV_FFMPEG_LOGLEVEL`` for the video writer: ffmpeg's ``AV_LOG_QUIET`` (macsplat reports a failure in one
+line)."""
 DEPTH_PNG_SCALE = 1000.0
 """16-bit depth PNGs store ``round(depth · 1000)``: millimetres for a metric scene."""
 
@@ -115,7 +129,7 @@ def _apply_orientation(img: np.ndarray, orientation: int) -> np.ndarray:
     return np.ascontiguousarray(out)
 
 
-def _header_size(data: bytes) -> tuple[int, int] | None:
+def _pillow_size(data: bytes) -> tuple[int, int] | None:
     """(width, height) from the image header (Pillow's lazy open decodes no pixels); None if Pillow cannot tell."""
     from PIL import Image
 
@@ -124,10 +138,55 @@ def _header_size(data: bytes) -> tuple[int, int] | None:
     try:
         with Image.open(io.BytesIO(data)) as im:
             return int(im.size[0]), int(im.size[1])
-    except Exception:  # noqa: BLE001 - not something Pillow reads: OpenCV decides (under its own 1 GP cap)
+    except Exception:  # noqa: BLE001 - not something Pillow reads: the headers below, else refused
         return None
     finally:
         Image.MAX_IMAGE_PIXELS = saved
+
+
+_HEADER_PROBE = 4096
+"""Bytes of a Radiance, PFM or PAM file searched for its size (their text headers are a few lines)."""
+
+
+def _radiance_size(head: bytes) -> tuple[int, int] | None:
+    """(width, height) of a Radiance RGBE file: the line after the blank line ending its header, such as
+    ``-Y 480 +X 640`` (Y first: rows of X; X first: the image is stored transposed)."""
+    if not (head.startswith(b"#?RADIANCE") or head.startswith(b"#?RGBE")):
+        return None
+    end = head.find(b"\n\n")
+    words = head[end + 2 :].split(b"\n", 1)[0].split() if end >= 0 else []
+    if len(words) != 4 or not (words[1].isdigit() and words[3].isdigit()):
+        return None
+    sides = {words[0][-1:].upper(): int(words[1]), words[2][-1:].upper(): int(words[3])}
+    return (sides[b"X"], sides[b"Y"]) if set(sides) == {b"X", b"Y"} else None
+
+
+def _pfm_size(head: bytes) -> tuple[int, int] | None:
+    """(width, height) of a portable float map: ``PF`` or ``Pf``, then the width and the height."""
+    words = head.split(maxsplit=3)
+    if len(words) < 3 or words[0] not in (b"PF", b"Pf") or not (words[1].isdigit() and words[2].isdigit()):
+        return None
+    return int(words[1]), int(words[2])
+
+
+def _pam_size(head: bytes) -> tuple[int, int] | None:
+    """(width, height) of a portable arbitrary map: ``P7``, then ``WIDTH w`` and ``HEIGHT h`` lines."""
+    if not head.startswith(b"P7"):
+        return None
+    lines = head.split(b"ENDHDR", 1)[0].split(b"\n")
+    fields = dict(line.split(None, 1) for line in lines if len(line.split()) == 2)
+    w, h = fields.get(b"WIDTH", b"").strip(), fields.get(b"HEIGHT", b"").strip()
+    return (int(w), int(h)) if w.isdigit() and h.isdigit() else None
+
+
+def _header_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from the image's header, without decoding it: Pillow's formats, and the ones OpenCV
+    decodes that Pillow does not read (Radiance HDR, PFM, PAM). None when no header tells it."""
+    size = _pillow_size(data)
+    if size is None:
+        head = data[:_HEADER_PROBE]
+        size = _radiance_size(head) or _pfm_size(head) or _pam_size(head)
+    return size
 
 
 _ALPHA_MODES = frozenset({"LA", "La", "PA", "RGBA", "RGBa"})
@@ -150,10 +209,14 @@ def _pil_alpha(data: bytes) -> np.ndarray | None:
 
 
 def _check_pixel_count(p: Path, data: bytes) -> None:
-    """Refuse an image whose header declares more pixels than ``MACSPLAT_MAX_MEGAPIXELS``."""
+    """Refuse an image whose header declares more pixels than ``MACSPLAT_MAX_MEGAPIXELS``, or whose header gives
+    no size (:func:`_header_size`): the cap holds for every format OpenCV decodes."""
     size = _header_size(data)
-    if size is None:
-        return
+    if size is None:  # OpenCV would decode it to whatever size it declares: refused before decoding
+        raise ImageReadError(
+            f"{p}: not an image macsplat reads (JPEG, PNG, WebP, TIFF, BMP, ...): its size cannot be read from its "
+            "header before decoding"
+        )
     w, h = size
     limit = max_image_pixels()
     if w * h > limit:
@@ -173,11 +236,12 @@ def load_image(path: str | os.PathLike[str]) -> LoadedImage:
 
     The image's size is read from its header before it is decoded: images above
     ``MACSPLAT_MAX_MEGAPIXELS`` megapixels (default 100) are refused, so a small file that
-    decodes to gigabytes (a "decompression bomb") fails fast.
+    decodes to gigabytes (a "decompression bomb") fails fast; so is a file whose header gives
+    no size (Pillow's formats, and Radiance HDR, PFM and PAM, which OpenCV decodes, are read).
 
     Raises:
         ImageReadError: the file is missing, not a regular file, unreadable, not a decodable
-            image, or larger than the megapixel cap.
+            image, larger than the megapixel cap, or of a size its header does not give.
         InputError: ``MACSPLAT_MAX_MEGAPIXELS`` is not a positive number.
     """
     p = Path(path)
@@ -301,39 +365,121 @@ def save_depth(path: str | os.PathLike[str], depth: torch.Tensor | np.ndarray) -
     return atomic_write_bytes(path, _encode(ext, d, path))
 
 
-def write_video(path: str | os.PathLike[str], frames: Sequence[np.ndarray], fps: float = 24.0) -> Path:
-    """Write ``[H, W, 3] uint8`` RGB frames as ``.mp4`` (MPEG-4 Part 2) or ``.gif``, atomically."""
+def check_fps(fps: float) -> None:
+    """Raise :class:`InputError` unless :data:`MIN_VIDEO_FPS` ``≤ fps ≤`` :data:`MAX_VIDEO_FPS` (a finite number)."""
+    if not (math.isfinite(fps) and MIN_VIDEO_FPS <= fps <= MAX_VIDEO_FPS):
+        raise InputError(f"--fps {fps:g}: give a frame rate from {MIN_VIDEO_FPS:g} to {MAX_VIDEO_FPS:g}")
+
+
+@contextlib.contextmanager
+def _native_log_silenced() -> Iterator[None]:
+    """OpenCV's and its ffmpeg's own log lines off while the body runs (a failure is reported as one typed error).
+    ffmpeg reads its level once, when OpenCV first loads it: the variable is set (unless the user set it) first."""
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", _FFMPEG_QUIET)
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    try:
+        yield
+    finally:
+        cv2.utils.logging.setLogLevel(level)
+
+
+class _Mp4Frames:
+    """MPEG-4 Part 2 frames sent to OpenCV's encoder as they come; the writer opens at the first frame's size."""
+
+    def __init__(self, tmp: Path, path: str | os.PathLike[str], fps: float) -> None:
+        self.tmp, self.path, self.fps = tmp, path, fps
+        self.writer: cv2.VideoWriter | None = None
+        self.count = 0
+
+    def add(self, frame: np.ndarray) -> None:
+        h, w = frame.shape[:2]
+        with _native_log_silenced():
+            if self.writer is None:
+                self.writer = cv2.VideoWriter(str(self.tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(self.fps), (w, h))
+                if not self.writer.isOpened():
+                    raise OutputPathError(f"{self.path}: OpenCV could not open an MPEG-4 video writer for {w}x{h}")
+            self.writer.write(np.ascontiguousarray(frame[..., ::-1]))
+        self.count += 1
+
+    def release(self) -> None:
+        if self.writer is not None:
+            with _native_log_silenced():
+                self.writer.release()
+
+    def finish(self) -> None:
+        _check_video(self.tmp, self.path, self.count)
+
+
+class _GifFrames:
+    """GIF frames kept quantised to an adaptive 256-colour palette (one byte a pixel; what Pillow's GIF writer
+    would make of them) and written at the end: Pillow needs them all at once."""
+
+    def __init__(self, tmp: Path, fps: float) -> None:
+        self.tmp, self.fps = tmp, fps
+        self.frames: list = []
+
+    def add(self, frame: np.ndarray) -> None:
+        from PIL import Image
+
+        self.frames.append(Image.fromarray(frame).convert("P", palette=Image.Palette.ADAPTIVE))
+
+    def release(self) -> None:
+        pass
+
+    def finish(self) -> None:
+        first, *rest = self.frames
+        first.save(self.tmp, save_all=True, append_images=rest, duration=round(1000 / self.fps), loop=0)
+
+
+@contextlib.contextmanager
+def video_writer(path: str | os.PathLike[str], fps: float = 24.0) -> Iterator[Callable[[np.ndarray], None]]:
+    """A video written frame by frame: yields ``add(frame)`` for ``[H, W, 3] uint8`` RGB frames of one size.
+
+    The frames go into a temporary file beside ``path`` (:func:`~macsplat_cli._atomic.atomic_path`), moved onto
+    ``path`` when the block ends without an error; nothing is left otherwise. An ``.mp4`` (MPEG-4 Part 2) is
+    encoded as the frames come and holds none of them; a ``.gif`` keeps them, quantised (one byte a pixel),
+    until the end (:data:`~macsplat_cli._limits.MAX_GIF_BYTES` bounds them).
+
+    Raises:
+        InputError: an unsupported format, a frame rate outside [:data:`MIN_VIDEO_FPS`, :data:`MAX_VIDEO_FPS`], or
+            no frame.
+        OutputPathError: the video cannot be written, or came out unreadable.
+    """
     ext = _suffix(path, VIDEO_FORMATS, "video")
+    check_fps(fps)
+    with atomic_path(path) as tmp:
+        sink = _Mp4Frames(tmp, path, fps) if ext == ".mp4" else _GifFrames(tmp, fps)
+        try:
+            yield sink.add
+        finally:
+            sink.release()
+        if not (sink.count if isinstance(sink, _Mp4Frames) else sink.frames):
+            raise InputError(f"{path}: no frames to write")
+        sink.finish()
+
+
+def write_video(path: str | os.PathLike[str], frames: Sequence[np.ndarray], fps: float = 24.0) -> Path:
+    """Write ``[H, W, 3] uint8`` RGB frames as ``.mp4`` (MPEG-4 Part 2) or ``.gif``, atomically
+    (:func:`video_writer`, for frames that are all at hand)."""
+    _suffix(path, VIDEO_FORMATS, "video")
     if not frames:
         raise InputError(f"{path}: no frames to write")
-    with atomic_path(path) as tmp:
-        if ext == ".gif":
-            from PIL import Image
-
-            images = [Image.fromarray(f) for f in frames]
-            images[0].save(tmp, save_all=True, append_images=images[1:], duration=round(1000 / fps), loop=0)
-        else:
-            h, w = frames[0].shape[:2]
-            writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
-            if not writer.isOpened():
-                raise OutputPathError(f"{path}: OpenCV could not open an MPEG-4 video writer")
-            try:
-                for f in frames:
-                    writer.write(np.ascontiguousarray(f[..., ::-1]))
-            finally:
-                writer.release()
-            _check_video(tmp, path, len(frames))
+    with video_writer(path, fps) as add:
+        for f in frames:
+            add(f)
     return Path(path)
 
 
 def _check_video(tmp: Path, path: str | os.PathLike[str], n_frames: int) -> None:
     """OpenCV's video writer ignores write errors (a full disk gives a truncated file without its index): read the
     container back and require every frame. Raises OutputPathError otherwise."""
-    cap = cv2.VideoCapture(str(tmp))
-    try:
-        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) if cap.isOpened() else 0
-    finally:
-        cap.release()
+    with _native_log_silenced():
+        cap = cv2.VideoCapture(str(tmp))
+        try:
+            n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) if cap.isOpened() else 0
+        finally:
+            cap.release()
     if n != n_frames:
         raise OutputPathError(
             f"cannot write {path}: the video came out unreadable ({max(n, 0)} of {n_frames} frames; is the disk full?)"

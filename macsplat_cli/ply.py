@@ -223,11 +223,10 @@ def _read_fast(path: Path, size: int, head: bytes) -> _PackedColumns | None:
     all scalar float32, and a file size that matches the header exactly. Everything
     else goes through plyfile.
     """
-    end = head.find(b"end_header\n")
-    if end < 0:
+    header = _header_lines(head)
+    if header is None or b"\r" in head[: header[1]]:
         return None
-    header_len = end + len(b"end_header\n")
-    lines = head[:end].split(b"\n")
+    lines, header_len = header
     if lines[:2] != [b"ply", b"format binary_little_endian 1.0"]:
         return None
     count: int | None = None
@@ -285,6 +284,24 @@ _PLY_TYPE_BYTES = {
 }
 
 
+def _header_lines(head: bytes) -> tuple[list[bytes], int] | None:
+    """The header's lines before the ``end_header`` line, and the header's length in bytes; None without one.
+
+    The PLY grammar is line by line: ``end_header`` ends the header only as a line of its own (a ``comment``
+    line that mentions it is a comment), and the body starts after that line's ``\\n``. The lines keep a
+    ``\\r`` of CRLF files.
+    """
+    lines: list[bytes] = []
+    start = 0
+    while (nl := head.find(b"\n", start)) >= 0:
+        line = head[start:nl]
+        if line.strip() == b"end_header":
+            return lines, nl + 1
+        lines.append(line)
+        start = nl + 1
+    return (lines, len(head)) if head[start:].strip() == b"end_header" else None
+
+
 def _check_declared_sizes(path: Path, size: int, head: bytes) -> None:
     """Refuse a header whose element counts need more bytes than the file has, before anything is allocated.
 
@@ -296,17 +313,16 @@ def _check_declared_sizes(path: Path, size: int, head: bytes) -> None:
         PlyFormatError: the header declares more data than the file holds, or has no ``end_header``
             within its first 64 KiB.
     """
-    end = head.find(b"end_header")
-    if end < 0:
+    header = _header_lines(head)
+    if header is None:
         if size > len(head):
-            raise PlyFormatError(f"{path}: no 'end_header' within the first {_HEADER_PROBE_BYTES // 1024} KiB")
+            raise PlyFormatError(f"{path}: no 'end_header' line within the first {_HEADER_PROBE_BYTES // 1024} KiB")
         return  # plyfile reports the missing end_header
-    nl = head.find(b"\n", end)
-    header_len = nl + 1 if nl >= 0 else len(head)
+    lines, header_len = header
     fmt = ""
     elements: list[list] = []  # [name, count, bytes per binary record, values per record]
-    for raw in head[:end].decode("ascii", errors="replace").splitlines():
-        words = raw.split()
+    for raw in lines:
+        words = raw.decode("ascii", errors="replace").split()
         if not words or words[0] in ("comment", "obj_info"):
             continue
         if words[0] == "format" and len(words) >= 2:

@@ -14,7 +14,15 @@ import numpy as np
 import pytest
 
 from macsplat_cli.camera_formats import read_colmap_text, read_nerfstudio, write_colmap_text, write_nerfstudio
-from macsplat_cli.cameras import Camera, CameraSet, load_cameras, quat_to_rotmat_np, rotmat_to_quat_np, save_cameras
+from macsplat_cli.cameras import (
+    Camera,
+    CameraSet,
+    cameras_for_photos,
+    load_cameras,
+    quat_to_rotmat_np,
+    rotmat_to_quat_np,
+    save_cameras,
+)
 from macsplat_cli.errors import CameraFileError, OutputPathError
 
 from support.numerics import ROT_MAT, ROT_ROUND_TRIP, ROT_UNIT_Q, gamma, unit_roundoff
@@ -226,6 +234,64 @@ def test_invalid_pose_is_rejected(mutate: Callable[[np.ndarray], None], expected
     with pytest.raises(CameraFileError, match=expected) as err:
         Camera("bad", 10, 10, intrinsics(5, 5, 5, 5), T)
     assert "'bad'" in str(err.value)
+
+
+@pytest.mark.parametrize("scale", [1e160, -1e9, 1.0000001e8])
+def test_far_position_is_rejected(scale: float) -> None:
+    """Issue 37 K2: a finite position beyond MAX_TRANSLATION (1e160 made the pose stages' linear algebra fail)."""
+    T = np.eye(4)
+    T[:3, 3] = [0.3 * scale, scale, 0.1]
+    with pytest.raises(CameraFileError, match=r"'far': cam_to_world translation .* is out of range"):
+        Camera("far", 10, 10, intrinsics(5, 5, 5, 5), T)
+
+
+def test_geo_referenced_position_is_accepted() -> None:
+    """UTM and Earth-centred metres (a few 10⁶) are within the bound."""
+    T = np.eye(4)
+    T[:3, 3] = [4.5e5, 5.4e6, -6.4e6]
+    np.testing.assert_array_equal(Camera("utm", 10, 10, intrinsics(5, 5, 5, 5), T).cam_to_world, T)
+
+
+# ------------------------------------------------------------------------------------ cameras of photos (issue 37 K1)
+def _named(*names: str) -> CameraSet:
+    return CameraSet([Camera(n, 10, 10, intrinsics(5, 5, 5, 5), np.eye(4)) for n in names])
+
+
+def test_cameras_go_to_their_photos_by_file_name_or_stem() -> None:
+    cams = _named("b.jpg", "c", "a")
+    got = cameras_for_photos(cams, [Path("x/a.jpg"), Path("b.jpg"), Path("c.png")], "cams.json")
+    assert [c.name for c in got] == ["a", "b.jpg", "c"]
+
+
+def test_cameras_in_order_only_when_no_name_matches(caplog: pytest.LogCaptureFixture) -> None:
+    """No camera named after any photo: the photos' order, and the log says so; with other counts, an error."""
+    with caplog.at_level(logging.INFO, logger="macsplat_cli.cameras"):
+        got = cameras_for_photos(_named("c0", "c1"), [Path("a.png"), Path("b.png")], "cams.json")
+    assert [c.name for c in got] == ["c0", "c1"]
+    assert "taken in the photos' order (a.png → c0, b.png → c1)" in caplog.text
+    with pytest.raises(CameraFileError, match="no camera is named after a photo, and 3 cameras for 2 photos"):
+        cameras_for_photos(_named("c0", "c1", "c2"), [Path("a.png"), Path("b.png")], "cams.json")
+
+
+@pytest.mark.parametrize(
+    ("names", "photos", "expected"),
+    [
+        (("f0", "f1", "f2"), ("x.png", "f0.png", "f1.png"), r"no camera named after 'x\.png'"),  # the campaign's k2
+        (("a", "b"), ("one/a.png", "two/a.png"), r"photos 'one/a\.png' and 'two/a\.png' both claim camera 'a'"),
+        (("a", "a.png", "b"), ("a.png", "b.png"), r"photo 'a\.png' has two cameras, 'a\.png' and 'a'"),
+    ],
+    ids=["mixture", "one-camera-two-photos", "two-cameras-one-photo"],
+)
+def test_cameras_that_do_not_fit_the_photos_are_named(names: tuple, photos: tuple, expected: str) -> None:
+    with pytest.raises(CameraFileError, match=r"^cams\.json: " + expected):
+        cameras_for_photos(_named(*names), [Path(p) for p in photos], "cams.json")
+
+
+def test_the_same_photo_twice_shares_its_camera(tmp_path: Path) -> None:
+    """A photo given twice (the pipeline leaves the repeat out) is not two photos claiming one camera."""
+    photos = [tmp_path / "a.png", tmp_path / "." / "a.png", tmp_path / "b.png"]
+    got = cameras_for_photos(_named("a", "b"), photos, "cams.json")
+    assert [c.name for c in got] == ["a", "a", "b"]
 
 
 def test_scaled_rotation_message_reports_deviation() -> None:

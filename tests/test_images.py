@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from macsplat_cli.errors import InputError, OutputPathError
+from macsplat_cli.errors import ImageReadError, InputError, OutputPathError
 from macsplat_cli.images import load_image, save_depth, save_image, to_uint8, write_video
 
 
@@ -168,3 +168,79 @@ def test_sixteen_bit_grey_png_keeps_its_values(tmp_path: Path) -> None:
     assert img.bit_depth == 16 and img.alpha is None
     for c in range(3):
         np.testing.assert_array_equal(img.rgb[..., c], raw.astype(np.float32) / 65535.0)
+
+
+# ------------------------------------------------------------------------------ the megapixel cap (issue 37 I1)
+def _radiance_rle(width: int, height: int) -> bytes:
+    """A flat Radiance RGBE image, run-length encoded: a few bytes per row whatever its width."""
+
+    def runs(value: int, n: int) -> bytes:
+        out = bytearray()
+        while n > 0:
+            k = min(127, n)
+            out += bytes([128 + k, value])
+            n -= k
+        return bytes(out)
+
+    row = bytes([2, 2, width >> 8, width & 255]) + b"".join(runs(v, width) for v in (128, 100, 60, 129))
+    return b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y %d +X %d\n" % (height, width) + row * height
+
+
+def _float_images(width: int, height: int) -> dict[str, bytes]:
+    """The formats OpenCV decodes and Pillow cannot size: Radiance HDR, PFM, PAM."""
+    rgb = np.full((height, width, 3), 0.5, np.float32)
+    files = {".hdr": _radiance_rle(width, height)}
+    for ext, img in ((".pfm", rgb), (".pam", (rgb * 255).astype(np.uint8))):
+        ok, buf = cv2.imencode(ext, img)
+        assert ok
+        files[ext] = buf.tobytes()
+    return files
+
+
+@pytest.mark.parametrize("ext", [".hdr", ".pfm", ".pam"])
+def test_megapixel_cap_holds_for_formats_pillow_cannot_size(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, ext: str
+) -> None:
+    """A 1.1 MP photo OpenCV decodes but Pillow cannot size is refused under a 1 MP cap, before decoding, as a
+    PNG of that size is; under the cap it loads at its size."""
+    path = tmp_path / f"big{ext}"
+    path.write_bytes(_float_images(1100, 1000)[ext])
+    decoded: list[object] = []
+    monkeypatch.setattr(cv2, "imdecode", lambda *a: decoded.append(a))
+    monkeypatch.setenv("MACSPLAT_MAX_MEGAPIXELS", "1")
+    with pytest.raises(ImageReadError, match=rf"big\{ext}: 1100x1000 is 1\.1 megapixels, above the limit of 1 "):
+        load_image(path)
+    assert decoded == []
+    monkeypatch.undo()
+    small = tmp_path / f"small{ext}"
+    small.write_bytes(_float_images(40, 30)[ext])
+    img = load_image(small)
+    assert (img.width, img.height) == (40, 30)
+
+
+def test_image_whose_size_no_header_gives_is_refused_before_decoding(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Bytes with no size that Pillow or the Radiance/PFM/PAM headers give are not handed to OpenCV."""
+    path = tmp_path / "odd.hdr"
+    path.write_bytes(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y many +X 10\n" + bytes(64))
+    decoded: list[object] = []
+    monkeypatch.setattr(cv2, "imdecode", lambda *a: decoded.append(a))
+    with pytest.raises(ImageReadError, match=r"odd\.hdr: .*its size cannot be read from its header"):
+        load_image(path)
+    assert decoded == []
+
+
+@pytest.mark.parametrize("ext", [".mp4", ".gif"])
+def test_video_frame_rates_at_both_ends_of_the_range_are_written(tmp_path: Path, ext: str) -> None:
+    """MIN_VIDEO_FPS and MAX_VIDEO_FPS give readable videos in both formats; just outside, InputError and no file
+    (below, Pillow's GIF frame duration overflowed and OpenCV's MPEG-4 writer did not open)."""
+    from macsplat_cli.images import MAX_VIDEO_FPS, MIN_VIDEO_FPS
+
+    frames = [np.full((16, 24, 3), 40 * i, np.uint8) for i in range(3)]
+    for fps in (MIN_VIDEO_FPS, MAX_VIDEO_FPS):
+        write_video(tmp_path / f"v{fps:g}{ext}", frames, fps=fps)
+    for fps in (MIN_VIDEO_FPS / 2, MAX_VIDEO_FPS * 1.01, float("inf")):
+        with pytest.raises(InputError, match="--fps"):
+            write_video(tmp_path / f"bad{ext}", frames, fps=fps)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(f"v{f:g}{ext}" for f in (MIN_VIDEO_FPS, MAX_VIDEO_FPS))

@@ -432,3 +432,30 @@ def test_written_file_has_normal_permissions(tmp_path: Path) -> None:
     umask = os.umask(0)
     os.umask(umask)
     assert path.stat().st_mode & 0o777 == 0o666 & ~umask
+
+
+@pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian"])
+def test_end_header_inside_a_comment_does_not_end_the_header(tmp_path: Path, fmt: str) -> None:
+    """Issue 37 P1: a ``comment end_header`` line before the element line is a comment; the element's claimed
+    count (2³¹ rows) is checked against the body's size before anything is allocated."""
+    names = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2"]
+    names += ["rot_0", "rot_1", "rot_2", "rot_3"]
+    header = f"ply\nformat {fmt} 1.0\ncomment end_header\nelement vertex {2**31}\n"
+    header += "".join(f"property float {n}\n" for n in names) + "end_header\n"
+    path = tmp_path / "bomb.ply"
+    path.write_bytes(header.encode() + b"0 " * 17 + b"\n")
+    with pytest.raises(PlyFormatError, match=r"declares 2147483648 'vertex' elements") as err:
+        read_ply(path)
+    _assert_one_line_naming(err, path)
+
+
+def test_comment_mentioning_end_header_is_read_as_a_comment(tmp_path: Path) -> None:
+    """A file whose comment says ``end_header`` reads like the same file without the comment (fast path and
+    plyfile)."""
+    path = tmp_path / "scene.ply"
+    g = random_gaussians(5, 1)
+    write_ply(path, g)
+    data = path.read_bytes()
+    commented = tmp_path / "commented.ply"
+    commented.write_bytes(data.replace(b"\nelement", b"\ncomment end_header here\nelement", 1))
+    assert_bits_equal(read_ply(commented), read_ply(path))

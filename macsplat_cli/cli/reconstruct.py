@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
+from .._limits import MAX_PATH_VIEWS
 from ..presets import BACKENDS, QUALITIES
 from ._app import app
 from ._common import (
@@ -47,7 +48,12 @@ CamerasOpt = Annotated[
 RendersOpt = Annotated[
     Path | None, typer.Option("--renders", help="Folder for novel views along the path between the cameras.")
 ]
-NumRendersOpt = Annotated[int, typer.Option("--num-renders", min=2, help="Number of novel views.")]
+NumRendersOpt = Annotated[
+    int,
+    typer.Option(
+        "--num-renders", min=2, max=MAX_PATH_VIEWS, help=f"Number of novel views (at most {MAX_PATH_VIEWS:,})."
+    ),
+]
 VideoOpt = Annotated[Path | None, typer.Option("--video", help="Also write the novel views as .mp4 or .gif.")]
 ReportOpt = Annotated[Path | None, typer.Option("--report", help="Write the run report (JSON) here.")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print the report as JSON on stdout.")]
@@ -298,14 +304,20 @@ def _check_outputs(
     video: Path | None,
     report: Path | None,
     inputs: Sequence[tuple[str, Path | None]] = (),
+    long_side: int = 512,
 ) -> None:
-    """Every output writable, none an input or another output: checked before the first stage."""
+    """Every output writable, none an input or another output, the novel views within
+    :func:`~macsplat_cli._limits.check_path_views` (frames at most ``long_side`` a side): checked before the first
+    stage."""
     from .._atomic import check_writable
+    from .._limits import check_path_views
     from ..errors import InputError
     from ..images import VIDEO_FORMATS
 
     if output.suffix.lower() != ".ply":
         raise InputError(f"{output}: the scene is written as a .ply file")
+    if renders is not None or video is not None:
+        check_path_views("--num-renders", num_renders, long_side, long_side, video)
     views = _render_names(renders, num_renders)
     outputs = [("-o", output), ("--cameras", cameras), ("--video", video), ("--report", report)]
     # first: an output that is an input (also through a link) is named as such, not as "a link"
@@ -320,6 +332,14 @@ def _check_outputs(
             raise InputError(f"{renders}: exists and is not a folder")
         for p in views:  # an existing folder must be writable too, and hold no folder where a view goes
             check_writable(p)
+
+
+def _frame_side(config: EngineConfig) -> int:
+    """The novel views' longest possible side: the working size's long side, which the rounding of each side to a
+    multiple of 16 (:func:`~macsplat_cli.pipeline.views.working_size`) may raise by less than 16."""
+    from ..presets import working_size
+
+    return (config.size or working_size(config.quality)) + 16
 
 
 def _render_names(renders: Path | None, num_renders: int) -> list[Path]:
@@ -344,7 +364,7 @@ def _reconstruct(
               ("--poses", config.pipeline.multiview.poses),
               ("--weights", n.weights), ("--gaussian-head", n.gaussian_head), ("--dino", n.dino),
               ("--fusion", n.fusion), ("--lpips-weights", config.refine.lpips_weights)]  # fmt: skip
-    _check_outputs(output, cameras, renders, num_renders, video, report, inputs)
+    _check_outputs(output, cameras, renders, num_renders, video, report, inputs, _frame_side(config))
     from ._profile import StageProfile
 
     profile = StageProfile(started=profile_from) if profile_from is not None else None
@@ -378,11 +398,14 @@ def _write_outputs(
     result: Reconstruction, output: Path, cameras: Path, renders: Path | None, num_renders: int, video: Path | None,
     progress: StageProgress,
 ) -> tuple[dict[str, Path], int]:  # fmt: skip
-    """The files: the scene, the cameras, and the novel views (:func:`~macsplat_cli.engine.render_path`) as images
-    and a video. Returns role → path of each file written, and the Gaussians the PLY holds."""
+    """The files: the scene, the cameras, and the novel views (:func:`~macsplat_cli.engine.path_views`) as images
+    and a video, each view written as it is rendered. Returns role → path of each file written, and the Gaussians
+    the PLY holds."""
+    import contextlib
+
     from ..cameras import save_cameras
-    from ..engine import render_path
-    from ..images import save_image, write_video
+    from ..engine import path_views
+    from ..images import save_image, video_writer
     from ..ply import write_ply
 
     written: dict[str, Path] = {}
@@ -394,14 +417,19 @@ def _write_outputs(
     progress.event("write", "end")
     if renders is not None or video is not None:
         progress.event("renders", "start")
-        frames = render_path(result, num_renders)
+        names = _render_names(renders, num_renders)
         if renders is not None:
             renders.mkdir(parents=True, exist_ok=True)
-            for name, f in zip(_render_names(renders, len(frames)), frames):
-                save_image(name, f)
+        with contextlib.ExitStack() as stack:
+            add_frame = stack.enter_context(video_writer(video)) if video is not None else None
+            for k, frame in enumerate(path_views(result, num_renders)):
+                if renders is not None:
+                    save_image(names[k], frame)
+                if add_frame is not None:
+                    add_frame(frame)
+        if renders is not None:
             written["renders"] = renders
         if video is not None:
-            write_video(video, frames)
             written["video"] = video
         progress.event("renders", "end")
     return written, n_written

@@ -11,15 +11,11 @@ from typing import Annotated
 
 import typer
 
+from .._limits import MAX_PATH_VIEWS
 from ._app import app
 from ._common import QuietOpt, VerboseOpt, check_no_clobber, command_context, err_console, escape
 
 logger = logging.getLogger("macsplat_cli.cli.render")
-
-MAX_PATH_FRAMES = 10_000
-"""Most views of ``--path`` (7 minutes at 24 fps)."""
-MAX_VIDEO_BYTES = 4 * 2**30
-"""Most memory the frames of a ``--video`` may hold before encoding (8-bit RGB)."""
 
 _NAMED_COLOURS = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0), "gray": (0.5, 0.5, 0.5), "grey": (0.5, 0.5, 0.5)}
 
@@ -77,9 +73,9 @@ def render_command(
         typer.Option(
             "--path",
             min=1,
-            max=MAX_PATH_FRAMES,
+            max=MAX_PATH_VIEWS,
             metavar="N",
-            help=f"Render N views (at most {MAX_PATH_FRAMES:,}) along the path through all cameras of the file.",
+            help=f"Render N views (at most {MAX_PATH_VIEWS:,}) along the path through all cameras of the file.",
         ),
     ] = None,
     width: Annotated[int | None, typer.Option("--width", min=1, help="Output width (K is rescaled).")] = None,
@@ -94,7 +90,7 @@ def render_command(
     video: Annotated[
         Path | None, typer.Option("--video", help="With --path: also write the frames as .mp4 or .gif.")
     ] = None,
-    fps: Annotated[float, typer.Option("--fps", min=1.0, help="Video frame rate.")] = 24.0,
+    fps: Annotated[float, typer.Option("--fps", help="Video frame rate (0.01 to 240).")] = 24.0,
     backend: Annotated[BackendChoice, typer.Option("--backend", help="Rasterizer.")] = BackendChoice.auto,
     device: Annotated[DeviceChoice, typer.Option("--device", help="Where to render.")] = DeviceChoice.cpu,
     verbose: VerboseOpt = False,
@@ -156,15 +152,14 @@ def _render(
     from ..ply import read_ply
 
     # ---- validate everything before any work, so bad input fails fast and writes nothing
-    frame_files = _check_outputs(scene, camera_file, output, path, depth, video)
+    frame_files = _check_outputs(scene, camera_file, output, path, depth, video, fps)
     _check_device(backend, device)
 
     t0 = time.perf_counter()
+    targets, n_cams = _targets(camera_file, view, path, width, height, video)
     gaussians = read_ply(scene).to(device)
-    targets, n_cams = _targets(camera_file, view, path, width, height)
     t_load = time.perf_counter() - t0
     logger.debug("loaded %d Gaussians (SH degree %d) and %d camera(s)", len(gaussians), gaussians.sh_degree, n_cams)
-    _check_video_memory(targets, video)
     t0 = time.perf_counter()
     written, n_visible = _render_targets(
         gaussians, targets, output, frame_files, depth, video, fps, background, backend, single=path is None,
@@ -177,12 +172,14 @@ def _render(
 
 
 def _check_outputs(
-    scene: Path, camera_file: Path, output: Path | None, path: int | None, depth: Path | None, video: Path | None
-) -> list[Path]:
-    """Every file the command will write checked (formats, clobbering, writability); returns the ``--path`` frames."""
+    scene: Path, camera_file: Path, output: Path | None, path: int | None, depth: Path | None, video: Path | None,
+    fps: float,
+) -> list[Path]:  # fmt: skip
+    """Every file the command will write checked (formats, clobbering, writability, the video's frame rate); returns
+    the ``--path`` frames."""
     from .._atomic import check_writable
     from ..errors import InputError
-    from ..images import DEPTH_FORMATS, VIDEO_FORMATS, check_image_path
+    from ..images import DEPTH_FORMATS, VIDEO_FORMATS, check_fps, check_image_path
 
     writes: list[Path] = []  # every file written, checked by check_writable after the clobber check
     if path is None:
@@ -207,6 +204,7 @@ def _check_outputs(
         if video is not None:
             if video.suffix.lower() not in VIDEO_FORMATS:
                 raise InputError(f"{video}: unsupported video format; use one of {', '.join(VIDEO_FORMATS)}")
+            check_fps(fps)  # OpenCV's writer never returns for an infinite rate
             writes.append(video)
     frame_files = [] if path is None or output is None else [output / f"frame_{i:04d}.png" for i in range(path)]
     single = [("-o", output), ("--depth", depth)] if path is None else [("--video", video)]
@@ -228,9 +226,11 @@ def _check_device(backend: str, device: str) -> None:
 
 
 def _targets(
-    camera_file: Path, view: int, path: int | None, width: int | None, height: int | None
+    camera_file: Path, view: int, path: int | None, width: int | None, height: int | None, video: Path | None
 ) -> tuple[list, int]:  # fmt: skip
-    """The cameras to render (one view of the file, or ``path`` views along it) and the number in the file."""
+    """The cameras to render (one view of the file, or ``path`` views along it, checked by
+    :func:`~macsplat_cli._limits.check_path_views`) and the number in the file."""
+    from .._limits import check_path_views
     from ..cameras import load_cameras
     from ..errors import InputError
     from ..trajectory import interpolate_cameras
@@ -242,22 +242,8 @@ def _targets(
         return [_resized(cams[view], width, height)], len(cams)
     w = width or (round(height * cams[0].width / cams[0].height) if height else None)
     h = height or (round(width * cams[0].height / cams[0].width) if width else None)
+    check_path_views("--path", path, w or cams[0].width, h or cams[0].height, video)
     return interpolate_cameras(list(cams), path, width=w, height=h), len(cams)
-
-
-def _check_video_memory(targets: list, video: Path | None) -> None:
-    """The video's frames are held in memory until it is encoded: at most :data:`MAX_VIDEO_BYTES`."""
-    from ..errors import InputError
-
-    if video is None:
-        return
-    need = sum(c.width * c.height * 3 for c in targets)
-    if need > MAX_VIDEO_BYTES:
-        raise InputError(
-            f"--video: {len(targets)} frames of {targets[0].width}x{targets[0].height} would hold "
-            f"{need / 2**30:.1f} GiB in memory (at most {MAX_VIDEO_BYTES / 2**30:.0f} GiB): "
-            "use fewer --path views or a smaller --width/--height"
-        )
 
 
 def _render_targets(
@@ -265,21 +251,27 @@ def _render_targets(
     video: Path | None, fps: float, background: tuple[float, float, float], backend: str, *, single: bool,
     quiet: bool,
 ) -> tuple[list[Path], list[int]]:  # fmt: skip
-    """Render every target and write it as it is rendered (each file atomically); only a video keeps the frames,
-    as 8-bit images. Returns the files written and the Gaussians visible in each view."""
+    """Render every target and write it as it is rendered (each file atomically; the video's frames into its
+    temporary file, :func:`~macsplat_cli.images.video_writer`). Returns the files written and the Gaussians visible
+    in each view."""
+    import contextlib
+
     import torch
 
     from ..errors import OutputPathError
-    from ..images import save_depth, save_image, to_uint8, write_video
+    from ..images import save_depth, save_image, to_uint8, video_writer
     from ..render import render_camera
 
-    written, images, n_visible = [], [], []
+    written, n_visible = [], []
     if not single and output is not None:
         try:
             output.mkdir(parents=True, exist_ok=True)
         except OSError as e:
             raise OutputPathError(f"cannot create folder {output}: {e.strerror or e}") from None
-    with _progress(len(targets), quiet or len(targets) == 1) as advance, torch.no_grad():
+    with contextlib.ExitStack() as stack:
+        add_frame = stack.enter_context(video_writer(video, fps)) if video is not None else None
+        stack.enter_context(torch.no_grad())
+        advance = stack.enter_context(_progress(len(targets), quiet or len(targets) == 1))
         for k, cam in enumerate(targets):
             out = render_camera(gaussians, cam, background=background, backend=backend)
             n_visible.append(int(out.visible.numel()))
@@ -291,11 +283,11 @@ def _render_targets(
                 img = to_uint8(out.rgb)
                 if output is not None:
                     written.append(save_image(frame_files[k], img))
-                if video is not None:
-                    images.append(img)
+                if add_frame is not None:
+                    add_frame(img)
             advance()
     if video is not None:
-        written.append(write_video(video, images, fps=fps))
+        written.append(video)
     return written, n_visible
 
 

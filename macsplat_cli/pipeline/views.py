@@ -7,8 +7,9 @@ exact with pixel centres at +0.5.
 
 Intrinsics, in order of precedence:
 
-1. ``--intrinsics cams.json`` (the cameras schema): one camera for both photos, or one
-   per photo (matched by name, else by order), rescaled to the working size. A camera
+1. ``--intrinsics cams.json`` (the cameras schema): one camera for every photo, or one
+   per photo (matched by name; in order only when no camera is named after a photo:
+   :func:`~macsplat_cli.cameras.cameras_for_photos`), rescaled to the working size. A camera
    whose aspect ratio differs from its photo's by more than 1 % does not fit.
 2. ``--focal PX``: the focal length in pixels of the original photos.
 3. The EXIF 35 mm-equivalent focal length.
@@ -27,7 +28,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..cameras import Camera, load_cameras
+from ..cameras import Camera, cameras_for_photos, load_cameras
 from ..errors import CameraFileError, ImageReadError, InputError
 from ..images import LoadedImage, load_image
 from .types import IntrinsicsSource, View
@@ -85,22 +86,11 @@ def _K(f: float, width: int, height: int) -> np.ndarray:
 
 
 def _file_cameras(path: Path, images: Sequence[LoadedImage]) -> list[Camera]:
+    """One camera for every photo, or each photo's own (:func:`~macsplat_cli.cameras.cameras_for_photos`)."""
     cams = load_cameras(path)
     if len(cams) == 1:
         return [cams[0]] * len(images)
-    by_name = {c.name: c for c in cams}
-    out = []
-    for i, img in enumerate(images):
-        cam = by_name.get(img.path.name) or by_name.get(img.path.stem)
-        if cam is None:
-            if len(cams) != len(images):
-                raise CameraFileError(
-                    f"{path}: {len(cams)} cameras for {len(images)} photos; give one camera, one per photo, "
-                    "or name them after the photos"
-                )
-            cam = cams[i]
-        out.append(cam)
-    return out
+    return cameras_for_photos(cams, [img.path for img in images], path)
 
 
 def _fit(cam: Camera, img: LoadedImage, path: Path) -> None:

@@ -158,16 +158,16 @@ def test_render_refuses_to_overwrite_an_input(
     ("extra", "needle"),
     [
         (["--path", "10001", "-o", "frames"], "less than or equal to 10000"),  # more views than any path needs
-        (["--path", "2000", "--width", "8000", "--height", "6000", "--video", "v.mp4"], "GiB in memory"),
+        (["--path", "2000", "--width", "8000", "--height", "6000", "--video", "v.gif"], "GiB in memory"),
     ],
 )
 def test_render_path_is_bounded_before_any_work(
     capsys: pytest.CaptureFixture[str], tmp_path: Path, scene_files: tuple[Path, Path], extra: list[str], needle: str
 ) -> None:
-    """``render --path N``: N is capped, and a video whose frames would not fit in memory is refused before the
-    first frame (exit 2, nothing written)."""
+    """``render --path N``: N is capped, and a GIF whose frames would not fit in memory (Pillow holds them all) is
+    refused before the first frame (exit 2, nothing written)."""
     args = ["render", str(scene_files[0]), "--pose", str(scene_files[1]), "-q"]
-    args += [str(tmp_path / a) if a in ("frames", "v.mp4") else a for a in extra]
+    args += [str(tmp_path / a) if a in ("frames", "v.gif") else a for a in extra]
     before = _snapshot(tmp_path)
     got = main(args)
     line = _one_error_line(capsys.readouterr().err)
@@ -409,3 +409,173 @@ def test_a_killed_write_is_cleaned_by_the_next_one(tmp_path: Path) -> None:
     os.utime(left[0], (t, t))
     atomic_write_bytes(tmp_path / "[copy] x.ply", b"whole")
     assert [p.name for p in tmp_path.iterdir()] == ["[copy] x.ply"]
+
+
+# ------------------------------------------------------------------------------ issue 37: render, videos, --poses
+class _FakeVideoWriter:
+    """Stands in for ``cv2.VideoWriter``: records each frame written into ``events``; writes nothing."""
+
+    events: list[str] = []
+    fps: list[float] = []
+
+    def __init__(self, path: str, fourcc: int, fps: float, size: tuple[int, int]) -> None:
+        self.fps.append(fps)
+
+    def isOpened(self) -> bool:  # noqa: N802 - OpenCV's name
+        return True
+
+    def write(self, frame: object) -> None:
+        self.events.append("write")
+
+    def release(self) -> None:
+        pass
+
+
+@pytest.fixture
+def fake_video(monkeypatch: pytest.MonkeyPatch) -> list[str]:
+    """``cv2.VideoWriter`` faked (its read-back check off) and ``render_camera`` counted: the events in order."""
+    import cv2
+
+    import macsplat_cli.images as images
+    import macsplat_cli.render as render
+
+    events: list[str] = []
+    monkeypatch.setattr(_FakeVideoWriter, "events", events)
+    monkeypatch.setattr(_FakeVideoWriter, "fps", [])
+    monkeypatch.setattr(cv2, "VideoWriter", _FakeVideoWriter)
+    monkeypatch.setattr(images, "_check_video", lambda *a: None)
+    real = render.render_camera
+
+    def counted(*a: object, **k: object) -> object:
+        events.append("render")
+        return real(*a, **k)
+
+    monkeypatch.setattr(render, "render_camera", counted)
+    return events
+
+
+@pytest.mark.parametrize("fps", ["inf", "nan", "0", "-1", "1e-6", "0.009", "241", "1000000", "1e308"])
+def test_render_fps_outside_its_range_is_refused_before_any_work(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, scene_files: tuple[Path, Path], fake_video: list[str],
+    fps: str,
+) -> None:  # fmt: skip
+    """Issue 37 R1: ``--fps inf`` made OpenCV's writer hang for good (SIGTERM ignored); every rate outside
+    [0.01, 240] (1e-6 overflowed Pillow's GIF frame duration) is refused with exit 2 before a view is rendered or a
+    writer opened, and nothing is written."""
+    before = _snapshot(tmp_path)
+    args = ["render", str(scene_files[0]), "--cameras", str(scene_files[1]), "--path", "3", "--fps", fps]
+    got = main([*args, "--video", str(tmp_path / "v.mp4"), "-q"])
+    line = _one_error_line(capsys.readouterr().err)
+    assert got == 2 and "--fps" in line, line
+    assert fake_video == [] and _FakeVideoWriter.fps == []
+    assert _snapshot(tmp_path) == before
+
+
+def test_render_video_frames_are_encoded_as_they_are_rendered(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, scene_files: tuple[Path, Path], fake_video: list[str]
+) -> None:
+    """Issue 37 N1: ``render --path N --video`` hands each view to the encoder before rendering the next (no list of
+    every frame); a fractional rate within [0.01, 240] is taken."""
+    args = ["render", str(scene_files[0]), "--cameras", str(scene_files[1]), "--path", "4", "--fps", "0.5"]
+    assert main([*args, "--video", str(tmp_path / "v.mp4"), "-q"]) == 0, capsys.readouterr().err
+    assert fake_video == ["render", "write"] * 4 and _FakeVideoWriter.fps == [0.5]
+
+
+def test_reconstruct_num_renders_is_capped_before_any_work(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path, pair: tuple[Path, Path]
+) -> None:
+    """Issue 37 N1: ``--num-renders`` has the cap of ``render --path`` (MAX_PATH_VIEWS), checked before the first
+    stage (it had none: 10⁸ views, every one kept in memory)."""
+    import macsplat_cli.engine as engine
+
+    def no_run(*a: object, **k: object) -> None:
+        raise AssertionError("the reconstruction ran")
+
+    monkeypatch.setattr(engine, "reconstruct", no_run)
+    args = ["reconstruct", *map(str, pair), "-o", str(tmp_path / "s.ply"), "--video", str(tmp_path / "v.mp4")]
+    got = main([*args, "--num-renders", "100000000", "-q"])
+    err = capsys.readouterr().err
+    assert got == 2 and "--num-renders" in err and "10000" in err, err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_reconstruct_writes_each_novel_view_as_it_is_rendered(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path, pair: tuple[Path, Path],
+    fake_video: list[str],
+) -> None:  # fmt: skip
+    """Issue 37 N1: ``reconstruct --renders --video`` writes each novel view (its file, its video frame) before
+    rendering the next, as ``render --path`` does (it rendered them all into memory first)."""
+    import macsplat_cli.images as images
+
+    real = images.save_image
+
+    def saved(*a: object, **k: object) -> object:
+        fake_video.append("save")
+        return real(*a, **k)
+
+    monkeypatch.setattr(images, "save_image", saved)
+    out = tmp_path / "out"
+    args = ["reconstruct", *map(str, pair), "-o", str(out / "s.ply"), "--size", "128", "--accept-low-confidence"]
+    got = main([*args, "--renders", str(out / "views"), "--video", str(out / "v.mp4"), "--num-renders", "3", "-q"])
+    assert got == 0, capsys.readouterr().err
+    assert fake_video[-9:] == ["render", "save", "write"] * 3
+    assert sorted(p.name for p in (out / "views").iterdir()) == [f"view_{i:03d}.png" for i in range(3)]
+
+
+_ENCODER_FAILS = """
+import numpy as np
+from macsplat_cli.errors import OutputPathError
+from macsplat_cli.images import write_video
+try:
+    write_video({path!r}, [np.zeros((16, 9000, 3), np.uint8)])
+except OutputPathError as e:
+    print(e)
+"""
+
+
+def test_video_encoder_failure_prints_no_native_log(tmp_path: Path) -> None:
+    """Issue 37 C1: a frame size MPEG-4 cannot encode is one typed error; OpenCV's and ffmpeg's own log lines
+    (``[mpeg4 @ 0x...]``, ``[ERROR:0@...] global cap_ffmpeg_impl.hpp``) stay off stderr (a fresh process: ffmpeg
+    reads its log level when first loaded)."""
+    code = _ENCODER_FAILS.format(path=str(tmp_path / "v.mp4"))
+    env = {k: v for k, v in os.environ.items() if not k.startswith("OPENCV_")}
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                          env={**env, "PYTHONPATH": str(REPO)})  # fmt: skip
+    assert "could not open an MPEG-4 video writer" in proc.stdout, (proc.stdout, proc.stderr)
+    assert proc.stderr.strip() == "", proc.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def _poses_file(path: Path, names: list[str], translation_scale: float = 1.0) -> Path:
+    """Two cameras named ``names`` (a 12° orbit at 128×96), positions times ``translation_scale``, written as JSON
+    (``Camera`` itself refuses positions out of range)."""
+    cams = syn.orbit_pair("room", 12.0, width=SIZE[0], height=SIZE[1], fov_deg=60.0)
+    doc = CameraSet(list(cams)).to_dict()
+    for d, n in zip(doc["cameras"], names):
+        d["name"] = n
+        for row in d["cam_to_world"][:3]:
+            row[3] *= translation_scale
+    path.write_text(json.dumps(doc))
+    return path
+
+
+@pytest.mark.parametrize(
+    ("names", "scale", "needle"),
+    [
+        (["IMG_001 [copy]", "other"], 1.0, "no camera named after '[bold]IMG_002.png'"),  # K1: a mixture
+        (["IMG_001 [copy]", "[bold]IMG_002"], 1e160, "translation"),  # K2: finite, far out of range
+    ],
+    ids=["K1-mixture", "K2-1e160"],
+)
+def test_reconstruct_poses_that_do_not_fit_the_photos(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, pair: tuple[Path, Path], names: list[str], scale: float,
+    needle: str,
+) -> None:  # fmt: skip
+    """Issue 37 K1: a camera file naming one photo's camera but not the other's is refused (it went by order: the
+    unnamed photo took whatever camera came second). K2: positions of 1e160 are refused (LinAlgError, exit 1)."""
+    poses = _poses_file(tmp_path / "poses.json", names, scale)
+    out = tmp_path / "out"
+    got = main(["reconstruct", *map(str, pair), "--poses", str(poses), "-o", str(out / "s.ply"), "--size", "128"])
+    line = _one_error_line(capsys.readouterr().err)
+    assert got == 2 and str(poses) in line and needle in line, line
+    assert not out.exists()

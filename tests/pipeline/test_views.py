@@ -150,6 +150,15 @@ def test_intrinsics_file_wrong_camera_count(tmp_path: Path, photos: list[Path]) 
         load_views(photos, ViewConfig(intrinsics=tmp_path / "cams.json"))
 
 
+def test_intrinsics_file_naming_one_photo_but_not_the_other(tmp_path: Path, photos: list[Path]) -> None:
+    """Issue 37 K1: a camera named after ``a.jpg`` and one named after no photo: not matched by order (``b.jpg``
+    took the stranger), refused naming the photo without a camera."""
+    cams = [_camera("a", 1000, 700, 900.0, 900.0, 500.0, 350.0), _camera("z", 1000, 700, 700.0, 700.0, 500.0, 350.0)]
+    save_cameras(tmp_path / "cams.json", CameraSet(cams))
+    with pytest.raises(CameraFileError, match=r"cams\.json: no camera named after 'b\.jpg'"):
+        load_views(photos, ViewConfig(intrinsics=tmp_path / "cams.json"))
+
+
 @pytest.mark.parametrize(
     ("cam_size", "hint"),
     [((800, 800), False), ((700, 1000), True), ((1000, 720), False)],  # 1000 × 720: aspect off by 2.9 %

@@ -14,8 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ...cameras import load_cameras
-from ...errors import CameraFileError
+from ...cameras import cameras_for_photos, load_cameras
 from ..pose import PoseResult
 from ..pose.geometry import fundamental_from_pose, sampson_distance
 from ..slots import DescribeStage, MatchStage
@@ -35,25 +34,14 @@ class KnownPoses:
 
 
 def load_known_poses(path: Path, views: Sequence[View]) -> KnownPoses:
-    """The cameras of ``path`` for ``views``: matched by the photo's file name or stem, else by order when the file
-    has exactly one camera per photo.
+    """The cameras of ``path`` for ``views``, matched to the photos by
+    :func:`~macsplat_cli.cameras.cameras_for_photos` (by name; in order only when no camera is named after a photo).
 
     Raises:
-        CameraFileError: the file is malformed, or does not give every photo a camera.
+        CameraFileError: the file is malformed, or does not give every photo a camera of its own.
     """
     cams = load_cameras(path)
-    by_name = {c.name: c for c in cams}
-    chosen = []
-    for k, v in enumerate(views):
-        cam = by_name.get(v.path.name) or by_name.get(v.name)
-        if cam is None:
-            if len(cams) != len(views):
-                raise CameraFileError(
-                    f"{path}: no camera named {v.path.name!r} or {v.name!r}, and {len(cams)} cameras for "
-                    f"{len(views)} photos: --poses needs one camera per photo (named after it, or in order)"
-                )
-            cam = cams[k]
-        chosen.append(cam)
+    chosen = cameras_for_photos(cams, [v.path for v in views], path)
     W2C = np.stack([np.linalg.inv(c.cam_to_world) for c in chosen])
     return KnownPoses(W2C[:, :3, :3], W2C[:, :3, 3], cams.scale)
 

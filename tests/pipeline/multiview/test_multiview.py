@@ -255,3 +255,25 @@ def test_cli_refuses_copies_of_one_photo(room: Orbit, tmp_path: Path) -> None:
     assert code == ReconstructionError.exit_code
     assert "the 3 photos are all the same photo" in one_error_line(err)
     assert not (tmp_path / "s.ply").exists()
+
+
+def test_given_poses_go_to_the_photos_they_are_named_after(tmp_path: Path) -> None:
+    """Issue 37 K1: cameras f0, f1, f2 for photos x.png, f0.png, f1.png were matched by order for x.png (f0's pose,
+    which f0.png had by name too); a file that names some photos' cameras must name every photo's."""
+    from types import SimpleNamespace
+
+    from macsplat_cli.errors import CameraFileError
+    from macsplat_cli.pipeline.multiview.known import load_known_poses
+
+    cams = syn.orbit_cameras(syn.make_scene("room", 1), [0.0, 5.0, 10.0], width=64, height=48)
+    save_cameras(tmp_path / "poses.json", CameraSet(list(cams)))
+    doc = json.loads((tmp_path / "poses.json").read_text())
+    for k, d in enumerate(doc["cameras"]):
+        d["name"] = f"f{k}"
+    (tmp_path / "poses.json").write_text(json.dumps(doc))
+    views = [SimpleNamespace(path=tmp_path / n, name=Path(n).stem) for n in ("x.png", "f0.png", "f1.png")]
+    with pytest.raises(CameraFileError, match=r"no camera named after 'x\.png'"):
+        load_known_poses(tmp_path / "poses.json", views)  # type: ignore[arg-type]
+    named = [SimpleNamespace(path=tmp_path / n, name=Path(n).stem) for n in ("f2.png", "f0.png", "f1.png")]
+    poses = load_known_poses(tmp_path / "poses.json", named)  # type: ignore[arg-type]
+    np.testing.assert_allclose(poses.R[0], cams[2].world_to_cam[:3, :3], rtol=0, atol=1e-12)
