@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from macsplat_cli.distortion import Distortion
 from macsplat_cli.camera_formats import read_colmap_text, read_nerfstudio, write_colmap_text, write_nerfstudio
 from macsplat_cli.cameras import Camera, CameraSet, load_cameras, quat_to_rotmat_np, rotmat_to_quat_np, save_cameras
 from macsplat_cli.errors import CameraFileError, OutputPathError
@@ -488,14 +489,17 @@ def test_colmap_reader_handles_other_models_and_comments(tmp_path: Path, caplog:
     np.testing.assert_array_equal(a.cam_to_world[:3, :3], np.diag([1.0, -1.0, -1.0]))
     np.testing.assert_array_equal(a.center, [-1, 2, 3])
     np.testing.assert_array_equal(c.center, [0, 0, -1])  # unnormalised q = (2, 0, 0, 0)
-    warnings = [r.getMessage() for r in caplog.records]
-    assert len(warnings) == 1 and "distortion" in warnings[0] and "SIMPLE_RADIAL" in warnings[0]
+    # the lens models' distortion is kept (it was dropped with a warning): SIMPLE_RADIAL's k is OpenCV's k1, an
+    # OPENCV camera with zero coefficients is a pinhole
+    assert a.distortion == Distortion("opencv", (0.01, 0.0, 0.0, 0.0, 0.0))
+    assert b.distortion is None and c.distortion is None
+    assert not caplog.records
 
 
 @pytest.mark.parametrize(
     ("cameras_txt", "images_txt", "expected"),
     [
-        ("1 OPENCV_FISHEYE 10 10 5 5 5 5 0 0 0 0\n", "1 1 0 0 0 0 0 0 1 a\n\n", "not supported"),
+        ("1 FOV 10 10 5 5 5 5 0.1\n", "1 1 0 0 0 0 0 0 1 a\n\n", "camera 1 has model FOV, which macsplat does not"),
         ("1 PINHOLE 10 10 5 5 5\n", "1 1 0 0 0 0 0 0 1 a\n\n", "needs 4 params"),
         ("1 PINHOLE 10 10 5 5 5 5\n", "1 1 0 0 0 0 0 0 2 a\n\n", "CAMERA_ID 2"),
         ("1 PINHOLE 10 10 5 5 5 5\n", "1 1 0 0 0 0 0 1 a\n\n", "expected IMAGE_ID"),
@@ -577,7 +581,9 @@ def test_nerfstudio_shared_intrinsics_and_distortion(tmp_path: Path, caplog: pyt
     assert (a.width, a.height) == (320, 240)
     np.testing.assert_array_equal(a.cam_to_world, pose(np.eye(3), np.array([0.0, 0.0, 5.0])))
     np.testing.assert_array_equal(b.cam_to_world, np.diag([1.0, -1.0, -1.0, 1.0]))
-    assert [r.getMessage() for r in caplog.records] == [f"{path}: frames[0]: lens distortion is ignored"]
+    assert a.distortion == Distortion("opencv", (0.05, 0.0, 0.0, 0.0, 0.0))  # the top level's k1 (was ignored)
+    assert b.distortion is None  # its own k1 = 0 wins
+    assert not caplog.records
 
 
 @pytest.mark.parametrize(
@@ -587,7 +593,7 @@ def test_nerfstudio_shared_intrinsics_and_distortion(tmp_path: Path, caplog: pyt
         (_set("frames.0.w", 10.5), "w must be an integer"),
         (_set("frames.0.transform_matrix", [[1, 0, 0, 0]]), r"frames\[0\]\.transform_matrix must be a 4x4"),
         (_delete("frames.0.file_path"), "file_path must be a string"),
-        (_set("camera_model", "OPENCV_FISHEYE"), "not a pinhole model"),
+        (_set("camera_model", "EQUIRECTANGULAR"), "camera_model .EQUIRECTANGULAR. is not read"),
         (_set("frames", []), "non-empty"),
         (_set("frames.0.transform_matrix", np.diag([1.0, 1.0, 1.0, 2.0]).tolist()), "bottom row"),
     ],

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ...cameras import load_cameras
+from ...camera_formats import load_camera_input
 from ...errors import CameraFileError
 from ..pose import PoseResult
 from ..pose.geometry import fundamental_from_pose, sampson_distance
@@ -41,7 +41,7 @@ def load_known_poses(path: Path, views: Sequence[View]) -> KnownPoses:
     Raises:
         CameraFileError: the file is malformed, or does not give every photo a camera.
     """
-    cams = load_cameras(path)
+    cams = load_camera_input(path)  # a cameras file or a COLMAP model folder
     by_name = {c.name: c for c in cams}
     chosen = []
     for k, v in enumerate(views):
