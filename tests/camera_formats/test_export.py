@@ -5,19 +5,24 @@ did not ask to replace."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
 from macsplat_cli.camera_formats import read_colmap_model, read_nerfstudio
 from macsplat_cli.camera_formats.export import write_export
 from macsplat_cli.camera_formats.points import SparsePoints
-from macsplat_cli.cameras import load_cameras
+from macsplat_cli.cameras import CameraSet, load_cameras, save_cameras
+from macsplat_cli.datasets import synthetic as syn
+from macsplat_cli.distortion import Distortion
+from macsplat_cli.images import save_image
 from macsplat_cli.errors import OutputPathError
 from support.cli import one_error_line, run_cli
-from support.scenes import PairFactory, PairSpec
+from support.scenes import PairFactory, PairSpec, distorted_photo
 
 SPEC = PairSpec(size=(320, 240))
 
@@ -145,3 +150,41 @@ def test_a_failed_export_leaves_nothing(pair_files: PairFactory, tmp_path: Path)
     with pytest.raises(OutputPathError, match="cannot copy"):
         write_export("colmap", tmp_path / "out", cams, pts, [pair.a, tmp_path / "missing.png"])
     assert list(tmp_path.iterdir()) == []  # neither the folder nor its temporary one
+
+
+def test_colmap_export_of_distorted_photos_keeps_their_lens(tmp_path: Path) -> None:
+    """Photos undistorted at load are exported as they are, with an OPENCV camera: the points' observations are on
+    the distorted photos and reproject there through the lens (pycolmap's projection, else the OpenCV model)."""
+    lens = Distortion("opencv", (-0.15, 0.02, 0.0, 0.0, 0.0))
+    scene = syn.make_scene("room", 0, textured=True)
+    cams = syn.orbit_pair("room", 20.0, width=320, height=240, fov_deg=60.0, seed=0)
+    photos = [save_image(tmp_path / n, distorted_photo(scene, c, lens, 64)) for n, c in zip(("a.png", "b.png"), cams)]
+    save_cameras(tmp_path / "k.json", CameraSet([dataclasses.replace(c, name=p.name, distortion=lens)
+                                                 for c, p in zip(cams, photos)]))  # fmt: skip
+    code, _, err = run_cli(["reconstruct", *photos, "-o", tmp_path / "s.ply", "-q", "--intrinsics", tmp_path / "k.json",
+                            "--export", "colmap", tmp_path / "x"])  # fmt: skip
+    assert code == 0, err
+    model = tmp_path / "x" / "sparse" / "0"
+    got = read_colmap_model(model)
+    assert [c.distortion for c in got] == [lens, lens]
+    assert (model / "cameras.txt").read_text().count(" OPENCV ") == 2
+    points, obs = _points3d(model / "points3D.txt"), _points2d(model / "images.txt")
+    errors = []
+    for xyz, track in points.values():
+        for image_id, idx in track:
+            cam = got[image_id - 1]
+            x, y, _ = obs[cam.name][idx]
+            K_cv = cam.K.copy()
+            K_cv[:2, 2] -= 0.5
+            rvec = cv2.Rodrigues(cam.R)[0]
+            uv = cv2.projectPoints(xyz[None], rvec, cam.t, K_cv, np.array(lens.coeffs))[0].ravel() + 0.5
+            errors.append(np.hypot(*(uv - [x, y])))
+    assert len(points) >= 50 and np.median(errors) <= 1.0
+    # a pinhole reading of the same observations is off: the lens is what makes them fit
+    pinhole = []
+    for xyz, track in points.values():
+        image_id, idx = track[0]
+        cam = got[image_id - 1]
+        Xc = cam.R @ xyz + cam.t
+        pinhole.append(np.hypot(*(cam.K[:2] @ Xc / Xc[2] - obs[cam.name][idx][:2])))
+    assert np.median(pinhole) > 2 * np.median(errors) + 0.5

@@ -8,7 +8,6 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 
@@ -20,25 +19,10 @@ from macsplat_cli.images import save_image
 from macsplat_cli.metrics import rotation_error_deg
 from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig
 from macsplat_cli.pipeline.views import ViewConfig, load_views
+from support.scenes import distorted_photo
 
 BARREL = Distortion("opencv", (-0.2, 0.0, 0.0, 0.0, 0.0))
-W, H, MARGIN = 512, 384, 96  # the photos' size, and the pinhole render's margin about them (barrel shows more)
-
-
-def _distorted_photo(scene: syn.Scene, cam: Camera, d: Distortion) -> np.ndarray:
-    """``cam``'s photo through lens ``d``: each distorted pixel sampled (bilinear) from a pinhole render of a wider
-    frame around it at the undistorted position. [H, W, 3]"""
-    K = cam.K.copy()
-    K[:2, 2] += MARGIN
-    wide = Camera("wide", W + 2 * MARGIN, H + 2 * MARGIN, K, cam.cam_to_world)
-    pinhole = syn.render(scene, wide, supersample=3).image
-    j, i = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
-    K_cv = cam.K.copy()
-    K_cv[:2, 2] -= 0.5  # OpenCV's pixel centres are on integers
-    pts = np.stack([j - 0.5, i - 0.5], -1).reshape(-1, 1, 2)
-    und = cv2.undistortPoints(pts, K_cv, np.array(d.coeffs), P=K_cv).reshape(H, W, 2) + MARGIN
-    assert und.min() > 0 and und[..., 0].max() < W + 2 * MARGIN - 1 and und[..., 1].max() < H + 2 * MARGIN - 1
-    return cv2.remap(pinhole, und[..., 0].astype(np.float32), und[..., 1].astype(np.float32), cv2.INTER_LINEAR)
+W, H = 512, 384
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +33,7 @@ def barrel_pair(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[Pa
     scene = syn.make_scene("room", 0, textured=True)
     cams = syn.orbit_pair("room", 20.0, width=W, height=H, fov_deg=60.0, seed=0)
     names = ("a.png", "b.png")
-    photos = [save_image(folder / n, _distorted_photo(scene, c, BARREL)) for n, c in zip(names, cams)]
+    photos = [save_image(folder / n, distorted_photo(scene, c, BARREL)) for n, c in zip(names, cams)]
     given = CameraSet([dataclasses.replace(c, name=n, distortion=BARREL) for n, c in zip(names, cams)])
     save_cameras(folder / "cameras.json", given)
     return folder / "cameras.json", photos, cams, scene
