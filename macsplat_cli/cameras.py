@@ -424,11 +424,12 @@ class CameraSet:
         confidence = d.get("pose_confidence")
         if confidence is not None and not isinstance(confidence, Mapping):
             raise CameraFileError(f"{where}: pose_confidence must be an object, got {_json_type(confidence)}")
-        undistorted = d.get("undistorted", {}).get("cameras", {}) if isinstance(d.get("undistorted"), Mapping) else {}
+        note = d.get("undistorted")
+        undistorted = note.get("cameras") if isinstance(note, Mapping) else None
         try:
             return cls(cameras=cameras, scale=scale, world=world,
-                       pose_confidence=dict(confidence) if confidence is not None else None,
-                       unregistered=left, undistorted=dict(undistorted) if isinstance(undistorted, Mapping) else {})  # fmt: skip
+                       pose_confidence=dict(confidence) if confidence is not None else None, unregistered=left,
+                       undistorted=dict(undistorted) if isinstance(undistorted, Mapping) else {})  # fmt: skip
         except CameraFileError as e:
             raise CameraFileError(f"{where}: {e}") from None
 

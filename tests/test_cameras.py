@@ -13,9 +13,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from macsplat_cli.distortion import Distortion
 from macsplat_cli.camera_formats import read_colmap_text, read_nerfstudio, write_colmap_text, write_nerfstudio
 from macsplat_cli.cameras import Camera, CameraSet, load_cameras, quat_to_rotmat_np, rotmat_to_quat_np, save_cameras
+from macsplat_cli.distortion import Distortion
 from macsplat_cli.errors import CameraFileError, OutputPathError
 
 from support.numerics import ROT_MAT, ROT_ROUND_TRIP, ROT_UNIT_Q, gamma, unit_roundoff

@@ -15,6 +15,8 @@ if TYPE_CHECKING:
 __all__ = ["OutputExtras", "check_exports", "export_requests", "up_choice", "world_outputs", "write_exports"]
 
 UP_CHOICES = ("camera", "auto")
+UP_WORLD = "camera_0_up_y"
+"""The cameras file's world name with ``--up auto``: camera 0's frame turned so that the cameras' mean up is +y."""
 
 
 @dataclass
@@ -40,7 +42,9 @@ def export_requests(pairs: Sequence[tuple[str, Path]]) -> list[tuple[str, Path]]
     for fmt, folder in pairs:
         f = fmt.strip().lower()
         if f not in EXPORT_FORMATS:
-            raise InputError(f"--export {fmt} {folder}: unknown format {fmt!r} (use one of {', '.join(EXPORT_FORMATS)})")
+            raise InputError(
+                f"--export {fmt} {folder}: unknown format {fmt!r} (use one of {', '.join(EXPORT_FORMATS)})"
+            )
         if any(Path(folder).resolve() == Path(other).resolve() for _, other in out):
             raise InputError(f"--export {folder}: one folder for two exports")
         out.append((f, Path(folder)))
@@ -72,6 +76,8 @@ def check_exports(extras: OutputExtras, keep: Sequence[tuple[str, Path | None]])
 
 def world_outputs(result: Reconstruction, up: str) -> tuple[Gaussians, CameraSet, object]:
     """The scene, its cameras and the world rotation (None, or ``[3, 3]`` with ``--up auto``) to write them in."""
+    import dataclasses
+
     import numpy as np
 
     from ..pipeline.world_up import rotate_cameras, rotate_gaussians, up_rotation
@@ -80,7 +86,8 @@ def world_outputs(result: Reconstruction, up: str) -> tuple[Gaussians, CameraSet
     if up != "auto":
         return result.gaussians, cameras, None
     R = up_rotation(cameras)
-    return rotate_gaussians(result.gaussians, R), rotate_cameras(cameras, R), np.asarray(R)
+    turned = dataclasses.replace(rotate_cameras(cameras, R), world=UP_WORLD)
+    return rotate_gaussians(result.gaussians, R), turned, np.asarray(R)
 
 
 def write_exports(result: Reconstruction, extras: OutputExtras, rotation: object) -> dict[str, Path]:

@@ -15,6 +15,7 @@ from macsplat_cli.cameras import CameraSet, load_cameras
 from macsplat_cli.distortion import Distortion
 from macsplat_cli.errors import CameraFileError
 from macsplat_cli.rotations import rotmat_to_quat_np
+
 from support.cli import one_error_line, run_cli
 from support.scenes import PairFactory, PairSpec
 
@@ -66,7 +67,9 @@ def test_poses_from_a_colmap_model_keep_its_frame_and_scale(pair_files: PairFact
     moved = [c.with_pose(T @ c.cam_to_world) for c in cams]
     moved = [m.with_pose(np.r_[np.c_[m.cam_to_world[:3, :3], m.cam_to_world[:3, 3] * 3.7], [[0, 0, 0, 1]]])
              for m in moved]  # fmt: skip
-    _write_binary(CameraSet(moved), tmp_path / "model", [("PINHOLE", list(c.K[[0, 1, 0, 1], [0, 1, 2, 2]])) for c in moved])
+    _write_binary(
+        CameraSet(moved), tmp_path / "model", [("PINHOLE", list(c.K[[0, 1, 0, 1], [0, 1, 2, 2]])) for c in moved]
+    )
     code, _, err = run_cli(["reconstruct", *pair.photos, "-o", tmp_path / "s.ply", "--size", 320, "-q",
                             "--poses", tmp_path / "model"])  # fmt: skip
     assert code == 0, err

@@ -19,8 +19,9 @@ from macsplat_cli.camera_formats.points import SparsePoints
 from macsplat_cli.cameras import CameraSet, load_cameras, save_cameras
 from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.distortion import Distortion
-from macsplat_cli.images import save_image
 from macsplat_cli.errors import OutputPathError
+from macsplat_cli.images import save_image
+
 from support.cli import one_error_line, run_cli
 from support.scenes import PairFactory, PairSpec, distorted_photo
 

@@ -19,6 +19,7 @@ from macsplat_cli.images import save_image
 from macsplat_cli.metrics import rotation_error_deg
 from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig
 from macsplat_cli.pipeline.views import ViewConfig, load_views
+
 from support.scenes import distorted_photo
 
 BARREL = Distortion("opencv", (-0.2, 0.0, 0.0, 0.0, 0.0))

@@ -11,10 +11,11 @@ import pytest
 import torch
 
 from macsplat_cli.cameras import Camera, CameraSet, load_cameras
+from macsplat_cli.pipeline.world_up import rotate_cameras, rotate_gaussians, up_rotation
 from macsplat_cli.ply import read_ply
 from macsplat_cli.render import render_camera
 from macsplat_cli.rotations import quat_to_rotmat_np
-from macsplat_cli.pipeline.world_up import rotate_cameras, rotate_gaussians, up_rotation
+
 from support.cli import run_cli
 from support.gaussians import random_gaussians
 from support.scenes import PairFactory, PairSpec
@@ -71,3 +72,4 @@ def test_up_auto_in_the_cli_turns_the_scene_and_its_cameras_alike(pair_files: Pa
     assert up[1] / np.linalg.norm(up) == pytest.approx(1.0)
     torch.testing.assert_close(g1.means.double(), g0.means.double() @ torch.as_tensor(R).T, atol=1e-5, rtol=1e-5)
     assert json.loads((tmp_path / "camera" / "s.cameras.json").read_text())["world"] == "camera_0"
+    assert c1.world == "camera_0_up_y"  # the file names the frame it is in
