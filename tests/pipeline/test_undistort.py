@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -93,3 +94,32 @@ def test_a_camera_without_distortion_loads_as_before(tmp_path: Path) -> None:
     cam = Camera("left", 640, 480, np.array([[500, 0, 320], [0, 500, 240], [0, 0, 1.0]]), np.eye(4))
     save_cameras(tmp_path / "k.json", CameraSet([cam]))
     assert "distortion" not in (tmp_path / "k.json").read_text()
+
+
+@pytest.mark.parametrize(
+    "d",
+    [
+        Distortion("opencv", (-0.2, 0.05, 0.001, -0.002, 0.01)),
+        Distortion("opencv", (0.2079, -0.5844, -0.0007, 0.0004, 0.4974)),  # NYU Depth v2's RGB camera
+        Distortion("fisheye", (0.05, -0.01, 0.002, -0.0005)),
+    ],
+)
+def test_the_lens_model_is_opencvs(d: Distortion) -> None:
+    """The forward model (the fold check, the export's observations) is OpenCV's projection, and the undistortion
+    maps sample the photo where that model puts each pinhole pixel (pixel centres at +0.5 on our side)."""
+    from macsplat_cli.distortion import distort_normalised
+    from macsplat_cli.pipeline.undistort import undistort_maps
+
+    rng = np.random.default_rng(0)
+    X = np.c_[rng.uniform(-0.6, 0.6, (50, 2)), np.ones(50)]
+    xd, yd = distort_normalised(d, X[:, 0], X[:, 1])
+    project = cv2.fisheye.projectPoints if d.model == "fisheye" else cv2.projectPoints
+    cv = project(X[:, None], np.zeros(3), np.zeros(3), np.eye(3), np.array(d.coeffs))[0].reshape(-1, 2)
+    np.testing.assert_allclose(np.c_[xd, yd], cv, atol=1e-12)
+    K = np.array([[300.0, 0, 161.0], [0, 302.0, 119.0], [0, 0, 1]])
+    mx, my = undistort_maps(K, d, 320, 240)
+    i, j = rng.integers(0, 240, 40), rng.integers(0, 320, 40)
+    xn, yn = (j + 0.5 - K[0, 2]) / K[0, 0], (i + 0.5 - K[1, 2]) / K[1, 1]
+    xd, yd = distort_normalised(d, xn, yn)
+    np.testing.assert_allclose(mx[i, j] + 0.5, K[0, 0] * xd + K[0, 2], atol=2e-3)  # float32 maps
+    np.testing.assert_allclose(my[i, j] + 0.5, K[1, 1] * yd + K[1, 2], atol=2e-3)
