@@ -189,3 +189,18 @@ def test_colmap_export_of_distorted_photos_keeps_their_lens(tmp_path: Path) -> N
         Xc = cam.R @ xyz + cam.t
         pinhole.append(np.hypot(*(cam.K[:2] @ Xc / Xc[2] - obs[cam.name][idx][:2])))
     assert np.median(pinhole) > 2 * np.median(errors) + 0.5
+
+
+def test_an_export_path_that_is_a_file_or_a_link_is_refused(tmp_path: Path) -> None:
+    from macsplat_cli.camera_formats.export import check_export_folder
+    from macsplat_cli.errors import InputError
+
+    (tmp_path / "file").write_text("x")
+    (tmp_path / "real").mkdir()
+    (tmp_path / "link").symlink_to(tmp_path / "real")
+    for name in ("file", "link"):
+        with pytest.raises(InputError, match="exists and is not a folder"):
+            check_export_folder(tmp_path / name, True)
+    check_export_folder(tmp_path / "real", False)  # empty: fine without --force
+    check_export_folder(tmp_path / "new" / "deeper", False)  # absent: fine, nothing created
+    assert not (tmp_path / "new").exists()
