@@ -65,13 +65,21 @@ def up_choice(text: str) -> Literal["camera", "auto"]:
     return t  # type: ignore[return-value]
 
 
-def check_exports(extras: OutputExtras, keep: Sequence[tuple[str, Path | None]]) -> None:
+def check_exports(extras: OutputExtras, keep: Sequence[tuple[str, Path | None]], photos: Sequence[Path] = ()) -> None:
     """Every export folder writable before the first stage (:func:`~macsplat_cli.camera_formats.export.
-    check_export_folder`); none holds an input or another output."""
-    from ..camera_formats.export import check_export_folder
+    check_export_folder`); none holds an input or another output; a COLMAP model's photo names are single tokens.
 
-    for _, folder in extras.exports:
+    Raises:
+        InputError: one of those is not so.
+    """
+    from ..camera_formats.export import check_export_folder
+    from ..errors import InputError
+
+    for fmt, folder in extras.exports:
         check_export_folder(folder, extras.force, keep)
+        spaced = [p.name for p in photos if any(ch.isspace() for ch in p.name)]
+        if fmt == "colmap" and spaced:
+            raise InputError(f"--export colmap: a COLMAP image name has no spaces; rename the photo {spaced[0]!r}")
 
 
 def world_outputs(result: Reconstruction, up: str) -> tuple[Gaussians, CameraSet, object]:

@@ -376,7 +376,7 @@ def _reconstruct(
     _check_outputs(output, cameras, renders, num_renders, video, report, inputs)
     extras = extras or OutputExtras()
     check_exports(extras, [*inputs, ("-o", output), ("--cameras", cameras), ("--video", video), ("--report", report),
-                           ("--renders", renders)])  # fmt: skip
+                           ("--renders", renders)], images)  # fmt: skip
     from ._profile import StageProfile
 
     profile = StageProfile(started=profile_from) if profile_from is not None else None

@@ -204,3 +204,14 @@ def test_an_export_path_that_is_a_file_or_a_link_is_refused(tmp_path: Path) -> N
     check_export_folder(tmp_path / "real", False)  # empty: fine without --force
     check_export_folder(tmp_path / "new" / "deeper", False)  # absent: fine, nothing created
     assert not (tmp_path / "new").exists()
+
+
+def test_a_photo_name_with_a_space_is_refused_for_colmap_before_any_work(
+    pair_files: PairFactory, tmp_path: Path
+) -> None:
+    pair = pair_files(SPEC, ("my left.png", "right.png"))
+    code, _, err = run_cli(
+        ["reconstruct", *pair.photos, "-o", tmp_path / "s.ply", "--export", "colmap", tmp_path / "x"]
+    )
+    assert code == 2 and "'my left.png'" in one_error_line(err)
+    assert not (tmp_path / "s.ply").exists()
