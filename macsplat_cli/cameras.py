@@ -21,9 +21,15 @@ by ``W'/W`` and row 1 by ``H'/H``, exactly (:meth:`Camera.rescaled`).
       "cameras": [                     # at least one
         {"name": "left", "width": 640, "height": 480,
          "K": [[fx, s, cx], [0, fy, cy], [0, 0, 1]],      # pixels of width × height
-         "cam_to_world": [[...], [...], [...], [0, 0, 0, 1]]}
+         "cam_to_world": [[...], [...], [...], [0, 0, 0, 1]],
+         "distortion": {"model": "opencv", "k1": 0.1, "k2": 0, "p1": 0, "p2": 0, "k3": 0}}  # optional
       ]
     }
+
+``distortion`` (optional, absent = a pinhole camera) is OpenCV's lens model in the camera's normalised
+coordinates: ``"opencv"`` with ``k1 k2 p1 p2 k3`` (``cv2.undistort``'s order), or ``"fisheye"`` with ``k1 k2 k3 k4``
+(``cv2.fisheye``); absent coefficients are 0. ``reconstruct`` undistorts such photos once, at load, to the pinhole
+``K`` of the same camera, and the cameras it writes are pinhole (the file's ``"undistorted"`` entry names them).
 
 Conversions to and from COLMAP text models and nerfstudio ``transforms.json``
 live in :mod:`macsplat_cli.camera_formats`.
@@ -35,9 +41,10 @@ import dataclasses
 import json
 import logging
 import os
+from collections import Counter
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any, ClassVar, Literal, get_args
 
 import numpy as np
@@ -45,12 +52,14 @@ import numpy as np
 from ._atomic import atomic_write_text
 from ._json import to_jsonable
 from ._limits import read_json_file
+from .distortion import DISTORTION_MODELS, Distortion, fold_problem
 from .errors import CameraFileError, OutputPathError
 from .rotations import quat_to_rotmat_np, rotmat_to_quat_np  # re-exported: the camera formats' converters
 
 __all__ = [
     "Camera",
     "CameraSet",
+    "Distortion",
     "Scale",
     "cameras_for_photos",
     "load_cameras",
@@ -125,6 +134,8 @@ class Camera:
         K: intrinsics in pixels of ``width × height``, pixel centres at ``+0.5``;
             skew ``K[0, 1]`` is allowed. [3, 3] float64
         cam_to_world: rigid camera-to-world transform (OpenCV camera axes). [4, 4] float64
+        distortion: the lens's distortion (:class:`Distortion`), or None for a pinhole camera; kept by
+            :meth:`rescaled` (it acts on normalised coordinates).
 
     Construction copies ``K`` and ``cam_to_world`` to read-only float64 arrays and
     raises :class:`~macsplat_cli.errors.CameraFileError` if the camera is invalid:
@@ -140,6 +151,7 @@ class Camera:
     height: int
     K: np.ndarray
     cam_to_world: np.ndarray
+    distortion: Distortion | None = None
 
     def __post_init__(self) -> None:
         def fail(problem: str) -> CameraFileError:
@@ -160,6 +172,16 @@ class Camera:
         problem = _intrinsics_problem(K) or _pose_problem(T)
         if problem:
             raise fail(problem)
+        if self.distortion is not None:
+            if not isinstance(self.distortion, Distortion) or self.distortion.model not in DISTORTION_MODELS:
+                raise fail(f"distortion must be a Distortion of a model in {tuple(DISTORTION_MODELS)}")
+            d = self.distortion
+            if len(d.coeffs) != len(DISTORTION_MODELS[d.model]) or not np.isfinite(d.coeffs).all():
+                raise fail(f"its {d.model} distortion needs {len(DISTORTION_MODELS[d.model])} finite coefficients, "
+                           f"got {list(d.coeffs)}")  # fmt: skip
+            problem = fold_problem(d, K, self.width, self.height)
+            if problem:
+                raise fail(problem)
         K[1, 0], K[2] = 0.0, (0.0, 0.0, 1.0)
         T[3] = (0.0, 0.0, 0.0, 1.0)
         K.setflags(write=False)
@@ -176,6 +198,7 @@ class Camera:
             and self.height == other.height
             and np.array_equal(self.K, other.K)
             and np.array_equal(self.cam_to_world, other.cam_to_world)
+            and self.distortion == other.distortion
         )
 
     __hash__ = None  # type: ignore[assignment]  # mutable-looking array fields: not hashable
@@ -228,14 +251,17 @@ class Camera:
 
     # ---------------------------------------------------------------- serialisation
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict (the ``cameras[i]`` entry of the file format)."""
-        return {
+        """JSON-ready dict (the ``cameras[i]`` entry of the file format; ``distortion`` only when set)."""
+        out: dict[str, Any] = {
             "name": self.name,
             "width": self.width,
             "height": self.height,
             "K": self.K.tolist(),
             "cam_to_world": self.cam_to_world.tolist(),
         }
+        if self.distortion is not None:
+            out["distortion"] = self.distortion.to_dict()
+        return out
 
     @classmethod
     def from_dict(cls, d: object, where: str = "camera") -> Camera:
@@ -257,8 +283,9 @@ class Camera:
                 raise CameraFileError(f"{where}.{key} must be a positive integer, got {d[key]!r}")
         K = _matrix(d["K"], 3, 3, f"{where}.K")
         T = _matrix(d["cam_to_world"], 4, 4, f"{where}.cam_to_world")
+        dist = Distortion.from_dict(d["distortion"], f"{where}.distortion") if d.get("distortion") is not None else None
         try:
-            return cls(name=d["name"], width=d["width"], height=d["height"], K=K, cam_to_world=T)
+            return cls(name=d["name"], width=d["width"], height=d["height"], K=K, cam_to_world=T, distortion=dist)
         except CameraFileError as e:
             raise CameraFileError(f"{where}: {e}") from None
 
@@ -314,6 +341,9 @@ class CameraSet:
         unregistered: photos of the reconstruction that could not be registered (``name``, ``width``,
             ``height``, ``reason``): written after the cameras in ``"cameras"`` with ``"registered": false`` and
             no pose; read back into this list, never as cameras.
+        undistorted: camera name → the distortion its photo had (:meth:`Distortion.to_dict`), for the cameras
+            whose photos were undistorted to their pinhole ``K`` before use; the file's ``"undistorted"`` entry
+            (written when not empty).
     """
 
     cameras: list[Camera]
@@ -321,6 +351,7 @@ class CameraSet:
     world: str = "camera_0"
     pose_confidence: dict[str, Any] | None = None
     unregistered: list[dict[str, Any]] = dataclasses.field(default_factory=list)
+    undistorted: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
     convention: ClassVar[str] = "opencv"
 
     def __post_init__(self) -> None:
@@ -361,6 +392,11 @@ class CameraSet:
         }
         if self.pose_confidence is not None:
             out["pose_confidence"] = to_jsonable(dict(self.pose_confidence))
+        if self.undistorted:
+            out["undistorted"] = {
+                "note": "these cameras' photos were undistorted to the pinhole K given here before use",
+                "cameras": to_jsonable(dict(self.undistorted)),
+            }
         return out
 
     @classmethod
@@ -400,10 +436,12 @@ class CameraSet:
         confidence = d.get("pose_confidence")
         if confidence is not None and not isinstance(confidence, Mapping):
             raise CameraFileError(f"{where}: pose_confidence must be an object, got {_json_type(confidence)}")
+        note = d.get("undistorted")
+        undistorted = note.get("cameras") if isinstance(note, Mapping) else None
         try:
             return cls(cameras=cameras, scale=scale, world=world,
-                       pose_confidence=dict(confidence) if confidence is not None else None,
-                       unregistered=left)  # fmt: skip
+                       pose_confidence=dict(confidence) if confidence is not None else None, unregistered=left,
+                       undistorted=dict(undistorted) if isinstance(undistorted, Mapping) else {})  # fmt: skip
         except CameraFileError as e:
             raise CameraFileError(f"{where}: {e}") from None
 
@@ -458,7 +496,14 @@ def cameras_for_photos(cams: CameraSet, photos: Sequence[Path], where: str | os.
             two photos claim one camera; or no name matches and the counts differ. The message names them.
     """
     by_name = {c.name: c for c in cams}
-    found = [[by_name[n] for n in dict.fromkeys((p.name, p.stem)) if n in by_name] for p in photos]
+    # a COLMAP image name may hold its folder ("images/a.jpg"): its last part names the photo too, when unique
+    last = Counter(PurePosixPath(c.name).name for c in cams)
+    for c in cams:
+        tail = PurePosixPath(c.name).name
+        if tail != c.name and last[tail] == 1:
+            by_name.setdefault(tail, c)
+            by_name.setdefault(PurePosixPath(tail).stem, c)
+    found = [list({id(c): c for n in (p.name, p.stem) if (c := by_name.get(n)) is not None}.values()) for p in photos]
     if not any(found):
         if len(cams) != len(photos):
             raise CameraFileError(

@@ -23,6 +23,7 @@ from macsplat_cli.cameras import (
     rotmat_to_quat_np,
     save_cameras,
 )
+from macsplat_cli.distortion import Distortion
 from macsplat_cli.errors import CameraFileError, OutputPathError
 
 from support.numerics import ROT_MAT, ROT_ROUND_TRIP, ROT_UNIT_Q, gamma, unit_roundoff
@@ -261,6 +262,15 @@ def test_cameras_go_to_their_photos_by_file_name_or_stem() -> None:
     cams = _named("b.jpg", "c", "a")
     got = cameras_for_photos(cams, [Path("x/a.jpg"), Path("b.jpg"), Path("c.png")], "cams.json")
     assert [c.name for c in got] == ["a", "b.jpg", "c"]
+
+
+def test_a_camera_named_with_its_folder_goes_to_its_photo() -> None:
+    """COLMAP image names hold their folder (``images/a.jpg``): the last part names the photo when it is unique; two
+    cameras of one last part in two folders name no photo by it."""
+    got = cameras_for_photos(_named("images/a.jpg", "images/b.jpg"), [Path("b.jpg"), Path("a")], "model")
+    assert [c.name for c in got] == ["images/b.jpg", "images/a.jpg"]
+    with pytest.raises(CameraFileError, match="no camera named after 'a.jpg'"):
+        cameras_for_photos(_named("x/a.jpg", "y/a.jpg", "b"), [Path("a.jpg"), Path("b.jpg")], "model")
 
 
 def test_cameras_in_order_only_when_no_name_matches(caplog: pytest.LogCaptureFixture) -> None:
@@ -554,14 +564,17 @@ def test_colmap_reader_handles_other_models_and_comments(tmp_path: Path, caplog:
     np.testing.assert_array_equal(a.cam_to_world[:3, :3], np.diag([1.0, -1.0, -1.0]))
     np.testing.assert_array_equal(a.center, [-1, 2, 3])
     np.testing.assert_array_equal(c.center, [0, 0, -1])  # unnormalised q = (2, 0, 0, 0)
-    warnings = [r.getMessage() for r in caplog.records]
-    assert len(warnings) == 1 and "distortion" in warnings[0] and "SIMPLE_RADIAL" in warnings[0]
+    # the lens models' distortion is kept (it was dropped with a warning): SIMPLE_RADIAL's k is OpenCV's k1, an
+    # OPENCV camera with zero coefficients is a pinhole
+    assert a.distortion == Distortion("opencv", (0.01, 0.0, 0.0, 0.0, 0.0))
+    assert b.distortion is None and c.distortion is None
+    assert not caplog.records
 
 
 @pytest.mark.parametrize(
     ("cameras_txt", "images_txt", "expected"),
     [
-        ("1 OPENCV_FISHEYE 10 10 5 5 5 5 0 0 0 0\n", "1 1 0 0 0 0 0 0 1 a\n\n", "not supported"),
+        ("1 FOV 10 10 5 5 5 5 0.1\n", "1 1 0 0 0 0 0 0 1 a\n\n", "camera 1 has model FOV, which macsplat does not"),
         ("1 PINHOLE 10 10 5 5 5\n", "1 1 0 0 0 0 0 0 1 a\n\n", "needs 4 params"),
         ("1 PINHOLE 10 10 5 5 5 5\n", "1 1 0 0 0 0 0 0 2 a\n\n", "CAMERA_ID 2"),
         ("1 PINHOLE 10 10 5 5 5 5\n", "1 1 0 0 0 0 0 1 a\n\n", "expected IMAGE_ID"),
@@ -643,7 +656,9 @@ def test_nerfstudio_shared_intrinsics_and_distortion(tmp_path: Path, caplog: pyt
     assert (a.width, a.height) == (320, 240)
     np.testing.assert_array_equal(a.cam_to_world, pose(np.eye(3), np.array([0.0, 0.0, 5.0])))
     np.testing.assert_array_equal(b.cam_to_world, np.diag([1.0, -1.0, -1.0, 1.0]))
-    assert [r.getMessage() for r in caplog.records] == [f"{path}: frames[0]: lens distortion is ignored"]
+    assert a.distortion == Distortion("opencv", (0.05, 0.0, 0.0, 0.0, 0.0))  # the top level's k1 (was ignored)
+    assert b.distortion is None  # its own k1 = 0 wins
+    assert not caplog.records
 
 
 @pytest.mark.parametrize(
@@ -653,7 +668,7 @@ def test_nerfstudio_shared_intrinsics_and_distortion(tmp_path: Path, caplog: pyt
         (_set("frames.0.w", 10.5), "w must be an integer"),
         (_set("frames.0.transform_matrix", [[1, 0, 0, 0]]), r"frames\[0\]\.transform_matrix must be a 4x4"),
         (_delete("frames.0.file_path"), "file_path must be a string"),
-        (_set("camera_model", "OPENCV_FISHEYE"), "not a pinhole model"),
+        (_set("camera_model", "EQUIRECTANGULAR"), "camera_model .EQUIRECTANGULAR. is not read"),
         (_set("frames", []), "non-empty"),
         (_set("frames.0.transform_matrix", np.diag([1.0, 1.0, 1.0, 2.0]).tolist()), "bottom row"),
     ],

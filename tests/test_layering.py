@@ -59,6 +59,7 @@ LAYERS: dict[str, tuple[int, str]] = {
     "metrics": (5, "image and pose metrics"),
     "cameras": (5, "Camera, CameraSet and their files"),
     "camera_formats": (5, "other tools' camera files"),
+    "distortion": (5, "lens distortion models and their fold check"),
     "images": (5, "image reading and writing"),
     "gaussians": (5, "the Gaussian containers"),
     "ply": (5, "the 3DGS PLY format"),

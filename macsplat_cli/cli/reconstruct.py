@@ -24,6 +24,7 @@ from ._common import (
     expand_photos,
     out_console,
 )
+from ._export import OutputExtras, export_requests, up_choice
 from ._options import (
     AcceptLowConfidenceOpt,
     DeviceOpt,
@@ -122,6 +123,28 @@ LpipsWeightsOpt = Annotated[
         help="Add LPIPS to the refinement's loss: a folder with torchvision's vgg16-*.pth and LPIPS v0.1 vgg.pth.",
     ),
 ]
+ExportOpt = Annotated[
+    tuple[str, Path] | None,
+    typer.Option(
+        "--export",
+        metavar="FORMAT DIR",
+        help="Also write the cameras, the verified points and the photos for other tools: 'colmap DIR' (a COLMAP "
+        "text model in DIR/sparse/0, photos in DIR/images) or 'nerfstudio DIR' (transforms.json, sparse_pc.ply, "
+        "images/).",
+    ),
+]
+ForceOpt = Annotated[
+    bool, typer.Option("--force", help="With --export: replace an export folder that exists and is not empty.")
+]
+UpOpt = Annotated[
+    str,
+    typer.Option(
+        "--up",
+        metavar="camera|auto",
+        help="The world's up: camera = the first camera's frame as it is (y down); auto = rotated so that the "
+        "cameras' mean up is +y (viewers that orbit about +y), for the scene and every camera written.",
+    ),
+]
 BackendOpt = Annotated[
     str,
     typer.Option(
@@ -170,6 +193,9 @@ def reconstruct_command(
     gaussian_head: GaussianHeadOpt = None,
     device: DeviceOpt = "cpu",
     precision: PrecisionOpt = "fp32",
+    export: ExportOpt = None,
+    force: ForceOpt = False,
+    up: UpOpt = "camera",
     view: Annotated[
         bool, typer.Option("--view", help="Then show the scene in the browser (macsplat view; needs macsplat[view]).")
     ] = False,
@@ -214,6 +240,7 @@ def reconstruct_command(
         _reconstruct(
             expand_photos(images), config, output=output, cameras=cameras, renders=renders, num_renders=num_renders,
             video=video, report=report, json_out=json_out, quiet=state.quiet, profile_from=started if profile else None,
+            extras=OutputExtras(exports=export_requests([export] if export else []), force=force, up=up_choice(up)),
         )  # fmt: skip
         if view:
             from .view import view_files
@@ -350,11 +377,13 @@ def _render_names(renders: Path | None, num_renders: int) -> list[Path]:
 def _reconstruct(
     images: list[Path], config: EngineConfig, *, output: Path, cameras: Path | None, renders: Path | None,
     num_renders: int, video: Path | None, report: Path | None, json_out: bool, quiet: bool,
-    profile_from: float | None = None,
+    profile_from: float | None = None, extras: OutputExtras | None = None,
 ) -> None:  # fmt: skip
     """Options → engine → files: the outputs are checked, the engine runs, then the files are written. With
-    ``profile_from`` (the command's start, ``perf_counter``), a table of each stage's time and memory follows."""
+    ``profile_from`` (the command's start, ``perf_counter``), a table of each stage's time and memory follows;
+    ``extras``: the exports and the world's up (:mod:`._export`)."""
     from ..engine import reconstruct
+    from ._export import check_exports
 
     config.validate()
     cameras = cameras or output.with_name(output.stem + ".cameras.json")
@@ -365,6 +394,9 @@ def _reconstruct(
               ("--weights", n.weights), ("--gaussian-head", n.gaussian_head), ("--dino", n.dino),
               ("--fusion", n.fusion), ("--lpips-weights", config.refine.lpips_weights)]  # fmt: skip
     _check_outputs(output, cameras, renders, num_renders, video, report, inputs, _frame_side(config))
+    extras = extras or OutputExtras()
+    check_exports(extras, [*inputs, ("-o", output), ("--cameras", cameras), ("--video", video), ("--report", report),
+                           ("--renders", renders)], images)  # fmt: skip
     from ._profile import StageProfile
 
     profile = StageProfile(started=profile_from) if profile_from is not None else None
@@ -376,7 +408,7 @@ def _reconstruct(
             on_stage=progress.event,
             on_refine_step=lambda i, terms: progress.refine_step(i, steps, terms),
         )
-        written, n_written = _write_outputs(result, output, cameras, renders, num_renders, video, progress)
+        written, n_written = _write_outputs(result, output, cameras, renders, num_renders, video, progress, extras)
 
     result.report.add_outputs(written, gaussians_written=n_written)
     doc = result.report.to_json()
@@ -396,24 +428,27 @@ def _reconstruct(
 
 def _write_outputs(
     result: Reconstruction, output: Path, cameras: Path, renders: Path | None, num_renders: int, video: Path | None,
-    progress: StageProgress,
+    progress: StageProgress, extras: OutputExtras,
 ) -> tuple[dict[str, Path], int]:  # fmt: skip
-    """The files: the scene, the cameras, and the novel views (:func:`~macsplat_cli.engine.path_views`) as images
-    and a video, each view written as it is rendered. Returns role → path of each file written, and the Gaussians
-    the PLY holds."""
+    """The files: the scene, the cameras (in the world ``extras.up`` asks for), the exports, and the novel views
+    (:func:`~macsplat_cli.engine.path_views`) as images and a video, each view written as it is rendered. Returns
+    role → path of each file written, and the Gaussians the PLY holds."""
     import contextlib
 
     from ..cameras import save_cameras
     from ..engine import path_views
     from ..images import save_image, video_writer
     from ..ply import write_ply
+    from ._export import world_outputs, write_exports
 
     written: dict[str, Path] = {}
     progress.event("write", "start")
-    n_written = write_ply(output, result.gaussians)
+    scene, camera_set, rotation = world_outputs(result, extras.up)
+    n_written = write_ply(output, scene)
     written["scene"] = output
-    save_cameras(cameras, result.cameras())
+    save_cameras(cameras, camera_set)
     written["cameras"] = cameras
+    written.update(write_exports(result, extras, rotation))
     progress.event("write", "end")
     if renders is not None or video is not None:
         progress.event("renders", "start")

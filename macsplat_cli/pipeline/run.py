@@ -120,14 +120,20 @@ class Reconstruction:
         if self.poses is not None:
             cams = [v.camera(T, original_size=original_size) for v, T in zip(self.views, self.poses)]
             left = self.multiview.unregistered() if self.multiview is not None else []
-            return CameraSet(cams, scale=self.scale, world="camera_0", pose_confidence=confidence, unregistered=left)
+            return CameraSet(cams, scale=self.scale, world="camera_0", pose_confidence=confidence, unregistered=left,
+                             undistorted=self._undistorted())  # fmt: skip
         assert self.geometry is not None
         K = (self.geometry.K0, self.geometry.K1)
         cams = []
         for k, v in enumerate(self.views):
             cam = View(v.name, v.path, v.image, v.mask, K[k], v.original_size, v.intrinsics_source)
             cams.append(cam.camera(self.geometry.cam_to_world(k), original_size=original_size))
-        return CameraSet(cams, scale=self.scale, world="camera_0", pose_confidence=confidence)
+        return CameraSet(cams, scale=self.scale, world="camera_0", pose_confidence=confidence,
+                         undistorted=self._undistorted())  # fmt: skip
+
+    def _undistorted(self) -> dict[str, dict[str, Any]]:
+        """Camera name → the distortion its photo was undistorted from at load (the cameras file's note)."""
+        return {v.name: v.undistorted.to_dict() for v in self.views if v.undistorted is not None}
 
 
 def count_gaussians(maps: Sequence[GaussianMaps]) -> int:

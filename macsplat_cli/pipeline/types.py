@@ -26,6 +26,7 @@ from typing import Any, Literal
 import numpy as np
 
 from ..cameras import Camera
+from ..distortion import Distortion
 
 __all__ = [
     "DepthMap", "Features", "FocalEvidence", "IntrinsicsSource", "MatchSet", "Matches", "PoseSource", "TwoViewGeometry",
@@ -52,6 +53,8 @@ class View:
         detail: the photo at up to ``DETAIL_SIZE`` px on the long side (never upsampled),
             for stages that benefit from more pixels than the working size (keypoints).
             Same aspect as the original. [h, w, 3] float32
+        undistorted: the lens distortion the photo was undistorted from at load (``image``, ``mask`` and
+            ``detail`` are then the pinhole photo of ``K``), else None.
     """
 
     name: str
@@ -62,6 +65,7 @@ class View:
     original_size: tuple[int, int]
     intrinsics_source: IntrinsicsSource
     detail: np.ndarray | None = None
+    undistorted: Distortion | None = None
 
     @property
     def width(self) -> int:

@@ -10,7 +10,8 @@ Intrinsics, in order of precedence:
 1. ``--intrinsics cams.json`` (the cameras schema): one camera for every photo, or one
    per photo (matched by name; in order only when no camera is named after a photo:
    :func:`~macsplat_cli.cameras.cameras_for_photos`), rescaled to the working size. A camera
-   whose aspect ratio differs from its photo's by more than 1 % does not fit.
+   whose aspect ratio differs from its photo's by more than 1 % does not fit. A camera with lens distortion has
+   its photo undistorted to its pinhole K first (:mod:`.undistort`).
 2. ``--focal PX``: the focal length in pixels of the original photos.
 3. The EXIF 35 mm-equivalent focal length.
 4. A 60° field of view across the long side (``prior``), which the pose stage refines
@@ -28,10 +29,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..cameras import Camera, cameras_for_photos, load_cameras
+from ..camera_formats import load_camera_input
+from ..cameras import Camera, cameras_for_photos
 from ..errors import CameraFileError, ImageReadError, InputError
 from ..images import LoadedImage, load_image
 from .types import IntrinsicsSource, View
+from .undistort import undistort_photo
 
 __all__ = ["MIN_IMAGE_SIDE", "ViewConfig", "load_views", "prior_focal", "working_size"]
 
@@ -87,7 +90,7 @@ def _K(f: float, width: int, height: int) -> np.ndarray:
 
 def _file_cameras(path: Path, images: Sequence[LoadedImage]) -> list[Camera]:
     """One camera for every photo, or each photo's own (:func:`~macsplat_cli.cameras.cameras_for_photos`)."""
-    cams = load_cameras(path)
+    cams = load_camera_input(path)  # a cameras file or a COLMAP model folder
     if len(cams) == 1:
         return [cams[0]] * len(images)
     return cameras_for_photos(cams, [img.path for img in images], path)
@@ -131,6 +134,7 @@ def load_views(paths: Sequence[str | Path], config: ViewConfig | None = None) ->
         source: IntrinsicsSource
         if file_cams is not None:
             _fit(file_cams[i], img, cfg.intrinsics)  # type: ignore[arg-type]
+            img = undistort_photo(img, file_cams[i])  # a pinhole photo from here on (same K)
             K = file_cams[i].rescaled(w, h).K.copy()
             source = "file"
         else:
@@ -168,6 +172,7 @@ def load_views(paths: Sequence[str | Path], config: ViewConfig | None = None) ->
                 (img.width, img.height),
                 source,
                 detail=detail,
+                undistorted=file_cams[i].distortion if file_cams is not None and img is not images[i] else None,
             )  # fmt: skip
         )
         logger.debug("%s: %dx%d → %dx%d, intrinsics from %s", img.path.name, img.width, img.height, w, h, source)

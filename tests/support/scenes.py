@@ -15,11 +15,13 @@ import dataclasses
 import functools
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
 from macsplat_cli.cameras import Camera, CameraSet, save_cameras
 from macsplat_cli.datasets import synthetic as syn
+from macsplat_cli.distortion import Distortion
 from macsplat_cli.images import save_image
 
 __all__ = [
@@ -28,6 +30,7 @@ __all__ = [
     "PairSpec",
     "RenderedPair",
     "apply_homography",
+    "distorted_photo",
     "orbit_views",
     "pixel_centres",
     "rendered_pair",
@@ -179,3 +182,20 @@ def apply_homography(Hm: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """``xy`` [N, 2] mapped by the 3×3 homography ``Hm``. [N, 2]"""
     p = np.c_[xy, np.ones(len(xy))] @ Hm.T
     return p[:, :2] / p[:, 2:]
+
+
+def distorted_photo(scene: syn.Scene, cam: Camera, d: Distortion, margin: int = 96) -> np.ndarray:
+    """``cam``'s photo through lens ``d``: each distorted pixel sampled (bilinear) from a pinhole render of a frame
+    ``margin`` pixels wider on every side, at the undistorted position (asserted inside it). [H, W, 3]"""
+    W, H, MARGIN = cam.width, cam.height, margin
+    K = cam.K.copy()
+    K[:2, 2] += MARGIN
+    wide = Camera("wide", W + 2 * MARGIN, H + 2 * MARGIN, K, cam.cam_to_world)
+    pinhole = syn.render(scene, wide, supersample=3).image
+    j, i = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    K_cv = cam.K.copy()
+    K_cv[:2, 2] -= 0.5  # OpenCV's pixel centres are on integers
+    pts = np.stack([j - 0.5, i - 0.5], -1).reshape(-1, 1, 2)
+    und = cv2.undistortPoints(pts, K_cv, np.array(d.coeffs), P=K_cv).reshape(H, W, 2) + MARGIN
+    assert und.min() > 0 and und[..., 0].max() < W + 2 * MARGIN - 1 and und[..., 1].max() < H + 2 * MARGIN - 1
+    return cv2.remap(pinhole, und[..., 0].astype(np.float32), und[..., 1].astype(np.float32), cv2.INTER_LINEAR)

@@ -14,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ...cameras import cameras_for_photos, load_cameras
+from ...camera_formats import load_camera_input
+from ...cameras import cameras_for_photos
 from ..pose import PoseResult
 from ..pose.geometry import fundamental_from_pose, sampson_distance
 from ..slots import DescribeStage, MatchStage
@@ -40,7 +41,7 @@ def load_known_poses(path: Path, views: Sequence[View]) -> KnownPoses:
     Raises:
         CameraFileError: the file is malformed, or does not give every photo a camera of its own.
     """
-    cams = load_cameras(path)
+    cams = load_camera_input(path)  # a cameras file or a COLMAP model folder
     chosen = cameras_for_photos(cams, [v.path for v in views], path)
     W2C = np.stack([np.linalg.inv(c.cam_to_world) for c in chosen])
     return KnownPoses(W2C[:, :3, :3], W2C[:, :3, 3], cams.scale)

@@ -230,6 +230,29 @@ def test_n_cameras_export_to_colmap_and_nerfstudio(room_run: Reconstruction, tmp
             assert np.allclose(a.cam_to_world, b.cam_to_world, atol=1e-6) and np.allclose(a.K, b.K, atol=1e-6)
 
 
+def test_n_photos_export_their_tracks_as_points(room_run: Reconstruction, tmp_path: Path) -> None:
+    """``--export``'s points for N photos: the registration's tracks, each seen by >= 2 exported photos, reprojecting
+    to their observations at the photos' original resolution."""
+    from macsplat_cli.camera_formats import read_colmap_model
+    from macsplat_cli.camera_formats.export import write_export
+    from macsplat_cli.pipeline.sparse import export_cameras, sparse_points
+
+    cams, photos = export_cameras(room_run)
+    points = sparse_points(room_run, cams)
+    assert [c.name for c in cams] == [p.name for p in photos] == [f"v{k}.png" for k in range(4)]
+    seen = np.bincount(points.obs_point, minlength=len(points))
+    assert len(points) >= 100 and seen.min() >= 2 and seen.max() >= 3  # tracks through three photos and more
+    errors = []
+    for k, cam in enumerate(cams):
+        sel = points.obs_image == k
+        Xc = points.xyz[points.obs_point[sel]] @ cam.R.T + cam.t
+        errors.append(np.linalg.norm(Xc @ cam.K.T[:, :2] / Xc[:, 2:] - points.obs_xy[sel], axis=1))
+    assert np.median(np.concatenate(errors)) <= 1.0
+    write_export("colmap", tmp_path / "x", cams, points, photos)
+    assert [c.name for c in read_colmap_model(tmp_path / "x" / "sparse" / "0")] == [c.name for c in cams]
+    assert sorted(p.name for p in (tmp_path / "x" / "images").iterdir()) == [c.name for c in cams]
+
+
 def test_mixed_sizes_and_orientations_register(tmp_path: Path) -> None:
     """A landscape orbit with one photo at another size and one upright (portrait), the focal unknown: each size its
     own prior and focal group; every photo registers."""
