@@ -13,11 +13,16 @@ from typing import Any
 import numpy as np
 import pytest
 
-from macsplat_cli.camera_formats import read_colmap_text, read_nerfstudio, write_colmap_text, write_nerfstudio
+from macsplat_cli.camera_formats import (
+    cameras_for_photos,
+    read_colmap_text,
+    read_nerfstudio,
+    write_colmap_text,
+    write_nerfstudio,
+)
 from macsplat_cli.cameras import (
     Camera,
     CameraSet,
-    cameras_for_photos,
     load_cameras,
     quat_to_rotmat_np,
     rotmat_to_quat_np,
@@ -275,7 +280,7 @@ def test_a_camera_named_with_its_folder_goes_to_its_photo() -> None:
 
 def test_cameras_in_order_only_when_no_name_matches(caplog: pytest.LogCaptureFixture) -> None:
     """No camera named after any photo: the photos' order, and the log says so; with other counts, an error."""
-    with caplog.at_level(logging.INFO, logger="macsplat_cli.cameras"):
+    with caplog.at_level(logging.INFO, logger="macsplat_cli.camera_formats.photos"):
         got = cameras_for_photos(_named("c0", "c1"), [Path("a.png"), Path("b.png")], "cams.json")
     assert [c.name for c in got] == ["c0", "c1"]
     assert "taken in the photos' order (a.png → c0, b.png → c1)" in caplog.text

@@ -13,11 +13,13 @@ from pathlib import Path
 from ..cameras import CameraSet, load_cameras
 from .colmap import COLMAP_MODELS, read_colmap_model, read_colmap_text, write_colmap_text
 from .nerfstudio import read_nerfstudio, write_nerfstudio
+from .photos import cameras_for_photos
 from .points import SparsePoints, write_point_ply
 
 __all__ = [
     "COLMAP_MODELS",
     "SparsePoints",
+    "cameras_for_photos",
     "load_camera_input",
     "read_colmap_model",
     "read_colmap_text",

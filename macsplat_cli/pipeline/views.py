@@ -9,7 +9,7 @@ Intrinsics, in order of precedence:
 
 1. ``--intrinsics cams.json`` (the cameras schema): one camera for every photo, or one
    per photo (matched by name; in order only when no camera is named after a photo:
-   :func:`~macsplat_cli.cameras.cameras_for_photos`), rescaled to the working size. A camera
+   :func:`~macsplat_cli.camera_formats.cameras_for_photos`), rescaled to the working size. A camera
    whose aspect ratio differs from its photo's by more than 1 % does not fit. A camera with lens distortion has
    its photo undistorted to its pinhole K first (:mod:`.undistort`).
 2. ``--focal PX``: the focal length in pixels of the original photos.
@@ -29,8 +29,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..camera_formats import load_camera_input
-from ..cameras import Camera, cameras_for_photos
+from ..camera_formats import cameras_for_photos, load_camera_input
+from ..cameras import Camera
 from ..errors import CameraFileError, ImageReadError, InputError
 from ..images import LoadedImage, load_image
 from .types import IntrinsicsSource, View
@@ -89,7 +89,7 @@ def _K(f: float, width: int, height: int) -> np.ndarray:
 
 
 def _file_cameras(path: Path, images: Sequence[LoadedImage]) -> list[Camera]:
-    """One camera for every photo, or each photo's own (:func:`~macsplat_cli.cameras.cameras_for_photos`)."""
+    """One camera for every photo, or each photo's own (:func:`~macsplat_cli.camera_formats.cameras_for_photos`)."""
     cams = load_camera_input(path)  # a cameras file or a COLMAP model folder
     if len(cams) == 1:
         return [cams[0]] * len(images)

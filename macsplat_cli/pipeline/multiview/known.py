@@ -14,8 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ...camera_formats import load_camera_input
-from ...cameras import cameras_for_photos
+from ...camera_formats import cameras_for_photos, load_camera_input
 from ..pose import PoseResult
 from ..pose.geometry import fundamental_from_pose, sampson_distance
 from ..slots import DescribeStage, MatchStage
@@ -36,7 +35,8 @@ class KnownPoses:
 
 def load_known_poses(path: Path, views: Sequence[View]) -> KnownPoses:
     """The cameras of ``path`` for ``views``, matched to the photos by
-    :func:`~macsplat_cli.cameras.cameras_for_photos` (by name; in order only when no camera is named after a photo).
+    :func:`~macsplat_cli.camera_formats.cameras_for_photos` (by name; in order only when no camera is named after
+    a photo).
 
     Raises:
         CameraFileError: the file is malformed, or does not give every photo a camera of its own.
