@@ -13,9 +13,10 @@ from .evidence import PoseEvidence
 
 __all__ = ["Doubt", "DoubtCheck", "PoseConfidence", "PoseResult", "Tier"]
 
-Tier = Literal["primary", "fallback", "wide", "wide+plane-tiebreak"]
+Tier = Literal["primary", "fallback", "wide", "wide+plane-tiebreak", "learned"]
 """The descriptor tier whose matches gave the pose: the primary descriptors, the fallback, the wide-baseline tier,
-or the plane tie-break after the wide tier (its matches guided along the winning plane pose, primary features)."""
+the plane tie-break after the wide tier (its matches guided along the winning plane pose, primary features), or the
+learned tier (ALIKED + LightGlue, after the SIFT tiers)."""
 
 WIDE_TIERS: tuple[Tier, ...] = ("wide", "wide+plane-tiebreak")
 """The tiers the report names (``descriptors_tier``)."""
