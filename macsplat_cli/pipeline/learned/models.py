@@ -16,7 +16,7 @@ import torch
 
 from ..._state_dict import check_state_dict_keys
 from .config import LearnedConfig
-from .weights import LearnedWeightsError, load_weights
+from .weights import LearnedWeightsError, load_weights, locate
 
 __all__ = ["DERIVED_BUFFERS", "LearnedModels", "build_aliked", "build_lightglue", "learned_models"]
 
@@ -93,12 +93,21 @@ _LOCK = threading.Lock()
 
 
 @functools.cache
-def _cached(config: LearnedConfig) -> LearnedModels:
+def _cached(config: LearnedConfig, files: tuple[tuple[str, int, int], ...]) -> LearnedModels:
     return LearnedModels(config)
 
 
+def _files_key(config: LearnedConfig) -> tuple[tuple[str, int, int], ...]:
+    """The located files with their size and modification time: another file (or a changed one) is loaded anew."""
+    out = []
+    for model in (config.detector, "aliked-lightglue"):
+        st = (path := locate(model)).stat()
+        out.append((str(path), st.st_size, st.st_mtime_ns))
+    return tuple(out)
+
+
 def learned_models(config: LearnedConfig) -> LearnedModels:
-    """The models for ``config``, loaded on the first call and kept for the process.
+    """The models for ``config``, loaded on the first call and kept for the process (per located file).
 
     Raises:
         LearnedWeightsError: a file is missing, truncated, of another hash or does not fit (nothing is kept).
@@ -106,4 +115,4 @@ def learned_models(config: LearnedConfig) -> LearnedModels:
     if config.detector not in ("aliked-n16",):
         raise LearnedWeightsError(f"unknown learned detector {config.detector!r} (known: aliked-n16)")
     with _LOCK:
-        return _cached(config)
+        return _cached(config, _files_key(config))
