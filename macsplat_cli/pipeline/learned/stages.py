@@ -9,8 +9,9 @@ LightGlue needs each image's size to normalise the keypoints: :class:`LearnedFea
 
 from __future__ import annotations
 
+import functools
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -107,13 +108,19 @@ class LightGlueMatcher:
         return Matches(f0.xy[idx0], f1.xy[idx1], scores.astype(np.float32), idx0, idx1, {"lightglue": len(idx0)})
 
 
+def _no_load() -> None:
+    return None
+
+
 @dataclass
 class LearnedTier:
-    """The learned matcher as a tier of the pose search: its descriptors and its matcher."""
+    """The learned matcher as a tier of the pose search: its descriptors, its matcher, and ``load`` (loads the
+    models once, timed as its own stage by the search; the describe and match stages would load them otherwise)."""
 
     describe: Any
     match: Any
     config: LearnedConfig
+    load: Callable[[], object] = _no_load
 
     @property
     def name(self) -> str:
@@ -142,4 +149,5 @@ def learned_tier(config: LearnedConfig, *, required: bool) -> LearnedTier | None
             _WARNED.add(str(e))
             logger.info("--matcher auto: SIFT only (%s)", e)
         return None
-    return LearnedTier(LearnedDescriptors(config), LightGlueMatcher(config), config)
+    return LearnedTier(LearnedDescriptors(config), LightGlueMatcher(config), config,
+                       load=functools.partial(learned_models, config))  # fmt: skip

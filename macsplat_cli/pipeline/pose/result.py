@@ -92,6 +92,8 @@ class PoseResult:
         confidence: the acceptance's checks; None when they are off (``PoseSearchConfig.confidence``).
         doubts: every doubt, in order: the pose stage's, the support minimum's, the checks'.
         accepted_low_confidence: there are doubts, and the scene is built anyway.
+        matcher: the descriptors and matcher that gave the pose (``"learned:aliked-n16+learned:lightglue"``); the
+            report names it when they are learned ones.
     """
 
     geometry: TwoViewGeometry
@@ -104,6 +106,7 @@ class PoseResult:
     confidence: PoseConfidence | None = None
     doubts: list[Doubt] = field(default_factory=list)
     accepted_low_confidence: bool = False
+    matcher: str = ""
 
     @property
     def fallback_used(self) -> bool:
@@ -140,6 +143,8 @@ class PoseResult:
         out["doubts"] = [d.message for d in self.doubts]
         if self.accepted_low_confidence:
             out["accepted_low_confidence"] = True
+        if self.matcher.startswith("learned:"):  # the SIFT tiers' reports stay as they were
+            out["matcher"] = self.matcher
         return out
 
     def evidence_summary(self) -> dict[str, Any]:

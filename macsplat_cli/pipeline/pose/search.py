@@ -66,6 +66,7 @@ class _Attempt:
     matches: Matches
     tier: Tier
     plane_tiebreak: list[int] | None = None
+    matcher: str = ""
 
 
 def calibrated_views(views: list[View], geometry: TwoViewGeometry) -> list[View]:
@@ -136,6 +137,7 @@ class PoseSearch:
             confidence=confidence if assessed else None,
             doubts=list(confidence.doubts),
             accepted_low_confidence=bool(confidence.doubts),
+            matcher=found.matcher,
         )
 
     # ------------------------------------------------------------------------------------------- the tiers
@@ -157,7 +159,7 @@ class PoseSearch:
         feats = timed(f"descriptors{suffix}", lambda: describe(views, pair))
         matches = timed(f"matching{suffix}", lambda: matcher(feats[0], feats[1]))
         geometry, failure = self._try_pose(views, matches, pair, timed, f"pose{suffix}")
-        return _Attempt(geometry, failure, feats, matches, tier)
+        return _Attempt(geometry, failure, feats, matches, tier, matcher=f"{describe.name}+{matcher.name}")
 
     def _tiers(self, views: list[View], pair: Any, timed: StageTimer) -> _Attempt:
         """The tier whose pose stands (module docstring, 1): the first that gives a pose, unless the putative
@@ -214,6 +216,7 @@ class PoseSearch:
         assert self.learned is not None
         t = self.learned
         logger.debug("SIFT's pose failed or is not supported: retrying with %s", t.name)
+        timed("weights (learned)", t.load)
         att = self._chain(views, pair, timed, t.describe, "learned", " (learned)", t.match)
         if att.geometry is not None and (best.geometry is None or self._credible(views, att)):
             return att

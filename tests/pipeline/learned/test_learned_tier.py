@@ -71,7 +71,7 @@ def _search(need: int, *, learned_n: int = 120, consistent: bool = False, eviden
             sift: tuple[int, int, int] = (20, 40, 60), **config: object) -> PoseSearch:  # fmt: skip
     conf = ConfidenceConfig(evidence=EvidenceConfig(max_rotation_3sigma_deg=360.0)) if evidence else None
     cfg = PoseSearchConfig(confidence=conf, guided_band_px=None, accept_low_confidence=True, **config)  # type: ignore[arg-type]
-    tier = LearnedTier(Describe("learned", learned_n, consistent=consistent), Match("lightglue"), LearnedConfig())
+    tier = LearnedTier(Describe("learned:stub", learned_n, consistent=consistent), Match("lightglue"), LearnedConfig())
     return PoseSearch(
         cfg, PoseConfig(), describe=Describe("primary", sift[0]), match=Match("filtered"), pose=Pose(need),
         fallback=Describe("fallback", sift[1]), wide=Describe("wide", sift[2]), learned=tier,
@@ -92,15 +92,19 @@ def test_the_learned_tier_runs_last_when_every_sift_tier_fails() -> None:
     search = _search(100)
     result = search(_views(), None, timer)
     assert result.tier == "learned" and len(result.geometry.inliers) == 120
-    assert timer.stages[-4:] == ["descriptors (learned)", "matching (learned)", "pose (learned)", "pose confidence"]
+    assert timer.stages[-5:] == [
+        "weights (learned)", "descriptors (learned)", "matching (learned)", "pose (learned)", "pose confidence"
+    ]  # fmt: skip
     assert timer.stages.index("pose (wide)") < timer.stages.index("descriptors (learned)")
     assert result.geometry.inliers.counts == {"lightglue": 120, "verified": 120}  # its own matcher
+    assert result.matcher == result.report()["matcher"] == "learned:stub+lightglue"
     assert search.learned is not None and search.learned.match.calls == 1 and search.match.calls == 3  # type: ignore[attr-defined]
 
 
 def test_a_sift_pose_that_stands_never_runs_the_learned_tier() -> None:
     search = _search(10, fallback_min_inliers=10)
-    assert search(_views()).tier == "primary"
+    result = search(_views())
+    assert result.tier == "primary" and result.matcher == "primary+filtered" and "matcher" not in result.report()
     assert search.learned is not None and search.learned.describe.calls == 0  # type: ignore[attr-defined]
 
 
