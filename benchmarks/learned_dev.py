@@ -6,7 +6,8 @@ and ``aliked``, pose stage only (stages 1 and 4: no depth, no Gaussians).
 
 For each pair (``accuracy_dev.CASES``) and intrinsics mode (``given``: the data's; ``est``: the 60° prior): the tier
 that gave the pose, its verified matches, the rotation and translation-direction errors against the ground truth,
-or the refusal, the learned tier's seconds (its descriptors, LightGlue and pose) and the whole search's. A pose
+or the refusal, the learned tier's seconds (its descriptors, LightGlue and pose; wall and this process's CPU time, which
+a loaded machine does not inflate) and the whole search's (wall). A pose
 ≥ 5° off that is accepted is marked ``WRONG``. Peak memory (max RSS) at the end. Measured:
 benchmarks/history/learned.md.
 """
@@ -44,12 +45,12 @@ def run_pair(frames: list, pair: tuple[int, int], given: bool, matcher: str, lea
     settings = EngineConfig(pipeline=cfg, matcher=matcher).settings()  # type: ignore[arg-type]
     pipe = Pipeline(settings.pipeline)
     views = load_views([f0.image, f1.image], settings.pipeline.views)
-    times: dict[str, float] = {}
+    times: dict[str, tuple[float, float]] = {}
 
     def timed(stage, fn):  # noqa: ANN001, ANN202
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         out = fn()
-        times[stage] = time.perf_counter() - t
+        times[stage] = (time.perf_counter() - t, time.process_time() - c)
         return out
 
     t0 = time.perf_counter()
@@ -58,15 +59,16 @@ def run_pair(frames: list, pair: tuple[int, int], given: bool, matcher: str, lea
     except ReconstructionError as e:
         res, reason = None, str(e)
     total = time.perf_counter() - t0
-    learned_s = sum(v for k, v in times.items() if "(learned)" in k or (matcher == "aliked" and "(" not in k))
+    ran = [v for k, v in times.items() if "(learned)" in k or (matcher == "aliked" and "(" not in k)]
+    learned_s = f"{sum(w for w, _ in ran):.1f} / {sum(c for _, c in ran):.1f}" if ran else "–"
     if res is None:
-        return ["refused", "–", "–", "–", reason[:90], f"{learned_s:.1f}", f"{total:.1f}"]
+        return ["refused", "–", "–", "–", reason[:90], learned_s, f"{total:.1f}"]
     T = np.linalg.inv(c2w(f1)) @ c2w(f0)
     rot = rotation_error_deg(res.geometry.R, T[:3, :3])
     tr = translation_direction_error_deg(res.geometry.t, T[:3, 3])
     mark = " WRONG" if max(rot, tr) >= WRONG_DEG else ""
     return [res.tier + (" +guided" if res.guided else ""), str(len(res.geometry.inliers)), f"{rot:.2f}",
-            f"{tr:.2f}", "accepted" + mark, f"{learned_s:.1f}", f"{total:.1f}"]  # fmt: skip
+            f"{tr:.2f}", "accepted" + mark, learned_s, f"{total:.1f}"]  # fmt: skip
 
 
 def main() -> None:
@@ -85,7 +87,7 @@ def main() -> None:
                             depth_confidence=args.depth_confidence, width_confidence=args.width_confidence)  # fmt: skip
     print(f"learned: {learned}")
     print(row(["scene", "pair", "intrinsics", "matcher", "tier", "verified", "rot err °", "t err °", "outcome",
-               "learned s", "search s"]))  # fmt: skip
+               "learned s (wall / CPU)", "search s"]))  # fmt: skip
     print(rule("lllllrrrlrr"))
     cache: dict[str, list] = {}
     for scene, name, pair in CASES:
