@@ -159,7 +159,8 @@ class PoseSearch:
         feats = timed(f"descriptors{suffix}", lambda: describe(views, pair))
         matches = timed(f"matching{suffix}", lambda: matcher(feats[0], feats[1]))
         geometry, failure = self._try_pose(views, matches, pair, timed, f"pose{suffix}")
-        return _Attempt(geometry, failure, feats, matches, tier, matcher=f"{describe.name}+{matcher.name}")
+        names = (getattr(stage, "name", type(stage).__name__) for stage in (describe, matcher))
+        return _Attempt(geometry, failure, feats, matches, tier, matcher="+".join(names))
 
     def _tiers(self, views: list[View], pair: Any, timed: StageTimer) -> _Attempt:
         """The tier whose pose stands (module docstring, 1): the first that gives a pose, unless the putative
