@@ -39,9 +39,11 @@ from .pipeline.views import ViewConfig
 from .presets import (
     BACKENDS,
     DEVICES,
+    MATCHERS,
     PRECISIONS,
     Backend,
     Device,
+    Matcher,
     Precision,
     Quality,
     StageSettings,
@@ -123,6 +125,8 @@ class EngineConfig:
         conf_threshold: τ of the filtered matching; None: the backend's default (0.04 classical, 1 neural).
         neural: the neural backend's files and device.
         refine: test-time refinement (``steps`` 0: off).
+        matcher: ``--matcher``: ``"auto"`` (SIFT, then ALIKED + LightGlue where SIFT's pose is not supported),
+            ``"sift"`` or ``"aliked"`` (classical backend; :func:`~macsplat_cli.presets.learned_search`).
     """
 
     backend: Backend = "classical"
@@ -133,6 +137,7 @@ class EngineConfig:
     quality: Quality = "balanced"
     budget: int | None = None
     size: int | None = None
+    matcher: Matcher = "auto"
 
     def validate(self, *, files: bool = True) -> None:
         """Usage errors, before any work (``files=False``: the models are given, no checkpoint is needed). Only the
@@ -144,6 +149,9 @@ class EngineConfig:
                 LPIPS weights without refinement; a bad size, threshold, budget or refinement setting.
         """
         check_choice("--backend", self.backend, BACKENDS)
+        check_choice("--matcher", self.matcher, MATCHERS, sep=", ")
+        if self.backend == "neural" and self.matcher == "aliked":
+            raise InputError("--matcher aliked applies to --backend classical (the neural backend matches its own)")
         n = self.neural
         check_choice("--device", n.device, DEVICES)
         check_choice("--precision", n.precision, PRECISIONS)
@@ -177,7 +185,7 @@ class EngineConfig:
         """Every stage's settings: the quality preset, the backend and the overrides applied once."""
         return configure(
             self.quality, self.backend, pipeline=self.pipeline, size=self.size, conf_threshold=self.conf_threshold,
-            budget=self.budget, refine=self.refine, precision=self.neural.precision,
+            budget=self.budget, refine=self.refine, precision=self.neural.precision, matcher=self.matcher,
         )  # fmt: skip
 
     def replace(self, **changes: Any) -> EngineConfig:

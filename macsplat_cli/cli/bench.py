@@ -10,7 +10,16 @@ import typer
 
 from ._app import app
 from ._common import QuietOpt, VerboseOpt, check_no_clobber, command_context, err_console, escape, out_console
-from ._options import DeviceOpt, DinoOpt, FusionOpt, GaussianHeadOpt, PrecisionOpt, WeightsOpt, neural_options
+from ._options import (
+    DeviceOpt,
+    DinoOpt,
+    FusionOpt,
+    GaussianHeadOpt,
+    MatcherOpt,
+    PrecisionOpt,
+    WeightsOpt,
+    neural_options,
+)
 from .eval import (
     AssignmentChoice,
     AssignmentOpt,
@@ -101,6 +110,7 @@ def bench_command(
     context_views: ContextViewsOpt = 2,
     splatt3r_compatible: Splatt3rOpt = False,
     json_out: Annotated[bool, typer.Option("--json", help="Print the bench as JSON on stdout.")] = False,
+    matcher: MatcherOpt = "auto",
     weights: WeightsOpt = None,
     gaussian_head: GaussianHeadOpt = None,
     dino: DinoOpt = None,
@@ -130,7 +140,7 @@ def bench_command(
             scannetpp_split=scannetpp_split, scenes=scenes, cases_file=cases, intrinsics=intrinsics.value,
             max_pairs=max_pairs, max_targets=max_targets, split_by=split_by.value, assignment=assignment.value,
             seed=seed, context_views=context_views, splatt3r_compatible=splatt3r_compatible, json_out=json_out,
-            quiet=state.quiet,
+            quiet=state.quiet, matcher=matcher,
             neural=neural_options(weights, gaussian_head, dino, fusion, device, precision),
         )  # fmt: skip
 
@@ -141,6 +151,7 @@ def _bench(
     scenes: str | None,
     cases_file: Path | None, intrinsics: str, max_pairs: int, max_targets: int, split_by: str, assignment: str,
     seed: int, splatt3r_compatible: bool, json_out: bool, quiet: bool, neural: NeuralOptions, context_views: int = 2,
+    matcher: str = "auto",
 ) -> None:  # fmt: skip
     import json
 
@@ -201,7 +212,7 @@ def _bench(
     rows = run_bench(
         dataset, sel.cases, settings, metric=metric, intrinsics=intrinsics, eval_size=eval_size,
         splatt3r_compatible=splatt3r_compatible, out_dir=out, run_fn=run_fn,
-        base=engine_config("classical", neural=neural),
+        base=engine_config("classical", neural=neural, matcher=matcher),
     )  # fmt: skip
     if not quiet:
         from rich.markdown import Markdown

@@ -13,7 +13,16 @@ import typer
 from ._app import app
 from ._common import QuietOpt, VerboseOpt, check_no_clobber, command_context, err_console, escape, out_console
 from ._eval_report import print_summary
-from ._options import DeviceOpt, DinoOpt, FusionOpt, GaussianHeadOpt, PrecisionOpt, WeightsOpt, neural_options
+from ._options import (
+    DeviceOpt,
+    DinoOpt,
+    FusionOpt,
+    GaussianHeadOpt,
+    MatcherOpt,
+    PrecisionOpt,
+    WeightsOpt,
+    neural_options,
+)
 
 if TYPE_CHECKING:
     from ..engine import EngineConfig, NeuralOptions  # noqa: F401
@@ -57,7 +66,7 @@ DataOpt = Annotated[
 
 def engine_config(
     backend: str, *, conf_threshold: float | None = None, refine: int = 0, neural: NeuralOptions | None = None,
-    quality: str = "balanced",
+    quality: str = "balanced", matcher: str = "auto",
 ) -> EngineConfig:  # fmt: skip
     """The engine settings of ``eval``/``bench`` (the working size and intrinsics come per case)."""
     from ..engine import EngineConfig, NeuralOptions
@@ -66,6 +75,7 @@ def engine_config(
     return EngineConfig(
         backend=backend.strip().lower(), conf_threshold=conf_threshold, neural=neural or NeuralOptions(),  # type: ignore[arg-type]
         refine=RefineConfig(steps=refine), quality=quality.strip().lower(),  # type: ignore[arg-type]
+        matcher=matcher.strip().lower(),  # type: ignore[arg-type]
     )  # fmt: skip
 
 
@@ -291,6 +301,7 @@ def eval_command(
         str | None,
         typer.Option("--protocol", metavar="NAME", help="A paper's protocol: mac-splat (see models/mac-splat.md)."),
     ] = None,
+    matcher: MatcherOpt = "auto",
     weights: WeightsOpt = None,
     gaussian_head: GaussianHeadOpt = None,
     dino: DinoOpt = None,
@@ -344,7 +355,7 @@ def eval_command(
             splatt3r_compatible=splatt3r_compatible, baselines=not no_baselines, json_out=json_out, quiet=state.quiet,
             lpips_weights=lpips_weights, shard=shard, protocol=protocol,
             engine=engine_config(
-                backend, conf_threshold=conf_threshold, refine=refine, quality=quality,
+                backend, conf_threshold=conf_threshold, refine=refine, quality=quality, matcher=matcher,
                 neural=neural_options(weights, gaussian_head, dino, fusion, device, precision),
             ),
         )  # fmt: skip

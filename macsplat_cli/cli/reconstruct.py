@@ -27,6 +27,7 @@ from ._common import (
 from ._export import OutputExtras, export_requests, up_choice
 from ._options import (
     AcceptLowConfidenceOpt,
+    MatcherOpt,
     DeviceOpt,
     DinoOpt,
     FusionOpt,
@@ -187,6 +188,7 @@ def reconstruct_command(
     no_mac: NoMacOpt = False,
     lpips_weights: LpipsWeightsOpt = None,
     backend: BackendOpt = "classical",
+    matcher: MatcherOpt = "auto",
     weights: WeightsOpt = None,
     dino: DinoOpt = None,
     fusion: FusionOpt = None,
@@ -236,6 +238,7 @@ def reconstruct_command(
             conf_threshold=conf_threshold, accept_low_confidence=accept_low_confidence, far_layer=far_layer,
             refine=refine, refine_scale=refine_scale, no_mac=no_mac, lpips_weights=lpips_weights, backend=backend,
             weights=weights, dino=dino, fusion=fusion, gaussian_head=gaussian_head, device=device, precision=precision,
+            matcher=matcher,
         )  # fmt: skip
         _reconstruct(
             expand_photos(images), config, output=output, cameras=cameras, renders=renders, num_renders=num_renders,
@@ -258,7 +261,7 @@ def reconstruct_config(
     far_layer: bool = True, refine: str = "", refine_scale: int = 2, no_mac: bool = False,
     lpips_weights: Path | None = None, backend: str = "classical", weights: Path | None = None,
     dino: Path | None = None, fusion: Path | None = None, gaussian_head: Path | None = None, device: str = "cpu",
-    precision: str = "fp32",
+    precision: str = "fp32", matcher: str = "auto",
 ) -> EngineConfig:  # fmt: skip
     """``reconstruct``'s options (the command's defaults) as the engine takes them, one field each: the presets
     apply in the engine (:meth:`~macsplat_cli.engine.EngineConfig.settings`), the values are checked by
@@ -278,6 +281,7 @@ def reconstruct_config(
     return EngineConfig(  # the choices are checked by EngineConfig.validate
         backend=backend.strip().lower(),  # type: ignore[arg-type]
         quality=quality.strip().lower(),  # type: ignore[arg-type]
+        matcher=matcher.strip().lower(),  # type: ignore[arg-type]
         budget=budget,
         size=size,
         pipeline=ReconstructConfig(

@@ -29,6 +29,7 @@ from .background import BackgroundConfig, BackgroundLayer, background_gaussians
 from .depth import DepthConfig
 from .descriptors import SiftConfig, SiftDescriptors
 from .gaussian_init import GaussianInitConfig
+from .learned import learned_tier
 from .matching import MatchConfig
 from .multiview import MultiViewConfig, MultiViewResult, reconstruct_views
 from .pose import PoseConfig, PoseResult, PoseSearch, PoseSearchConfig
@@ -187,6 +188,11 @@ class Pipeline:
             fallback_descriptors = PerViewDescriptors(SiftDescriptors(fb_cfg))
         if wide_descriptors is None and wide_cfg is not None and classical:
             wide_descriptors = PerViewDescriptors(SiftDescriptors(wide_cfg))
+        learned = None
+        if c.search.learned is not None:  # --matcher auto|aliked (presets.configure)
+            learned = learned_tier(c.search.learned, required=c.search.learned_primary)
+            if learned is not None and c.search.learned_primary:
+                descriptors, matcher, learned = descriptors or learned.describe, matcher or learned.match, None
         self.search = PoseSearch(
             c.search,
             c.pose,
@@ -195,6 +201,7 @@ class Pipeline:
             pose=pose or EssentialPose(c.pose),
             fallback=fallback_descriptors,
             wide=wide_descriptors,
+            learned=learned,
         )
         self.depth = depth or PlaneSweepDepth(c.depth)
         self.gaussians = gaussians or DepthGaussians(c.gaussians)
@@ -215,6 +222,8 @@ class Pipeline:
             "depth": name(self.depth),
             "gaussians": name(self.gaussians),
         }
+        if s.learned is not None:
+            names["descriptors_learned"] = s.learned.name
         if self.pair is not None:
             names["pair"] = name(self.pair)
         return names

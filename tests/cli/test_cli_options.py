@@ -129,6 +129,26 @@ def test_neural_flags_make_the_neural_options_and_stage_settings() -> None:
     assert _settings("--backend", "neural", "--weights", "w.pth", "--quality", "fast").neural.fusion == "auto"
 
 
+def test_matcher_chooses_the_pose_search_tiers() -> None:
+    """``--matcher``: auto (default) adds the learned tier after the SIFT tiers; sift none; aliked the learned
+    matcher alone; a learned matcher with the neural backend, or an unknown name, is a usage error."""
+    from macsplat_cli.pipeline.learned import LearnedConfig
+
+    assert _config().matcher == "auto" and _config("--matcher", " SIFT").matcher == "sift"
+    auto = _settings().pipeline.search
+    assert auto.learned == LearnedConfig() and not auto.learned_primary
+    assert auto.fallback_descriptors is not None and auto.wide_descriptors is not None
+    assert _settings("--matcher", "sift").pipeline.search.learned is None
+    forced = _settings("--matcher", "aliked").pipeline.search
+    assert forced.learned == LearnedConfig() and forced.learned_primary
+    assert forced.fallback_descriptors is None and forced.wide_descriptors is None
+    with pytest.raises(InputError, match="--matcher"):
+        _settings("--matcher", "orb")
+    with pytest.raises(InputError, match="--matcher aliked"):
+        _config("--backend", "neural", "--weights", "w.pth", "--matcher", "aliked").validate(files=False)
+    assert _settings("--backend", "neural", "--weights", "w.pth").pipeline.search.learned is None
+
+
 def _run_python(code: str) -> str:
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
 
@@ -156,4 +176,4 @@ def test_help_names_the_presets_choices() -> None:
     with contextlib.redirect_stdout(out):
         assert main(["reconstruct", "--help"]) == 0
     text = " ".join(out.getvalue().split())
-    assert "fast|balanced|best" in text and "classical|neural" in text
+    assert "fast|balanced|best" in text and "classical|neural" in text and "auto|sift|aliked" in text

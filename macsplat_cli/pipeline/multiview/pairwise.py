@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from ...errors import ReconstructionError
+from ..learned import LearnedTier
 from ..pose import PoseResult, PoseSearch
 from ..pose.focal import FOCAL_DOUBT_START
 from ..slots import DescribeStage
@@ -65,8 +66,14 @@ def cached_search(search: PoseSearch, *, accept_low_confidence: bool = False) ->
         pose=search.pose,
         fallback=CachedDescriptors(search.fallback) if search.fallback is not None else None,
         wide=CachedDescriptors(search.wide) if search.wide is not None else None,
+        learned=_cached_tier(search.learned),
         warn_doubts=not accept_low_confidence,
     )
+
+
+def _cached_tier(tier: LearnedTier | None) -> LearnedTier | None:
+    """The learned tier with its descriptors cached per view (its matcher is pairwise)."""
+    return None if tier is None else dataclasses.replace(tier, describe=CachedDescriptors(tier.describe))
 
 
 def primary_only(search: PoseSearch) -> PoseSearch:
@@ -94,10 +101,10 @@ def _components(n: int, outcomes: Sequence[PairOutcome]) -> np.ndarray:
 
 def match_all(views: Sequence[View], pairs: Sequence[tuple[int, int]], search: PoseSearch) -> list[PairOutcome]:
     """Every pair with the primary tier; then, with every tier, the pairs that failed and would join two groups
-    of photos the accepted pairs leave apart (an isolated photo is a group): the slow tiers run where they can
-    change what registers."""
+    of photos the accepted pairs leave apart (an isolated photo is a group): the slow tiers (the learned one
+    included) run where they can change what registers."""
     outs = match_pairs(views, pairs, primary_only(search))
-    if search.fallback is None and search.wide is None:
+    if search.fallback is None and search.wide is None and search.learned is None:
         return outs
     label = _components(len(views), outs)
     for n, o in enumerate(outs):

@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from ..descriptors import SiftConfig
+from ..learned.config import LearnedConfig
 
 __all__ = ["ConfidenceConfig", "EvidenceConfig", "PoseConfig", "PoseSearchConfig"]
 
@@ -222,6 +223,10 @@ class PoseSearchConfig:
         confidence: the checks of the final pose independent of the RANSAC (:func:`~.confidence.assess_pose`);
             None: off (the pose stage's doubts and the support minimum still apply).
         accept_low_confidence: a pose with doubts is written anyway (a warning) instead of refused.
+        learned: the learned tier (ALIKED + LightGlue, :mod:`..learned`), run after the SIFT tiers when their pose
+            fails or its matches do not support it; None: off (``--matcher sift``; ``presets.configure`` sets it).
+        learned_primary: the learned matcher is the primary (and only) tier (``--matcher aliked``): its weight
+            files are then required.
     """
 
     fallback_descriptors: SiftConfig | None = field(
@@ -244,3 +249,5 @@ class PoseSearchConfig:
     guided_max_change_deg: tuple[float, float] = (3.0, 10.0)
     confidence: ConfidenceConfig | None = field(default_factory=ConfidenceConfig)
     accept_low_confidence: bool = False
+    learned: LearnedConfig | None = None
+    learned_primary: bool = False

@@ -13,9 +13,10 @@ from .evidence import PoseEvidence
 
 __all__ = ["Doubt", "DoubtCheck", "PoseConfidence", "PoseResult", "Tier"]
 
-Tier = Literal["primary", "fallback", "wide", "wide+plane-tiebreak"]
+Tier = Literal["primary", "fallback", "wide", "wide+plane-tiebreak", "learned"]
 """The descriptor tier whose matches gave the pose: the primary descriptors, the fallback, the wide-baseline tier,
-or the plane tie-break after the wide tier (its matches guided along the winning plane pose, primary features)."""
+the plane tie-break after the wide tier (its matches guided along the winning plane pose, primary features), or the
+learned tier (ALIKED + LightGlue, after the SIFT tiers)."""
 
 WIDE_TIERS: tuple[Tier, ...] = ("wide", "wide+plane-tiebreak")
 """The tiers the report names (``descriptors_tier``)."""
@@ -91,6 +92,8 @@ class PoseResult:
         confidence: the acceptance's checks; None when they are off (``PoseSearchConfig.confidence``).
         doubts: every doubt, in order: the pose stage's, the support minimum's, the checks'.
         accepted_low_confidence: there are doubts, and the scene is built anyway.
+        matcher: the descriptors and matcher that gave the pose (``"learned:aliked-n16+learned:lightglue"``); the
+            report names it when they are learned ones.
     """
 
     geometry: TwoViewGeometry
@@ -103,6 +106,7 @@ class PoseResult:
     confidence: PoseConfidence | None = None
     doubts: list[Doubt] = field(default_factory=list)
     accepted_low_confidence: bool = False
+    matcher: str = ""
 
     @property
     def fallback_used(self) -> bool:
@@ -139,6 +143,8 @@ class PoseResult:
         out["doubts"] = [d.message for d in self.doubts]
         if self.accepted_low_confidence:
             out["accepted_low_confidence"] = True
+        if self.matcher.startswith("learned:"):  # the SIFT tiers' reports stay as they were
+            out["matcher"] = self.matcher
         return out
 
     def evidence_summary(self) -> dict[str, Any]:

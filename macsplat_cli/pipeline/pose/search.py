@@ -5,7 +5,8 @@
    gives a pose, the wide-baseline descriptors, and when their pose fails, the plane tie-break
    (:func:`~.tiebreak.plane_tiebreak`). A tier's pose that its own putative matches do not support (the a contrario
    test and the uncertainty of :func:`~.confidence.weigh_evidence`) does not stop the search: the later tiers run,
-   and the first whose pose their matches support replaces it.
+   and the first whose pose their matches support replaces it. Last, the learned tier (ALIKED + LightGlue,
+   :mod:`..learned`) when the SIFT tiers' pose still fails or is not supported; it competes the same way.
 2. Guided re-matching: with fewer than ``guided_below`` verified matches, every keypoint is matched again along
    the pose's epipolar lines and the pose re-estimated, kept if it verifies more and stays near. Guided matches
    refine a pose; they are never evidence for accepting it.
@@ -23,7 +24,7 @@ import dataclasses
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ...errors import ReconstructionError
 from ...metrics import rotation_error_deg, translation_direction_error_deg
@@ -35,6 +36,9 @@ from .config import PoseConfig, PoseSearchConfig
 from .geometry import fundamental_from_pose
 from .result import Doubt, PoseConfidence, PoseResult, Tier
 from .tiebreak import plane_tiebreak
+
+if TYPE_CHECKING:
+    from ..learned import LearnedTier
 
 __all__ = ["LOW_CONFIDENCE_HINT", "PoseSearch", "StageTimer", "calibrated_views"]
 
@@ -62,6 +66,7 @@ class _Attempt:
     matches: Matches
     tier: Tier
     plane_tiebreak: list[int] | None = None
+    matcher: str = ""
 
 
 def calibrated_views(views: list[View], geometry: TwoViewGeometry) -> list[View]:
@@ -87,6 +92,8 @@ class PoseSearch:
         pose: the pose stage (``(v0, v1, matches, pair) → TwoViewGeometry``).
         fallback: the fallback descriptors, or None.
         wide: the wide-baseline descriptors, or None.
+        learned: the learned tier (its own descriptors and matcher, :class:`~..learned.LearnedTier`), run last, or
+            None.
         warn_doubts: log a kept doubted pose (``accept_low_confidence``) as a warning; off for a caller that judges
             the doubts itself (:mod:`..multiview`).
     """
@@ -94,7 +101,7 @@ class PoseSearch:
     def __init__(
         self, config: PoseSearchConfig, pose_config: PoseConfig, *, describe: DescribeStage, match: MatchStage,
         pose: PoseStage, fallback: DescribeStage | None = None, wide: DescribeStage | None = None,
-        warn_doubts: bool = True,
+        learned: LearnedTier | None = None, warn_doubts: bool = True,
     ) -> None:  # fmt: skip
         self.config = config
         self.pose_config = pose_config
@@ -103,6 +110,7 @@ class PoseSearch:
         self.pose = pose
         self.fallback = fallback
         self.wide = wide
+        self.learned = learned
         self.warn_doubts = warn_doubts
 
     def __call__(self, views: list[View], pair: Any = None, timed: StageTimer | None = None) -> PoseResult:
@@ -129,6 +137,7 @@ class PoseSearch:
             confidence=confidence if assessed else None,
             doubts=list(confidence.doubts),
             accepted_low_confidence=bool(confidence.doubts),
+            matcher=found.matcher,
         )
 
     # ------------------------------------------------------------------------------------------- the tiers
@@ -141,13 +150,17 @@ class PoseSearch:
             return None, e
 
     def _chain(
-        self, views: list[View], pair: Any, timed: StageTimer, describe: DescribeStage, tier: Tier, suffix: str
+        self, views: list[View], pair: Any, timed: StageTimer, describe: DescribeStage, tier: Tier, suffix: str,
+        match: MatchStage | None = None,
     ) -> _Attempt:
-        """Descriptors → matching → pose with ``describe``, its stages named with ``suffix``."""
+        """Descriptors → matching (``match``, default the search's matcher) → pose with ``describe``, its stages
+        named with ``suffix``."""
+        matcher = match or self.match
         feats = timed(f"descriptors{suffix}", lambda: describe(views, pair))
-        matches = timed(f"matching{suffix}", lambda: self.match(feats[0], feats[1]))
+        matches = timed(f"matching{suffix}", lambda: matcher(feats[0], feats[1]))
         geometry, failure = self._try_pose(views, matches, pair, timed, f"pose{suffix}")
-        return _Attempt(geometry, failure, feats, matches, tier)
+        names = (getattr(stage, "name", type(stage).__name__) for stage in (describe, matcher))
+        return _Attempt(geometry, failure, feats, matches, tier, matcher="+".join(names))
 
     def _tiers(self, views: list[View], pair: Any, timed: StageTimer) -> _Attempt:
         """The tier whose pose stands (module docstring, 1): the first that gives a pose, unless the putative
@@ -177,8 +190,11 @@ class PoseSearch:
             wide = self._wide(views, primary.features, pair, timed)
             if wide.geometry is not None and (best.geometry is None or self._credible(views, wide)):
                 best = wide
+                doubted = best.geometry is not None and not self._credible(views, best)
             else:
                 logger.debug("wide-baseline tier: %s", wide.failure or "its pose is not supported either")
+        if self.learned is not None and (best.geometry is None or doubted):
+            best = self._learned(views, pair, timed, best)
         if best.geometry is None:
             assert best.failure is not None
             raise best.failure
@@ -194,6 +210,19 @@ class PoseSearch:
             return True
         _, doubts, _ = weigh_evidence(views[0], views[1], attempt.geometry, attempt.matches, cfg.evidence)
         return not doubts
+
+    def _learned(self, views: list[View], pair: Any, timed: StageTimer, best: _Attempt) -> _Attempt:
+        """The learned tier after the SIFT tiers (module docstring, 1): its pose replaces ``best`` when ``best`` has
+        none, or when its own matches support it; ``best``'s failure stands when it gives none."""
+        assert self.learned is not None
+        t = self.learned
+        logger.debug("SIFT's pose failed or is not supported: retrying with %s", t.name)
+        timed("weights (learned)", t.load)
+        att = self._chain(views, pair, timed, t.describe, "learned", " (learned)", t.match)
+        if att.geometry is not None and (best.geometry is None or self._credible(views, att)):
+            return att
+        logger.debug("learned tier: %s", att.failure or "its pose is not supported either")
+        return best
 
     def _wide(self, views: list[View], primary: list[Features], pair: Any, timed: StageTimer) -> _Attempt:
         """The second fallback tier: wide-baseline descriptors, matching and pose; when that pose fails, the

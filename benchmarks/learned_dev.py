@@ -1,0 +1,105 @@
+"""The learned matcher (issue 39) on the development pairs: the pose of each pair with ``--matcher sift``, ``auto``
+and ``aliked``, pose stage only (stages 1 and 4: no depth, no Gaussians).
+
+    python -m benchmarks.learned_dev --data ../shared/data [--matchers sift auto] [--modes given est]
+        [--scenes co3d icl_livingroom] [--keypoints 2048] [--detect-size 1024]
+
+For each pair (``accuracy_dev.CASES``) and intrinsics mode (``given``: the data's; ``est``: the 60° prior): the tier
+that gave the pose, its verified matches, the rotation and translation-direction errors against the ground truth,
+or the refusal, the learned tier's seconds (its descriptors, LightGlue and pose; wall and this process's CPU time, which
+a loaded machine does not inflate) and the whole search's (wall). A pose
+≥ 5° off that is accepted is marked ``WRONG``. Peak memory (max RSS) at the end. Measured:
+benchmarks/history/learned.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks._common import peak_rss_mib, row, rule
+from benchmarks._dev import c2w, dev_frames, save_intrinsics
+from benchmarks.accuracy_dev import CASES
+from macsplat_cli.engine import EngineConfig
+from macsplat_cli.errors import ReconstructionError
+from macsplat_cli.metrics import rotation_error_deg, translation_direction_error_deg
+from macsplat_cli.pipeline.learned import LearnedConfig
+from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig
+from macsplat_cli.pipeline.views import ViewConfig, load_views
+
+WRONG_DEG = 5.0
+"""An accepted pose this far off (rotation or translation direction) is wrong (the issue's target)."""
+
+
+def run_pair(frames: list, pair: tuple[int, int], given: bool, matcher: str, learned: LearnedConfig) -> list[str]:
+    f0, f1 = frames[pair[0]], frames[pair[1]]
+    cfg = ReconstructConfig(views=ViewConfig())
+    if given:
+        cfg.views.intrinsics = save_intrinsics(Path(tempfile.mkdtemp()) / "k.json", (f0, f1))
+    cfg.search = dataclasses.replace(cfg.search, learned=learned)
+    settings = EngineConfig(pipeline=cfg, matcher=matcher).settings()  # type: ignore[arg-type]
+    pipe = Pipeline(settings.pipeline)
+    views = load_views([f0.image, f1.image], settings.pipeline.views)
+    times: dict[str, tuple[float, float]] = {}
+
+    def timed(stage, fn):  # noqa: ANN001, ANN202
+        t, c = time.perf_counter(), time.process_time()
+        out = fn()
+        times[stage] = (time.perf_counter() - t, time.process_time() - c)
+        return out
+
+    t0 = time.perf_counter()
+    try:
+        res = pipe.search(views, None, timed)
+    except ReconstructionError as e:
+        res, reason = None, str(e)
+    total = time.perf_counter() - t0
+    ran = [v for k, v in times.items() if "(learned)" in k or (matcher == "aliked" and "(" not in k)]
+    learned_s = f"{sum(w for w, _ in ran):.1f} / {sum(c for _, c in ran):.1f}" if ran else "–"
+    if res is None:
+        return ["refused", "–", "–", "–", reason[:90], learned_s, f"{total:.1f}"]
+    T = np.linalg.inv(c2w(f1)) @ c2w(f0)
+    rot = rotation_error_deg(res.geometry.R, T[:3, :3])
+    tr = translation_direction_error_deg(res.geometry.t, T[:3, 3])
+    mark = " WRONG" if max(rot, tr) >= WRONG_DEG else ""
+    return [res.tier + (" +guided" if res.guided else ""), str(len(res.geometry.inliers)), f"{rot:.2f}",
+            f"{tr:.2f}", "accepted" + mark, learned_s, f"{total:.1f}"]  # fmt: skip
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, required=True, help="the shared dev data folder")
+    ap.add_argument("--matchers", nargs="+", default=["sift", "auto"])
+    ap.add_argument("--modes", nargs="+", default=["given", "est"])
+    ap.add_argument("--scenes", nargs="+", default=["co3d", "icl_livingroom", "nyu_dining"])
+    ap.add_argument("--pairs", nargs="+", default=None, help="only these pair names (e.g. 'wide 55°' '(2,3)')")
+    ap.add_argument("--keypoints", type=int, default=LearnedConfig.max_keypoints)
+    ap.add_argument("--detect-size", type=int, default=LearnedConfig.detect_size)
+    ap.add_argument("--depth-confidence", type=float, default=LearnedConfig.depth_confidence)
+    ap.add_argument("--width-confidence", type=float, default=LearnedConfig.width_confidence)
+    args = ap.parse_args()
+    learned = LearnedConfig(max_keypoints=args.keypoints, detect_size=args.detect_size,
+                            depth_confidence=args.depth_confidence, width_confidence=args.width_confidence)  # fmt: skip
+    print(f"learned: {learned}")
+    print(row(["scene", "pair", "intrinsics", "matcher", "tier", "verified", "rot err °", "t err °", "outcome",
+               "learned s (wall / CPU)", "search s"]))  # fmt: skip
+    print(rule("lllllrrrlrr"))
+    cache: dict[str, list] = {}
+    for scene, name, pair in CASES:
+        if scene not in args.scenes or (args.pairs and name not in args.pairs):
+            continue
+        frames = cache.setdefault(scene, dev_frames(args.data, scene))
+        for mode in args.modes:
+            for matcher in args.matchers:
+                cells = run_pair(frames, pair, mode == "given", matcher, learned)
+                print(row([scene, name, mode, matcher, *cells]), flush=True)
+    print(f"\npeak memory (max RSS): {peak_rss_mib():.0f} MiB")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,125 @@
+"""The learned tier of the pose search (issue 39): it runs after the SIFT tiers, only when their pose fails or its
+own matches do not support it, with its own descriptors and matcher, and competes on evidence as they do.
+
+Stub slots (no images, no weights): the tier order and the stages each runs, the tier recorded, whose failure
+stands, and that a supported SIFT pose never pays for the learned tier.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from macsplat_cli.errors import ReconstructionError
+from macsplat_cli.pipeline.learned import LearnedConfig, LearnedTier
+from macsplat_cli.pipeline.pose import ConfidenceConfig, EvidenceConfig, PoseConfig, PoseSearch, PoseSearchConfig
+from macsplat_cli.pipeline.types import Features, Matches, TwoViewGeometry, View
+
+W, H = 64, 48
+K = np.array([[55.0, 0.0, 32.0], [0.0, 55.0, 24.0], [0.0, 0.0, 1.0]])
+
+
+def _views() -> list[View]:
+    image, mask = np.zeros((H, W, 3), np.float32), np.ones((H, W), bool)
+    return [View(f"v{k}", Path(f"v{k}.png"), image, mask, K.copy(), (W, H), "file") for k in range(2)]
+
+
+class Describe:
+    """``n`` features per view; ``consistent``: index-wise matches that agree with the stub pose (R = I, t along x),
+    else random ones."""
+
+    def __init__(self, name: str, n: int, *, consistent: bool = False) -> None:
+        self.name, self.n, self.consistent, self.calls = name, n, consistent, 0
+
+    def __call__(self, views: list[View], pair: object = None) -> list[Features]:
+        self.calls += 1
+        rng = np.random.default_rng(self.n)
+        xy0 = rng.uniform((0, 0), (W - 12, H), (self.n, 2))
+        shift = np.c_[rng.uniform(1.0, 10.0, self.n), np.zeros(self.n)]
+        xy1 = xy0 + shift if self.consistent else rng.uniform((0, 0), (W, H), (self.n, 2))
+        return [Features(xy, np.ones((self.n, 4), np.float32), np.ones(self.n, np.float32)) for xy in (xy0, xy1)]
+
+
+class Match:
+    def __init__(self, name: str) -> None:
+        self.name, self.calls = name, 0
+
+    def __call__(self, f0: Features, f1: Features) -> Matches:
+        self.calls += 1
+        idx = np.arange(len(f0))
+        return Matches(f0.xy, f1.xy, np.ones(len(f0), np.float32), idx, idx, {self.name: len(f0)})
+
+
+class Pose:
+    """Fails on fewer than ``need`` matches; otherwise R = I, t along x, every match verified."""
+
+    name = "stub-pose"
+
+    def __init__(self, need: int) -> None:
+        self.need = need
+
+    def __call__(self, v0: View, v1: View, matches: Matches, pair: object = None) -> TwoViewGeometry:
+        if len(matches) < self.need:
+            raise ReconstructionError(f"stub: {len(matches)} matches, need {self.need}")
+        return TwoViewGeometry(np.eye(3), np.array([1.0, 0.0, 0.0]), v0.K.copy(), v1.K.copy(),
+                               matches.subset(np.arange(len(matches)), "verified"), median_parallax_deg=2.0)  # fmt: skip
+
+
+def _search(need: int, *, learned_n: int = 120, consistent: bool = False, evidence: bool = False,
+            sift: tuple[int, int, int] = (20, 40, 60), **config: object) -> PoseSearch:  # fmt: skip
+    conf = ConfidenceConfig(evidence=EvidenceConfig(max_rotation_3sigma_deg=360.0)) if evidence else None
+    cfg = PoseSearchConfig(confidence=conf, guided_band_px=None, accept_low_confidence=True, **config)  # type: ignore[arg-type]
+    tier = LearnedTier(Describe("learned:stub", learned_n, consistent=consistent), Match("lightglue"), LearnedConfig())
+    return PoseSearch(
+        cfg, PoseConfig(), describe=Describe("primary", sift[0]), match=Match("filtered"), pose=Pose(need),
+        fallback=Describe("fallback", sift[1]), wide=Describe("wide", sift[2]), learned=tier,
+    )  # fmt: skip
+
+
+class Timer:
+    def __init__(self) -> None:
+        self.stages: list[str] = []
+
+    def __call__(self, stage: str, fn):  # noqa: ANN001, ANN204
+        self.stages.append(stage)
+        return fn()
+
+
+def test_the_learned_tier_runs_last_when_every_sift_tier_fails() -> None:
+    timer = Timer()
+    search = _search(100)
+    result = search(_views(), None, timer)
+    assert result.tier == "learned" and len(result.geometry.inliers) == 120
+    assert timer.stages[-5:] == [
+        "weights (learned)", "descriptors (learned)", "matching (learned)", "pose (learned)", "pose confidence"
+    ]  # fmt: skip
+    assert timer.stages.index("pose (wide)") < timer.stages.index("descriptors (learned)")
+    assert result.geometry.inliers.counts == {"lightglue": 120, "verified": 120}  # its own matcher
+    assert result.matcher == result.report()["matcher"] == "learned:stub+lightglue"
+    assert search.learned is not None and search.learned.match.calls == 1 and search.match.calls == 3  # type: ignore[attr-defined]
+
+
+def test_a_sift_pose_that_stands_never_runs_the_learned_tier() -> None:
+    search = _search(10, fallback_min_inliers=10)
+    result = search(_views())
+    assert result.tier == "primary" and result.matcher == "primary+filtered" and "matcher" not in result.report()
+    assert search.learned is not None and search.learned.describe.calls == 0  # type: ignore[attr-defined]
+
+
+def test_when_the_learned_tier_fails_too_the_sift_failure_stands() -> None:
+    with pytest.raises(ReconstructionError, match="stub: 40 matches, need 200"):
+        _search(200, learned_n=150)(_views())
+
+
+def test_the_learned_pose_replaces_an_unsupported_sift_pose_only_when_its_matches_support_it() -> None:
+    """SIFT's random matches verify a pose they do not single out (the a contrario test fails): the learned tier
+    runs; its consistent matches support its pose, which stands. Random learned matches do not replace it."""
+    search = _search(10, consistent=True, evidence=True, sift=(200, 150, 100), fallback_min_inliers=10)
+    result = search(_views())
+    assert result.tier == "learned" and "evidence" not in {d.check for d in result.doubts}
+    search = _search(10, consistent=False, evidence=True, sift=(200, 150, 100), fallback_min_inliers=10)
+    result = search(_views())
+    assert result.tier != "learned" and "evidence" in {d.check for d in result.doubts}
+    assert search.learned is not None and search.learned.describe.calls == 1  # type: ignore[attr-defined]
