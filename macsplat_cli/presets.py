@@ -35,8 +35,8 @@ else:  # pragma: no cover - Python 3.10
 if TYPE_CHECKING:
     from .pipeline.compact import CompactConfig
     from .pipeline.neural import NeuralConfig
-    from .pipeline.refine import RefineConfig
     from .pipeline.pose import PoseSearchConfig
+    from .pipeline.refine import RefineConfig
     from .pipeline.run import ReconstructConfig
 
 __all__ = [
@@ -213,7 +213,6 @@ def configure(
         InputError: an unknown quality, backend or matcher; a learned matcher with the neural backend.
     """
     from .pipeline.refine import RefineConfig
-    from .pipeline.pose import PoseSearchConfig
     from .pipeline.run import ReconstructConfig
 
     check_quality(quality)

