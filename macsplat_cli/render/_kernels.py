@@ -66,34 +66,33 @@ def bin_tiles(pixel_rect: np.ndarray, width: int, height: int, tile: int) -> tup
     """
     tiles_x = (width + tile - 1) // tile
     tiles_y = (height + tile - 1) // tile
+    # one serial pass over the Gaussians per step: each visits only its own tiles (two passes of the
+    # intersections, ~1 ns each; the Gaussian-per-tile-row scans this replaces cost ~10x more)
     counts = np.zeros(tiles_x * tiles_y, np.int64)
-    # one tile row per chunk: a chunk writes only its own rows' counters and list entries
-    parallel_for(_count_rows, tiles_y, pixel_rect, tile, tiles_x, counts)
+    _count_tiles(pixel_rect, tile, tiles_x, counts)
     offsets = np.zeros(tiles_x * tiles_y + 1, np.int64)
     offsets[1:] = np.cumsum(counts)
     lists = np.empty(offsets[-1], np.int32)
-    parallel_for(_fill_rows, tiles_y, pixel_rect, tile, tiles_x, offsets, lists)
+    _fill_tiles(pixel_rect, tile, tiles_x, offsets[:-1].copy(), lists)
     return offsets, lists
 
 
 @nb.njit(**_JIT)
-def _count_rows(start, stop, pixel_rect, tile, tiles_x, counts):  # noqa: ANN001, ANN202
-    for ty in range(start, stop):
-        for g in range(pixel_rect.shape[0]):
-            if pixel_rect[g, 2] // tile <= ty <= pixel_rect[g, 3] // tile:
-                for tx in range(pixel_rect[g, 0] // tile, pixel_rect[g, 1] // tile + 1):
-                    counts[ty * tiles_x + tx] += 1
+def _count_tiles(pixel_rect, tile, tiles_x, counts):  # noqa: ANN001, ANN202
+    for g in range(pixel_rect.shape[0]):
+        for ty in range(pixel_rect[g, 2] // tile, pixel_rect[g, 3] // tile + 1):
+            for tx in range(pixel_rect[g, 0] // tile, pixel_rect[g, 1] // tile + 1):
+                counts[ty * tiles_x + tx] += 1
 
 
 @nb.njit(**_JIT)
-def _fill_rows(start, stop, pixel_rect, tile, tiles_x, offsets, lists):  # noqa: ANN001, ANN202
-    for ty in range(start, stop):
-        cursor = offsets[ty * tiles_x : (ty + 1) * tiles_x].copy()
-        for g in range(pixel_rect.shape[0]):
-            if pixel_rect[g, 2] // tile <= ty <= pixel_rect[g, 3] // tile:
-                for tx in range(pixel_rect[g, 0] // tile, pixel_rect[g, 1] // tile + 1):
-                    lists[cursor[tx]] = g
-                    cursor[tx] += 1
+def _fill_tiles(pixel_rect, tile, tiles_x, cursor, lists):  # noqa: ANN001, ANN202
+    for g in range(pixel_rect.shape[0]):
+        for ty in range(pixel_rect[g, 2] // tile, pixel_rect[g, 3] // tile + 1):
+            for tx in range(pixel_rect[g, 0] // tile, pixel_rect[g, 1] // tile + 1):
+                t = ty * tiles_x + tx
+                lists[cursor[t]] = g
+                cursor[t] += 1
 
 
 @nb.njit(inline="always", **_JIT)
@@ -369,6 +368,16 @@ def _backward_tiles(
                 out[r, GRAD_COLS + ch] = v_f[ch]
 
 
+@nb.njit(**_JIT)
+def sum_rows(lists, rows, out):  # noqa: ANN001, ANN201
+    """``out[lists[r]] += rows[r]`` for every intersection ``r``: :func:`composite_backward`'s rows summed per
+    Gaussian into ``out`` [M, 6 + C] (in place)."""
+    for r in range(lists.shape[0]):
+        g = lists[r]
+        for k in range(rows.shape[1]):
+            out[g, k] += rows[r, k]
+
+
 def compile_kernels() -> None:
     """Compile (or load from the cache) the binning and the forward compositing for float32 Gaussians, on empty
     ranges: no work, only the compilation, for a background thread (the backward compiles when first needed)."""
@@ -379,6 +388,6 @@ def compile_kernels() -> None:
         np.zeros(1, np.int32),
         np.zeros((1, 1), np.int32),
     )
-    _count_rows(0, 0, r, 16, 1, o)
-    _fill_rows(0, 0, r, 16, 1, o, li)
+    _count_tiles(r[:0], 16, 1, o)
+    _fill_tiles(r[:0], 16, 1, o, li)
     _forward_tiles(0, 0, f2, f2, f1, f2, r, o, li, 1, 1, 16, f3, f2, last)
