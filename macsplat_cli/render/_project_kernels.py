@@ -36,7 +36,7 @@ compositor's gradient rows (``_kernels.GRAD_COLS`` + the features r, g, b, z) as
 """Chunks of Gaussians per thread: culled Gaussians cost less, so threads take smaller runs as they come free."""
 
 
-@nb.njit(inline="always", **_JIT)
+@nb.njit(**_JIT)
 def _rotmat(qw, qx, qy, qz, Rq):  # noqa: ANN001, ANN202
     """``rotations.quat_to_rotmat`` into ``Rq`` [3, 3] (in place); returns ``s = 2 / |q|²`` (0: the identity)."""
     n2 = qw * qw + qx * qx + qy * qy + qz * qz
@@ -53,7 +53,7 @@ def _rotmat(qw, qx, qy, qz, Rq):  # noqa: ANN001, ANN202
     return s
 
 
-@nb.njit(inline="always", **_JIT)
+@nb.njit(**_JIT)
 def _finite(g, means, log_scales, quats, opacity_logits, sh):  # noqa: ANN001, ANN202
     """Whether every parameter of Gaussian ``g`` is finite."""
     ok = np.isfinite(opacity_logits[g])
@@ -67,7 +67,7 @@ def _finite(g, means, log_scales, quats, opacity_logits, sh):  # noqa: ANN001, A
     return ok
 
 
-@nb.njit(inline="always", **_JIT)
+@nb.njit(**_JIT)
 def _camera_point(g, means, cam, pc):  # noqa: ANN001, ANN202
     """Gaussian ``g``'s centre in the camera frame, ``R m + t``, into ``pc`` [3] (in place)."""
     for i in range(3):
@@ -76,7 +76,7 @@ def _camera_point(g, means, cam, pc):  # noqa: ANN001, ANN202
             pc[i] += cam[3 * i + j] * np.float64(means[g, j])
 
 
-@nb.njit(inline="always", **_JIT)
+@nb.njit(**_JIT)
 def _jacobian(x, y, inv_z, cam, lim):  # noqa: ANN001, ANN202
     """The EWA Jacobian's non-zero entries ``(J00, J01, J02, J11, J12)`` at the clamped ``u, v``, and ``(u, v)``
     with flags telling whether each was inside its clamp (the gradient passes)."""
@@ -90,7 +90,7 @@ def _jacobian(x, y, inv_z, cam, lim):  # noqa: ANN001, ANN202
     return fx * inv_z, skew * inv_z, -(fx * u + skew * v) * inv_z, fy * inv_z, -fy * v * inv_z, u, v, u_in, v_in
 
 
-@nb.njit(inline="always", **_JIT)
+@nb.njit(**_JIT)
 def _cov_factor(g, log_scales, quats, cam, log_cap, J, Rq, W, s, M2):  # noqa: ANN001, ANN202
     """``M2 = J R Rq diag(s)`` [2, 3] (``cov2d = M2 M2ᵀ``) into ``M2``, with ``Rq``, ``W = R Rq`` and the capped
     scales ``s`` [3] on the way (all in place); returns the quaternion's ``2 / |q|²``."""
@@ -107,7 +107,7 @@ def _cov_factor(g, log_scales, quats, cam, log_cap, J, Rq, W, s, M2):  # noqa: A
     return sq
 
 
-@nb.njit(inline="always", **_JIT)
+@nb.njit(**_JIT)
 def _conic(M2, eps2d):  # noqa: ANN001, ANN202
     """``(a, b, c, det)``: the undilated 2D covariance ``[[a, b], [b, c]] = M2 M2ᵀ`` and the dilated determinant
     ``Σ minors² + ε(a + c) + ε²`` (never below ε²)."""
@@ -121,7 +121,7 @@ def _conic(M2, eps2d):  # noqa: ANN001, ANN202
     return a, b, c, det
 
 
-@nb.njit(inline="always", **_JIT)
+@nb.njit(**_JIT)
 def _rect(mx, my, op, a_blur, c_blur, lim, width, height, rect, i):  # noqa: ANN001, ANN202
     """The support rectangle (alpha ≥ 1/255) of a Gaussian into ``rect[i]``; returns whether it reaches the image."""
     level = max(2.0 * (math.log(op) + _LOG_255), 0.0)
@@ -139,7 +139,7 @@ def _rect(mx, my, op, a_blur, c_blur, lim, width, height, rect, i):  # noqa: ANN
     return x0 <= x1 and y0 <= y1 and level > 0.0
 
 
-@nb.njit(inline="always", **_JIT)
+@nb.njit(**_JIT)
 def _view_dir(g, means, cam, d):  # noqa: ANN001, ANN202
     """The unit direction from the camera centre to Gaussian ``g`` into ``d`` [3] (in place); returns the length."""
     n2 = 0.0
@@ -194,7 +194,7 @@ def project_range(start, stop, means, log_scales, quats, opacity_logits, sh, cam
             colors[g, ch] = max(acc + 0.5, 0.0)
 
 
-@nb.njit(inline="always", **_JIT)
+@nb.njit(**_JIT)
 def _conic_vjp(M2, eps2d, vA, vB, vC, vM2):  # noqa: ANN001, ANN202
     """Cotangent of ``M2`` [2, 3] into ``vM2`` from the conic's ``(vA, vB, vC)`` (in place)."""
     a, b, c, det = _conic(M2, eps2d)
@@ -218,7 +218,7 @@ def _conic_vjp(M2, eps2d, vA, vB, vC, vM2):  # noqa: ANN001, ANN202
     vM2[1, 2] += vm02 * r00 + vm12 * r01
 
 
-@nb.njit(inline="always", **_JIT)
+@nb.njit(**_JIT)
 def _quat_vjp(qw, qx, qy, qz, sq, G):  # noqa: ANN001, ANN202
     """Cotangent ``(v_w, v_x, v_y, v_z)`` of a quaternion from that of its rotation ``G`` [3, 3] (zero for the
     identity fallback ``s = 0``)."""
@@ -238,7 +238,7 @@ def _quat_vjp(qw, qx, qy, qz, sq, G):  # noqa: ANN001, ANN202
     return vw + 2.0 * qw * v_n2, vx + 2.0 * qx * v_n2, vy + 2.0 * qy * v_n2, vz + 2.0 * qz * v_n2
 
 
-@nb.njit(inline="always", **_JIT)
+@nb.njit(**_JIT)
 def _color_vjp(g, i, means, sh, cam, cot, d, basis, dbasis, v_sh):  # noqa: ANN001, ANN202
     """The colour's cotangents (row ``i`` of ``cot``, columns 6–8) into ``v_sh[g]`` (in place); returns their share
     of the mean's cotangent, through the view direction (zero for degree 0, where ``d`` stays zero)."""
@@ -265,7 +265,7 @@ def _color_vjp(g, i, means, sh, cam, cot, d, basis, dbasis, v_sh):  # noqa: ANN0
     return (v_dir0 - d[0] * dot) / n, (v_dir1 - d[1] * dot) / n, (v_dir2 - d[2] * dot) / n
 
 
-@nb.njit(inline="always", **_JIT)
+@nb.njit(**_JIT)
 def _cov_vjp(g, log_scales, quats, cam, log_cap, sq, J, W, s, vM2, G, v_log_scales, v_quats):  # noqa: ANN001, ANN202
     """Through ``M2 = J W diag(s)``: the cotangents of the scales (into ``v_log_scales[g]``, none past the cap)
     and of the quaternion (into ``v_quats[g]``); returns the Jacobian's ``(vJ00, vJ01, vJ02, vJ11, vJ12)``."""
@@ -394,13 +394,13 @@ def _gather_range(start, stop, ids, means2d, conics, depths, opacities, colors, 
 
 
 def compile_kernels() -> None:
-    """Compile (or load from the cache) the float32 forward on an empty range: no work, only the compilation, for a
-    background thread (the backward compiles when first needed)."""
+    """Compile (or load from the cache) the float32 forward (projection, depth order, gather) on empty ranges: no
+    work, only the compilation, for a background thread (the backward compiles when first needed)."""
     f1, f2, f3 = np.zeros(1, np.float32), np.zeros((1, 1), np.float32), np.zeros((1, 1, 3), np.float32)
-    c = np.zeros(20)
-    project_range(0, 0, f2, f2, f2, f1, f3, c, c, 1, 1, f2, f2, f1, f1, f2, np.zeros((1, 4), np.int32),
-                  np.zeros(1, np.bool_))  # fmt: skip
-
+    c, i4, keep = np.zeros(20), np.zeros((1, 4), np.int32), np.zeros(1, np.bool_)
+    project_range(0, 0, f2, f2, f2, f1, f3, c, c, 1, 1, f2, f2, f1, f1, f2, i4, keep)
+    depth_order(keep, f1.view(np.uint32))
+    _gather_range(0, 0, np.zeros(1, np.int64), f2, f2, f1, f1, f2, i4, f2, f2, f1, f2, i4)
 
 
 def project(means, log_scales, quats, opacity_logits, sh, cam, lim, width, height):  # noqa: ANN001, ANN201

@@ -12,7 +12,7 @@ from ..sh import C0, C1, C2, C3
 _JIT = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
 
 
-@nb.njit(inline="always", **_JIT)
+@nb.njit(**_JIT)
 def sh_basis(x, y, z, out):  # noqa: ANN001, ANN202
     """The first ``len(out)`` (1, 4, 9 or 16) basis functions at the unit direction ``(x, y, z)`` into ``out``."""
     k = out.shape[0]
@@ -36,7 +36,7 @@ def sh_basis(x, y, z, out):  # noqa: ANN001, ANN202
         out[15] = C3[6] * x * (xx - 3.0 * yy)
 
 
-@nb.njit(inline="always", **_JIT)
+@nb.njit(**_JIT)
 def sh_basis_vjp(x, y, z, out):  # noqa: ANN001, ANN202
     """The gradients ``d basis_k / d (x, y, z)`` of :func:`sh_basis` into ``out`` [K, 3] (row 0, a constant, is not
     written)."""
