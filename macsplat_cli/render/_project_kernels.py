@@ -153,11 +153,13 @@ def _view_dir(g, means, cam, d):  # noqa: ANN001, ANN202
 
 
 @nb.njit(**_JIT)
-def project_range(start, stop, means, log_scales, quats, opacity_logits, sh, cam, lim, width, height,  # noqa: ANN001, ANN201
+def project_range(start, stop, means, log_scales, quats, opacity_logits, sh, cam, zrow, lim, width, height,  # noqa: ANN001, ANN201
                   means2d, conics, depths, opacities, colors, rect, keep):  # fmt: skip
     """Project Gaussians ``[start, stop)``: each kept one (finite, ``near < z < far``, opacity ≥ 1/255, support on
     the image) gets ``keep[g] = True`` and its row of ``means2d`` [N, 2], ``conics`` [N, 3], ``depths``,
-    ``opacities`` [N], ``colors`` [N, 3] and ``rect`` [N, 4]; the others only ``keep[g] = False``."""
+    ``opacities`` [N], ``colors`` [N, 3] and ``rect`` [N, 4]; the others only ``keep[g] = False``. The depth is
+    ``R₂·m + t₂`` in the inputs' dtype (``zrow``: ``R₂₀, R₂₁, R₂₂, t₂`` in that dtype), summed left to right as
+    the twin's float32 matmul does; every other output comes from the float64 ``z``."""
     pc, J, s, d = np.empty(3), np.empty(5), np.empty(3), np.zeros(3)  # d: zero unless SH degree > 0
     Rq, W, M2 = np.empty((3, 3)), np.empty((3, 3)), np.empty((2, 3))
     basis = np.empty(sh.shape[1])
@@ -168,8 +170,11 @@ def project_range(start, stop, means, log_scales, quats, opacity_logits, sh, cam
             continue
         _camera_point(g, means, cam, pc)
         x, y, z = pc[0], pc[1], pc[2]
+        # the depth that culls and sorts, in the inputs' dtype and the twin's order: coincident Gaussians tie
+        # (and keep their index order) exactly when they tie in the twin
+        zd = means[g, 0] * zrow[0] + means[g, 1] * zrow[1] + means[g, 2] * zrow[2] + zrow[3]
         logit = np.float64(opacity_logits[g])
-        if not (z > lim[4] and z < lim[5] and logit >= lim[7]):
+        if not (zd > lim[4] and z > lim[4] and zd < lim[5] and logit >= lim[7]):
             continue
         inv_z = 1.0 / z
         mx = (cam[12] * x + cam[13] * y) * inv_z + cam[14]
@@ -183,7 +188,7 @@ def project_range(start, stop, means, log_scales, quats, opacity_logits, sh, cam
         keep[g] = True
         means2d[g, 0], means2d[g, 1] = mx, my
         conics[g, 0], conics[g, 1], conics[g, 2] = (c + eps2d) / det, -b / det, (a + eps2d) / det
-        depths[g], opacities[g] = z, op
+        depths[g], opacities[g] = zd, op
         if sh.shape[1] > 1:
             _view_dir(g, means, cam, d)
         sh_basis(d[0], d[1], d[2], basis)
@@ -398,7 +403,7 @@ def compile_kernels() -> None:
     work, only the compilation, for a background thread (the backward compiles when first needed)."""
     f1, f2, f3 = np.zeros(1, np.float32), np.zeros((1, 1), np.float32), np.zeros((1, 1, 3), np.float32)
     c, i4, keep = np.zeros(20), np.zeros((1, 4), np.int32), np.zeros(1, np.bool_)
-    project_range(0, 0, f2, f2, f2, f1, f3, c, c, 1, 1, f2, f2, f1, f1, f2, i4, keep)
+    project_range(0, 0, f2, f2, f2, f1, f3, c, f1, c, 1, 1, f2, f2, f1, f1, f2, i4, keep)
     depth_order(keep, f1.view(np.uint32))
     _gather_range(0, 0, np.zeros(1, np.int64), f2, f2, f1, f1, f2, i4, f2, f2, f1, f2, i4)
 
@@ -416,8 +421,9 @@ def project(means, log_scales, quats, opacity_logits, sh, cam, lim, width, heigh
     full = (np.empty((n, 2), dtype), np.empty((n, 3), dtype), np.empty(n, dtype), np.empty(n, dtype),
             np.empty((n, 3), dtype), np.empty((n, 4), np.int32))  # fmt: skip
     keep = np.empty(n, np.bool_)
-    parallel_for(project_range, n, means, log_scales, quats, opacity_logits, sh, cam, lim, width, height, *full, keep,
-                 chunks_per_thread=_CHUNKS)  # fmt: skip
+    zrow = np.array([cam[6], cam[7], cam[8], cam[11]], dtype)  # exact: cam holds the dtype's values
+    parallel_for(project_range, n, means, log_scales, quats, opacity_logits, sh, cam, zrow, lim, width, height, *full,
+                 keep, chunks_per_thread=_CHUNKS)  # fmt: skip
     ids = depth_order(keep, full[2].view(np.uint32 if dtype == np.float32 else np.uint64))
     m = ids.shape[0]
     out = (np.empty((m, 2), dtype), np.empty((m, 3), dtype), np.empty(m, dtype), np.empty((m, 4), dtype),
