@@ -5,7 +5,8 @@ quaternion, culls, inverts it to the conic, bounds the support and evaluates the
 those quantities from the inputs and walks the same chain back by hand (no saved intermediates, no autograd graph).
 The arithmetic, the culls and the guards are those of the plain-PyTorch twin in ``projection.py`` (read its
 docstring), term for term; the kernels compute in float64 whatever the input dtype and round each output once, so a
-float32 result is the float64 one to half an ulp.
+float32 result is the float64 one to half an ulp. The exception is the depth that culls and sorts: it is summed in
+the inputs' dtype as the twin sums it, so that coincident Gaussians tie, and keep their order, as in the twin.
 
 Both kernels are serial ``nogil`` loops over a range of Gaussians, split among threads by ``_threads.parallel_for``;
 each Gaussian writes only its own rows, so the threads never write the same memory.
