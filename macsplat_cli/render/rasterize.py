@@ -14,6 +14,7 @@ from ..gaussians import Gaussians
 from . import _gsplat
 from ._output import RenderOutput, normalise_depth
 from .composite import bin_tiles, composite
+from .fused import camera_needs_grad, render_fused
 from .projection import Projection, project_gaussians
 from .reference import composite_reference
 
@@ -66,6 +67,11 @@ def render(
     if backend == "gsplat" or (backend == "auto" and gaussians.device.type == "cuda"):
         if backend == "gsplat" or _gsplat.available():
             return _gsplat.render_gsplat(gaussians, viewmat, K, width, height, bg, near=near, far=far, eps2d=eps2d)
+    if backend in ("numba", "auto") and not camera_needs_grad(viewmat, K):
+        feat, trans, means2d, ids, n_isect = render_fused(
+            gaussians, viewmat, K, width, height, near=near, far=far, eps2d=eps2d
+        )
+        return _output(feat, trans, bg, ids, means2d, n_isect)
     proj = project_gaussians(
         gaussians.means,
         gaussians.log_scales,
@@ -82,12 +88,18 @@ def render(
     )
     features = torch.cat([proj.colors, proj.depths[:, None]], dim=-1)  # [M, 4]
     feat, trans, n_isect = _composite(proj, features, width, height, backend)
+    return _output(feat, trans, bg, proj.ids, proj.means2d, n_isect)
+
+
+def _output(
+    feat: torch.Tensor, trans: torch.Tensor, bg: torch.Tensor, ids: torch.Tensor, means2d: torch.Tensor, n_isect: int
+) -> RenderOutput:
+    """The :class:`RenderOutput` of composited ``feat`` (r, g, b, z) [H, W, 4] and transmittance [H, W] over the
+    background ``bg`` [3]."""
     alpha = 1.0 - trans
     rgb = feat[..., :3] + trans[..., None] * bg
     depth = normalise_depth(feat[..., 3], alpha)
-    return RenderOutput(
-        rgb=rgb, depth=depth, alpha=alpha, visible=proj.ids, means2d=proj.means2d, n_intersections=n_isect
-    )
+    return RenderOutput(rgb=rgb, depth=depth, alpha=alpha, visible=ids, means2d=means2d, n_intersections=n_isect)
 
 
 def _checked_camera(
