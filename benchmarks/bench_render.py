@@ -109,8 +109,9 @@ def main() -> None:
     print_header(["Gaussians", "image", "visible", "intersections", "forward ms", "forward+backward ms",
                   "peak RSS MB (baseline)"], "rrrrrrr")  # fmt: skip
     for r in rows:
-        print(row([f"{r['n']:,}", r["size"], f"{r['visible']:,}", f"{r['intersections']:,}", f"{r['fwd_ms']:.0f} ({r['fwd_min_ms']:.0f})",
-                   f"{r['fwd_bwd_ms']:.0f} ({r['fwd_bwd_min_ms']:.0f})", f"{r['peak_rss_mb']:.0f} ({r['baseline_rss_mb']:.0f})"]))  # fmt: skip
+        print(row([f"{r['n']:,}", r["size"], f"{r['visible']:,}", f"{r['intersections']:,}",
+                   f"{r['fwd_ms']:.0f} ({r['fwd_min_ms']:.0f})", f"{r['fwd_bwd_ms']:.0f} ({r['fwd_bwd_min_ms']:.0f})",
+                   f"{r['peak_rss_mb']:.0f} ({r['baseline_rss_mb']:.0f})"]))  # fmt: skip
 
 
 if __name__ == "__main__":
