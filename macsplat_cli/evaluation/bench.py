@@ -31,7 +31,7 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -43,6 +43,7 @@ from ..engine import EngineConfig, Models, NeuralOptions, load_models
 from ..errors import InputError, OutputPathError
 from ..pipeline.refine import RefineConfig
 from ..presets import BACKENDS as ENGINE
+from ..presets import Quality
 from ..presets import refine_steps as preset_refine_steps
 from .protocol import evaluate
 from .reconstructors import BACKENDS, Reconstructor, ReconstructSettings, make_reconstructor
@@ -126,7 +127,7 @@ def grid(
     """Every combination of the axes, in order; a refinement of None is the quality's
     (:func:`~macsplat_cli.presets.refine_steps`, as ``reconstruct`` without ``--refine``)."""
     return [
-        BenchSetting(b, int(s), c, int(r) if r is not None else preset_refine_steps(q), q)  # type: ignore[arg-type]
+        BenchSetting(b, int(s), c, int(r) if r is not None else preset_refine_steps(cast(Quality, q)), q)
         for b, s, c, r, q in itertools.product(backends, sizes, conf_thresholds, refine_steps, qualities)
     ]
 
