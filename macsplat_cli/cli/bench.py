@@ -87,7 +87,7 @@ def bench_command(
     ] = "default",
     refine: RefineGridOpt = None,
     quality: Annotated[
-        str, typer.Option("--quality", help="Compaction presets (fast, balanced, best), comma-separated.")
+        str, typer.Option("--quality", help="Presets (fast, balanced, best), comma-separated; each as reconstruct's.")
     ] = "balanced",
     eval_size: Annotated[
         int | None,
