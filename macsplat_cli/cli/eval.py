@@ -405,8 +405,10 @@ def _eval(
     )
     lpips = load_lpips(lpips_weights) if lpips_weights is not None else None
     reconstructor = make_reconstructor(engine)
-    resolved = engine.settings()  # the preset's working size and refinement where the options leave them
-    size = size if size is not None else resolved.pipeline.views.size
+    from ..presets import resolved_refine_steps, working_size
+
+    steps = resolved_refine_steps(engine.quality, engine.overrides)  # as configure resolves them (any backend)
+    size = size if size is not None else working_size(engine.quality)
     dataset, sel = _select(
         data=data, layout=layout, scannetpp_split=scannetpp_split, scenes=scenes, cases_file=cases_file, split=split,
         split_by=split_by, assignment=assignment, max_pairs=max_pairs, max_targets=max_targets, seed=seed, quiet=quiet,
@@ -428,7 +430,7 @@ def _eval(
             "candidates": sel.candidates,
             "options": {"split": split, "max_pairs": max_pairs, "max_targets": max_targets, "seed": seed,
                         "assignment": assignment, "split_by": split_by, "backend": backend,
-                        "refine": resolved.refine.steps, "conf_threshold": conf_threshold,
+                        "refine": steps, "conf_threshold": conf_threshold,
                         "context_views": context_views, "protocol": protocol},
         }  # fmt: skip
         if shard_at is not None:  # the run's cases and this shard's place in it, for eval merge
