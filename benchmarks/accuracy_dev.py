@@ -43,10 +43,10 @@ from macsplat_cli.metrics import psnr, rotation_error_deg, ssim, translation_dir
 from macsplat_cli.pipeline.background import BackgroundConfig
 from macsplat_cli.pipeline.depth import DepthConfig
 from macsplat_cli.pipeline.gaussian_init import GaussianInitConfig
-from macsplat_cli.pipeline.refine import RefineConfig
 from macsplat_cli.pipeline.run import ReconstructConfig
 from macsplat_cli.pipeline.types import View
 from macsplat_cli.pipeline.views import ViewConfig, working_size
+from macsplat_cli.presets import Overrides
 from macsplat_cli.render import render_camera
 
 # (scene, name, context pair) — indices into the frame list (co3d: the cameras file's order; the
@@ -107,7 +107,7 @@ def run_case(
     t0 = time.perf_counter()
     try:
         rec = reconstruct(
-            [f0.image, f1.image], EngineConfig(size=size, pipeline=cfg, refine=RefineConfig(steps=refine))
+            [f0.image, f1.image], EngineConfig(overrides=Overrides(size=size, refine=refine), pipeline=cfg)
         )
     except MacsplatError as e:
         return {"failed": str(e), "time_s": time.perf_counter() - t0}

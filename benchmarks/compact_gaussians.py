@@ -46,7 +46,7 @@ from macsplat_cli.pipeline.compact import compact_reconstruction
 from macsplat_cli.pipeline.run import ReconstructConfig, Reconstruction
 from macsplat_cli.pipeline.views import ViewConfig, working_size
 from macsplat_cli.ply import write_ply
-from macsplat_cli.presets import QUALITIES, compact_config
+from macsplat_cli.presets import QUALITIES, Overrides, compact_config
 from macsplat_cli.render import render_camera
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -69,7 +69,8 @@ class Case:
 
 
 def _config(intrinsics: Path | None) -> EngineConfig:
-    return EngineConfig(size=SIZE, pipeline=ReconstructConfig(views=ViewConfig(intrinsics=intrinsics)))
+    views = ViewConfig(intrinsics=intrinsics)
+    return EngineConfig(overrides=Overrides(size=SIZE), pipeline=ReconstructConfig(views=views))
 
 
 def dev_case(data: Path, scene: str, name: str, pair: tuple[int, int], tmp: Path) -> Case:

@@ -58,6 +58,7 @@ from macsplat_cli.gaussians import Gaussians
 from macsplat_cli.metrics import psnr, rotation_error_deg
 from macsplat_cli.pipeline.run import ReconstructConfig, Reconstruction
 from macsplat_cli.pipeline.views import working_size
+from macsplat_cli.presets import Overrides
 from macsplat_cli.render import render_camera
 
 SCENE_NAMES = {"co3d": "co3d", "icl": "icl_livingroom", "nyu": "nyu_dining"}
@@ -178,7 +179,8 @@ def run_ours(frames: Sequence[Frame], ctx: Sequence[int], tgts: Sequence[int], k
             cfg.views.intrinsics = save_intrinsics(Path(tmp) / "cameras.json", cf)
         t0 = time.perf_counter()
         try:
-            rec = reconstruct([f.image for f in cf], EngineConfig(size=size, quality=SETTINGS["quality"], pipeline=cfg))
+            config = EngineConfig(quality=SETTINGS["quality"], overrides=Overrides(size=size), pipeline=cfg)
+            rec = reconstruct([f.image for f in cf], config)
         except ReconstructionError as e:
             return Outcome(time.perf_counter() - t0, error=str(e))
         out = Outcome(time.perf_counter() - t0)

@@ -27,6 +27,9 @@ from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.engine import EngineConfig, reconstruct
 from macsplat_cli.errors import ReconstructionError
 from macsplat_cli.images import save_image
+from macsplat_cli.presets import Overrides
+
+NO_REFINE = Overrides(refine=0)  # poses only: the refinement of --quality best moves no camera
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -86,7 +89,7 @@ def flipped(data: Path, tmp: Path) -> None:
     print("\n| pair | flipped triangles | outcome |\n|---|---:|---|")
     for name, paths in cases:
         try:
-            rec = reconstruct(paths, EngineConfig(quality="best"))
+            rec = reconstruct(paths, EngineConfig(quality="best", overrides=NO_REFINE))
             print(f"| {name} | {rec.geometry.diagnostics['flipped_triangles']:.3f} | accepted |")
         except ReconstructionError as e:
             print(f"| {name} | – | refused: {str(e)[:70]} |")
@@ -95,7 +98,7 @@ def flipped(data: Path, tmp: Path) -> None:
 def wrong_focal(tmp: Path) -> None:
     paths, truth, cam0 = _pair(tmp, "object", 45, 40.0, seed=0)
     try:
-        rec = reconstruct(paths, EngineConfig(quality="best"))
+        rec = reconstruct(paths, EngineConfig(quality="best", overrides=NO_REFINE))
     except ReconstructionError as e:
         print(f"\nobject 45°, 40° field of view: refused ({e})")
         return

@@ -8,8 +8,7 @@ Gaussians when asked (stage 7), compacts them (stage 8), and the report gets eac
 ``eval``, ``bench`` and the benchmarks all go through it; they only map their options to an :class:`EngineConfig`
 and write files.
 
-Loading is separate (:func:`load_models`) so that a caller reconstructing many pairs — the
-evaluation, the bench grid — loads the networks once::
+Loading is separate (:func:`load_models`) so that a caller reconstructing many pairs loads the networks once::
 
     config = EngineConfig(backend="neural", neural=NeuralOptions(weights="mast3r.pth"))
     models = load_models(config)  # every file checked here, before any work
@@ -22,7 +21,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import logging
-import math
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -37,20 +35,20 @@ from .pipeline.refine import RefineConfig
 from .pipeline.run import Pipeline, ReconstructConfig, Reconstruction, StageEvent, count_gaussians
 from .pipeline.views import ViewConfig
 from .presets import (
-    BACKENDS,
     DEVICES,
-    MATCHERS,
     PRECISIONS,
     Backend,
     Device,
     Matcher,
+    Overrides,
     Precision,
     Quality,
     StageSettings,
     assert_never,
     check_choice,
-    check_quality,
+    check_choices,
     configure,
+    resolved_refine_steps,
 )
 
 __all__ = [
@@ -112,31 +110,33 @@ class NeuralOptions:
 @dataclass
 class EngineConfig:
     """Everything a reconstruction depends on: the user's choices, turned into every stage's settings by
-    :meth:`settings` (:func:`~macsplat_cli.presets.configure`).
+    :meth:`settings` (:func:`~macsplat_cli.presets.configure`, the one place that resolves them). No field here
+    holds a value a stage field also holds: the working size, τ, the budget and the refinement's steps are
+    :class:`~macsplat_cli.presets.Overrides` of the preset, and ``pipeline`` / ``refine`` hold only what no preset
+    sets (:meth:`validate` refuses a preset-owned value set there).
 
     Args:
         backend: ``"classical"`` (no learned weights) or ``"neural"``.
-        quality: ``"fast"``, ``"balanced"`` or ``"best"``: the working size when ``size`` is None, how light the
-            stages are and how much of the scene's redundancy the compaction removes (:mod:`macsplat_cli.presets`).
-        budget: at most this many Gaussians in the scene (None: no limit).
-        size: the working images' long side (``--size``); None: the quality's
-            (:func:`~macsplat_cli.presets.working_size`). ``pipeline.views.size`` is not read: leave it as it is.
-        pipeline: the stages' settings to start from (intrinsics in ``pipeline.views``).
-        conf_threshold: τ of the filtered matching; None: the backend's default (0.04 classical, 1 neural).
+        quality: ``"fast"``, ``"balanced"`` or ``"best"``: the working size, how light the stages are, whether the
+            Gaussians are refined and how much of the scene's redundancy the compaction removes
+            (:mod:`macsplat_cli.presets`).
+        overrides: ``--size``, ``--conf-threshold``, ``--budget``, ``--refine`` (each None: the preset's).
+        pipeline: the stages' settings to start from: the inputs (intrinsics, poses, far layer, low-confidence
+            acceptance) and research settings; ``views.size`` and ``matching.conf_threshold`` stay at their
+            defaults (``overrides`` sets them).
         neural: the neural backend's files and device.
-        refine: test-time refinement (``steps`` 0: off).
+        refine: how the refinement runs (scale, MAC, LPIPS); ``steps`` stays 0 (``overrides.refine`` or the
+            quality's, :func:`~macsplat_cli.presets.refine_steps`).
         matcher: ``--matcher``: ``"auto"`` (SIFT, then ALIKED + LightGlue where SIFT's pose is not supported),
             ``"sift"`` or ``"aliked"`` (classical backend; :func:`~macsplat_cli.presets.learned_search`).
     """
 
     backend: Backend = "classical"
+    quality: Quality = "balanced"
+    overrides: Overrides = field(default_factory=Overrides)
     pipeline: ReconstructConfig = field(default_factory=ReconstructConfig)
-    conf_threshold: float | None = None
     neural: NeuralOptions = field(default_factory=NeuralOptions)
     refine: RefineConfig = field(default_factory=RefineConfig)
-    quality: Quality = "balanced"
-    budget: int | None = None
-    size: int | None = None
     matcher: Matcher = "auto"
 
     def validate(self, *, files: bool = True) -> None:
@@ -144,17 +144,14 @@ class EngineConfig:
         values are checked here; whether the machine has CUDA is checked when the models load (:func:`load_models`).
 
         Raises:
-            InputError: an unknown backend, quality, device or precision; neural options with the classical
-                backend; the neural backend without weights; ``dino`` without ``fusion`` (or the reverse);
-                LPIPS weights without refinement; a bad size, threshold, budget or refinement setting.
+            InputError: a bad device or precision; what :func:`~macsplat_cli.presets.check_choices` refuses; neural
+                options with the classical backend; the neural backend without weights or with ``dino`` and no
+                ``fusion`` (or the reverse); LPIPS without steps; a preset-owned value in ``pipeline``/``refine``.
         """
-        check_choice("--backend", self.backend, BACKENDS)
-        check_choice("--matcher", self.matcher, MATCHERS, sep=", ")
-        if self.backend == "neural" and self.matcher == "aliked":
-            raise InputError("--matcher aliked applies to --backend classical (the neural backend matches its own)")
         n = self.neural
         check_choice("--device", n.device, DEVICES)
         check_choice("--precision", n.precision, PRECISIONS)
+        check_choices(self.quality, self.backend, self.matcher, self.overrides)  # configure's own checks
         if self.backend == "classical" and n.given:
             raise InputError(f"{', '.join(n.given)} only apply to --backend neural")
         onnx = self.backend == "neural" and n.is_onnx
@@ -167,25 +164,14 @@ class EngineConfig:
                 )
         if self.backend == "neural" and files and not onnx:
             _check_neural_files(n)
-        if self.conf_threshold is not None and not (math.isfinite(self.conf_threshold) and self.conf_threshold >= 0):
-            raise InputError(f"--conf-threshold {self.conf_threshold}: give a finite number ≥ 0")
-        check_quality(self.quality)
-        if self.budget is not None and (isinstance(self.budget, bool) or not isinstance(self.budget, int)
-                                        or self.budget < 1):  # fmt: skip
-            raise InputError(f"--budget {self.budget!r}: give a positive number of Gaussians")
-        if self.size is not None and self.size < 1:
-            raise InputError(f"--size {self.size}: give a positive number of pixels")
-        if self.pipeline.views.size != ViewConfig.size:
-            raise InputError(
-                f"pipeline.views.size {self.pipeline.views.size}: set the working size with EngineConfig.size (--size)"
-            )
-        _check_refine(self.refine)
+        _check_owned(self.pipeline, self.refine)
+        _check_refine(self.refine, resolved_refine_steps(self.quality, self.overrides))
 
     def settings(self) -> StageSettings:
         """Every stage's settings: the quality preset, the backend and the overrides applied once."""
         return configure(
-            self.quality, self.backend, pipeline=self.pipeline, size=self.size, conf_threshold=self.conf_threshold,
-            budget=self.budget, refine=self.refine, precision=self.neural.precision, matcher=self.matcher,
+            self.quality, self.backend, self.overrides, pipeline=self.pipeline, refine=self.refine,
+            precision=self.neural.precision, matcher=self.matcher,
         )  # fmt: skip
 
     def replace(self, **changes: Any) -> EngineConfig:
@@ -205,12 +191,25 @@ def _check_neural_files(n: NeuralOptions) -> None:
         check_fusion_files(n.dino, n.fusion)
 
 
-def _check_refine(r: RefineConfig) -> None:
-    if r.steps < 0:
-        raise InputError(f"--refine {r.steps}: give a number of steps (0 = off) or 'auto'")
+def _check_owned(pipeline: ReconstructConfig, refine: RefineConfig) -> None:
+    """The stage fields :func:`~macsplat_cli.presets.configure` sets from the preset and the overrides are left at
+    their defaults in the caller's settings: one owner each (``EngineConfig.overrides``)."""
+    from .pipeline.matching import MatchConfig
+
+    owned = [("pipeline.views.size", pipeline.views.size, ViewConfig.size, "size", "--size"),
+             ("pipeline.matching.conf_threshold", pipeline.matching.conf_threshold, MatchConfig.conf_threshold,
+              "conf_threshold", "--conf-threshold"),
+             ("refine.steps", refine.steps, RefineConfig.steps, "refine", "--refine")]  # fmt: skip
+    for name, value, default, override, flag in owned:
+        if value != default:
+            raise InputError(f"{name} {value}: set it with EngineConfig.overrides.{override} ({flag})")
+
+
+def _check_refine(r: RefineConfig, steps: int) -> None:
+    """How the refinement runs, given the ``steps`` it will run."""
     if not 1 <= r.scale <= 4:
         raise InputError(f"--refine-scale {r.scale}: use 1 to 4")
-    if r.lpips_weights is not None and r.steps == 0:
+    if r.lpips_weights is not None and steps == 0:
         raise InputError("--lpips-weights is used by the refinement: add --refine STEPS or --refine auto")
 
 
@@ -277,7 +276,7 @@ def _load_models(config: EngineConfig) -> Models:
         else:
             models.predictor = load_pair_predictor(**files).to(resolve_device(config.neural.device))
         models.files = {k: str(v) for k, v in files.items()}
-    if config.refine.lpips_weights is not None:
+    if config.refine.lpips_weights is not None:  # only with steps (validate)
         from .lpips import load_lpips
 
         models.lpips = load_lpips(config.refine.lpips_weights)
@@ -369,7 +368,7 @@ def reconstruct(
         _add_network(rec, pipeline, config, models)
     if settings.refine.steps > 0:
         rec = _refine(rec, settings.refine, models, notify, on_refine_step)
-    return _compact(rec, settings, config.budget, notify)
+    return _compact(rec, settings, notify)
 
 
 _COMPILING: list[threading.Thread] = []
@@ -449,12 +448,14 @@ def _refine(
     return dataclasses.replace(rec, maps=out.maps)
 
 
-def _compact(rec: Reconstruction, settings: StageSettings, budget: int | None, notify: StageEvent) -> Reconstruction:
-    """Stage 8: the scene without what it does not need (``quality``, ``budget``), reported step by step."""
+def _compact(rec: Reconstruction, settings: StageSettings, notify: StageEvent) -> Reconstruction:
+    """Stage 8: the scene without what it does not need (the quality's compaction, ``--budget`` bounding the scene
+    written, the far layer included), reported step by step."""
     from .pipeline.compact import compact_reconstruction
 
     n_layer = _layer_size(rec)
     background, compact = rec.background, settings.compact
+    budget = compact.budget
     if budget is not None and n_layer:
         if n_layer * 2 > budget:  # the far layer would take most of a small budget: the scene needs it more
             logger.info("--budget %d: the far background layer (%d Gaussians) is left out", budget, n_layer)

@@ -4,10 +4,13 @@ settings.
 ``Quality``, ``Backend``, ``Device`` and ``Precision`` are the values of ``--quality``, ``--backend``,
 ``--device`` and ``--precision``; :func:`check_choice` refuses anything else with the option's own message (no
 model or backend module is imported to check a string). :func:`configure` applies a quality preset, a backend and
-the user's overrides (``--size``, ``--conf-threshold``, ``--budget``, ``--precision``) once, and returns a
-:class:`StageSettings`: the pipeline's stages 1–6, the refinement (7) and the compaction (8). Every per-quality and
-per-backend difference lives here; a new preset is a new name in :data:`Quality` and a branch in each function
-below that dispatches on it (``assert_never`` marks the branches a type checker makes you fill).
+the user's :class:`Overrides` (``--size``, ``--conf-threshold``, ``--budget``, ``--refine``) once, and returns a
+:class:`StageSettings`: the pipeline's stages 1–6, the refinement (7) and the compaction (8). It is the one place
+that resolves settings: ``macsplat reconstruct``, ``eval``, ``bench`` and :func:`macsplat_cli.engine.reconstruct`
+all reach it through :meth:`macsplat_cli.engine.EngineConfig.settings`, so one quality gives one scene everywhere.
+Every per-quality and per-backend difference lives here; a new preset is a new name in :data:`Quality` and a
+branch in each function below that dispatches on it (``assert_never`` marks the branches a type checker makes you
+fill).
 
 This module imports no torch at import time (``macsplat --help`` reads its names); the stage settings it builds
 are imported inside :func:`configure`. Measured: benchmarks/history/reconstruct.md.
@@ -17,6 +20,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 import sys
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal, NoReturn, get_args
@@ -46,6 +50,7 @@ __all__ = [
     "MATCHERS",
     "NEURAL_TAU",
     "PRECISIONS",
+    "Overrides",
     "QUALITIES",
     "Backend",
     "Device",
@@ -55,10 +60,13 @@ __all__ = [
     "StageSettings",
     "assert_never",
     "check_choice",
+    "check_choices",
     "check_quality",
     "compact_config",
     "configure",
     "fusion_policy",
+    "refine_steps",
+    "resolved_refine_steps",
     "working_size",
 ]
 
@@ -168,8 +176,59 @@ class StageSettings:
     neural: NeuralConfig | None = None
 
 
+@dataclass(frozen=True)
+class Overrides:
+    """The user's overrides of a quality preset, each None where the preset (or the backend) decides.
+
+    Attributes:
+        size: ``--size``, the working images' long side (None: :func:`working_size`).
+        conf_threshold: ``--conf-threshold`` τ of the filtered matching (None: 0.04 classically,
+            :data:`NEURAL_TAU` for the neural backend).
+        budget: ``--budget``, at most this many Gaussians in the scene, the far layer included (None: no limit).
+        refine: ``--refine``, the refinement's steps (0: off; None: :func:`refine_steps` of the quality).
+    """
+
+    size: int | None = None
+    conf_threshold: float | None = None
+    budget: int | None = None
+    refine: int | None = None
+
+    def check(self) -> None:
+        """Raise :class:`~macsplat_cli.errors.InputError` for a value no preset could take the place of."""
+        tau = self.conf_threshold
+        if tau is not None and not (math.isfinite(tau) and tau >= 0):
+            raise InputError(f"--conf-threshold {tau}: give a finite number ≥ 0")
+        for option, value, what in (("--budget", self.budget, "a positive number of Gaussians"),
+                                    ("--size", self.size, "a positive number of pixels"),
+                                    ("--refine", self.refine, "a number of steps, auto or off")):  # fmt: skip
+            low = 0 if option == "--refine" else 1
+            if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < low):
+                raise InputError(f"{option} {value!r}: give {what}")
+
+
+def check_choices(quality: Quality, backend: Backend, matcher: Matcher, overrides: Overrides) -> None:
+    """The user's choices, checked without importing any stage (the checks of :func:`configure`, which
+    :meth:`~macsplat_cli.engine.EngineConfig.validate` also makes before any work).
+
+    Raises:
+        InputError: an unknown quality, backend or matcher; a learned matcher with the neural backend; an override
+            out of range (:meth:`Overrides.check`).
+    """
+    check_quality(quality)
+    check_choice("--backend", backend, BACKENDS)
+    check_choice("--matcher", matcher, MATCHERS, sep=", ")
+    if backend == "neural" and matcher == "aliked":
+        raise InputError("--matcher aliked applies to --backend classical (the neural backend matches its own)")
+    overrides.check()
+
+
+def resolved_refine_steps(quality: Quality, overrides: Overrides) -> int:
+    """The refinement's steps: ``--refine`` where given, else the quality's (:func:`refine_steps`)."""
+    return overrides.refine if overrides.refine is not None else refine_steps(quality)
+
+
 def refine_steps(quality: Quality) -> int:
-    """``reconstruct``'s refinement when ``--refine`` is not given: ``best`` refines for
+    """The refinement's steps when ``--refine`` is not given: ``best`` refines for
     :data:`~.pipeline.refine.AUTO_STEPS` steps (about 6–8 s a 512-px pair on two cores for +0.1 to +1.1 dB on
     held-out views of the development pairs, ``benchmarks/history/refine.md``); ``fast`` and ``balanced`` do not
     (it would more than double their time)."""
@@ -182,11 +241,9 @@ def refine_steps(quality: Quality) -> int:
 def configure(
     quality: Quality,
     backend: Backend,
+    overrides: Overrides | None = None,
     *,
     pipeline: ReconstructConfig | None = None,
-    size: int | None = None,
-    conf_threshold: float | None = None,
-    budget: int | None = None,
     refine: RefineConfig | None = None,
     precision: Precision = "fp32",
     matcher: Matcher = "auto",
@@ -195,35 +252,35 @@ def configure(
 
     Args:
         quality: the preset: the working size (:func:`working_size`), the classical stages' speed (``"fast"``: SIFT
-            at :data:`FAST_SIFT`, no slanted-plane PatchMatch), the neural fusion policy (:func:`fusion_policy`) and
-            the compaction (:func:`compact_config`).
+            at :data:`FAST_SIFT`, no slanted-plane PatchMatch), the neural fusion policy (:func:`fusion_policy`),
+            the refinement's steps (:func:`refine_steps`) and the compaction (:func:`compact_config`).
         backend: ``"neural"`` turns off the SIFT fallback tiers and the epipolar-guided re-matching (the pose does
             not come from the matches) and matches on the learned confidence as it is (``ratio_confidence=False``).
-        pipeline: the caller's stage settings to start from (default: :class:`~.pipeline.run.ReconstructConfig`);
-            its ``views.size`` is replaced by the working size.
-        size: ``--size``, the working long side (None: the preset's).
-        conf_threshold: ``--conf-threshold`` τ (None: the backend's, ``pipeline.matching``'s classically,
-            :data:`NEURAL_TAU` for the neural backend).
-        budget: ``--budget``, at most this many Gaussians (None: no limit).
-        refine: the refinement (default: off).
+        overrides: ``--size``, ``--conf-threshold``, ``--budget`` and ``--refine`` (default: none).
+        pipeline: the stage settings to start from (default: :class:`~.pipeline.run.ReconstructConfig`): the
+            inputs (intrinsics, poses, far layer) and any research setting; its ``views.size`` and
+            ``matching.conf_threshold`` are replaced (the working size and τ are resolved here).
+        refine: how the refinement runs (scale, MAC, LPIPS; default :class:`~.pipeline.refine.RefineConfig`); its
+            ``steps`` are replaced by ``overrides.refine`` or the preset's.
         precision: the neural backend's arithmetic.
         matcher: ``--matcher`` (:func:`learned_search`); the neural backend has its own matches (``auto``: none).
 
     Raises:
-        InputError: an unknown quality, backend or matcher; a learned matcher with the neural backend.
+        InputError: an unknown quality, backend or matcher; a learned matcher with the neural backend; an override
+            out of range (:meth:`Overrides.check`).
     """
+    from .pipeline.matching import MatchConfig
     from .pipeline.refine import RefineConfig
     from .pipeline.run import ReconstructConfig
 
-    check_quality(quality)
-    check_choice("--backend", backend, BACKENDS)
-    check_choice("--matcher", matcher, MATCHERS, sep=", ")
+    o = overrides or Overrides()
+    check_choices(quality, backend, matcher, o)
     c = copy.deepcopy(pipeline) if pipeline is not None else ReconstructConfig()
-    c.views = dataclasses.replace(c.views, size=size if size is not None else working_size(quality))
+    c.views = dataclasses.replace(c.views, size=o.size if o.size is not None else working_size(quality))
     neural = None
     if backend == "classical":
-        if conf_threshold is not None:
-            c.matching = dataclasses.replace(c.matching, conf_threshold=conf_threshold)
+        tau = MatchConfig.conf_threshold if o.conf_threshold is None else o.conf_threshold
+        c.matching = dataclasses.replace(c.matching, conf_threshold=tau)
         if quality == "fast":  # SIFT on a smaller image, no slanted-plane PatchMatch in the depth
             d = c.descriptors
             c.descriptors = dataclasses.replace(
@@ -232,19 +289,17 @@ def configure(
             c.depth = dataclasses.replace(c.depth, slanted_iters=0)
         c.search = learned_search(c.search, matcher)
     elif backend == "neural":
-        if matcher == "aliked":
-            raise InputError("--matcher aliked applies to --backend classical (the neural backend matches its own)")
-        from .pipeline.matching import MatchConfig
         from .pipeline.neural import NeuralConfig
 
         c.search = dataclasses.replace(c.search, fallback_descriptors=None, guided_band_px=None)
-        tau = NEURAL_TAU if conf_threshold is None else conf_threshold
+        tau = NEURAL_TAU if o.conf_threshold is None else o.conf_threshold
         c.matching = MatchConfig(conf_threshold=tau, ratio_confidence=False, max_block_elems=c.matching.max_block_elems)
         neural = NeuralConfig(precision=precision, fusion=fusion_policy(quality))
     else:
         assert_never(backend)
-    refine = copy.deepcopy(refine) if refine is not None else RefineConfig()
-    return StageSettings(c, refine, compact_config(quality, budget=budget), neural)
+    steps = resolved_refine_steps(quality, o)
+    r = dataclasses.replace(copy.deepcopy(refine) if refine is not None else RefineConfig(), steps=steps)
+    return StageSettings(c, r, compact_config(quality, budget=o.budget), neural)
 
 
 def learned_search(search: PoseSearchConfig, matcher: Matcher) -> PoseSearchConfig:

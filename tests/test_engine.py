@@ -28,10 +28,12 @@ from macsplat_cli.engine import EngineConfig, Models, NeuralOptions, load_models
 from macsplat_cli.errors import InputError
 from macsplat_cli.evaluation import EngineReconstructor, ReconstructSettings
 from macsplat_cli.gaussians import Gaussians
+from macsplat_cli.pipeline.matching import MatchConfig
 from macsplat_cli.pipeline.refine import RefineConfig
 from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig, count_gaussians
 from macsplat_cli.pipeline.views import ViewConfig
 from macsplat_cli.ply import read_ply
+from macsplat_cli.presets import Overrides
 
 from support.scenes import PairFactory, PairSpec
 
@@ -47,9 +49,9 @@ def pair(pair_files: PairFactory) -> tuple[Path, Path, Path]:
 
 def _config(cams: Path, steps: int = 0) -> EngineConfig:
     return EngineConfig(
-        size=SIZE[0],
+        overrides=Overrides(size=SIZE[0], refine=steps),
         pipeline=ReconstructConfig(views=ViewConfig(intrinsics=cams)),
-        refine=RefineConfig(steps=steps, scale=4),
+        refine=RefineConfig(scale=4),
     )
 
 
@@ -73,7 +75,8 @@ def test_engine_without_refinement_is_the_pipeline_then_the_compaction(pair: tup
     doc = rec.report.to_json()
     assert doc["compact"]["preset"] == "balanced" and doc["compact"]["after"] == len(rec.compacted)
     assert "compact" in doc["times_s"] and rec.report.refine is None and "refine" not in doc
-    best = reconstruct(pair[:2], _config(pair[2]).replace(quality="best", budget=1000))
+    best_config = _config(pair[2]).replace(quality="best", overrides=Overrides(size=SIZE[0], budget=1000, refine=0))
+    best = reconstruct(pair[:2], best_config)
     assert len(best.gaussians) == 1000 and best.report.compact["steps"][-1]["name"] == "budget"
 
 
@@ -93,7 +96,7 @@ def test_cli_and_evaluation_build_the_same_refined_scene(pair: tuple[Path, Path,
         frames=[SimpleNamespace(image=p, camera=c) for p, c in zip(pair[:2], load_cameras(pair[2]))]
     )
     case = SimpleNamespace(context=(0, 1))
-    recon = EngineReconstructor(EngineConfig(refine=RefineConfig(steps=3, scale=4)))
+    recon = EngineReconstructor(EngineConfig(overrides=Overrides(refine=3), refine=RefineConfig(scale=4)))
     rec = recon(scene, case, ReconstructSettings(size=SIZE[0], intrinsics="given"))  # type: ignore[arg-type]
     assert rec.report.refine is not None and rec.report.refine.steps == cli_report["refine"]["steps"]
     assert rec.report.refine.scale == cli_report["refine"]["scale"] == 4
@@ -106,23 +109,26 @@ def test_cli_and_evaluation_build_the_same_refined_scene(pair: tuple[Path, Path,
 @pytest.mark.parametrize(
     ("changes", "message"),
     [
-        ({"conf_threshold": math.nan}, "--conf-threshold nan"),
-        ({"conf_threshold": -1.0}, "--conf-threshold -1.0"),
+        ({"overrides": Overrides(conf_threshold=math.nan)}, "--conf-threshold nan"),
+        ({"overrides": Overrides(conf_threshold=-1.0)}, "--conf-threshold -1.0"),
         ({"backend": "magic"}, "--backend 'magic'"),
         ({"neural": NeuralOptions(weights=Path("m.pth"))}, "--weights only apply to --backend neural"),
         ({"neural": NeuralOptions(precision="fp8")}, "--precision 'fp8'"),
         ({"backend": "neural"}, "needs the MASt3R checkpoint"),
         ({"backend": "neural", "neural": NeuralOptions(weights=Path("m.pth"), dino=Path("d.pth"))}, "--dino needs"),
-        ({"refine": RefineConfig(steps=0, lpips_weights=Path("vgg"))}, "--lpips-weights is used by the refinement"),
-        ({"refine": RefineConfig(steps=-1)}, "--refine -1"),
-        ({"refine": RefineConfig(steps=2, scale=5)}, "--refine-scale 5"),
+        ({"refine": RefineConfig(lpips_weights=Path("vgg"))}, "--lpips-weights is used by the refinement"),
+        ({"overrides": Overrides(refine=-1)}, "--refine -1"),
+        ({"overrides": Overrides(refine=2), "refine": RefineConfig(scale=5)}, "--refine-scale 5"),
         ({"neural": NeuralOptions(device="tpu")}, "--device 'tpu': use cpu or cuda"),
         ({"backend": "neural", "neural": NeuralOptions(weights=Path("m.onnx"), dino=Path("d"))}, "drop --dino"),
-        ({"pipeline": ReconstructConfig(views=ViewConfig(size=256))}, "set the working size with EngineConfig.size"),
+        ({"pipeline": ReconstructConfig(views=ViewConfig(size=256))}, "set it with EngineConfig.overrides.size"),
+        ({"pipeline": ReconstructConfig(matching=MatchConfig(conf_threshold=0.1))}, "overrides.conf_threshold"),
+        ({"refine": RefineConfig(steps=5)}, "refine.steps 5: set it with EngineConfig.overrides.refine"),
         ({"quality": "ultra"}, "--quality 'ultra': use fast, balanced, best"),
-        ({"budget": 0}, "--budget 0"),
-        ({"budget": -5}, "--budget -5"),
-        ({"budget": 2.5}, "--budget 2.5"),
+        ({"overrides": Overrides(budget=0)}, "--budget 0"),
+        ({"overrides": Overrides(budget=-5)}, "--budget -5"),
+        ({"overrides": Overrides(budget=2.5)}, "--budget 2.5"),
+        ({"overrides": Overrides(size=0)}, "--size 0"),
     ],
 )
 def test_bad_settings_fail_before_any_work(pair: tuple[Path, Path, Path], changes: dict, message: str) -> None:
@@ -211,19 +217,20 @@ def test_cuda_is_checked_when_the_models_load_before_the_weights_stage(pair: tup
 def test_settings_apply_the_presets_once_and_leave_the_config_alone() -> None:
     """``EngineConfig.settings()``: the working size, τ, the fast stages and the compaction from one call; the
     configuration itself is not modified (τ goes down once, nothing is written back)."""
-    config = EngineConfig(quality="fast", conf_threshold=0.1, budget=500)
+    config = EngineConfig(quality="fast", overrides=Overrides(conf_threshold=0.1, budget=500))
     before = copy.deepcopy(config)
     s = config.settings()
     assert s.pipeline.views.size == 384 and s.pipeline.matching.conf_threshold == 0.1
     assert s.pipeline.depth.slanted_iters == 0 and s.compact.name == "fast" and s.compact.budget == 500
     assert s.neural is None and s.refine.steps == 0
     assert config == before
-    assert EngineConfig(quality="best", size=256).settings().pipeline.views.size == 256
+    assert EngineConfig(quality="best", overrides=Overrides(size=256)).settings().pipeline.views.size == 256
     neural = EngineConfig(backend="neural", quality="fast").settings()
     assert neural.pipeline.matching.conf_threshold == 1.0 and not neural.pipeline.matching.ratio_confidence
     assert neural.pipeline.search.fallback_descriptors is None and neural.pipeline.search.guided_band_px is None
     assert neural.neural is not None and neural.neural.fusion == "auto"
-    assert EngineConfig(backend="neural", conf_threshold=2.0).settings().pipeline.matching.conf_threshold == 2.0
+    tau = EngineConfig(backend="neural", overrides=Overrides(conf_threshold=2.0)).settings().pipeline.matching
+    assert tau.conf_threshold == 2.0
     assert EngineConfig(backend="neural", quality="best").settings().neural.fusion == "always"
 
 

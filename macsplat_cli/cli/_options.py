@@ -1,4 +1,6 @@
-"""Options shared by several commands, declared once: the neural backend's files and device.
+"""Options shared by several commands, declared once: the neural backend's files and device, ``--matcher``, and
+``--refine STEPS|auto|off`` (one type for ``reconstruct``, ``eval`` and ``bench``, parsed once by
+:func:`parse_refine`).
 
 Like every CLI module, this one imports the library only inside functions: ``macsplat --help`` loads no torch.
 """
@@ -23,8 +25,12 @@ __all__ = [
     "GaussianHeadOpt",
     "MatcherOpt",
     "PrecisionOpt",
+    "RefineGridOpt",
+    "RefineOpt",
     "WeightsOpt",
     "neural_options",
+    "parse_refine",
+    "parse_refine_list",
 ]
 
 WeightsOpt = Annotated[
@@ -76,6 +82,24 @@ MatcherOpt = Annotated[
         ),
     ),
 ]
+REFINE_METAVAR = "STEPS|auto|off"
+RefineOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--refine",
+        metavar=REFINE_METAVAR,
+        help="Refine the Gaussians on the photos (+ MAC loss) for STEPS steps; auto = 25; off (or 0): no refinement "
+        "[default: auto with --quality best, else off].",
+    ),
+]
+RefineGridOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--refine",
+        metavar=REFINE_METAVAR + ",...",
+        help="Refinements, comma-separated, each as reconstruct's --refine [default: each quality's].",
+    ),
+]
 PrecisionOpt = Annotated[
     str, typer.Option("--precision", metavar="fp32|bf16", help="neural: arithmetic of the networks (bf16: faster).")
 ]
@@ -92,3 +116,41 @@ def neural_options(
         weights=weights, gaussian_head=gaussian_head, dino=dino, fusion=fusion,
         device=device.strip().lower(), precision=precision.strip().lower(),
     )  # fmt: skip
+
+
+def parse_refine(text: str | None) -> int | None:
+    """``--refine`` as the engine takes it (:attr:`~macsplat_cli.presets.Overrides.refine`): a number of steps,
+    ``auto`` (:data:`~macsplat_cli.pipeline.refine.AUTO_STEPS`) or ``off`` (0); None where the option is not given
+    (the quality's, :func:`~macsplat_cli.presets.refine_steps`).
+
+    Raises:
+        InputError: anything else (a negative number, a word).
+    """
+    from ..errors import InputError
+
+    if text is None:
+        return None
+    word = text.strip().lower()
+    if word in ("auto", "off"):
+        from ..pipeline.refine import AUTO_STEPS
+
+        return AUTO_STEPS if word == "auto" else 0
+    try:
+        steps = int(word)
+    except ValueError:
+        steps = -1
+    if steps < 0:
+        raise InputError(f"--refine {text!r}: give a number of steps, auto or off")
+    return steps
+
+
+def parse_refine_list(text: str | None) -> list[int | None]:
+    """``bench --refine``: comma-separated values of :func:`parse_refine` ([None]: each quality's)."""
+    from ..errors import InputError
+
+    if text is None:
+        return [None]
+    values = [parse_refine(part) for part in text.split(",") if part.strip()]
+    if not values:
+        raise InputError("--refine: give at least one value")
+    return values

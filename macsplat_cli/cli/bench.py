@@ -17,8 +17,10 @@ from ._options import (
     GaussianHeadOpt,
     MatcherOpt,
     PrecisionOpt,
+    RefineGridOpt,
     WeightsOpt,
     neural_options,
+    parse_refine_list,
 )
 from .eval import (
     AssignmentChoice,
@@ -83,9 +85,9 @@ def bench_command(
     conf_threshold: Annotated[
         str, typer.Option("--conf-threshold", help="Matching thresholds τ, comma-separated ('default' allowed).")
     ] = "default",
-    refine: Annotated[str, typer.Option("--refine", help="Refinement steps, comma-separated.")] = "0",
+    refine: RefineGridOpt = None,
     quality: Annotated[
-        str, typer.Option("--quality", help="Compaction presets (fast, balanced, best), comma-separated.")
+        str, typer.Option("--quality", help="Presets (fast, balanced, best), comma-separated; each as reconstruct's.")
     ] = "balanced",
     eval_size: Annotated[
         int | None,
@@ -134,7 +136,7 @@ def bench_command(
         _bench(
             data=data, out=out, backends=_list(backend, str, "--backend"), sizes=_list(size, int, "--size"),
             taus=_list(conf_threshold, float, "--conf-threshold", allow_default=True),
-            steps=_list(refine, int, "--refine"), qualities=_list(quality, str, "--quality"), eval_size=eval_size,
+            steps=parse_refine_list(refine), qualities=_list(quality, str, "--quality"), eval_size=eval_size,
             metric=metric, split=split,
             layout=layout.value,
             scannetpp_split=scannetpp_split, scenes=scenes, cases_file=cases, intrinsics=intrinsics.value,
@@ -146,7 +148,8 @@ def bench_command(
 
 
 def _bench(
-    *, data: Path, out: Path, backends: list[str], sizes: list[int], taus: list[float | None], steps: list[int],
+    *, data: Path, out: Path, backends: list[str], sizes: list[int], taus: list[float | None],
+    steps: list[int | None],
     qualities: list[str], eval_size: int | None, metric: str, split: str, layout: str, scannetpp_split: str,
     scenes: str | None,
     cases_file: Path | None, intrinsics: str, max_pairs: int, max_targets: int, split_by: str, assignment: str,
@@ -174,8 +177,8 @@ def _bench(
     unknown = [b for b in backends if b not in BACKENDS]
     if unknown:
         raise InputError(f"--backend {unknown[0]!r}: available: {', '.join(sorted(BACKENDS))}")
-    if any(s < 64 for s in sizes) or any(r < 0 for r in steps) or any(t is not None and t < 0 for t in taus):
-        raise InputError("--size must be ≥ 64, --refine ≥ 0 and --conf-threshold ≥ 0")
+    if any(s < 64 for s in sizes) or any(t is not None and t < 0 for t in taus):  # --refine: parse_refine_list
+        raise InputError("--size must be ≥ 64 and --conf-threshold ≥ 0")
     check_context_views(context_views, backends=backends)
     from ..presets import check_quality
 

@@ -20,8 +20,10 @@ from ._options import (
     GaussianHeadOpt,
     MatcherOpt,
     PrecisionOpt,
+    RefineOpt,
     WeightsOpt,
     neural_options,
+    parse_refine,
 )
 
 if TYPE_CHECKING:
@@ -65,18 +67,21 @@ DataOpt = Annotated[
 
 
 def engine_config(
-    backend: str, *, conf_threshold: float | None = None, refine: int = 0, neural: NeuralOptions | None = None,
-    quality: str = "balanced", matcher: str = "auto",
+    backend: str, *, conf_threshold: float | None = None, refine: int | None = None,
+    neural: NeuralOptions | None = None, quality: str = "balanced", matcher: str = "auto",
 ) -> EngineConfig:  # fmt: skip
-    """The engine settings of ``eval``/``bench`` (the working size and intrinsics come per case)."""
+    """The engine settings of ``eval``/``bench``, as ``reconstruct`` makes them (``refine``: the parsed
+    ``--refine``, None: the quality's; the working size and intrinsics come per case)."""
     from ..engine import EngineConfig, NeuralOptions
-    from ..pipeline.refine import RefineConfig
+    from ..presets import Overrides
 
     return EngineConfig(
-        backend=backend.strip().lower(), conf_threshold=conf_threshold, neural=neural or NeuralOptions(),  # type: ignore[arg-type]
-        refine=RefineConfig(steps=refine), quality=quality.strip().lower(),  # type: ignore[arg-type]
+        backend=backend.strip().lower(),  # type: ignore[arg-type]
+        quality=quality.strip().lower(),  # type: ignore[arg-type]
         matcher=matcher.strip().lower(),  # type: ignore[arg-type]
-    )  # fmt: skip
+        overrides=Overrides(conf_threshold=conf_threshold, refine=refine),
+        neural=neural or NeuralOptions(),
+    )
 
 
 SplitOpt = Annotated[str, typer.Option("--split", help="close, medium, wide, very-wide (comma-separated), or all.")]
@@ -268,7 +273,10 @@ def eval_command(
     scannetpp_split: ScannetSplitOpt = "nvs_sem_val",
     scenes: ScenesOpt = None,
     cases: CasesOpt = None,
-    size: Annotated[int, typer.Option("--size", min=64, help="Long side of the working images.")] = 512,
+    size: Annotated[
+        int | None,
+        typer.Option("--size", min=64, help="Long side of the working images [default: 384 fast, else 512]."),
+    ] = None,
     eval_size: Annotated[
         int | None,
         typer.Option("--eval-size", min=64, help="Compare views at this long side (default: --size)."),
@@ -277,9 +285,14 @@ def eval_command(
     conf_threshold: Annotated[
         float | None, typer.Option("--conf-threshold", help="Matching confidence threshold τ (default 0.04).")
     ] = None,
-    refine: Annotated[int, typer.Option("--refine", min=0, metavar="STEPS", help="Refinement steps (0 = off).")] = 0,
+    refine: RefineOpt = None,
     quality: Annotated[
-        str, typer.Option("--quality", metavar="fast|balanced|best", help="Compaction of the scene (see reconstruct).")
+        str,
+        typer.Option(
+            "--quality",
+            metavar="fast|balanced|best",
+            help="The preset, as reconstruct's: working size, stages, refinement, compaction.",
+        ),
     ] = "balanced",
     max_pairs: MaxPairsOpt = 5,
     max_targets: MaxTargetsOpt = 3,
@@ -350,12 +363,12 @@ def eval_command(
             data=data, split=split, backend=backend, out=out, layout=layout.value, scannetpp_split=scannetpp_split,
             scenes=scenes, cases_file=cases, size=size, eval_size=eval_size, intrinsics=intrinsics.value,
             conf_threshold=conf_threshold,
-            refine=refine, max_pairs=max_pairs, max_targets=max_targets, split_by=split_by.value,
+            max_pairs=max_pairs, max_targets=max_targets, split_by=split_by.value,
             assignment=assignment.value, seed=seed, context_views=context_views,
             splatt3r_compatible=splatt3r_compatible, baselines=not no_baselines, json_out=json_out, quiet=state.quiet,
             lpips_weights=lpips_weights, shard=shard, protocol=protocol,
             engine=engine_config(
-                backend, conf_threshold=conf_threshold, refine=refine, quality=quality, matcher=matcher,
+                backend, conf_threshold=conf_threshold, refine=parse_refine(refine), quality=quality, matcher=matcher,
                 neural=neural_options(weights, gaussian_head, dino, fusion, device, precision),
             ),
         )  # fmt: skip
@@ -363,8 +376,8 @@ def eval_command(
 
 def _eval(
     *, data: Path, split: str, backend: str, out: Path, layout: str, scannetpp_split: str, scenes: str | None,
-    cases_file: Path | None, size: int, eval_size: int | None, intrinsics: str, conf_threshold: float | None,
-    refine: int, max_pairs: int,
+    cases_file: Path | None, size: int | None, eval_size: int | None, intrinsics: str, conf_threshold: float | None,
+    max_pairs: int,
     max_targets: int, split_by: str, assignment: str, seed: int, splatt3r_compatible: bool, baselines: bool,
     json_out: bool, quiet: bool, engine: EngineConfig, lpips_weights: Path | None = None, context_views: int = 2,
     shard: str | None = None, protocol: str | None = None,
@@ -392,6 +405,10 @@ def _eval(
     )
     lpips = load_lpips(lpips_weights) if lpips_weights is not None else None
     reconstructor = make_reconstructor(engine)
+    from ..presets import resolved_refine_steps, working_size
+
+    steps = resolved_refine_steps(engine.quality, engine.overrides)  # as configure resolves them (any backend)
+    size = size if size is not None else working_size(engine.quality)
     dataset, sel = _select(
         data=data, layout=layout, scannetpp_split=scannetpp_split, scenes=scenes, cases_file=cases_file, split=split,
         split_by=split_by, assignment=assignment, max_pairs=max_pairs, max_targets=max_targets, seed=seed, quiet=quiet,
@@ -412,8 +429,9 @@ def _eval(
             "split_modes": sel.modes,
             "candidates": sel.candidates,
             "options": {"split": split, "max_pairs": max_pairs, "max_targets": max_targets, "seed": seed,
-                        "assignment": assignment, "split_by": split_by, "backend": backend, "refine": refine,
-                        "conf_threshold": conf_threshold, "context_views": context_views, "protocol": protocol},
+                        "assignment": assignment, "split_by": split_by, "backend": backend,
+                        "refine": steps, "conf_threshold": conf_threshold,
+                        "context_views": context_views, "protocol": protocol},
         }  # fmt: skip
         if shard_at is not None:  # the run's cases and this shard's place in it, for eval merge
             extra["shard"] = shard_record(sel.cases, *shard_at)

@@ -33,8 +33,10 @@ from ._options import (
     GaussianHeadOpt,
     MatcherOpt,
     PrecisionOpt,
+    RefineOpt,
     WeightsOpt,
     neural_options,
+    parse_refine,
 )
 
 if TYPE_CHECKING:
@@ -101,15 +103,6 @@ FarLayerOpt = Annotated[
         "--far-layer/--no-far-layer",
         help="Surround the scene with a far background layer extended from the photos' borders, so views past "
         "both photos show no empty band; --no-far-layer leaves those pixels to the renderer's --background.",
-    ),
-]
-RefineOpt = Annotated[
-    str,
-    typer.Option(
-        "--refine",
-        metavar="STEPS",
-        help="Refine the Gaussians on the photos (+ MAC loss) for STEPS steps; 'auto' = 25; 0 = off "
-        "[default: auto with --quality best, else 0].",
     ),
 ]
 RefineScaleOpt = Annotated[
@@ -183,7 +176,7 @@ def reconstruct_command(
     conf_threshold: ConfThresholdOpt = None,
     accept_low_confidence: AcceptLowConfidenceOpt = False,
     far_layer: FarLayerOpt = True,
-    refine: RefineOpt = "",
+    refine: RefineOpt = None,
     refine_scale: RefineScaleOpt = 2,
     no_mac: NoMacOpt = False,
     lpips_weights: LpipsWeightsOpt = None,
@@ -258,7 +251,7 @@ def reconstruct_config(
     *, size: int | None = None, quality: str = "balanced", budget: int | None = None, intrinsics: Path | None = None,
     poses: Path | None = None, focal: float | None = None, conf_threshold: float | None = None,
     accept_low_confidence: bool = False,
-    far_layer: bool = True, refine: str = "", refine_scale: int = 2, no_mac: bool = False,
+    far_layer: bool = True, refine: str | None = None, refine_scale: int = 2, no_mac: bool = False,
     lpips_weights: Path | None = None, backend: str = "classical", weights: Path | None = None,
     dino: Path | None = None, fusion: Path | None = None, gaussian_head: Path | None = None, device: str = "cpu",
     precision: str = "fp32", matcher: str = "auto",
@@ -268,7 +261,7 @@ def reconstruct_config(
     :meth:`~macsplat_cli.engine.EngineConfig.validate`.
 
     Raises:
-        InputError: ``--refine`` is neither a number of steps nor ``auto``.
+        InputError: ``--refine`` is not ``STEPS|auto|off`` (:func:`~._options.parse_refine`).
     """
     from ..engine import EngineConfig
     from ..pipeline.background import BackgroundConfig
@@ -277,13 +270,13 @@ def reconstruct_config(
     from ..pipeline.refine import RefineConfig
     from ..pipeline.run import ReconstructConfig
     from ..pipeline.views import ViewConfig
+    from ..presets import Overrides
 
     return EngineConfig(  # the choices are checked by EngineConfig.validate
         backend=backend.strip().lower(),  # type: ignore[arg-type]
         quality=quality.strip().lower(),  # type: ignore[arg-type]
         matcher=matcher.strip().lower(),  # type: ignore[arg-type]
-        budget=budget,
-        size=size,
+        overrides=Overrides(size=size, conf_threshold=conf_threshold, budget=budget, refine=parse_refine(refine)),
         pipeline=ReconstructConfig(
             views=ViewConfig(
                 intrinsics=intrinsics if intrinsics is not None or focal is not None else poses, focal=focal
@@ -292,39 +285,9 @@ def reconstruct_config(
             background=BackgroundConfig(enabled=far_layer),
             multiview=MultiViewConfig(poses=poses),
         ),
-        conf_threshold=conf_threshold,
         neural=neural_options(weights, gaussian_head, dino, fusion, device, precision),
-        refine=RefineConfig(
-            steps=_refine_steps(refine) if refine.strip() else _preset_refine_steps(quality),
-            scale=refine_scale,
-            use_mac=not no_mac,
-            lpips_weights=lpips_weights,
-        ),  # fmt: skip
+        refine=RefineConfig(scale=refine_scale, use_mac=not no_mac, lpips_weights=lpips_weights),
     )
-
-
-def _preset_refine_steps(quality: str) -> int:
-    """``--refine`` not given: the preset's (:func:`~macsplat_cli.presets.refine_steps`); an unknown quality gets 0
-    here and its error from ``EngineConfig.validate``."""
-    from ..presets import QUALITIES, refine_steps
-
-    q = quality.strip().lower()
-    return refine_steps(q) if q in QUALITIES else 0  # type: ignore[arg-type]
-
-
-def _refine_steps(text: str) -> int:
-    from ..errors import InputError
-    from ..pipeline.refine import AUTO_STEPS
-
-    if text.strip().lower() == "auto":
-        return AUTO_STEPS
-    try:
-        steps = int(text)
-    except ValueError:
-        steps = -1
-    if steps < 0:
-        raise InputError(f"--refine {text!r}: give a number of steps (0 = off) or 'auto'")
-    return steps
 
 
 def _check_outputs(
@@ -368,9 +331,7 @@ def _check_outputs(
 def _frame_side(config: EngineConfig) -> int:
     """The novel views' longest possible side: the working size's long side, which the rounding of each side to a
     multiple of 16 (:func:`~macsplat_cli.pipeline.views.working_size`) may raise by less than 16."""
-    from ..presets import working_size
-
-    return (config.size or working_size(config.quality)) + 16
+    return config.settings().pipeline.views.size + 16
 
 
 def _render_names(renders: Path | None, num_renders: int) -> list[Path]:
@@ -405,7 +366,7 @@ def _reconstruct(
 
     profile = StageProfile(started=profile_from) if profile_from is not None else None
     with StageProgress(disabled=quiet, also=profile.event if profile else None) as progress:
-        steps = config.refine.steps
+        steps = config.settings().refine.steps
         result = reconstruct(
             images,
             config,

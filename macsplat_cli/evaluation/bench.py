@@ -31,7 +31,7 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -43,6 +43,8 @@ from ..engine import EngineConfig, Models, NeuralOptions, load_models
 from ..errors import InputError, OutputPathError
 from ..pipeline.refine import RefineConfig
 from ..presets import BACKENDS as ENGINE
+from ..presets import Quality
+from ..presets import refine_steps as preset_refine_steps
 from .protocol import evaluate
 from .reconstructors import BACKENDS, Reconstructor, ReconstructSettings, make_reconstructor
 from .result_files import ResultWriter
@@ -62,6 +64,7 @@ __all__ = [
     "mark_pareto",
     "pareto_front",
     "run_bench",
+    "setting_config",
     "write_bench",
 ]
 
@@ -118,14 +121,28 @@ def grid(
     backends: Sequence[str] = ("classical",),
     sizes: Sequence[int] = (512,),
     conf_thresholds: Sequence[float | None] = (None,),
-    refine_steps: Sequence[int] = (0,),
+    refine_steps: Sequence[int | None] = (None,),
     qualities: Sequence[str] = ("balanced",),
 ) -> list[BenchSetting]:
-    """Every combination of the axes, in order."""
+    """Every combination of the axes, in order; a refinement of None is the quality's
+    (:func:`~macsplat_cli.presets.refine_steps`, as ``reconstruct`` without ``--refine``)."""
     return [
-        BenchSetting(b, int(s), c, int(r), q)
+        BenchSetting(b, int(s), c, int(r) if r is not None else preset_refine_steps(cast(Quality, q)), q)
         for b, s, c, r, q in itertools.product(backends, sizes, conf_thresholds, refine_steps, qualities)
     ]
+
+
+def setting_config(base: EngineConfig, setting: BenchSetting) -> EngineConfig:
+    """The engine settings of one point of the grid: ``base`` (neural files and device, refinement scale, matcher)
+    with the setting's backend, quality, τ and refinement steps (the working size comes per case)."""
+    return base.replace(
+        backend=setting.backend,
+        quality=setting.quality,
+        overrides=dataclasses.replace(
+            base.overrides, conf_threshold=setting.conf_threshold, refine=setting.refine_steps
+        ),
+        neural=base.neural if setting.backend == "neural" else NeuralOptions(),
+    )
 
 
 def pareto_front(
@@ -285,13 +302,7 @@ def run_bench(
     base = base or EngineConfig()
     models: dict[str, Models] = {}
     for i, s in enumerate(settings):
-        config = base.replace(
-            backend=s.backend,
-            conf_threshold=s.conf_threshold,
-            refine=dataclasses.replace(base.refine, steps=s.refine_steps),
-            neural=base.neural if s.backend == "neural" else NeuralOptions(),
-            quality=s.quality,
-        )
+        config = setting_config(base, s)
         if s.backend not in models:  # the networks load once per backend
             models[s.backend] = load_models(config.replace(refine=RefineConfig())) if s.backend in ENGINE else Models()
         recon = make_reconstructor(config, models[s.backend])

@@ -88,8 +88,9 @@ class EngineReconstructor:
     mismatched checkpoint stops the run before any case (pass ``models`` to share them).
 
     Args:
-        config: the engine settings (backend, τ, refinement, neural files); the working size and the
-            intrinsics come from each case's :class:`ReconstructSettings`.
+        config: the engine settings (backend, quality, overrides, neural files), resolved by the same
+            :func:`~macsplat_cli.presets.configure` as ``macsplat reconstruct``'s; the working size and the intrinsics
+            come from each case's :class:`ReconstructSettings`.
         models: models already loaded for ``config`` (:func:`~macsplat_cli.engine.load_models`).
     """
 
@@ -108,7 +109,8 @@ class EngineReconstructor:
 
     def __call__(self, scene: EvalScene, case: EvalCase, settings: ReconstructSettings) -> Reconstruction:
         config = self.config.replace()
-        config.pipeline.views, config.size = ViewConfig(), settings.size
+        config.pipeline.views = ViewConfig()
+        config.overrides = dataclasses.replace(config.overrides, size=settings.size)
         paths = _context_paths(scene, case)
         with tempfile.TemporaryDirectory(prefix="macsplat-eval-") as tmp:
             if settings.intrinsics == "given":

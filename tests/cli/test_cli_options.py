@@ -26,7 +26,7 @@ from macsplat_cli.pipeline.descriptors import SiftConfig
 from macsplat_cli.pipeline.matching import MatchConfig
 from macsplat_cli.pipeline.refine import AUTO_STEPS, RefineConfig
 from macsplat_cli.pipeline.run import ReconstructConfig
-from macsplat_cli.presets import FAST_SIFT, StageSettings
+from macsplat_cli.presets import FAST_SIFT, Overrides, StageSettings
 
 ARGS = ["a.jpg", "b.jpg", "-o", "s.ply"]
 
@@ -47,9 +47,7 @@ def _settings(*options: str) -> StageSettings:
 
 def test_defaults_are_the_balanced_classical_pipeline() -> None:
     config = _config()
-    assert (config.backend, config.quality, config.budget, config.size, config.conf_threshold) == (
-        "classical", "balanced", None, None, None,
-    )  # fmt: skip
+    assert (config.backend, config.quality, config.overrides) == ("classical", "balanced", Overrides())
     assert config.neural == NeuralOptions() and config.refine == RefineConfig()
     s = _settings()
     default = ReconstructConfig()
@@ -76,12 +74,12 @@ def test_quality_best_keeps_the_stages_and_the_size_overrides_the_preset() -> No
 
 
 def test_budget_bounds_the_compaction() -> None:
-    assert _config("--budget", "5000").budget == 5000
+    assert _config("--budget", "5000").overrides.budget == 5000
     assert _settings("--budget", "5000").compact.budget == 5000
 
 
 def test_conf_threshold_is_the_matching_tau_of_either_backend() -> None:
-    assert _config("--conf-threshold", "0.2").conf_threshold == 0.2
+    assert _config("--conf-threshold", "0.2").overrides.conf_threshold == 0.2
     assert _settings("--conf-threshold", "0.2").pipeline.matching.conf_threshold == 0.2
     neural = ["--backend", "neural", "--weights", "w.pth"]
     assert _settings(*neural).pipeline.matching.conf_threshold == 1.0
@@ -89,23 +87,29 @@ def test_conf_threshold_is_the_matching_tau_of_either_backend() -> None:
 
 
 def test_refine_flags_make_one_refine_config() -> None:
-    assert _config("--refine", "auto").refine == RefineConfig(steps=AUTO_STEPS) and AUTO_STEPS == 25
-    assert _config("--refine", "AUTO").refine.steps == 25
-    r = _config("--refine", "7", "--refine-scale", "1", "--no-mac", "--lpips-weights", "vgg").refine
-    assert r == RefineConfig(steps=7, scale=1, use_mac=False, lpips_weights=Path("vgg"))
+    """``--refine STEPS|auto|off`` is the steps override; how it refines is ``EngineConfig.refine`` (its steps the
+    engine's to set)."""
+    assert _config("--refine", "auto").overrides.refine == AUTO_STEPS == 25
+    assert _config("--refine", "auto").refine == RefineConfig()
+    assert _config("--refine", "AUTO").overrides.refine == 25
+    assert _config("--refine", "off").overrides.refine == 0 == _config("--refine", " Off ").overrides.refine
+    config = _config("--refine", "7", "--refine-scale", "1", "--no-mac", "--lpips-weights", "vgg")
+    assert config.refine == RefineConfig(scale=1, use_mac=False, lpips_weights=Path("vgg"))
+    assert config.settings().refine == RefineConfig(steps=7, scale=1, use_mac=False, lpips_weights=Path("vgg"))
     assert _settings("--refine", "7").refine.steps == 7
-    for bad in ("abc", "-2", "1.5"):
+    for bad in ("abc", "-2", "1.5", "", "auto,3"):
         with pytest.raises(InputError, match="--refine"):
             _config("--refine", bad)
 
 
 def test_refine_defaults_to_the_presets() -> None:
     """Without --refine: ``best`` refines (auto), ``fast`` and ``balanced`` do not; --refine 0 turns it off."""
-    assert _config("--quality", "best").refine.steps == AUTO_STEPS
-    assert _config("--quality", "balanced").refine.steps == 0 and _config().refine.steps == 0
-    assert _config("--quality", "fast").refine.steps == 0
-    assert _config("--quality", "best", "--refine", "0").refine.steps == 0
+    assert _config("--quality", "best").overrides.refine is None  # the preset decides, in the engine
     assert _settings("--quality", "best").refine.steps == AUTO_STEPS
+    assert _settings("--quality", "balanced").refine.steps == 0 and _settings().refine.steps == 0
+    assert _settings("--quality", "fast").refine.steps == 0
+    assert _settings("--quality", "best", "--refine", "0").refine.steps == 0
+    assert _settings("--quality", "fast", "--refine", "auto").refine.steps == AUTO_STEPS
 
 
 def test_intrinsics_far_layer_and_low_confidence_reach_the_pipeline() -> None:

@@ -34,6 +34,7 @@ from macsplat_cli.neural.onnx_format import ALLOWED_OPS, METADATA_KEY, ParityErr
 from macsplat_cli.neural.onnx_runtime import OnnxPairPredictor, read_predictor_info
 from macsplat_cli.neural.predictor import PairPredictor
 from macsplat_cli.ply import read_ply
+from macsplat_cli.presets import Overrides
 
 from support.cli import one_error_line, run_cli
 from support.scenes import PairFactory, PairSpec, rendered_pair
@@ -217,7 +218,8 @@ def test_the_onnx_path_writes_the_same_scene_as_the_torch_path(pair: tuple[Path,
     path = tmp_path / "exact.onnx"
     result = export_onnx(predictor, path, ExportConfig(size=SIZE, dynamic=False), sample=sample_pair(SIZE))
     assert result.parity.ok and not result.info.dynamic and read_predictor_info(path).size == SIZE
-    config = EngineConfig(backend="neural", quality="best")  # every pixel's Gaussian, not the compacted scene
+    # every pixel's Gaussian, not the compacted scene (and not refined: the networks' output compared)
+    config = EngineConfig(backend="neural", quality="best", overrides=Overrides(refine=0))
     ref = reconstruct(list(pair), config, models=Models(predictor=predictor))
     ort = OnnxPairPredictor(path)
     assert ort.input_size == SIZE

@@ -271,9 +271,10 @@ def test_pooled_maps_use_rescaled_cameras(pair: Pair) -> None:
 def test_compact_reconstruction_on_an_engine_run(pair_files: PairFactory) -> None:
     from macsplat_cli.engine import EngineConfig, reconstruct
     from macsplat_cli.pipeline.run import count_gaussians
+    from macsplat_cli.presets import Overrides
 
     files = pair_files(PairSpec("room", 12.0, (192, 144), 60.0, scene_seed=5))
-    rec = reconstruct([files.a, files.b], EngineConfig(size=192))
+    rec = reconstruct([files.a, files.b], EngineConfig(overrides=Overrides(size=192)))
     g, report = compact_reconstruction(rec)
     assert report.before == count_gaussians(rec.maps) and len(g) == report.after < 0.7 * report.before
     assert math.isfinite(report.ratio)

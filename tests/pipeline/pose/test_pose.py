@@ -292,9 +292,10 @@ def test_small_working_sizes_scale_the_pixel_thresholds(size: int) -> None:
     thresholds of a 512-px image, every match at 64 px fit one plane both ways and the pair was refused as
     "ambiguous … photograph more of the scene's depth" (a setting blamed on the scene)."""
     from macsplat_cli.engine import EngineConfig, reconstruct
+    from macsplat_cli.presets import Overrides
 
     root = REPO / "examples" / "motorcycle"
-    config = EngineConfig(quality="best", size=size)
+    config = EngineConfig(quality="best", overrides=Overrides(size=size, refine=0))  # the poses: no refinement
     rec = reconstruct([root / "left.jpg", root / "right.jpg"], config)
     assert abs(max(rec.report.images[0].working_size) - size) <= 8  # the working size asked for (multiple of 16)
     assert rec.geometry.diagnostics["rotation_deg"] < 0.5 and rec.report.matches["verified"] > 1000
