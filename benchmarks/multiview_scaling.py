@@ -111,8 +111,20 @@ def render_photos(cache: Path, n: int, step_deg: float) -> Photos:
 
 
 def _cli_command(photos: list[Path], intr: Path, work: Path) -> list[str]:
-    return [sys.executable, "-m", "macsplat_cli", "reconstruct", *map(str, photos), "-o", str(work / "out.ply"),
-            "--intrinsics", str(intr), "--report", str(work / "r.json"), "-q"]
+    return [
+        sys.executable,
+        "-m",
+        "macsplat_cli",
+        "reconstruct",
+        *map(str, photos),
+        "-o",
+        str(work / "out.ply"),
+        "--intrinsics",
+        str(intr),
+        "--report",
+        str(work / "r.json"),
+        "-q",
+    ]
 
 
 _RUSAGE_HELPER = (
@@ -162,8 +174,17 @@ def measure(photos: Photos, n: int, work: Path, colmap: bool) -> SizeResult:
     if report:
         mv = report.get("multiview")
         registered = int(mv["registered"]) if mv else 2  # two photos: the two-view path, both posed or refused
-        res = SizeResult(n, True, wall, rss, dict(report.get("times_s", {})), registered, load, cpu_s=cpu_s,
-                         extra={"gaussians": report.get("gaussians_written", report.get("gaussians"))})
+        res = SizeResult(
+            n,
+            True,
+            wall,
+            rss,
+            dict(report.get("times_s", {})),
+            registered,
+            load,
+            cpu_s=cpu_s,
+            extra={"gaussians": report.get("gaussians_written", report.get("gaussians"))},
+        )
         if mv:
             res.extra["pairs_matched"] = len(mv.get("pairs", []))
             res.extra["pairs_accepted"] = sum(bool(p.get("accepted")) for p in mv.get("pairs", []))
@@ -200,9 +221,20 @@ def _stage_cells(r: SizeResult) -> list[float | None]:
 
 def print_table(results: list[SizeResult], peer: bool) -> None:
     """The Markdown table of ``results`` (N ascending)."""
-    cols = ["N", "registered", "pairs matched", "depth pairs", "wall s", "s / added photo", "CPU s",
-            "CPU s / added photo",
-            *(f"{s} s" for s in STAGES), "other s", "pipeline s", "peak RSS GB"]
+    cols = [
+        "N",
+        "registered",
+        "pairs matched",
+        "depth pairs",
+        "wall s",
+        "s / added photo",
+        "CPU s",
+        "CPU s / added photo",
+        *(f"{s} s" for s in STAGES),
+        "other s",
+        "pipeline s",
+        "peak RSS GB",
+    ]
     aligns = "r" * len(cols)
     if peer:
         cols += ["COLMAP s", "COLMAP registered"]
@@ -218,9 +250,18 @@ def print_table(results: list[SizeResult], peer: bool) -> None:
         accepted = r.extra.get("pairs_accepted", matched)
         pairs = "–" if matched is None else f"{accepted}/{matched}"
         dpairs = str(r.extra.get("depth_pairs", 1 if r.n == 2 and r.ok else "–"))
-        cells = [str(r.n), f"{r.registered}/{r.n}" if r.ok else "failed", pairs, dpairs, _f(r.wall_s, 1), _f(per),
-                 _f(r.cpu_s, 1), _f(cpu_per),
-                 *(_f(v) for v in _stage_cells(r)), _f(r.peak_rss_bytes / GB)]
+        cells = [
+            str(r.n),
+            f"{r.registered}/{r.n}" if r.ok else "failed",
+            pairs,
+            dpairs,
+            _f(r.wall_s, 1),
+            _f(per),
+            _f(r.cpu_s, 1),
+            _f(cpu_per),
+            *(_f(v) for v in _stage_cells(r)),
+            _f(r.peak_rss_bytes / GB),
+        ]
         if peer:
             reg = "–" if r.colmap_registered is None else f"{r.colmap_registered}/{r.n}"
             cells += [_f(r.colmap_s, 1), reg]
@@ -263,15 +304,20 @@ def main() -> None:
     if not args.no_warmup:
         (args.cache / "warmup").mkdir(parents=True, exist_ok=True)
         rc, wall, _, _, stderr = run_cli(photos.paths[:3], photos.intrinsics, args.cache / "warmup")
-        print(f"warm-up (N = 3): {wall:.1f} s" + ("" if rc == 0 else f", failed: {_cli_error(stderr)}"),
-              file=sys.stderr)
+        print(
+            f"warm-up (N = 3): {wall:.1f} s" + ("" if rc == 0 else f", failed: {_cli_error(stderr)}"), file=sys.stderr
+        )
     results = []
     for n in args.sizes:
         r = measure(photos, n, work / f"n{n}", peer)
         results.append(r)
         peer_line = f", COLMAP {r.colmap_s:.1f} s {r.colmap_registered}/{n}" if peer and r.colmap_s is not None else ""
-        print(f"N = {n}: {'ok' if r.ok else 'FAILED'} {r.wall_s:.1f} s, {r.peak_rss_bytes / GB:.2f} GB, "
-              f"registered {r.registered}, load {r.load_before:.2f}{peer_line}", file=sys.stderr, flush=True)
+        print(
+            f"N = {n}: {'ok' if r.ok else 'FAILED'} {r.wall_s:.1f} s, {r.peak_rss_bytes / GB:.2f} GB, "
+            f"registered {r.registered}, load {r.load_before:.2f}{peer_line}",
+            file=sys.stderr,
+            flush=True,
+        )
         results_path.write_text(json.dumps({"peer": peer, "results": [asdict(x) for x in results]}, indent=1))
     print_table(results, peer)
 

@@ -37,6 +37,8 @@ PARAMETERS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 class _Parameters:
     """What both Gaussian types derive from their five parameter fields."""
 
+    means: torch.Tensor  # a field of each subclass (the first of PARAMETERS)
+
     def _named(self) -> list[tuple[str, torch.Tensor]]:
         return [(name, getattr(self, name)) for name in PARAMETERS]
 
@@ -46,11 +48,11 @@ class _Parameters:
 
     @property
     def dtype(self) -> torch.dtype:
-        return self.means.dtype  # type: ignore[attr-defined]
+        return self.means.dtype
 
     @property
     def device(self) -> torch.device:
-        return self.means.device  # type: ignore[attr-defined]
+        return self.means.device
 
 
 @dataclass
@@ -336,8 +338,8 @@ class GaussianMaps(_Parameters):
         if not -self.batch <= k < self.batch:
             raise IndexError(f"view {k} of GaussianMaps with {self.batch} view(s)")
         sl = slice(k % self.batch, k % self.batch + 1)
-        return GaussianMaps(
-            *(t[sl] for t in self.tensors()),
+        return _maps(
+            [t[sl] for t in self.tensors()],
             valid=None if self.valid is None else self.valid[sl],
             cam_to_world=None if self.cam_to_world is None else self.cam_to_world[sl],
         )
@@ -415,12 +417,12 @@ class GaussianMaps(_Parameters):
 
     def detach(self) -> GaussianMaps:
         """A copy of the parameters outside the graph (cloned: optimising it leaves these maps alone)."""
-        return GaussianMaps(*(t.detach().clone() for t in self.tensors()), self.valid, self.cam_to_world)
+        return _maps([t.detach().clone() for t in self.tensors()], self.valid, self.cam_to_world)
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> GaussianMaps:
         """On ``device``, the parameters in ``dtype`` (``valid`` stays bool, ``cam_to_world`` keeps its dtype)."""
-        return GaussianMaps(
-            *(t.to(device=device, dtype=dtype) for t in self.tensors()),
+        return _maps(
+            [t.to(device=device, dtype=dtype) for t in self.tensors()],
             valid=None if self.valid is None else self.valid.to(device=device),
             cam_to_world=None if self.cam_to_world is None else self.cam_to_world.to(device=device),
         )
@@ -431,3 +433,9 @@ class GaussianMaps(_Parameters):
             check_finite(t, name)
         if self.cam_to_world is not None:
             check_finite(self.cam_to_world, "cam_to_world")
+
+
+def _maps(params: list[torch.Tensor], valid: torch.Tensor | None, cam_to_world: torch.Tensor | None) -> GaussianMaps:
+    """:class:`GaussianMaps` of the five parameter tensors ``params`` (in field order, as ``tensors()`` gives)."""
+    means, log_scales, quats, opacity_logits, sh = params
+    return GaussianMaps(means, log_scales, quats, opacity_logits, sh, valid, cam_to_world)

@@ -396,7 +396,7 @@ class _Mp4Frames:
         h, w = frame.shape[:2]
         with _native_log_silenced():
             if self.writer is None:
-                self.writer = cv2.VideoWriter(str(self.tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(self.fps), (w, h))
+                self.writer = cv2.VideoWriter(str(self.tmp), cv2.VideoWriter.fourcc(*"mp4v"), float(self.fps), (w, h))
                 if not self.writer.isOpened():
                     raise OutputPathError(f"{self.path}: OpenCV could not open an MPEG-4 video writer for {w}x{h}")
             self.writer.write(np.ascontiguousarray(frame[..., ::-1]))

@@ -35,7 +35,7 @@ logger = logging.getLogger(__name__)
 
 # VGG16 "D": convolution widths, "M" = 2×2 max-pool. torchvision indexes conv, ReLU and pool
 # modules in one Sequential; the conv layers sit at these indices.
-_VGG16 = [64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512]
+_VGG16: list[int | str] = [64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512]
 _CONV_INDICES = (0, 2, 5, 7, 10, 12, 14, 17, 19, 21, 24, 26, 28)
 _TAPS = (3, 8, 15, 22, 29)  # the ReLU outputs LPIPS compares (relu1_2 ... relu5_3)
 _TAP_CHANNELS = (64, 128, 256, 512, 512)
@@ -49,6 +49,9 @@ class LPIPSWeightsError(StateDictError):
 
 class LPIPS(nn.Module):
     """LPIPS-VGG distance between images in [0, 1]; frozen and always in eval mode."""
+
+    shift: torch.Tensor  # buffers: the input normalisation. [1, 3, 1, 1]
+    scale: torch.Tensor
 
     def __init__(self) -> None:
         super().__init__()
@@ -96,12 +99,14 @@ class LPIPS(nn.Module):
         dtype = self.shift.dtype
         x = torch.cat([pred, target]).to(dtype) * 2 - 1
         x = (x - self.shift) / self.scale
-        total = 0.0
-        taps = self._taps(x)
-        for feat, lin in zip(taps, self.lins):
+        per_tap = []
+        for feat, lin in zip(self._taps(x), self.lins):
             f = feat / (feat.square().sum(1, keepdim=True).sqrt() + 1e-10)
             a, b = f.chunk(2)
-            total = total + lin((a - b).square()).mean(dim=(1, 2, 3))
+            per_tap.append(lin((a - b).square()).mean(dim=(1, 2, 3)))
+        total = per_tap[0]
+        for d in per_tap[1:]:  # summed in tap order
+            total = total + d
         return total[0] if single else total
 
     def spatial(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -160,10 +165,13 @@ def load_lpips(path: str | Path) -> LPIPS:
     model = LPIPS()
     wanted: dict[str, torch.Tensor] = {}
     for idx in _CONV_INDICES:
-        wanted[f"features.{idx}.weight"] = model.features[idx].weight
-        wanted[f"features.{idx}.bias"] = model.features[idx].bias
-    for k in range(5):
-        wanted[f"lin{k}.model.1.weight"] = model.lins[k].weight
+        conv = model.features[idx]
+        assert isinstance(conv, nn.Conv2d) and conv.bias is not None  # _CONV_INDICES: _VGG16's convolutions
+        wanted[f"features.{idx}.weight"] = conv.weight
+        wanted[f"features.{idx}.bias"] = conv.bias
+    for k, tap in enumerate(model.lins):
+        assert isinstance(tap, nn.Conv2d)
+        wanted[f"lin{k}.model.1.weight"] = tap.weight
     # The files hold more than LPIPS uses (VGG16's classifier), so unknown keys are ignored.
     expected = {key: param.shape for key, param in wanted.items()}
     check_state_dict_keys(expected, sd, LPIPSWeightsError, source=str(path), model="LPIPS-VGG", allow_unexpected=True)

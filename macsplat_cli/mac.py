@@ -227,9 +227,9 @@ def mac_loss(
         d_col.mean(-1) if mean else d_col.sum(-1), cfg.clamp_colour
     )
 
-    w = weights.to(mu1.dtype)
-    norm = w.sum() + cfg.eps
-    pos, shape, app = (w * l_pos).sum() / norm, (w * l_shape).sum() / norm, (w * l_app).sum() / norm
+    wt = weights.to(mu1.dtype)
+    norm = wt.sum() + cfg.eps
+    pos, shape, app = (wt * l_pos).sum() / norm, (wt * l_shape).sum() / norm, (wt * l_app).sum() / norm
     loss = cfg.lambda_pos * pos + cfg.lambda_shape * shape + cfg.lambda_app * app
     return MACLoss(loss=loss, position=pos, shape=shape, appearance=app, matches=int(xy1.shape[0]))
 

@@ -6,11 +6,14 @@
 * No test module imports another: shared helpers live in ``tests/support/`` (one module per topic).
 * Test folders have no ``__init__.py`` (pytest's ``prepend`` import mode imports a test module by its basename), so
   test module basenames are unique across the folders.
+* The ``slow`` marker's tests are skipped by a plain ``pytest -q`` (``conftest.py``) and run by CI: ``.ci/run`` gives
+  its full pytest run ``--runslow``, after its lint, format and type checks.
 """
 
 from __future__ import annotations
 
 import ast
+import re
 from collections import Counter
 from pathlib import Path
 
@@ -72,3 +75,14 @@ def test_test_folders_are_not_packages_and_basenames_are_unique() -> None:
     assert not inits and not (TESTS / "__init__.py").exists(), f"__init__.py in test folders: {inits}"
     counts = Counter(p.name for p in _test_modules())
     assert not [n for n, c in counts.items() if c > 1], f"test module basenames used twice: {counts.most_common(3)}"
+
+
+def test_the_slow_tests_are_marked_and_ci_runs_them_after_its_checks() -> None:
+    marked = [p.name for p in _test_modules() if re.search(r"pytest\.mark\.slow\b", p.read_text(encoding="utf-8"))]
+    assert marked, "no test is marked slow: the marker's skip has nothing to skip"
+    lines = [ln.strip() for ln in (TESTS.parent / ".ci" / "run").read_text(encoding="utf-8").splitlines()]
+    full = [i for i, ln in enumerate(lines) if ln.startswith("pytest_rc python -m pytest -q") and "--runslow" in ln]
+    assert full, f".ci/run never runs the slow tests of {marked} (its full pytest run lacks --runslow)"
+    for check in ("ruff check .", "ruff format --check .", "mypy macsplat_cli"):
+        at = [i for i, ln in enumerate(lines) if ln.startswith(check)]
+        assert at and at[0] < full[0], f".ci/run does not run {check!r} before its tests"

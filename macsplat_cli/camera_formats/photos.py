@@ -35,7 +35,7 @@ def cameras_for_photos(cams: CameraSet, photos: Sequence[Path], where: str | os.
         if tail != c.name and last[tail] == 1:
             by_name.setdefault(tail, c)
             by_name.setdefault(PurePosixPath(tail).stem, c)
-    found = [list({id(c): c for n in (p.name, p.stem) if (c := by_name.get(n)) is not None}.values()) for p in photos]
+    found = [list({id(m): m for n in (p.name, p.stem) if (m := by_name.get(n)) is not None}.values()) for p in photos]
     if not any(found):
         if len(cams) != len(photos):
             raise CameraFileError(

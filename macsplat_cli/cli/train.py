@@ -14,8 +14,7 @@ from ._common import QuietOpt, VerboseOpt, command_context, err_console, escape
 from ._options import DeviceOpt, DinoOpt, GaussianHeadOpt, WeightsOpt
 
 if TYPE_CHECKING:  # the command imports torch only once it runs
-    import torch
-
+    from ..lpips import LPIPS
     from ..training.config import TrainConfig
     from ..training.recipes import TrainRecipe
 
@@ -269,7 +268,7 @@ def _train_config(rec: TrainRecipe, **loop: Any) -> TrainConfig:
     return config
 
 
-def _lpips(path: Path | None, rec: TrainRecipe) -> torch.nn.Module | None:
+def _lpips(path: Path | None, rec: TrainRecipe) -> LPIPS | None:
     if path is None:
         logger.info("no --lpips-weights: the photometric loss uses D-SSIM (weight %g) instead of LPIPS (%g)",
                     rec.loss.ssim_weight, rec.loss.lpips_weight)  # fmt: skip

@@ -297,8 +297,8 @@ def validate_scene(scene: EvalScene, where: Path, roots: Sequence[Path] | None =
     limit = max_image_pixels()
     used: dict[object, str] = {}
     for f in scene.frames:
-        for p in (f.image, f.depth) if roots is not None else ():
-            if p is not None:
+        for p in (f.image, f.depth):
+            if p is not None and roots is not None:
                 check_inside(p, roots, f"frame {f.name!r}")
         size = image_size(f.image)
         cam = (f.camera.width, f.camera.height)

@@ -111,8 +111,7 @@ def render_points(
     for R in np.unique(reach):
         sel = np.flatnonzero(reach == R)
         d = np.arange(-R, R + 1)
-        dx, dy = np.meshgrid(d, d, indexing="xy")
-        dx, dy = dx.reshape(-1), dy.reshape(-1)
+        dx, dy = (g.reshape(-1) for g in np.meshgrid(d, d, indexing="xy"))
         px = np.floor(x[sel])[:, None].astype(np.int64) + dx[None]
         py = np.floor(y[sel])[:, None].astype(np.int64) + dy[None]
         inside = (px + 0.5 - x[sel, None]) ** 2 + (py + 0.5 - y[sel, None]) ** 2 <= r_px[sel, None] ** 2

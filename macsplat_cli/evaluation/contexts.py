@@ -143,7 +143,8 @@ def extend_cases(
         DatasetError: a case with more than two context frames, but not ``n``.
     """
     cams = {s.name: [f.camera for f in s.frames] for s in dataset.scenes}
-    kept, left = [], []
+    kept: list[EvalCase] = []
+    left: list[EvalCase] = []
     for case in cases:
         ext = extend_case(cams[case.scene], case, n, slack_deg)
         (kept if ext is not None else left).append(ext if ext is not None else case)

@@ -62,7 +62,7 @@ FAILED_POSE_ERROR_DEG = 180.0
 
 
 def _arr(x: object) -> np.ndarray:
-    a = x.detach().cpu().numpy() if hasattr(x, "detach") else np.asarray(x)  # type: ignore[union-attr]
+    a = x.detach().cpu().numpy() if hasattr(x, "detach") else np.asarray(x)
     return a.astype(np.float64)
 
 
@@ -167,8 +167,9 @@ def _lpips(
         if m is not None:
             pm, tm = p * m[..., None], t * m[..., None]
             out["lpips"] = float(lpips(_t(pm), _t(tm))) if splatt3r else float(lpips(_t(p), _t(t)))
-            if m.any() and hasattr(lpips, "spatial"):
-                dmap = lpips.spatial(_t(pm), _t(tm)).double().numpy()
+            spatial = getattr(lpips, "spatial", None)  # LPIPS's per-pixel map; another module may have none
+            if m.any() and spatial is not None:
+                dmap = spatial(_t(pm), _t(tm)).double().numpy()
                 out["lpips_masked"] = float(dmap[m].mean())
         else:
             out["lpips"] = float(lpips(_t(p), _t(t)))

@@ -208,6 +208,8 @@ def _measure_pose(res: CaseResult, rec: Reconstruction, gt: list[Camera]) -> lis
     of each context view."""
     T_gt = gt[1].world_to_cam @ gt[0].cam_to_world
     g = rec.geometry
+    if g is None:  # pragma: no cover - a reconstruction has poses (more than two photos) or a two-view geometry
+        raise ReconstructionError("the two-photo reconstruction has no relative pose")
     res.rotation_error_deg = rotation_error_deg(g.R, T_gt[:3, :3])
     res.translation_error_deg = translation_direction_error_deg(g.t, T_gt[:3, 3])
     t_est = float(np.linalg.norm(g.t))
@@ -228,7 +230,10 @@ def _measure_depth(res: CaseResult, rec: Reconstruction, scene: EvalScene, frame
     per_view = []
     for k, dm in enumerate(rec.depths):
         h, w = dm.depth.shape
-        d_true = _resize_to(scene.depth(frames[k]), w, h)  # type: ignore[arg-type]
+        depth = scene.depth(frames[k])
+        if depth is None:  # pragma: no cover - measured only for a scene with depth (has_depth)
+            raise ReconstructionError(f"frame {frames[k]} has no depth to measure against")
+        d_true = _resize_to(depth, w, h)
         est = np.where(dm.valid, dm.depth, 0.0)
         per_view.append(depth_metrics(est, d_true, res.scale))
     res.depth = {key: known_mean([m[key] for m in per_view]) for key in per_view[0]}
@@ -309,7 +314,9 @@ def _measure_views(
         {"frame": case.context[k], "name": scene.frames[case.context[k]].name, "reason": why}
         for k, why in sorted(reasons.items())
     ]
-    est = np.stack([np.asarray(T, np.float64) for T in rec.poses])  # type: ignore[union-attr]  # [M, 4, 4]
+    if rec.poses is None:  # pragma: no cover - measured only for more than two photos, which have poses
+        raise ReconstructionError("the reconstruction has no camera poses")
+    est = np.stack([np.asarray(T, np.float64) for T in rec.poses])  # [M, 4, 4]
     true = np.stack([gt[k].cam_to_world for k in pos])
     errors = pairwise_pose_errors(est, true, pos)
     res.pairs = [

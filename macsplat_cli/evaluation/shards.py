@@ -88,7 +88,7 @@ def case_from_dict(d: dict[str, Any]) -> EvalCase:
     return EvalCase(
         scene=d["scene"], split=d["split"], context=tuple(d["context"]), targets=tuple(d["targets"]),
         criterion=d.get("criterion", "file"), overlap=math.nan if overlap is None else float(overlap),
-        pair=tuple(d["pair"]) if d.get("pair") is not None else None,  # type: ignore[arg-type]
+        pair=tuple(d["pair"]) if d.get("pair") is not None else None,
     )  # fmt: skip
 
 
@@ -104,7 +104,7 @@ def result_from_dict(d: dict[str, Any]) -> CaseResult:
         translation_error_deg=_num(d.get("translation_error_deg")),
         focal_error_pct=list(d.get("focal_error_pct") or [None, None]), depth=dict(d.get("depth") or {}),
         scale=_num(d.get("scale")),
-        targets=[TargetResult(t["index"], t["name"], tuple(t["size"]), t["metrics"]) for t in d.get("targets", [])],  # type: ignore[arg-type]
+        targets=[TargetResult(t["index"], t["name"], tuple(t["size"]), t["metrics"]) for t in d.get("targets", [])],
         registered=d.get("registered_contexts"), unregistered=list(d.get("unregistered") or []),
         pairs=list(d.get("pairs") or []),
     )  # fmt: skip
@@ -168,7 +168,7 @@ def _read(folder: Path) -> dict[str, Any]:
         raise InputError(f"{path}: not a shard's results (run eval with --shard I/N)")
     for name, kind, what in (("dataset", str, "a name"), ("layout", str, "a name"), ("method", str, "a name"),
                              ("config", dict, "an object"), ("cases", list, "a list")):  # fmt: skip
-        _check(path, doc, name, lambda v, kind=kind: isinstance(v, kind), what)  # type: ignore[misc]
+        _check(path, doc, name, _of_type(kind), what)
     _check(path, doc["config"], "baselines", _strs, "a list of names", "config.", required=False)
     shard = doc["shard"]
     for name in ("index", "count", "cases_total"):
@@ -261,6 +261,11 @@ _CASE_FIELDS: dict[str, tuple[bool, Callable[[Any], bool], str]] = {
                                                   "scale")},
 }  # fmt: skip
 """What :func:`result_from_dict` and the summary need of a case: (required, check, what it must be)."""
+
+
+def _of_type(kind: type) -> Callable[[Any], bool]:
+    """The check that a value is a ``kind``."""
+    return lambda v: isinstance(v, kind)
 
 
 def _check(

@@ -343,22 +343,18 @@ def make_cases(
                         targets = [int(f) for f in np.flatnonzero(hit)]
                         if targets:
                             found[s].append(EvalCase(scene.name, s, (a, b), tuple(targets), "coverage", overlap))
-                else:
+                elif angles is not None:  # the angle mode (angles are measured for every mode but coverage)
                     angle = optical_axis_angle_deg(cams[a], cams[b])
                     splits = angle_splits(angle, cfg.assignment, cfg.splits)
-                    targets = (
-                        _between(centres, angles[a], angles[b], (a, b), cfg.angle_slack_deg)  # type: ignore[index]
-                        if splits
-                        else []
-                    )
+                    targets = _between(centres, angles[a], angles[b], (a, b), cfg.angle_slack_deg) if splits else []
                     for s in splits if targets else []:
                         found[s].append(EvalCase(scene.name, s, (a, b), tuple(targets), "angle", angle))
         sel.candidates[scene.name] = {s: len(found[s]) for s in cfg.splits}
         for k, s in enumerate(SPLITS):
             rng = np.random.default_rng([cfg.seed, si, k])
             for case in _draw(rng, found[s], cfg.max_pairs):
-                targets = tuple(sorted(_draw(rng, list(case.targets), cfg.max_targets)))
-                per_split[s].append(EvalCase(case.scene, s, case.context, targets, case.criterion, case.overlap))
+                drawn = tuple(sorted(_draw(rng, list(case.targets), cfg.max_targets)))
+                per_split[s].append(EvalCase(case.scene, s, case.context, drawn, case.criterion, case.overlap))
     sel.cases = [c for s in SPLITS for c in per_split[s]]
     logger.info(
         "%d test case(s): %s",
@@ -426,6 +422,7 @@ def load_cases(
     merged: dict[tuple[str, str, tuple[int, ...]], list[int]] = {}
     for i, row in enumerate(rows):
         where = f"{p}: case {i}"
+        key: tuple[str, str, tuple[int, ...]]
         try:
             if isinstance(row, list):
                 scene, c0, c1, t = str(row[0]), int(row[1]), int(row[2]), int(row[3])

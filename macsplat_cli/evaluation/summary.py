@@ -99,7 +99,7 @@ def summary_markdown(rows: Sequence[dict[str, Any]]) -> str:
         ("ssim_masked", "masked SSIM", 3),
         ("lpips", "LPIPS", 3),
     )
-    geo = (
+    geo: tuple[tuple[str, str, int], ...] = (
         ("rotation_error_deg", "rot err °", 2), ("translation_error_deg", "t err °", 2), ("auc@5", "AUC@5", 3),
         ("auc@10", "AUC@10", 3), ("auc@20", "AUC@20", 3), ("focal_error_pct", "focal err %", 1),
         ("depth_absrel", "AbsRel", 3), ("depth_delta1", "δ<1.25", 3), ("time_s", "time s", 2),

@@ -31,7 +31,7 @@ import logging
 import pickle
 import struct
 import zipfile
-from collections.abc import Iterable, Mapping
+from collections.abc import Collection, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -185,7 +185,7 @@ class _InertGlobal:
 class _PlainDict:
     """Stand-in for a ``dict`` subclass (``defaultdict``, Lightning's ``AttributeDict``): builds a plain ``dict``."""
 
-    def __new__(cls, *args: Any, **kwargs: Any) -> dict:  # type: ignore[misc]
+    def __new__(cls, *args: Any, **kwargs: Any) -> dict:  # type: ignore[misc]  # a dict, not an instance: on purpose
         return {}
 
 
@@ -282,7 +282,7 @@ def check_state_dict(
     *,
     path: Path | str = "<state dict>",
     strict: bool = True,
-    optional: Iterable[str] = _OPTIONAL_KEYS,
+    optional: Collection[str] = _OPTIONAL_KEYS,
     key_prefix: str = "",
 ) -> tuple[tuple[str, ...], tuple[str, ...]]:
     """Compare a state dict's keys and shapes with ``module``'s (works on ``meta`` modules).

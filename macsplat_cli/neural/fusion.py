@@ -126,8 +126,10 @@ class ResidualSemanticFusion(nn.Module):
         self.proj = nn.Linear(cfg.dino_dim, cfg.desc_dim)
         widths = [2 * cfg.desc_dim] + [cfg.hidden_dim] * (cfg.depth - 1) + [cfg.desc_dim]
         self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in zip(widths[:-1], widths[1:]))
-        nn.init.zeros_(self.layers[-1].weight)
-        nn.init.zeros_(self.layers[-1].bias)
+        last = self.layers[-1]
+        assert isinstance(last, nn.Linear)
+        nn.init.zeros_(last.weight)
+        nn.init.zeros_(last.bias)
 
     def project_dino(self, dino: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
         """Project DINOv3 features to D channels and resize them bilinearly to the descriptor grid.

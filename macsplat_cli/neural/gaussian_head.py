@@ -69,7 +69,7 @@ class GaussianDPT(nn.Module):
     @torch.no_grad()
     def _init_last_conv(self, k: int) -> None:
         conv = self.dpt.head[-1]
-        assert isinstance(conv, nn.Conv2d)
+        assert isinstance(conv, nn.Conv2d) and conv.bias is not None
         groups = ((3, 0.001, 0.001), (3, 3e-5, -7.0), (4, 1.0, 0.0), (3 * k, 1.0, 0.0), (1, 1.0, -2.0))
         start = 0
         for n, gain, bias in groups:
@@ -120,7 +120,7 @@ class GaussianHead(nn.Module):
             offsets ``Δ`` = means − point map (zero when offsets are off). [B, H, W, 3]
         """
         k = self.config.sh_coeffs
-        offset_raw, scale_raw, rot_raw, sh_raw, opacity_raw = torch.split(raw, (3, 3, 4, 3 * k, 1), dim=-1)
+        offset_raw, scale_raw, rot_raw, sh_raw, opacity_raw = torch.split(raw, [3, 3, 4, 3 * k, 1], dim=-1)
         if self.config.use_offsets:
             d = torch.linalg.vector_norm(offset_raw, dim=-1, keepdim=True)
             offsets = offset_raw / d.clamp_min(1e-8) * (torch.exp(d - _OFFSET_SHIFT) - math.exp(-_OFFSET_SHIFT))

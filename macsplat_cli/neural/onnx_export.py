@@ -445,6 +445,6 @@ def _config_dict(predictor: PairPredictor) -> dict[str, Any]:
     from .predictor_io import predictor_config
 
     try:
-        return predictor_config(predictor)  # type: ignore[return-value]
+        return predictor_config(predictor)
     except Exception:  # noqa: BLE001 - a stand-in backbone without a config: informational only
         return {}

@@ -92,6 +92,7 @@ def check_opset(opset: int) -> None:
         try:
             with quiet_exporter():
                 prog = torch.onnx.export(probe, (torch.randn(2, 4),), dynamo=True, opset_version=opset)
+            assert prog is not None  # dynamo=True returns the program (a failure raises, caught below)
             got = {i.domain or "ai.onnx": i.version for i in prog.model_proto.opset_import}.get("ai.onnx")
             if got != opset:
                 problem = f"it produced opset {got}"
@@ -102,11 +103,12 @@ def check_opset(opset: int) -> None:
         _OPSET_CACHE[opset] = problem
     problem = _OPSET_CACHE[opset]
     if problem is not None:
-        import onnxruntime as ort
+        import onnxruntime
 
         raise InputError(
             f"--opset {opset}: the installed exporter (torch {torch.__version__}) and onnxruntime "
-            f"{ort.__version__} cannot produce and run it ({problem}); 18 and 20 (the default) are the safe choices"
+            f"{onnxruntime.__version__} cannot produce and run it ({problem}); 18 and 20 (the default) are the safe "
+            "choices"
         )
 
 

@@ -89,7 +89,8 @@ class PairPrediction:
 
         gaussians = None
         if self.gaussians is not None:
-            gaussians = tuple(GaussianMaps(*(mv(t) for t in g.tensors())) for g in self.gaussians)  # type: ignore[assignment]
+            g0, g1 = (GaussianMaps(*(mv(t) for t in g.tensors())) for g in self.gaussians)
+            gaussians = (g0, g1)
         return PairPrediction(mv(self.pts3d), mv(self.conf), mv(self.desc), mv(self.desc_conf), gaussians)
 
 
@@ -256,8 +257,9 @@ def prediction_from_outputs(outputs: tuple[torch.Tensor, ...] | list[torch.Tenso
     gaussians = None
     if len(outputs) > 4:
         fields = outputs[4:]
-        gaussians = tuple(GaussianMaps(*(f[:, k] for f in fields)) for k in (0, 1))
-    return PairPrediction(pts3d, conf, desc, desc_conf, gaussians)  # type: ignore[arg-type]
+        g0, g1 = (GaussianMaps(*(f[:, k] for f in fields)) for k in (0, 1))
+        gaussians = (g0, g1)
+    return PairPrediction(pts3d, conf, desc, desc_conf, gaussians)
 
 
 # ============================================================================================= options

@@ -80,13 +80,13 @@ def build_predictor(config: dict[str, dict[str, Any] | None]) -> PairPredictor:
     backbone_cfg = _as_config(BackboneConfig, config["backbone"] or {})
     backbone = MASt3RBackbone(backbone_cfg)
     head = None
-    if config.get("gaussian_head") is not None:
-        head_cfg = _as_config(GaussianHeadConfig, config["gaussian_head"])  # type: ignore[arg-type]
+    if (head_fields := config.get("gaussian_head")) is not None:
+        head_cfg = _as_config(GaussianHeadConfig, head_fields)
         head = GaussianHead(backbone_cfg.replace(head_type="gaussian_head"), head_cfg)
     dino = fusion = None
-    if config.get("dino") is not None and config.get("fusion") is not None:
-        dino = DINOv3Encoder(_as_config(DINOv3Config, config["dino"]))  # type: ignore[arg-type]
-        fusion = ResidualSemanticFusion(_as_config(FusionConfig, config["fusion"]))  # type: ignore[arg-type]
+    if (dino_fields := config.get("dino")) is not None and (fusion_fields := config.get("fusion")) is not None:
+        dino = DINOv3Encoder(_as_config(DINOv3Config, dino_fields))
+        fusion = ResidualSemanticFusion(_as_config(FusionConfig, fusion_fields))
     return PairPredictor(backbone, head, dino, fusion)
 
 

@@ -239,7 +239,7 @@ def _extended_cells(
     hc, wc = grid
     img = view.image.astype(np.float32)
     if img.shape[:2] != (h, w):
-        img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+        img = np.asarray(cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA))
     inv = np.where(valid, 1.0 / np.maximum(depth, 1e-12), 0.0).astype(np.float32)
     z_med = float(np.median(depth[valid]))
     img_c = cv2.resize(img, (wc, hc), interpolation=cv2.INTER_AREA).reshape(hc, wc, 3)

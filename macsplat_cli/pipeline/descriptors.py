@@ -82,12 +82,12 @@ class SiftDescriptors:
     def _detector(self) -> cv2.Feature2D:
         cfg = self.config
         if not cfg.affine:
-            return cv2.SIFT_create(nfeatures=cfg.max_keypoints, contrastThreshold=cfg.contrast_threshold)
+            return cv2.SIFT.create(nfeatures=cfg.max_keypoints, contrastThreshold=cfg.contrast_threshold)
         # AffineFeature applies nfeatures per simulated view; a few hundred each is plenty.
-        sift = cv2.SIFT_create(
+        sift = cv2.SIFT.create(
             nfeatures=max(cfg.max_keypoints // 16, 200), contrastThreshold=4 * cfg.contrast_threshold
         )
-        return cv2.AffineFeature_create(sift, maxTilt=int(cfg.max_tilt))
+        return cv2.AffineFeature.create(sift, maxTilt=int(cfg.max_tilt))
 
     def __call__(self, view: View) -> Features:
         cfg = self.config
@@ -101,11 +101,11 @@ class SiftDescriptors:
         mask = None
         if not view.mask.all():
             mask = cv2.resize(view.mask.astype(np.uint8), (w_d, h_d), interpolation=cv2.INTER_NEAREST)
-        kps, desc = self._detector().detectAndCompute(u8, mask)
-        if desc is None or len(kps) == 0:
+        kps, raw = self._detector().detectAndCompute(u8, mask)
+        if raw is None or len(kps) == 0:
             empty = np.zeros(0, np.float32)
             return Features(np.zeros((0, 2)), np.zeros((0, 128), np.float32), empty, scale=empty)
-        desc = desc.astype(np.float32)
+        desc = np.array(raw, np.float32)
         if cfg.root:
             desc /= np.maximum(desc.sum(axis=1, keepdims=True), 1e-12)
             desc = np.sqrt(desc)

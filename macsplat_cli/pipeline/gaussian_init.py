@@ -95,11 +95,15 @@ def gaussians_from_depth(
     jobs = [(view, dm, geometry.K0 if k == 0 else geometry.K1, geometry.cam_to_world(k))
             for k, (view, dm) in enumerate(zip(views, depths))]  # fmt: skip
     workers = min(len(jobs), os.cpu_count() or 1)
+
+    def one(job: tuple[View, DepthMap, np.ndarray, np.ndarray]) -> GaussianMaps:
+        return view_gaussians(*job, cfg)
+
     if workers < 2:
-        return [view_gaussians(*job, cfg) for job in jobs]
+        return [one(job) for job in jobs]
     # NumPy releases the GIL in its array loops: the views are built side by side
     with ThreadPoolExecutor(workers, thread_name_prefix="gaussians") as pool:
-        return list(pool.map(lambda job: view_gaussians(*job, cfg), jobs))
+        return list(pool.map(one, jobs))
 
 
 def view_gaussians(

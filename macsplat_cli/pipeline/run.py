@@ -260,7 +260,8 @@ class Pipeline:
         loaded: list[View] = timed("images", lambda: load_views(paths, self.config.views))
         if len(loaded) > 2 or self.config.multiview.poses is not None:
             return self._run_views(paths, loaded, times, timed)
-        pair = timed("network", lambda: self.pair(loaded)) if self.pair is not None else None
+        network = self.pair
+        pair = timed("network", lambda: network(loaded)) if network is not None else None
         pose: PoseResult = self.search(loaded, pair, timed)
         views, geometry = pose.views, pose.geometry
         depths: list[DepthMap] = timed("depth", lambda: self.depth(views, geometry, pair))

@@ -132,8 +132,8 @@ def load_views(paths: Sequence[str | Path], config: ViewConfig | None = None) ->
     for i, img in enumerate(images):
         w, h = working_size(img.width, img.height, cfg.size)
         source: IntrinsicsSource
-        if file_cams is not None:
-            _fit(file_cams[i], img, cfg.intrinsics)  # type: ignore[arg-type]
+        if file_cams is not None and cfg.intrinsics is not None:  # both or neither
+            _fit(file_cams[i], img, cfg.intrinsics)
             img = undistort_photo(img, file_cams[i])  # a pinhole photo from here on (same K)
             K = file_cams[i].rescaled(w, h).K.copy()
             source = "file"

@@ -33,7 +33,7 @@ import itertools
 import logging
 import random
 from collections.abc import Iterator, Sequence
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -298,7 +298,7 @@ class PairDataset(Dataset):
                 "index": torch.tensor(i, dtype=torch.int64),
             }
             if self.depth:
-                ds = torch.from_numpy(np.stack([v[2] for v in views]))
+                ds = torch.from_numpy(np.stack([cast(np.ndarray, v[2]) for v in views]))  # self.depth: never None
                 out["context_depth"], out["target_depth"] = ds[:2], ds[2:]
             return out, skipped
         raise DatasetError(
@@ -356,7 +356,7 @@ class PairLoader(DataLoader):
         if isinstance(sampler, DistributedSampler):
             sampler.set_epoch(epoch)
 
-    def __iter__(self) -> Any:  # type: ignore[override]
+    def __iter__(self) -> Any:
         for batch, skipped in super().__iter__():
             for path, reason in skipped:
                 self.pair_dataset.record_skip(path, reason)
@@ -422,7 +422,7 @@ def make_loader(
     if start_batch < 0:
         raise InputError(f"start batch must be ≥ 0, got {start_batch}")
     wrapped = _Reporting(ds)
-    sampler = DistributedSampler(
+    sampler: DistributedSampler[int] = DistributedSampler(
         wrapped, num_replicas=world_size, rank=rank, shuffle=shuffle, seed=int(seed), drop_last=drop_last
     )
     sampler.set_epoch(ds.epoch)

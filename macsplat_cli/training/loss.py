@@ -37,6 +37,7 @@ from ..cameras import Camera
 from ..datasets.coverage import visibility_mask
 from ..errors import InputError
 from ..gaussians import GaussianMaps
+from ..lpips import LPIPS
 from ..mac import MACConfig, mac_loss
 from ..metrics import ssim_map
 from ..neural.predictor import PairPrediction
@@ -269,7 +270,7 @@ def loss_masks(batch: dict[str, torch.Tensor]) -> torch.Tensor | None:
 
 
 def _photometric(
-    rgb: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None, config: LossConfig, lpips: torch.nn.Module | None
+    rgb: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None, config: LossConfig, lpips: LPIPS | None
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``(MSE, LPIPS or 1 − SSIM)`` of one sample's rendered targets (module docstring).
 
@@ -302,7 +303,7 @@ def _photometric(
 
 
 def training_loss(
-    pred: PairPrediction, batch: dict[str, torch.Tensor], config: LossConfig, lpips: torch.nn.Module | None = None
+    pred: PairPrediction, batch: dict[str, torch.Tensor], config: LossConfig, lpips: LPIPS | None = None
 ) -> LossTerms:
     """``L_photo + λ_MAC · L_MAC`` averaged over the samples of ``batch`` (module docstring).
 

@@ -303,7 +303,7 @@ class CandidatePairs(Sequence[TrainPair]):
             return NotImplemented
         return len(self) == len(other) and all(a == b for a, b in zip(self, other))
 
-    __hash__ = None  # type: ignore[assignment]
+    __hash__ = None  # type: ignore[assignment]  # equal to any equal sequence, so not hashable (as list)
 
     def __repr__(self) -> str:
         return f"CandidatePairs({len(self)} pairs over {len(np.unique(self._scene))} scene(s))"

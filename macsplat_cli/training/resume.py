@@ -29,12 +29,13 @@ import random
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
 
 from ..errors import OutputPathError
+from ..neural.predictor import PairPredictor
 from ..neural.predictor_io import PREDICTOR_FORMAT, predictor_config
 
 __all__ = ["COUNTER_MAX", "ResumeState", "check_training_checkpoint", "read_training_checkpoint"]
@@ -268,7 +269,8 @@ def _check_rng(state: Any) -> None:
 
 def rng_state() -> dict[str, Any]:
     """The global RNG states (torch CPU, NumPy, Python) as checkpointable values."""
-    np_state = np.random.get_state()
+    # legacy=True: the tuple (name, keys, pos, has_gauss, cached_gaussian)
+    np_state = cast(tuple[str, np.ndarray, int, int, float], np.random.get_state(legacy=True))
     return {
         "torch": torch.get_rng_state(),
         "numpy": torch.from_numpy(np_state[1].astype(np.int64)),
@@ -302,7 +304,7 @@ def check_training_checkpoint(
     obj: Any,
     path: Path,
     *,
-    model: torch.nn.Module,
+    model: PairPredictor,
     optimizer: torch.optim.Optimizer,
     scheduler: Any,
     scaler: torch.amp.GradScaler,
@@ -327,7 +329,7 @@ def check_training_checkpoint(
 
 
 def _check(
-    obj: Any, path: Path, model: torch.nn.Module, optimizer: Any, scheduler: Any, scaler: Any, steps: int
+    obj: Any, path: Path, model: PairPredictor, optimizer: Any, scheduler: Any, scaler: Any, steps: int
 ) -> ResumeState:
     _expect(
         isinstance(obj, dict) and obj.get("format") == PREDICTOR_FORMAT and isinstance(obj.get("training"), dict),

@@ -46,6 +46,7 @@ import torch
 from .._atomic import atomic_path, check_writable
 from .._json import to_jsonable
 from ..errors import InputError, MacsplatError, OutputPathError
+from ..lpips import LPIPS
 from ..neural.predictor import PairPredictor, prediction_from_outputs
 from .checkpoint import predictor_payload, state_bytes, write_checkpoint
 from .config import TrainConfig
@@ -86,7 +87,7 @@ class TrainResult:
     best_psnr: float | None
     skipped_steps: int
     seconds: float
-    history: list[dict[str, float]]
+    history: list[dict[str, Any]]
     written: list[Path] = field(default_factory=list)
 
 
@@ -115,7 +116,7 @@ class Trainer:
         val_data: Any | None,
         config: TrainConfig,
         *,
-        lpips: torch.nn.Module | None = None,
+        lpips: LPIPS | None = None,
         run_info: dict[str, Any] | None = None,
         on_step: Callable[[int, dict[str, float]], None] | None = None,
     ) -> None:
@@ -128,7 +129,9 @@ class Trainer:
                 f"--batch {config.batch} is more than the {per_process} training pair(s) per process: an epoch would "
                 "hold no batch; lower --batch"
             )
-        self.device = torch.device(config.device, self.ctx.local_rank if config.device == "cuda" else None)
+        self.device = (
+            torch.device(config.device, self.ctx.local_rank) if config.device == "cuda" else torch.device(config.device)
+        )
         self.predictor = predictor.to(self.device)
         self.train_data, self.val_data = train_data, val_data
         self.lpips = lpips.to(self.device).eval() if lpips is not None else None
@@ -153,7 +156,7 @@ class Trainer:
         self.skipped = 0
         self.bad_in_a_row = 0
         self.validated_at = 0  # the step of the last completed validation
-        self.history: list[dict[str, float]] = []
+        self.history: list[dict[str, Any]] = []
         self.written: list[Path] = []  # the files written by this process, each once, in order
         self.stop_after: int | None = None  # tests: simulate an interruption after this many steps
         self.metrics = MetricsLog(self.out)
@@ -347,6 +350,7 @@ class Trainer:
         rng = rng_state()
         try:
             self.predictor.eval()
+            assert self.val_data is not None  # _validation_due: only with held-out pairs
             loader = make_loader(self.val_data, batch_size=1, workers=0, shuffle=False, seed=self.config.seed)
             return validation_metrics(self.predictor, loader, device=self.device, autocast=self._autocast,
                                       background=self.config.loss.background, lpips=self.lpips,
@@ -436,7 +440,8 @@ class Trainer:
             batch = next(batches)
             logger.debug("step %d: samples %s on rank %d", self.step + 1, batch["index"].tolist(), self.ctx.rank)
             sync = micro == cfg.accumulate - 1 or self.ctx.world_size == 1
-            context = self.model.no_sync() if not sync else contextlib.nullcontext()
+            ddp = self.model if isinstance(self.model, torch.nn.parallel.DistributedDataParallel) else None
+            context = ddp.no_sync() if not sync and ddp is not None else contextlib.nullcontext()  # DDP unless sync
             with context:
                 terms = self._forward(batch, self.model)
                 if not torch.isfinite(terms.loss):

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..lpips import LPIPS
 from ..metrics import psnr, ssim
 from ..neural.predictor import PairPredictor, prediction_from_outputs
 from .loss import render_targets
@@ -27,7 +28,7 @@ def validation_metrics(
     device: torch.device,
     autocast: Callable[[], Any],
     background: tuple[float, float, float],
-    lpips: torch.nn.Module | None = None,
+    lpips: LPIPS | None = None,
     near: float = 0.01,
 ) -> dict[str, float]:
     """Mean image metrics of the targets of every batch (of one pair) that ``loader`` gives.
@@ -44,12 +45,16 @@ def validation_metrics(
     Returns:
         ``{"psnr", "ssim"}`` (and ``"lpips"``), means over the targets.
     """
-    psnrs, ssims, lpipss = [], [], []
+    psnrs: list[float] = []
+    ssims: list[float] = []
+    lpipss: list[float] = []
     for batch in loader:
         ctx = batch["context"].to(device)
         with autocast():
             outputs = predictor(ctx[:, 0], ctx[:, 1])
         pred = prediction_from_outputs([o.float() for o in outputs])
+        if pred.gaussians is None:
+            raise ValueError("validation needs the Gaussian head's outputs")
         h, w = batch["target"].shape[-2:]
         rgb = render_targets(pred.gaussians, 0, batch["target_K"][0], batch["target_c2w"][0],
                              batch["context_c2w"][0, 0], (h, w), background, near)  # fmt: skip

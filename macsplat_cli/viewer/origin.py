@@ -89,7 +89,7 @@ class OriginGuard:
         upgrade = "websocket" in str(headers.get("Upgrade", "")).lower() or "Sec-WebSocket-Key" in headers
         origins = headers.get_all("Origin")
         origin = origins[0] if len(origins) == 1 else (None if not origins else "")  # two headers: refused
-        if not upgrade or origin_allowed(origin, self.host, connection.local_address):
+        if origin is None or not upgrade or origin_allowed(origin, self.host, connection.local_address):
             return None
         shown = origin[:SHOWN_ORIGIN_CHARS] + ("…" if len(origin) > SHOWN_ORIGIN_CHARS else "")
         if shown not in self.refused and len(self.refused) < MAX_LOGGED_ORIGINS:
@@ -122,6 +122,7 @@ def origin_checked_serve(host: str) -> Iterator[OriginGuard]:
     guard = OriginGuard(host)
     with _PATCH_LOCK:
         original = ws_server.serve
+        # the patch itself: mypy types a module's function as fixed
         ws_server.serve = guard.wrap(original)  # type: ignore[assignment,misc]
         try:
             yield guard

@@ -109,7 +109,8 @@ MALFORMED: dict[str, tuple[Callable[[dict[str, Any]], None], str]] = {
     "no cases": (lambda d: d.__setitem__("cases", []), "its cases are not shard 0/2's share"),
     "cases not a list": (lambda d: d.__setitem__("cases", {"a": 1}), "field cases is not a list"),
     "a case of another shard": (
-        lambda d: _first_case(d).__setitem__("context", [9, 8]), "its cases are not shard 0/2's share"
+        lambda d: _first_case(d).__setitem__("context", [9, 8]),
+        "its cases are not shard 0/2's share",
     ),
     "a string metric": (
         lambda d: next(iter(_first_case(d)["targets"][0]["metrics"].values())).__setitem__("psnr", "high"),

@@ -470,6 +470,7 @@ class _StandIn(torch.nn.Module):
         return views[0], views[1]
 
 
+@pytest.mark.slow  # an export (a stand-in network, still a trace)
 def test_export_onto_a_full_disk_is_an_output_error_and_leaves_nothing(tmp_path: Path) -> None:
     predictor = PairPredictor(_StandIn()).eval()  # type: ignore[arg-type]
     out = tmp_path / "out" / "p.onnx"

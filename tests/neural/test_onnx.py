@@ -59,6 +59,8 @@ def _all_args(ckpts: dict[str, Path]) -> list[str | Path]:
             "--fusion", ckpts["fusion"]]  # fmt: skip
 
 
+# the tests that export (torch.onnx.export traces the network) are marked slow: minutes on CPU, the module-scoped
+# export below the most; pytest -q skips them, .ci/run runs them (--runslow)
 @pytest.fixture(scope="module")
 def exported(ckpts: dict[str, Path], tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The CLI export of backbone + fusion + Gaussian head (dynamic size), traced at 96×64."""
@@ -71,6 +73,7 @@ def exported(ckpts: dict[str, Path], tmp_path_factory: pytest.TempPathFactory) -
     return out
 
 
+@pytest.mark.slow
 # ------------------------------------------------------------------------------ the file
 def test_export_writes_a_checked_dynamic_predictor_with_its_metadata(exported: Path, ckpts: dict[str, Path]) -> None:
     onnx.checker.check_model(str(exported))
@@ -100,6 +103,7 @@ def _assert_ops_allowed(path: Path) -> None:
     check_graph(model, path.name)  # no subgraphs, no functions, float outputs
 
 
+@pytest.mark.slow
 def test_every_exported_operator_is_on_the_runtime_allow_list(exported: Path) -> None:
     """``ALLOWED_OPS`` is what the exporter writes (backbone + fusion + Gaussian head at opset 20 here; fp16 at
     opset 18 and int8 below; the exporter itself refuses to write a file outside it): it cannot rot unnoticed."""
@@ -108,6 +112,7 @@ def test_every_exported_operator_is_on_the_runtime_allow_list(exported: Path) ->
     assert {"MatMul", "Conv", "LayerNormalization", "Softmax", "Gelu"} <= ops  # the network, not a stub
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("shape", [(1, 64, 96), (2, 48, 80), (3, 128, 32)])
 def test_onnxruntime_matches_torch_at_other_sizes_and_batches(
     exported: Path, ckpts: dict[str, Path], shape: tuple[int, int, int]
@@ -131,6 +136,7 @@ def test_onnxruntime_matches_torch_at_other_sizes_and_batches(
         ort_pred(torch.rand(1, 3, 40, 96), torch.rand(1, 3, 40, 96))
 
 
+@pytest.mark.slow
 def test_reconstruct_eval_bench_accept_the_onnx_file(exported: Path, pair: tuple[Path, Path], tmp_path: Path) -> None:
     a, b = pair
     code, _, err = run_cli(["reconstruct", a, b, "-o", tmp_path / "s.ply", "--backend", "neural", "--weights", exported,
@@ -213,6 +219,7 @@ def _exact_predictor(size: tuple[int, int], noise: float = 0.0) -> PairPredictor
     return PairPredictor(backbone).eval()  # type: ignore[arg-type]
 
 
+@pytest.mark.slow
 def test_the_onnx_path_writes_the_same_scene_as_the_torch_path(pair: tuple[Path, Path], tmp_path: Path) -> None:
     predictor = _exact_predictor(SIZE)
     path = tmp_path / "exact.onnx"
@@ -234,6 +241,7 @@ def test_the_onnx_path_writes_the_same_scene_as_the_torch_path(pair: tuple[Path,
         torch.testing.assert_close(getattr(b, name), getattr(a, name), rtol=1e-5, atol=1e-5, msg=name)
 
 
+@pytest.mark.slow
 def test_a_failed_parity_check_keeps_no_file(tmp_path: Path) -> None:
     path = tmp_path / "out" / "exact.onnx"
     with pytest.raises(ParityError, match="parity check failed") as e:
@@ -244,6 +252,7 @@ def test_a_failed_parity_check_keeps_no_file(tmp_path: Path) -> None:
     assert list(path.parent.iterdir()) == []  # no graph, no weights, no parity file, no temporary folder
 
 
+@pytest.mark.slow
 # ------------------------------------------------------------------------------ fp16 and int8
 def test_fp16_export_of_a_training_checkpoint_from_the_cli(
     ckpts: dict[str, Path], pair: tuple[Path, Path], tmp_path: Path
@@ -287,6 +296,7 @@ def test_fp16_export_of_a_training_checkpoint_from_the_cli(
     assert code == 0, err
 
 
+@pytest.mark.slow
 def test_int8_export_is_smaller_and_reports_its_parity(ckpts: dict[str, Path], tmp_path: Path) -> None:
     predictor = load_pair_predictor(weights=ckpts["mast3r"])
     result = export_onnx(

@@ -2,7 +2,8 @@
 
 The page is loaded from the real command (its own process), screenshotted once the scene is drawn, and compared with
 macsplat's own render from the same camera; the cameras' frusta are looked for from a viewpoint behind them; the
-"render" button is pressed. Skipped, saying why, only when no Chromium is installed (``.ci/run`` installs Debian's).
+"render" button is pressed. Slow (``--runslow``, as ``.ci/run`` runs it); skipped, saying why, when no Chromium is
+installed (``.ci/run`` installs Debian's).
 """
 
 from __future__ import annotations
@@ -28,9 +29,12 @@ from support.viewer_scene import PlaneScene
 pytest.importorskip("viser")
 pytest.importorskip("websockets")
 CHROMIUM = find_chromium()
-pytestmark = pytest.mark.skipif(
-    CHROMIUM is None, reason="no Chromium on PATH (.ci/run installs Debian's chromium with apt-get where it can)"
-)
+pytestmark = [
+    pytest.mark.slow,  # a browser's start and a software-WebGL draw: pytest -q skips it, .ci/run runs it (--runslow)
+    pytest.mark.skipif(
+        CHROMIUM is None, reason="no Chromium on PATH (.ci/run installs Debian's chromium with apt-get where it can)"
+    ),
+]
 ROOT = Path(__file__).resolve().parents[2]
 
 

@@ -65,13 +65,15 @@ def _look_at(eye: np.ndarray, target: np.ndarray, roll_deg: float) -> np.ndarray
     return cv2.Rodrigues(np.array([0.0, 0.0, math.radians(roll_deg)]))[0] @ Rc
 
 
-def _table_top(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _table_top(
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray], np.ndarray, np.ndarray]:
     """A table (6 × 4 units, the plane y = 0) photographed twice from 6 units away, 30–60° above it, the second
     photo 10–30° further round (both aimed near the table's centre, ±0.3 units, roll ±3°).
 
     Returns:
-        ``(R, t, to_cam0, table, up)``: the relative pose, the world → camera-0 map ``(Rc0, C0)`` as a function,
-        random table points [1200, 3] (world) and the table's normal (world).
+        ``(R, t, to_cam0, table, up)``: the relative pose, the world → camera-0 map ``(Rc0, C0)`` (rotation [3, 3],
+        centre [3]), random table points [1200, 3] (world) and the table's normal (world).
     """
     el0 = rng.uniform(30, 60)
     az0 = rng.uniform(0, 360)

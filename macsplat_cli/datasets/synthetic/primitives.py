@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 
@@ -81,6 +82,11 @@ def _rotation(R: Sequence[Sequence[float]] | np.ndarray | None) -> np.ndarray:
     if a.shape != (3, 3) or np.abs(a.T @ a - np.eye(3)).max() > 1e-6 or np.linalg.det(a) < 0:
         raise InputError("rotation must be a proper 3x3 rotation matrix")
     return a
+
+
+def _frame(prim: Box | Sphere) -> np.ndarray:
+    """``prim.rotation`` after ``__post_init__``, which replaced ``None`` with the identity. [3, 3]"""
+    return cast(np.ndarray, prim.rotation)
 
 
 def rotation_about(axis: Sequence[float] | np.ndarray, angle_deg: float) -> np.ndarray:
@@ -179,7 +185,7 @@ class Box(Primitive):
             raise InputError(f"box half sizes must be positive, got {self.half_size.tolist()}")
 
     def intersect(self, origin: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        R, h = self.rotation, self.half_size
+        R, h = _frame(self), self.half_size
         o = (origin - self.center) @ R  # local origin [3]
         d = [_dot(R[:, k], dirs) for k in range(3)]  # local directions, per axis [N]
         tmin, tmax = [], []
@@ -198,14 +204,14 @@ class Box(Primitive):
         # axis of the face hit: the slab that sets t_near (entering) or t_far (leaving, from inside)
         k_near = np.where(tmin[0] == t_near, 0, np.where(tmin[1] == t_near, 1, 2))
         k_far = np.where(tmax[0] == t_far, 0, np.where(tmax[1] == t_far, 1, 2))
-        k = np.where(outside, k_near, k_far)
-        d_k = np.choose(k, d)
+        axis = np.where(outside, k_near, k_far)
+        d_k = np.choose(axis, d)
         # entering through the face turned towards the ray (the − face when d_k > 0); leaving through the other
         positive = np.where(outside, d_k < 0, d_k > 0)
-        return t, (2 * k + positive).astype(np.int8)
+        return t, (2 * axis + positive).astype(np.int8)
 
     def surface(self, points: np.ndarray, face: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        R, h = self.rotation, self.half_size
+        R, h = _frame(self), self.half_size
         rel = points - self.center[:, None]
         q = [_dot(R[:, k], rel) for k in range(3)]  # local coordinates
         k = face // 2
@@ -268,7 +274,7 @@ class Sphere(Primitive):
         r = self.radius
         normals = points - self.center[:, None]
         normals /= np.sqrt(_dot(normals, normals))
-        q = [_dot(self.rotation[:, k], normals) for k in range(3)]  # texture-frame directions
+        q = [_dot(_frame(self)[:, k], normals) for k in range(3)]  # texture-frame directions
         theta = np.arccos(np.clip(q[1], -1.0, 1.0))
         phi = np.arctan2(q[0], q[2])
         u = r * phi * np.sin(theta) + math.pi * r

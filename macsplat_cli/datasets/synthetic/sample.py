@@ -19,5 +19,5 @@ def sample_pair(size: tuple[int, int], seed: int = 0) -> tuple[torch.Tensor, tor
     w, h = size
     scene = make_scene("room", seed)
     cams = orbit_pair("room", 15, width=w, height=h, fov_deg=60.0)
-    imgs = [torch.from_numpy(np.ascontiguousarray(render(scene, c).image, np.float32)) for c in cams]
-    return tuple(im.permute(2, 0, 1)[None].clamp(0, 1).contiguous() for im in imgs)  # type: ignore[return-value]
+    a, b = (torch.from_numpy(np.ascontiguousarray(render(scene, c).image, np.float32)) for c in cams)
+    return a.permute(2, 0, 1)[None].clamp(0, 1).contiguous(), b.permute(2, 0, 1)[None].clamp(0, 1).contiguous()

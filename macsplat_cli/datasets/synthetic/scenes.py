@@ -93,8 +93,8 @@ class Scene:
 def _random_texture(
     rng: np.random.Generator, textured: bool, scale: float, lo: float = 0.25, hi: float = 0.8
 ) -> Texture:
-    albedo = tuple(float(c) for c in rng.uniform(lo, hi, 3))
-    return Texture(albedo=albedo, seed=int(rng.integers(0, 2**31)), textured=textured, scale=scale)  # type: ignore[arg-type]
+    r, g, b = (float(c) for c in rng.uniform(lo, hi, 3))
+    return Texture(albedo=(r, g, b), seed=int(rng.integers(0, 2**31)), textured=textured, scale=scale)
 
 
 def _periodic(seed: int, tag: int, repetitive: bool) -> np.random.Generator | None:
@@ -119,13 +119,13 @@ def _inside_box_quads(lo: np.ndarray, hi: np.ndarray, textures: Sequence[Texture
     x1, y1, z1 = hi
     dx, dy, dz = hi - lo
     ex, ey, ez = np.eye(3)
-    quads = [
-        Quad((x0, y1, z0), dx * ex, dz * ez, textures[0]),  # floor: normal −y (up)
-        Quad((x0, y0, z0), dz * ez, dx * ex, textures[1]),  # ceiling: normal +y
-        Quad((x0, y0, z0), dy * ey, dz * ez, textures[2]),  # wall x0: normal +x
-        Quad((x1, y0, z0), dz * ez, dy * ey, textures[3]),  # wall x1: normal −x
-        Quad((x0, y0, z0), dx * ex, dy * ey, textures[4]),  # wall z0: normal +z
-        Quad((x0, y0, z1), dy * ey, dx * ex, textures[5]),  # wall z1: normal −z
+    quads: list[Primitive] = [
+        Quad(np.array((x0, y1, z0)), dx * ex, dz * ez, textures[0]),  # floor: normal −y (up)
+        Quad(np.array((x0, y0, z0)), dz * ez, dx * ex, textures[1]),  # ceiling: normal +y
+        Quad(np.array((x0, y0, z0)), dy * ey, dz * ez, textures[2]),  # wall x0: normal +x
+        Quad(np.array((x1, y0, z0)), dz * ez, dy * ey, textures[3]),  # wall x1: normal −x
+        Quad(np.array((x0, y0, z0)), dx * ex, dy * ey, textures[4]),  # wall z0: normal +z
+        Quad(np.array((x0, y0, z1)), dy * ey, dx * ex, textures[5]),  # wall z1: normal −z
     ]
     return quads
 
@@ -198,12 +198,19 @@ def room_scene(seed: int = 0, *, textured: bool = True, repetitive: bool = False
     return _scene(prims, "room", seed)
 
 
-def _scene(prims: list[Primitive], kind: SceneKind, seed: int, **kwargs: object) -> Scene:
-    """A scene of ``kind`` with its layout (:data:`SCENE_LAYOUTS`)."""
+def _scene(
+    prims: list[Primitive], kind: SceneKind, seed: int, background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+) -> Scene:
+    """A scene of ``kind`` with its layout (:data:`SCENE_LAYOUTS`) and ``background`` (RGB in [0, 1])."""
     target, dist, elev = SCENE_LAYOUTS[kind]
     return Scene(
-        prims, target=target.copy(), view_distance=dist, view_elevation_deg=elev, name=f"{kind}-{seed}", **kwargs
-    )  # type: ignore[arg-type]
+        prims,
+        background=background,
+        target=target.copy(),
+        view_distance=dist,
+        view_elevation_deg=elev,
+        name=f"{kind}-{seed}",
+    )
 
 
 def object_scene(seed: int = 0, *, textured: bool = True, repetitive: bool = False) -> Scene:
@@ -223,22 +230,33 @@ def object_scene(seed: int = 0, *, textured: bool = True, repetitive: bool = Fal
     prng = _periodic(seed, 2, repetitive)
     prims: list[Primitive] = _backdrop(rng, prng, textured, np.array([-5.0, -4.0, -5.0]), np.array([5.0, 0.9, 5.0]))
     table_tex = _repeat(_random_texture(rng, textured, 0.5, 0.3, 0.7), prng)
-    prims.append(Box((0.0, 0.03, 0.0), (1.0, 0.03, 0.7), None, table_tex))
+    prims.append(Box(np.array((0.0, 0.03, 0.0)), np.array((1.0, 0.03, 0.7)), None, table_tex))
     for sx in (-1, 1):
         for sz in (-1, 1):
-            prims.append(Box((sx * 0.9, 0.48, sz * 0.6), (0.04, 0.42, 0.04), None, table_tex))
+            prims.append(Box(np.array((sx * 0.9, 0.48, sz * 0.6)), np.array((0.04, 0.42, 0.04)), None, table_tex))
     yaw = rotation_about((0, 1, 0), float(rng.uniform(-25, 25)))
     main_half = np.array([0.16, 0.15, 0.13]) * rng.uniform(0.9, 1.1, 3)
-    prims.append(Box((0.0, -main_half[1], 0.0), main_half, yaw, _random_texture(rng, textured, 0.25, 0.2, 0.9)))
+    prims.append(
+        Box(np.array((0.0, -main_half[1], 0.0)), main_half, yaw, _random_texture(rng, textured, 0.25, 0.2, 0.9))
+    )
     r = 0.12 * float(rng.uniform(0.9, 1.1))
     spin = rotation_about(rng.normal(size=3), float(rng.uniform(0, 360)))
-    prims.append(Sphere((0.0, -2 * main_half[1] - r, 0.0), r, spin, _random_texture(rng, textured, 0.25, 0.2, 0.9)))
+    prims.append(
+        Sphere(np.array((0.0, -2 * main_half[1] - r, 0.0)), r, spin, _random_texture(rng, textured, 0.25, 0.2, 0.9))
+    )
     small = 0.07
     yaw2 = rotation_about((0, 1, 0), float(rng.uniform(0, 90)))
-    prims.append(Box((0.3, -small, 0.12), (small, small, small), yaw2, _random_texture(rng, textured, 0.25, 0.2, 0.9)))
+    prims.append(
+        Box(
+            np.array((0.3, -small, 0.12)),
+            np.array((small, small, small)),
+            yaw2,
+            _random_texture(rng, textured, 0.25, 0.2, 0.9),
+        )
+    )
     r2 = 0.06
     spin2 = rotation_about(rng.normal(size=3), float(rng.uniform(0, 360)))
-    prims.append(Sphere((-0.27, -r2, -0.12), r2, spin2, _random_texture(rng, textured, 0.25, 0.2, 0.9)))
+    prims.append(Sphere(np.array((-0.27, -r2, -0.12)), r2, spin2, _random_texture(rng, textured, 0.25, 0.2, 0.9)))
     return _scene(prims, "object", seed)
 
 
@@ -267,10 +285,10 @@ def tabletop_scene(seed: int = 0, *, textured: bool = True, repetitive: bool = F
     prng = _periodic(seed, 6, repetitive)
     prims = _backdrop(rng, prng, textured, np.array([-5.0, -3.0, -5.0]), np.array([5.0, 0.8, 5.0]))
     table_tex = _repeat(_random_texture(rng, textured, 0.5, 0.3, 0.75), prng)
-    prims.append(Box((0.0, 0.03, 0.0), (1.5, 0.03, 1.0), None, table_tex))
+    prims.append(Box(np.array((0.0, 0.03, 0.0)), np.array((1.5, 0.03, 1.0)), None, table_tex))
     for sx in (-1, 1):
         for sz in (-1, 1):
-            prims.append(Box((sx * 1.4, 0.44, sz * 0.9), (0.04, 0.38, 0.04), None, table_tex))
+            prims.append(Box(np.array((sx * 1.4, 0.44, sz * 0.9)), np.array((0.04, 0.38, 0.04)), None, table_tex))
     n = int(rng.integers(3, 6))
     start = rng.uniform(0, 2 * np.pi)
     for i in range(n):
@@ -282,15 +300,15 @@ def tabletop_scene(seed: int = 0, *, textured: bool = True, repetitive: bool = F
         if shape == 0:  # a box (a cup, a tin)
             half = rng.uniform([0.02, 0.02, 0.02], [0.05, 0.08, 0.05])
             rot = rotation_about((0, 1, 0), float(rng.uniform(0, 90)))
-            prims.append(Box((x, -half[1], z), half, rot, tex))
+            prims.append(Box(np.array((x, -half[1], z)), half, rot, tex))
         elif shape == 1:  # a ball
             r = float(rng.uniform(0.025, 0.06))
             spin = rotation_about(rng.normal(size=3), float(rng.uniform(0, 360)))
-            prims.append(Sphere((x, -r, z), r, spin, tex))
+            prims.append(Sphere(np.array((x, -r, z)), r, spin, tex))
         else:  # a flat thing (a book)
             half = rng.uniform([0.06, 0.008, 0.04], [0.1, 0.02, 0.07])
             rot = rotation_about((0, 1, 0), float(rng.uniform(0, 90)))
-            prims.append(Box((x, -half[1], z), half, rot, tex))
+            prims.append(Box(np.array((x, -half[1], z)), half, rot, tex))
     return _scene(prims, "tabletop", seed)
 
 
@@ -306,7 +324,7 @@ def _ground(rng: np.random.Generator, prng: np.random.Generator | None, textured
     for i in range(3):
         for j in range(3):
             tex = _repeat(_random_texture(rng, textured, 1.0, 0.3, 0.6), prng)
-            prims.append(Quad((-18.0 + 12 * i, 0.0, -18.0 + 12 * j), 12 * ez, 12 * ex, tex))  # normal −y (up)
+            prims.append(Quad(np.array((-18.0 + 12 * i, 0.0, -18.0 + 12 * j)), 12 * ez, 12 * ex, tex))  # normal −y (up)
     far, near = 120.0, 18.0
     strips = [  # (corner, x extent, z extent): left, right, back, front
         ((-far, -far), far - near, 2 * far),
@@ -316,7 +334,7 @@ def _ground(rng: np.random.Generator, prng: np.random.Generator | None, textured
     ]
     for (x0, z0), dx, dz in strips:
         tex = _repeat(_random_texture(rng, textured, 4.0, 0.3, 0.6), prng)
-        prims.append(Quad((x0, 0.0, z0), dz * ez, dx * ex, tex))
+        prims.append(Quad(np.array((x0, 0.0, z0)), dz * ez, dx * ex, tex))
     return prims
 
 
@@ -345,17 +363,30 @@ def outdoor_scene(seed: int = 0, *, textured: bool = True, repetitive: bool = Fa
         tex = _random_texture(rng, textured, 0.5, 0.15, 0.9)
         if rng.uniform() < 0.7:
             half = rng.uniform([0.3, 0.3, 0.3], [0.9, 0.8, 0.6])
-            prims.append(Box((x, -half[1], z), half, rotation_about((0, 1, 0), float(rng.uniform(0, 90))), tex))
+            prims.append(
+                Box(np.array((x, -half[1], z)), half, rotation_about((0, 1, 0), float(rng.uniform(0, 90))), tex)
+            )
         else:
             r = float(rng.uniform(0.3, 0.6))
-            prims.append(Sphere((x, -r, z), r, rotation_about(rng.normal(size=3), float(rng.uniform(0, 360))), tex))
+            prims.append(
+                Sphere(np.array((x, -r, z)), r, rotation_about(rng.normal(size=3), float(rng.uniform(0, 360))), tex)
+            )
     for _ in range(6):  # posts with a crown
         ang, rad = rng.uniform(0, 2 * np.pi), rng.uniform(10.0, 25.0)
         x, z = rad * math.cos(ang), rad * math.sin(ang)
         height, crown = float(rng.uniform(2.0, 4.0)), float(rng.uniform(0.8, 1.8))
-        prims.append(Box((x, -height / 2, z), (0.15, height / 2, 0.15), None, _random_texture(rng, textured, 1.0)))
+        prims.append(
+            Box(
+                np.array((x, -height / 2, z)),
+                np.array((0.15, height / 2, 0.15)),
+                None,
+                _random_texture(rng, textured, 1.0),
+            )
+        )
         spin = rotation_about(rng.normal(size=3), float(rng.uniform(0, 360)))
-        prims.append(Sphere((x, -height - crown, z), crown, spin, _random_texture(rng, textured, 2.0, 0.1, 0.6)))
+        prims.append(
+            Sphere(np.array((x, -height - crown, z)), crown, spin, _random_texture(rng, textured, 2.0, 0.1, 0.6))
+        )
     start = rng.uniform(0, 2 * np.pi)
     for i in range(10):  # buildings, their long side towards the square
         ang, rad = start + i * 2 * np.pi / 10 + rng.uniform(-0.15, 0.15), rng.uniform(40.0, 80.0)

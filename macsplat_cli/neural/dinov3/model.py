@@ -87,6 +87,8 @@ class _PatchEmbed(nn.Module):
 
 
 class _RopeEmbed(nn.Module):
+    periods: torch.Tensor  # a buffer
+
     def __init__(self, head_dim: int, base: float) -> None:
         super().__init__()
         self.register_buffer("periods", rope_periods(head_dim, base), persistent=True)
@@ -97,6 +99,8 @@ class _RopeEmbed(nn.Module):
 
 class _KMaskedLinear(nn.Linear):
     """The fused q/k/v projection; the key third of the bias is multiplied by ``bias_mask`` (zeros)."""
+
+    bias_mask: torch.Tensor  # a buffer, present when the layer has a bias
 
     def __init__(self, dim: int, bias: bool) -> None:
         super().__init__(dim, 3 * dim, bias=bias)

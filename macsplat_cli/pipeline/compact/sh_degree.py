@@ -34,7 +34,7 @@ def sh_degree(g: Gaussians, cams: list[ViewState], cfg: CompactConfig) -> tuple[
         means = g.means[:: len(g) // 200_000 + 1]
     else:
         means = g.means
-    colors = {d: [] for d in range(full + 1)}
+    colors: dict[int, list[torch.Tensor]] = {d: [] for d in range(full + 1)}
     for e in eyes:
         dirs = F.normalize(means - e, dim=-1)
         for d in range(full + 1):

@@ -101,9 +101,10 @@ def view_states(
             if a.shape[:2] != (h, w):
                 import cv2
 
-                a = cv2.resize(a, (w, h), interpolation=cv2.INTER_AREA)
+                a = np.asarray(cv2.resize(a, (w, h), interpolation=cv2.INTER_AREA))
             img = torch.from_numpy(np.ascontiguousarray(a)).to(m.dtype)
-        p = [t[0].contiguous().clone() for t in m.tensors()]  # a copy (the steps write into it through views)
+        # a copy (the steps write into it through views)
+        means, log_scales, quats, logits, sh = (t[0].contiguous().clone() for t in m.tensors())
         valid = m.valid_mask()[0].clone()
-        out.append(ViewState(*p, valid.clone(), valid, c2w, K, img))
+        out.append(ViewState(means, log_scales, quats, logits, sh, valid.clone(), valid, c2w, K, img))
     return out

@@ -16,7 +16,7 @@ __all__ = ["initial_costs_reference", "plane_cost_reference", "refine_reference"
 _M32 = np.uint64(0xFFFFFFFF)
 
 
-def _hash32(x: np.ndarray) -> np.ndarray:
+def _hash32(x: np.ndarray | np.uint64) -> np.ndarray | np.uint64:
     x = x & _M32
     x = x ^ (x >> np.uint64(16))
     x = (x * np.uint64(0x7FEB352D)) & _M32

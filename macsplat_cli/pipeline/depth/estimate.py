@@ -78,7 +78,8 @@ def _view_depth(
     the fill and the snapping of depth steps."""
     depth, conf = checked_depth(vols, winners, geometry, ref, cfg)
     v = views[ref]
-    slanted = vols[ref].refined if vols[ref].refined is not None else np.zeros(depth.shape, bool)
+    refined = vols[ref].refined
+    slanted = refined if refined is not None else np.zeros(depth.shape, bool)
     if depth.shape != (v.height, v.width):
         depth, conf = upsample_depth(depth, conf, v.gray)
         up = (v.width, v.height)

@@ -65,7 +65,7 @@ def depth_pairs(reg: Registration, cfg: DepthPlanConfig) -> list[tuple[int, int]
     registered photos (pairs as (a, b), a < b, unique)."""
     S = _shared(reg)
     pairs: set[tuple[int, int]] = set()
-    for k in np.flatnonzero(reg.registered):
+    for k in np.flatnonzero(reg.registered).tolist():
         order = np.argsort(-S[k], kind="stable")
         for o in order[: cfg.neighbours]:
             if S[k, o] >= cfg.min_shared and reg.registered[o]:

@@ -57,7 +57,7 @@ def known_pose_pairs(
     for i, j in pairs:
         t0 = time.perf_counter()
         vi, vj = views[i], views[j]
-        fi, fj = describe([vi, vj])
+        fi, fj = describe([vi, vj], None)  # per-view features: no pair
         m = match(fi, fj)
         R = poses.R[j] @ poses.R[i].T
         t = poses.t[j] - R @ poses.t[i]

@@ -21,7 +21,7 @@ from ..learned import LearnedTier
 from ..pose import PoseResult, PoseSearch
 from ..pose.focal import FOCAL_DOUBT_START
 from ..slots import DescribeStage
-from ..types import Features, View
+from ..types import Features, TwoViewGeometry, View
 
 __all__ = [
     "CachedDescriptors", "PairOutcome", "cached_search", "focal_doubts_only", "match_all", "match_pairs",
@@ -140,6 +140,13 @@ class PairOutcome:
     def inliers(self) -> int:
         return len(self.result.geometry.inliers) if self.result is not None else 0
 
+    @property
+    def geometry(self) -> TwoViewGeometry:
+        """The accepted pose's two-view geometry; only for a pair with a result (``ValueError`` otherwise)."""
+        if self.result is None:
+            raise ValueError(f"pair ({self.i}, {self.j}) has no pose: {self.reason}")
+        return self.result.geometry
+
 
 FOCAL_CHECKS = ("focal", "uncertainty")
 """The acceptance's checks a pose of a photo with an unknown focal may fail and still be kept provisionally: what
@@ -172,7 +179,8 @@ def match_pairs(views: Sequence[View], pairs: Sequence[tuple[int, int]], search:
             if res is not None and res.doubts:
                 provisional = focal_doubts_only(res, (views[i], views[j]))
                 if not provisional:
-                    res, reason = None, str(res.doubts[0])
+                    reason = str(res.doubts[0])
+                    res = None
         except ReconstructionError as e:
             res, reason = None, str(e)
         out.append(PairOutcome(i, j, res, reason, time.perf_counter() - t0, provisional))

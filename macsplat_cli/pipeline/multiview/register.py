@@ -203,8 +203,8 @@ class _State:
                                 config=self.cfg.bundle)  # fmt: skip
         self.R[cams], self.t[cams], self.K[cams], self.points[pts] = res.R, res.t, res.K, res.points
         for g in np.unique(groups[groups >= 0]):  # a shared focal: the photos not yet registered start from it
-            members = np.flatnonzero(self.focal_group == g)
-            f = res.K[int(np.flatnonzero(groups == g)[0]), 0, 0] / self.views[cams[groups == g][0]].K[0, 0]
+            members = np.flatnonzero(self.focal_group == g).tolist()
+            f = res.K[int(np.flatnonzero(groups == g)[0]), 0, 0] / self.views[int(cams[groups == g][0])].K[0, 0]
             for m in members:
                 self.K[m, :2, :2] = self.views[m].K[:2, :2] * f
         self.residual[sel] = res.residual_px
@@ -239,7 +239,7 @@ def _init_pair(outcomes: Sequence[PairOutcome], cfg: RegisterConfig) -> PairOutc
     if not ok:
         return None
     ok = _in_consistent_loops(ok, cfg.max_pair_disagreement_deg) or ok
-    wide = [o for o in ok if (o.result.geometry.median_parallax_deg or 0.0) >= cfg.init_min_parallax_deg]
+    wide = [o for o in ok if (o.geometry.median_parallax_deg or 0.0) >= cfg.init_min_parallax_deg]
     return max(wide or ok, key=lambda o: (o.inliers, -o.i, -o.j))
 
 
@@ -247,16 +247,20 @@ def _in_consistent_loops(pairs: Sequence[PairOutcome], max_deg: float) -> list[P
     """The pairs on a loop of three photos whose relative rotations compose to within ``max_deg`` of the identity:
     a wrong pose that two views accepted rarely closes a loop with two right ones (ICL: one 14.6° off, 596 matches,
     the most of its set)."""
-    R = {(o.i, o.j): o.result.geometry.R for o in pairs}
-    rel = lambda a, b: R[(a, b)] if (a, b) in R else R[(b, a)].T if (b, a) in R else None  # noqa: E731
+    R = {(o.i, o.j): o.geometry.R for o in pairs}
+
+    def rel(a: int, b: int) -> np.ndarray | None:
+        return R[(a, b)] if (a, b) in R else R[(b, a)].T if (b, a) in R else None
+
     keep: set[tuple[int, int]] = set()
     photos = sorted({k for o in pairs for k in (o.i, o.j)})
     for i, j in R:
         for k in photos:
-            if k in (i, j) or rel(j, k) is None or rel(i, k) is None:
+            jk, ik = rel(j, k), rel(i, k)
+            if k in (i, j) or jk is None or ik is None:
                 continue
             # i → j → k against i → k
-            if rotation_error_deg(rel(j, k) @ rel(i, j), rel(i, k)) <= max_deg:
+            if rotation_error_deg(jk @ R[(i, j)], ik) <= max_deg:
                 keep |= {(i, j), (min(j, k), max(j, k)), (min(i, k), max(i, k))}
     return [o for o in pairs if (o.i, o.j) in keep]
 
@@ -293,7 +297,7 @@ def _unknown_focal(views: Sequence[View], outcomes: Sequence[PairOutcome]) -> tu
             K[k, :2, :2] *= float(np.median(fs))
     # one shared focal per group: the group's median start
     for g in range(len(sizes)):
-        members = np.flatnonzero(groups == g)
+        members = np.flatnonzero(groups == g).tolist()
         scale = np.median([K[m, 0, 0] / views[m].K[0, 0] for m in members])
         for m in members:
             K[m, :2, :2] = views[m].K[:2, :2] * scale
@@ -340,7 +344,7 @@ def _incremental(
     st = _State(views, tracks, cfg)
     st.K, st.focal_group = K, groups
     if groups[first.i] < 0 and groups[first.j] < 0:
-        g = first.result.geometry
+        g = first.geometry
         st.K[first.i], st.K[first.j] = g.K0, g.K1
         R, t = g.R, g.t
     else:  # the pair's pose at these intrinsics
@@ -379,21 +383,21 @@ def _incremental(
 def _pose_at(o: PairOutcome, K0: np.ndarray, K1: np.ndarray, threshold_px: float) -> tuple[np.ndarray, np.ndarray]:
     """The pair's relative pose from its verified matches at the intrinsics ``K0``, ``K1`` (RANSAC on the essential
     matrix in normalised coordinates, then the cheirality test)."""
-    m = o.result.geometry.inliers
+    m = o.geometry.inliers
     n0 = cv2.undistortPoints(m.xy0[:, None], K0, None)[:, 0]
     n1 = cv2.undistortPoints(m.xy1[:, None], K1, None)[:, 0]
     f = 0.5 * (K0[0, 0] + K1[0, 0])
     E, mask = cv2.findEssentialMat(n0, n1, np.eye(3), method=cv2.RANSAC, prob=0.9999, threshold=threshold_px / f)
     if E is None:
-        g = o.result.geometry
+        g = o.geometry
         return g.R, g.t
     _, R, t, _ = cv2.recoverPose(E[:3], n0, n1, np.eye(3), mask=mask)
-    return R, t[:, 0] / max(np.linalg.norm(t), 1e-12)
+    return R, t[:, 0] / max(float(np.linalg.norm(t)), 1e-12)
 
 
 def _pair_K(st: _State, o: PairOutcome) -> tuple[np.ndarray, np.ndarray]:
     """The first pair's intrinsics: the shared focal's start for photos with an unknown focal, else their own."""
-    g = o.result.geometry
+    g = o.geometry
     return (st.K[o.i] if st.focal_group[o.i] >= 0 else g.K0), (st.K[o.j] if st.focal_group[o.j] >= 0 else g.K1)
 
 

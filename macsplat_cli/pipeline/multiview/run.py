@@ -149,7 +149,7 @@ def reconstruct_views(
     known = load_known_poses(config.poses, views) if config.poses is not None else None
 
     def pairs_stage() -> list[PairOutcome]:
-        feats = cached.describe(sub) if len(sub) > config.shortlist.all_pairs_max else None
+        feats = cached.describe(sub, None) if len(sub) > config.shortlist.all_pairs_max else None
         chosen = select_pairs(len(sub), feats, config.shortlist)
         if known is not None:
             full = [(live[i], live[j]) for i, j in chosen]
@@ -190,7 +190,7 @@ def reconstruct_views(
         return maps, ks, layer
 
     maps, ks, layer = timed("gaussians", gaussian_stage)
-    scale = "metric" if known is not None and known.scale == "metric" else None
+    scale: Literal["metric"] | None = "metric" if known is not None and known.scale == "metric" else None
     return MultiViewResult(views, reg, outcomes, depths, maps, ks, dpairs, dups, scale, layer)
 
 

@@ -75,8 +75,8 @@ def build_tracks(outcomes: Sequence[PairOutcome]) -> Tracks:
     _, label = connected_components(graph, directed=False)
     view = np.empty(total, np.int64)
     xy = np.empty((total, 2))
-    for (v, _key), (start, pts) in nodes.items():
-        view[start : start + len(pts)] = v
+    for (photo, _key), (start, pts) in nodes.items():
+        view[start : start + len(pts)] = photo
         xy[start : start + len(pts)] = pts
     used = np.zeros(total, bool)
     used[e0] = used[e1] = True

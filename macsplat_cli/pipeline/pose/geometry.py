@@ -82,7 +82,7 @@ def triangulate(R: np.ndarray, t: np.ndarray, x0: np.ndarray, x1: np.ndarray) ->
 
 def parallax_deg(R: np.ndarray, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
     """Angle between the two viewing rays of each match once the rotation is removed. [M]"""
-    return angle_between_deg(x0 @ R.T, x1)
+    return np.asarray(angle_between_deg(x0 @ R.T, x1))
 
 
 def cheirality(E: np.ndarray, x0: np.ndarray, x1: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -95,8 +95,8 @@ def cheirality(E: np.ndarray, x0: np.ndarray, x1: np.ndarray) -> tuple[np.ndarra
     Returns:
         ``(R, t, in_front)`` with ``|t| = 1``. [3, 3], [3], [M] bool
     """
-    R1, R2, t = cv2.decomposeEssentialMat(E)
-    t = t.ravel() / max(np.linalg.norm(t), 1e-30)
+    R1, R2, t_col = cv2.decomposeEssentialMat(E)
+    t = np.asarray(t_col).ravel() / max(float(np.linalg.norm(t_col)), 1e-30)
     h0, h1 = homog(x0), homog(x1)
     best = None
     for R in (R1, R2):
@@ -143,7 +143,7 @@ def support(
 
 def same_pose(Ra: np.ndarray, ta: np.ndarray, Rb: np.ndarray, tb: np.ndarray, limits: tuple[float, float]) -> bool:
     """Whether two poses differ by less than ``limits`` (rotation °, translation direction °)."""
-    return rotation_angle_deg(Ra @ Rb.T) < limits[0] and angle_between_deg(ta, tb) < limits[1]
+    return rotation_angle_deg(Ra @ Rb.T) < limits[0] and float(angle_between_deg(ta, tb)) < limits[1]
 
 
 def line_spread_px(xy: np.ndarray) -> float:

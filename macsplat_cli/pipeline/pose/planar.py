@@ -56,7 +56,9 @@ def _candidates(
         if np.linalg.norm(ti) < MIN_TRANSLATION:
             continue
         ti = ti / np.linalg.norm(ti)
-        agreement = min(agreement, max(rotation_angle_deg(Ri @ R.T), angle_between_deg(ti, t) / DIRECTION_WEIGHT))
+        agreement = min(
+            agreement, max(rotation_angle_deg(Ri @ R.T), float(angle_between_deg(ti, t)) / DIRECTION_WEIGHT)
+        )
         sup = support(Ri, ti, K0s, K1s, xy0, xy1, cfg.threshold_px)
         if sup.sum() < cfg.min_inliers:
             continue
@@ -249,7 +251,7 @@ def planar_check(
             continue
         ti = ti / np.linalg.norm(ti)
         dr = rotation_angle_deg(Ri @ R.T)
-        dt = angle_between_deg(ti, t)
+        dt = float(angle_between_deg(ti, t))
         agreement = min(agreement, max(dr, dt / DIRECTION_WEIGHT))
         if dr < cfg.same_pose_deg[0] and dt < cfg.same_pose_deg[1]:
             continue  # the same pose

@@ -95,6 +95,7 @@ def pose_from_pointmap(
         or idx is None
         or len(idx) < 4
         or rvec is None
+        or tvec is None
         or not (np.isfinite(rvec).all() and np.isfinite(tvec).all())
     ):
         raise ReconstructionError(

@@ -150,7 +150,13 @@ class PoseSearch:
             return None, e
 
     def _chain(
-        self, views: list[View], pair: Any, timed: StageTimer, describe: DescribeStage, tier: Tier, suffix: str,
+        self,
+        views: list[View],
+        pair: Any,
+        timed: StageTimer,
+        describe: DescribeStage,
+        tier: Tier,
+        suffix: str,
         match: MatchStage | None = None,
     ) -> _Attempt:
         """Descriptors → matching (``match``, default the search's matcher) → pose with ``describe``, its stages
