@@ -12,11 +12,20 @@ import os
 import queue
 import threading
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Literal, TypedDict
 
-__all__ = ["kernel_threads", "parallel_for"]
+__all__ = ["JitOptions", "kernel_threads", "parallel_for"]
 
 _MAX_THREADS = 64
+
+
+class JitOptions(TypedDict, total=False):
+    """The keyword arguments of ``numba.njit`` that the kernels set (one type for every kernel module's ``_JIT``)."""
+
+    cache: bool
+    nogil: bool
+    fastmath: bool
+    error_model: Literal["python", "numpy"]
 
 
 def kernel_threads() -> int:

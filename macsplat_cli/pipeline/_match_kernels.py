@@ -8,26 +8,16 @@ tests compare the two, ties included.
 
 from __future__ import annotations
 
-from typing import Literal, TypedDict
-
 import numba as nb
 import numpy as np
 import torch
 
-from .._threads import parallel_for
+from .._threads import JitOptions, parallel_for
 
 __all__ = ["column_top2_update", "column_top2_update_reference"]
 
 
-class _JitOptions(TypedDict, total=False):
-    """The keyword arguments of ``nb.njit`` that these kernels set."""
-
-    cache: bool
-    nogil: bool
-    error_model: Literal["python", "numpy"]
-
-
-_JIT: _JitOptions = {"cache": True, "nogil": True, "error_model": "numpy"}
+_JIT: JitOptions = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 
 def column_top2_update(sim: np.ndarray, start: int, top: np.ndarray, arg: np.ndarray) -> None:

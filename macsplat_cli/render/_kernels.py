@@ -26,7 +26,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from .._threads import kernel_threads, parallel_for
+from .._threads import JitOptions, kernel_threads, parallel_for
 from .constants import ALPHA_MAX, ALPHA_MIN, T_MIN
 
 GRAD_COLS = 6  # per intersection: d mean2d (2), d conic (3), d opacity (1), then d features (C)
@@ -42,7 +42,7 @@ _T_MIN = np.float32(T_MIN)
 _LOG_255 = np.float32(np.log(255.0))
 _LEVEL_SLACK = np.float32(1e-3)  # the exp-free rejection must never reject alpha ≥ 1/255
 
-_JIT = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
+_JIT: JitOptions = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy"}
 _TILE_CHUNKS = 8
 """Chunks of tiles per thread: tiles differ in work, so threads take small runs of them as they come free."""
 _BIN_RUNS = 2  # runs of Gaussians per thread in the binning (each run's counters cost a pass over the tiles)

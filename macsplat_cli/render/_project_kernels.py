@@ -24,10 +24,10 @@ import math
 import numba as nb
 import numpy as np
 
-from .._threads import parallel_for
+from .._threads import JitOptions, parallel_for
 from ._sh_kernels import sh_basis, sh_basis_vjp
 
-_JIT = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
+_JIT: JitOptions = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy"}
 _BBOX_MARGIN = 1e-2  # as projection._BBOX_MARGIN
 _LOG_255 = math.log(255.0)
 _CHUNKS = 4

@@ -7,9 +7,10 @@ from __future__ import annotations
 
 import numba as nb
 
+from .._threads import JitOptions
 from ..sh import C0, C1, C2, C3
 
-_JIT = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
+_JIT: JitOptions = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy"}
 
 
 @nb.njit(**_JIT)

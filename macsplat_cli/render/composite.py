@@ -72,16 +72,9 @@ class _Composite(torch.autograd.Function):
         v_feat_np = _np(v_feat).astype(dtype, copy=False) if v_feat is not None else np.zeros((h, w, n_ch), dtype)
         v_trans_np = _np(v_trans).astype(dtype, copy=False) if v_trans is not None else np.zeros((h, w), dtype)
         rows = _kernels.composite_backward(
-            *ctx.arrays,
-            tiles.offsets,
-            tiles.lists,
-            w,
-            h,
-            tiles.tile,
-            ctx.trans,
-            ctx.last,
-            np.ascontiguousarray(v_feat_np),
-            np.ascontiguousarray(v_trans_np),
+            *ctx.arrays
+            + (tiles.offsets, tiles.lists, w, h, tiles.tile, ctx.trans, ctx.last)
+            + (np.ascontiguousarray(v_feat_np), np.ascontiguousarray(v_trans_np))
         )
         grads = torch.zeros((n, rows.shape[1]), dtype=torch.from_numpy(rows[:0]).dtype)
         grads.index_add_(0, torch.from_numpy(tiles.lists).long(), torch.from_numpy(rows))

@@ -50,9 +50,18 @@ def _camera(viewmat: torch.Tensor, K: torch.Tensor, dtype: torch.dtype, width: i
 
     logit_min = math.log(ALPHA_MIN / (1.0 - ALPHA_MIN))
     lim = np.array(
-        [-(cx / fx + 0.3 * tan_x), (width - cx) / fx + 0.3 * tan_x, -(cy / fy + 0.3 * tan_y),
-         (height - cy) / fy + 0.3 * tan_y, rounded(near), rounded(far), eps2d, rounded(logit_min),
-         math.log(MAX_SCREEN_STD / f_max), float(4 * max(width, height) + 16)]  # fmt: skip
+        [
+            -(cx / fx + 0.3 * tan_x),
+            (width - cx) / fx + 0.3 * tan_x,
+            -(cy / fy + 0.3 * tan_y),
+            (height - cy) / fy + 0.3 * tan_y,
+            rounded(near),
+            rounded(far),
+            eps2d,
+            rounded(logit_min),
+            math.log(MAX_SCREEN_STD / f_max),
+            float(4 * max(width, height) + 16),
+        ]  # fmt: skip
     )
     return np.ascontiguousarray(cam), lim
 
@@ -86,7 +95,7 @@ class _Project(torch.autograd.Function):
         size: tuple[int, int],
     ):
         arrays = tuple(_np(t) for t in (means, log_scales, quats, opacity_logits, sh))
-        outs = _project_kernels.project(*arrays, cam, lim, size[0], size[1])
+        outs = _project_kernels.project(*arrays + (cam, lim, size[0], size[1]))
         ctx.arrays, ctx.cam, ctx.lim, ctx.ids, ctx.device = arrays, cam, lim, outs[0], means.device
         ids, *rest, rect = (torch.from_numpy(a).to(means.device) for a in outs)
         ctx.mark_non_differentiable(ids, rect)
@@ -96,7 +105,7 @@ class _Project(torch.autograd.Function):
     @once_differentiable
     def backward(ctx, _ids, v_means2d, v_conics, v_opacities, v_features, _rect):  # noqa: ANN001, ANN205
         cot = _cotangents(ctx.ids.shape[0], ctx.arrays[0].dtype, v_means2d, v_conics, v_opacities, v_features)
-        grads = _project_kernels.project_vjp(ctx.ids, *ctx.arrays, ctx.cam, ctx.lim, cot)
+        grads = _project_kernels.project_vjp(*(ctx.ids, *ctx.arrays, ctx.cam, ctx.lim, cot))
         return (*(torch.from_numpy(g).to(ctx.device) for g in grads), None, None, None)
 
 
@@ -119,7 +128,7 @@ class _Render(torch.autograd.Function):
     ):
         w, h = size
         arrays = tuple(_np(t) for t in (means, log_scales, quats, opacity_logits, sh))
-        ids, means2d, conics, opacities, features, rect = _project_kernels.project(*arrays, cam, lim, w, h)
+        ids, means2d, conics, opacities, features, rect = _project_kernels.project(*arrays + (cam, lim, w, h))
         offsets, lists = _kernels.bin_tiles(rect, w, h, TILE_SIZE)
         splats = (means2d, conics, opacities, features, rect, offsets, lists, w, h, TILE_SIZE)
         feat, trans, last = _kernels.composite_forward(*splats)
@@ -136,12 +145,12 @@ class _Render(torch.autograd.Function):
         dtype, m = means2d.dtype, means2d.shape[0]
         v_feat = np.zeros((h, w, 4), dtype) if v_feat is None else _np(v_feat).astype(dtype, copy=False)
         v_trans = np.zeros((h, w), dtype) if v_trans is None else _np(v_trans).astype(dtype, copy=False)
-        rows = _kernels.composite_backward(*ctx.splats, ctx.trans, ctx.last, v_feat, v_trans)
+        rows = _kernels.composite_backward(*ctx.splats + (ctx.trans, ctx.last, v_feat, v_trans))
         cot = np.zeros((m, _project_kernels.COT_COLS), dtype)
         _kernels.sum_rows(lists, rows, cot)
         if v_means2d is not None:
             cot[:, :2] += _np(v_means2d)
-        grads = _project_kernels.project_vjp(ctx.ids, *ctx.arrays, ctx.cam, ctx.lim, cot)
+        grads = _project_kernels.project_vjp(*(ctx.ids, *ctx.arrays, ctx.cam, ctx.lim, cot))
         return (*(torch.from_numpy(g).to(ctx.device) for g in grads), None, None, None)
 
 

@@ -17,23 +17,12 @@ the two.
 
 from __future__ import annotations
 
-from typing import Literal, TypedDict
-
 import numba as nb
 import numpy as np
 
-from ..._threads import parallel_for
+from ..._threads import JitOptions, parallel_for
 
-
-class _JitOptions(TypedDict, total=False):
-    """The keyword arguments of ``nb.njit`` that these kernels set."""
-
-    cache: bool
-    nogil: bool
-    error_model: Literal["python", "numpy"]
-
-
-_JIT: _JitOptions = {"cache": True, "nogil": True, "error_model": "numpy"}
+_JIT: JitOptions = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 INVALID = 2.0
 """Cost of a hypothesis whose window leaves the source image or goes behind a camera (above any real cost)."""

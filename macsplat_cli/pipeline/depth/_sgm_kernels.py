@@ -9,23 +9,12 @@ The plain-PyTorch twin is ``_sgm_reference.py``; tests compare the two.
 
 from __future__ import annotations
 
-from typing import Literal, TypedDict
-
 import numba as nb
 import numpy as np
 
-from ..._threads import parallel_for
+from ..._threads import JitOptions, parallel_for
 
-
-class _JitOptions(TypedDict, total=False):
-    """The keyword arguments of ``nb.njit`` that these kernels set."""
-
-    cache: bool
-    nogil: bool
-    error_model: Literal["python", "numpy"]
-
-
-_JIT: _JitOptions = {"cache": True, "nogil": True, "error_model": "numpy"}
+_JIT: JitOptions = {"cache": True, "nogil": True, "error_model": "numpy"}
 _I = np.int64
 """Integer arguments of ``_scan`` are cast to this, so that it compiles once for every caller."""
 
