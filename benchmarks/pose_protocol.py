@@ -189,6 +189,10 @@ def run_one(case: dict, renders: Path | None = None) -> dict:
         cams = load_cameras(cams_file).cameras
         T = cams[1].world_to_cam @ cams[0].cam_to_world
         cfg = ReconstructConfig()
+        if case.get("matcher", "sift") != "sift":  # --matcher: the pose search's tiers as the engine sets them
+            from macsplat_cli.presets import learned_search
+
+            cfg.search = learned_search(cfg.search, case["matcher"])
         if case["intrinsics"] == "given":
             cfg.views = dataclasses.replace(cfg.views, intrinsics=cams_file)
         r = pose_case(paths, cfg, T[:3, :3], T[:3, 3])
@@ -352,6 +356,8 @@ def main() -> None:
     ap.add_argument("--kinds", nargs="+", choices=KINDS, default=list(KINDS))
     ap.add_argument("--intrinsics", choices=["given", "estimated"], default="given")
     ap.add_argument("--size", type=_size, default=(640, 480), help="render size WxH (default 640x480)")
+    ap.add_argument("--matcher", choices=["sift", "auto", "aliked"], default="sift",
+                    help="the pose search's matcher (default sift: the SIFT tiers, as before issue 39)")  # fmt: skip
     ap.add_argument("--jobs", type=int, default=1, help="processes, one thread each (times compare at equal jobs)")
     ap.add_argument("--renders", type=Path, help="keep the rendered pairs here and reuse them (a before/after renders "
                     "once; a library without the new scene kinds runs from them)")  # fmt: skip
@@ -365,6 +371,8 @@ def main() -> None:
         ap.error("give --json OUT to run the cases, or --table RUN [RUN] to read results")
     splits = list(SPLITS) if args.split == "both" else [args.split]
     todo = cases(splits, args.kinds, args.widths, args.per_width, intrinsics=args.intrinsics, size=args.size)
+    for case in todo:
+        case["matcher"] = args.matcher
     if args.renders:
         args.renders.mkdir(parents=True, exist_ok=True)
     protocol = {"right_deg": RIGHT_DEG, "splits": {k: dataclasses.asdict(v) for k, v in SPLITS.items()},

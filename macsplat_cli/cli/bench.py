@@ -15,7 +15,6 @@ from ._options import (
     DinoOpt,
     FusionOpt,
     GaussianHeadOpt,
-    MatcherOpt,
     PrecisionOpt,
     RefineGridOpt,
     WeightsOpt,
@@ -112,7 +111,13 @@ def bench_command(
     context_views: ContextViewsOpt = 2,
     splatt3r_compatible: Splatt3rOpt = False,
     json_out: Annotated[bool, typer.Option("--json", help="Print the bench as JSON on stdout.")] = False,
-    matcher: MatcherOpt = "auto",
+    matcher: Annotated[
+        str,
+        typer.Option(
+            "--matcher",
+            help="Matchers of the classical backend (auto, sift, aliked: see reconstruct), comma-separated.",
+        ),
+    ] = "auto",
     weights: WeightsOpt = None,
     gaussian_head: GaussianHeadOpt = None,
     dino: DinoOpt = None,
@@ -124,8 +129,8 @@ def bench_command(
 ) -> None:
     """Run the evaluation over a grid of settings; report time vs quality and the Pareto front.
 
-    Every combination of --backend, --size, --conf-threshold, --refine and --quality is evaluated on the
-    same cases (with --context-views N, N context photos each). Writes a Markdown table (bench.md), a plot
+    Every combination of --backend, --size, --conf-threshold, --refine, --quality and --matcher is evaluated on
+    the same cases (with --context-views N, N context photos each). Writes a Markdown table (bench.md), a plot
     (bench.png), bench.json, and each setting's full results under runs/.
 
     [bold]Example[/]
@@ -142,7 +147,7 @@ def bench_command(
             scannetpp_split=scannetpp_split, scenes=scenes, cases_file=cases, intrinsics=intrinsics.value,
             max_pairs=max_pairs, max_targets=max_targets, split_by=split_by.value, assignment=assignment.value,
             seed=seed, context_views=context_views, splatt3r_compatible=splatt3r_compatible, json_out=json_out,
-            quiet=state.quiet, matcher=matcher,
+            quiet=state.quiet, matchers=_list(matcher, str, "--matcher"),
             neural=neural_options(weights, gaussian_head, dino, fusion, device, precision),
         )  # fmt: skip
 
@@ -154,7 +159,7 @@ def _bench(
     scenes: str | None,
     cases_file: Path | None, intrinsics: str, max_pairs: int, max_targets: int, split_by: str, assignment: str,
     seed: int, splatt3r_compatible: bool, json_out: bool, quiet: bool, neural: NeuralOptions, context_views: int = 2,
-    matcher: str = "auto",
+    matchers: list[str] | None = None,
 ) -> None:  # fmt: skip
     import json
 
@@ -185,11 +190,14 @@ def _bench(
     qualities = [q.strip().lower() for q in qualities]
     for q in qualities:
         check_quality(q)
+    matchers = [m.strip().lower() for m in matchers or ["auto"]]
+    for m in matchers:
+        engine_config("classical", matcher=m).validate()
     if neural.given and "neural" not in backends:
         raise InputError(f"{', '.join(neural.given)} only apply to --backend neural")
     if "neural" in backends:  # usage errors (no weights, --dino without --fusion, ...) before any work
         engine_config("neural", neural=neural).validate()
-    settings = grid(backends, sizes, taus, steps, qualities)
+    settings = grid(backends, sizes, taus, steps, qualities, matchers)
     check_bench_outputs(out, settings)  # every file of the bench and of each setting's run, before any work
     check_no_clobber(
         [(f"--out {out}:", out / name) for name in BENCH_FILES]
@@ -215,7 +223,7 @@ def _bench(
     rows = run_bench(
         dataset, sel.cases, settings, metric=metric, intrinsics=intrinsics, eval_size=eval_size,
         splatt3r_compatible=splatt3r_compatible, out_dir=out, run_fn=run_fn,
-        base=engine_config("classical", neural=neural, matcher=matcher),
+        base=engine_config("classical", neural=neural),
     )  # fmt: skip
     if not quiet:
         from rich.markdown import Markdown

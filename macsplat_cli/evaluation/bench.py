@@ -92,16 +92,19 @@ class BenchSetting:
     conf_threshold: float | None = None
     refine_steps: int = 0
     quality: str = "balanced"
+    matcher: str = "auto"
 
     @property
     def label(self) -> str:
         tau = "default" if self.conf_threshold is None else f"{self.conf_threshold:g}"
-        return f"{self.backend} size={self.size} tau={tau} refine={self.refine_steps} quality={self.quality}"
+        label = f"{self.backend} size={self.size} tau={tau} refine={self.refine_steps} quality={self.quality}"
+        return label if self.matcher == "auto" else f"{label} matcher={self.matcher}"
 
     @property
     def slug(self) -> str:
         tau = "d" if self.conf_threshold is None else f"{self.conf_threshold:g}"
-        return f"{self.backend}_s{self.size}_t{tau}_r{self.refine_steps}_q{self.quality}"
+        slug = f"{self.backend}_s{self.size}_t{tau}_r{self.refine_steps}_q{self.quality}"
+        return slug if self.matcher == "auto" else f"{slug}_m{self.matcher}"
 
 
 @dataclass
@@ -123,21 +126,27 @@ def grid(
     conf_thresholds: Sequence[float | None] = (None,),
     refine_steps: Sequence[int | None] = (None,),
     qualities: Sequence[str] = ("balanced",),
+    matchers: Sequence[str] = ("auto",),
 ) -> list[BenchSetting]:
     """Every combination of the axes, in order; a refinement of None is the quality's
-    (:func:`~macsplat_cli.presets.refine_steps`, as ``reconstruct`` without ``--refine``)."""
-    return [
-        BenchSetting(b, int(s), c, int(r) if r is not None else preset_refine_steps(cast(Quality, q)), q)
-        for b, s, c, r, q in itertools.product(backends, sizes, conf_thresholds, refine_steps, qualities)
-    ]
+    (:func:`~macsplat_cli.presets.refine_steps`, as ``reconstruct`` without ``--refine``); the neural backend matches
+    its own (its settings take the matcher ``auto`` once, whatever ``matchers`` holds)."""
+    out: list[BenchSetting] = []
+    for b, s, c, r, q, m in itertools.product(backends, sizes, conf_thresholds, refine_steps, qualities, matchers):
+        steps = int(r) if r is not None else preset_refine_steps(cast(Quality, q))
+        setting = BenchSetting(b, int(s), c, steps, q, "auto" if b == "neural" else m)
+        if setting not in out:
+            out.append(setting)
+    return out
 
 
 def setting_config(base: EngineConfig, setting: BenchSetting) -> EngineConfig:
-    """The engine settings of one point of the grid: ``base`` (neural files and device, refinement scale, matcher)
-    with the setting's backend, quality, τ and refinement steps (the working size comes per case)."""
+    """The engine settings of one point of the grid: ``base`` (neural files and device, refinement scale) with the
+    setting's backend, quality, matcher, τ and refinement steps (the working size comes per case)."""
     return base.replace(
         backend=setting.backend,
         quality=setting.quality,
+        matcher=setting.matcher,
         overrides=dataclasses.replace(
             base.overrides, conf_threshold=setting.conf_threshold, refine=setting.refine_steps
         ),
@@ -359,8 +368,8 @@ def bench_markdown(rows: Sequence[BenchRow], metric: str) -> str:
     n_views = max((int(r.summary.get("context_views") or 2) for r in rows), default=2)
     if n_views > 2:  # more than two contexts: how many of them were registered, on average
         columns = (*columns, ("registered", f"registered / {n_views}", 2))
-    head = ["backend", "size", "τ", "refine", "quality", *(c[1] for c in columns), "failed", "Pareto"]
-    lines = ["| " + " | ".join(head) + " |", "|---|---:|---:|---:|---|" + "---:|" * len(columns) + "---:|:---:|"]
+    head = ["backend", "size", "τ", "refine", "quality", "matcher", *(c[1] for c in columns), "failed", "Pareto"]
+    lines = ["| " + " | ".join(head) + " |", "|---|---:|---:|---:|---|---|" + "---:|" * len(columns) + "---:|:---:|"]
     for r in rows:
         s = r.setting
         cells = [
@@ -369,6 +378,7 @@ def bench_markdown(rows: Sequence[BenchRow], metric: str) -> str:
             format_cell(s.conf_threshold, 3) if s.conf_threshold else "default",
             str(s.refine_steps),
             s.quality,
+            s.matcher,
         ]
         cells += [format_cell(r.summary.get(k), d) for k, _, d in columns]
         cells += [f"{r.summary.get('failed', 0)}/{r.summary.get('cases', 0)}", "✓" if r.pareto else ""]
@@ -432,6 +442,7 @@ def bench_plot(rows: Sequence[BenchRow], metric: str, path: str | Path, *, title
                 f"{s.size}/{'d' if s.conf_threshold is None else f'{s.conf_threshold:g}'}/{s.refine_steps}/{s.quality}"
             )
             fails = int(rows[i].summary.get("failed", 0) or 0)
+            tag += "" if s.matcher == "auto" else f"/{s.matcher}"
             tag += f" ({fails} failed)" if fails else ""
             (tw, _), _ = cv2.getTextSize(tag, font, 0.4, 1)
             x = c[0] + 7 if c[0] + 7 + tw < W - R else c[0] - 7 - tw  # keep labels inside the frame
@@ -450,7 +461,8 @@ def bench_plot(rows: Sequence[BenchRow], metric: str, path: str | Path, *, title
         1,
         cv2.LINE_AA,
     )
-    cv2.putText(img, "labels: size/tau/refine steps/quality", (W - R - 330, T - 6), font, 0.45, black, 1, cv2.LINE_AA)
+    labels = "labels: size/tau/refine steps/quality[/matcher]"
+    cv2.putText(img, labels, (W - R - 330, T - 6), font, 0.45, black, 1, cv2.LINE_AA)
     note = "time and quality on the cases every setting reconstructed; red: Pareto front (time, quality, failures)"
     cv2.putText(img, note, (L, H - B + 66), font, 0.4, grey_text, 1, cv2.LINE_AA)
     ok_enc, buf = cv2.imencode(".png", img)  # colours above are BGR

