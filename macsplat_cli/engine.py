@@ -35,6 +35,7 @@ from .pipeline.refine import RefineConfig
 from .pipeline.run import Pipeline, ReconstructConfig, Reconstruction, StageEvent, count_gaussians
 from .pipeline.views import ViewConfig
 from .presets import (
+    DEFAULT_MATCHER,
     DEVICES,
     PRECISIONS,
     Backend,
@@ -127,8 +128,7 @@ class EngineConfig:
         neural: the neural backend's files and device.
         refine: how the refinement runs (scale, MAC, LPIPS); ``steps`` stays 0 (``overrides.refine`` or the
             quality's, :func:`~macsplat_cli.presets.refine_steps`).
-        matcher: ``--matcher``: ``"auto"`` (SIFT, then ALIKED + LightGlue where SIFT's pose is not supported),
-            ``"sift"`` or ``"aliked"`` (classical backend; :func:`~macsplat_cli.presets.learned_search`).
+        matcher: ``--matcher``, ``"sift"``, ``"auto"`` or ``"aliked"`` (:func:`~macsplat_cli.presets.learned_search`)
     """
 
     backend: Backend = "classical"
@@ -137,7 +137,7 @@ class EngineConfig:
     pipeline: ReconstructConfig = field(default_factory=ReconstructConfig)
     neural: NeuralOptions = field(default_factory=NeuralOptions)
     refine: RefineConfig = field(default_factory=RefineConfig)
-    matcher: Matcher = "auto"
+    matcher: Matcher = DEFAULT_MATCHER
 
     def validate(self, *, files: bool = True) -> None:
         """Usage errors, before any work (``files=False``: the models are given, no checkpoint is needed). Only the

@@ -47,6 +47,7 @@ __all__ = [
     "BACKENDS",
     "DEVICES",
     "FAST_SIFT",
+    "DEFAULT_MATCHER",
     "MATCHERS",
     "NEURAL_TAU",
     "PRECISIONS",
@@ -86,6 +87,10 @@ QUALITIES: tuple[Quality, ...] = get_args(Quality)
 BACKENDS: tuple[Backend, ...] = get_args(Backend)
 DEVICES: tuple[Device, ...] = get_args(Device)
 MATCHERS: tuple[Matcher, ...] = get_args(Matcher)
+DEFAULT_MATCHER: Matcher = "sift"
+"""``--matcher`` when none is given. Not ``auto`` yet: on the pose protocol's held-out split (`benchmarks/history/
+learned.md`) the learned tier let one pose through 179.5° off (a repeated texture LightGlue matched consistently),
+and no wrong pose accepted is the promise; ``auto`` stays one option away until a guard is calibrated."""
 PRECISIONS: tuple[Precision, ...] = get_args(Precision)
 
 FAST_SIFT = (640, 8000)
@@ -246,7 +251,7 @@ def configure(
     pipeline: ReconstructConfig | None = None,
     refine: RefineConfig | None = None,
     precision: Precision = "fp32",
-    matcher: Matcher = "auto",
+    matcher: Matcher = DEFAULT_MATCHER,
 ) -> StageSettings:
     """Every stage's settings from a preset, a backend and the user's overrides (the inputs are not modified).
 

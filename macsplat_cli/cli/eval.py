@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
+from ..presets import DEFAULT_MATCHER
 from ._app import app
 from ._common import QuietOpt, VerboseOpt, check_no_clobber, command_context, err_console, escape, out_console
 from ._eval_report import print_summary
@@ -22,6 +23,7 @@ from ._options import (
     PrecisionOpt,
     RefineOpt,
     WeightsOpt,
+    engine_config,
     neural_options,
     parse_refine,
 )
@@ -64,24 +66,6 @@ DataOpt = Annotated[
         "--data", metavar="DIR", help="Data set folder (generic, ScanNet++, CO3D sample, ICL-NUIM/NYU RGB-D)."
     ),
 ]
-
-
-def engine_config(
-    backend: str, *, conf_threshold: float | None = None, refine: int | None = None,
-    neural: NeuralOptions | None = None, quality: str = "balanced", matcher: str = "auto",
-) -> EngineConfig:  # fmt: skip
-    """The engine settings of ``eval``/``bench``, as ``reconstruct`` makes them (``refine``: the parsed
-    ``--refine``, None: the quality's; the working size and intrinsics come per case)."""
-    from ..engine import EngineConfig, NeuralOptions
-    from ..presets import Overrides
-
-    return EngineConfig(
-        backend=backend.strip().lower(),  # type: ignore[arg-type]
-        quality=quality.strip().lower(),  # type: ignore[arg-type]
-        matcher=matcher.strip().lower(),  # type: ignore[arg-type]
-        overrides=Overrides(conf_threshold=conf_threshold, refine=refine),
-        neural=neural or NeuralOptions(),
-    )
 
 
 SplitOpt = Annotated[str, typer.Option("--split", help="close, medium, wide, very-wide (comma-separated), or all.")]
@@ -314,7 +298,7 @@ def eval_command(
         str | None,
         typer.Option("--protocol", metavar="NAME", help="A paper's protocol: mac-splat (see models/mac-splat.md)."),
     ] = None,
-    matcher: MatcherOpt = "auto",
+    matcher: MatcherOpt = DEFAULT_MATCHER,
     weights: WeightsOpt = None,
     gaussian_head: GaussianHeadOpt = None,
     dino: DinoOpt = None,

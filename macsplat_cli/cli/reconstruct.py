@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 
 from .._limits import MAX_PATH_VIEWS
-from ..presets import BACKENDS, QUALITIES
+from ..presets import BACKENDS, DEFAULT_MATCHER, QUALITIES
 from ._app import app
 from ._common import (
     QuietOpt,
@@ -181,7 +181,7 @@ def reconstruct_command(
     no_mac: NoMacOpt = False,
     lpips_weights: LpipsWeightsOpt = None,
     backend: BackendOpt = "classical",
-    matcher: MatcherOpt = "auto",
+    matcher: MatcherOpt = DEFAULT_MATCHER,
     weights: WeightsOpt = None,
     dino: DinoOpt = None,
     fusion: FusionOpt = None,
@@ -254,7 +254,7 @@ def reconstruct_config(
     far_layer: bool = True, refine: str | None = None, refine_scale: int = 2, no_mac: bool = False,
     lpips_weights: Path | None = None, backend: str = "classical", weights: Path | None = None,
     dino: Path | None = None, fusion: Path | None = None, gaussian_head: Path | None = None, device: str = "cpu",
-    precision: str = "fp32", matcher: str = "auto",
+    precision: str = "fp32", matcher: str = DEFAULT_MATCHER,
 ) -> EngineConfig:  # fmt: skip
     """``reconstruct``'s options (the command's defaults) as the engine takes them, one field each: the presets
     apply in the engine (:meth:`~macsplat_cli.engine.EngineConfig.settings`), the values are checked by

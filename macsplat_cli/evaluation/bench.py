@@ -43,7 +43,7 @@ from ..engine import EngineConfig, Models, NeuralOptions, load_models
 from ..errors import InputError, OutputPathError
 from ..pipeline.refine import RefineConfig
 from ..presets import BACKENDS as ENGINE
-from ..presets import Quality
+from ..presets import DEFAULT_MATCHER, Quality
 from ..presets import refine_steps as preset_refine_steps
 from .protocol import evaluate
 from .reconstructors import BACKENDS, Reconstructor, ReconstructSettings, make_reconstructor
@@ -92,19 +92,19 @@ class BenchSetting:
     conf_threshold: float | None = None
     refine_steps: int = 0
     quality: str = "balanced"
-    matcher: str = "auto"
+    matcher: str = DEFAULT_MATCHER
 
     @property
     def label(self) -> str:
         tau = "default" if self.conf_threshold is None else f"{self.conf_threshold:g}"
         label = f"{self.backend} size={self.size} tau={tau} refine={self.refine_steps} quality={self.quality}"
-        return label if self.matcher == "auto" else f"{label} matcher={self.matcher}"
+        return label if self.matcher == DEFAULT_MATCHER else f"{label} matcher={self.matcher}"
 
     @property
     def slug(self) -> str:
         tau = "d" if self.conf_threshold is None else f"{self.conf_threshold:g}"
         slug = f"{self.backend}_s{self.size}_t{tau}_r{self.refine_steps}_q{self.quality}"
-        return slug if self.matcher == "auto" else f"{slug}_m{self.matcher}"
+        return slug if self.matcher == DEFAULT_MATCHER else f"{slug}_m{self.matcher}"
 
 
 @dataclass
@@ -126,15 +126,15 @@ def grid(
     conf_thresholds: Sequence[float | None] = (None,),
     refine_steps: Sequence[int | None] = (None,),
     qualities: Sequence[str] = ("balanced",),
-    matchers: Sequence[str] = ("auto",),
+    matchers: Sequence[str] = (DEFAULT_MATCHER,),
 ) -> list[BenchSetting]:
     """Every combination of the axes, in order; a refinement of None is the quality's
     (:func:`~macsplat_cli.presets.refine_steps`, as ``reconstruct`` without ``--refine``); the neural backend matches
-    its own (its settings take the matcher ``auto`` once, whatever ``matchers`` holds)."""
+    its own (its settings take the default matcher once, whatever ``matchers`` holds)."""
     out: list[BenchSetting] = []
     for b, s, c, r, q, m in itertools.product(backends, sizes, conf_thresholds, refine_steps, qualities, matchers):
         steps = int(r) if r is not None else preset_refine_steps(cast(Quality, q))
-        setting = BenchSetting(b, int(s), c, steps, q, "auto" if b == "neural" else m)
+        setting = BenchSetting(b, int(s), c, steps, q, DEFAULT_MATCHER if b == "neural" else m)
         if setting not in out:
             out.append(setting)
     return out
@@ -442,7 +442,7 @@ def bench_plot(rows: Sequence[BenchRow], metric: str, path: str | Path, *, title
                 f"{s.size}/{'d' if s.conf_threshold is None else f'{s.conf_threshold:g}'}/{s.refine_steps}/{s.quality}"
             )
             fails = int(rows[i].summary.get("failed", 0) or 0)
-            tag += "" if s.matcher == "auto" else f"/{s.matcher}"
+            tag += "" if s.matcher == DEFAULT_MATCHER else f"/{s.matcher}"
             tag += f" ({fails} failed)" if fails else ""
             (tw, _), _ = cv2.getTextSize(tag, font, 0.4, 1)
             x = c[0] + 7 if c[0] + 7 + tw < W - R else c[0] - 7 - tw  # keep labels inside the frame

@@ -106,9 +106,7 @@ def load_weights(model: str) -> dict[str, torch.Tensor]:
         )
     digest = hashlib.sha256(data).hexdigest()
     if digest != w.sha256:
-        raise LearnedWeightsError(
-            f"{path}: sha256 {digest}, expected {w.sha256}; reinstall with {INSTALL_HINT}"
-        )
+        raise LearnedWeightsError(f"{path}: sha256 {digest}, expected {w.sha256}; reinstall with {INSTALL_HINT}")
     state = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
         raise LearnedWeightsError(f"{path}: not a state dict of tensors")

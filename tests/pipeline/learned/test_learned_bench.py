@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from macsplat_cli.evaluation.bench import BenchSetting, grid
+from macsplat_cli.presets import DEFAULT_MATCHER
 
 from support.cli import run_captured
 
@@ -16,9 +17,10 @@ from support.cli import run_captured
 def test_grid_sweeps_the_matcher_of_the_classical_backend_only() -> None:
     g = grid(["classical", "neural"], [256], matchers=["sift", "auto"])
     assert g == [BenchSetting("classical", 256, matcher="sift"), BenchSetting("classical", 256, matcher="auto"),
-                 BenchSetting("neural", 256, matcher="auto")]  # fmt: skip
-    assert g[0].slug.endswith("_msift") and g[1].slug == "classical_s256_td_r0_qbalanced"
-    assert g[0].label.endswith("matcher=sift") and "matcher" not in g[1].label
+                 BenchSetting("neural", 256, matcher=DEFAULT_MATCHER)]  # fmt: skip
+    assert DEFAULT_MATCHER == "sift"  # the default is named by neither slug nor label
+    assert g[1].slug.endswith("_mauto") and g[0].slug == "classical_s256_td_r0_qbalanced"
+    assert g[1].label.endswith("matcher=auto") and "matcher" not in g[0].label
 
 
 def test_bench_runs_each_setting_with_its_matcher(capsys, plane: Path, tmp_path: Path,  # noqa: ANN001
