@@ -96,8 +96,8 @@ def test_one_quality_gives_one_scene_in_every_command(
 
     # bench: the grid point the command makes of the same options, its engine settings as run_bench makes them
     kw = _captured(monkeypatch, bench_cli, "_bench", ["bench", *data, *options])
-    [point] = grid(kw["backends"], kw["sizes"], kw["taus"], kw["steps"], kw["qualities"])
-    base = eval_cli.engine_config("classical", neural=kw["neural"], matcher=kw["matcher"])
+    [point] = grid(kw["backends"], kw["sizes"], kw["taus"], kw["steps"], kw["qualities"], kw["matchers"])
+    base = eval_cli.engine_config("classical", neural=kw["neural"])
     bn = make_reconstructor(setting_config(base, point))(scene, case, settings)
 
     steps = AUTO_STEPS if refine is None else int(refine)
