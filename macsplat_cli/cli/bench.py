@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
+from ..presets import DEFAULT_MATCHER
 from ._app import app
 from ._common import QuietOpt, VerboseOpt, check_no_clobber, command_context, err_console, escape, out_console
 from ._options import (
@@ -115,9 +116,9 @@ def bench_command(
         str,
         typer.Option(
             "--matcher",
-            help="Matchers of the classical backend (auto, sift, aliked: see reconstruct), comma-separated.",
+            help="Matchers of the classical backend (sift, auto, aliked: see reconstruct), comma-separated.",
         ),
-    ] = "auto",
+    ] = DEFAULT_MATCHER,
     weights: WeightsOpt = None,
     gaussian_head: GaussianHeadOpt = None,
     dino: DinoOpt = None,
@@ -185,7 +186,7 @@ def _bench(
     if any(s < 64 for s in sizes) or any(t is not None and t < 0 for t in taus):  # --refine: parse_refine_list
         raise InputError("--size must be ≥ 64 and --conf-threshold ≥ 0")
     check_context_views(context_views, backends=backends)
-    from ..presets import DEFAULT_MATCHER, check_quality
+    from ..presets import check_quality
 
     qualities = [q.strip().lower() for q in qualities]
     for q in qualities:
