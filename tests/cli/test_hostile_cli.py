@@ -421,6 +421,10 @@ class _FakeVideoWriter:
     def __init__(self, path: str, fourcc: int, fps: float, size: tuple[int, int]) -> None:
         self.fps.append(fps)
 
+    @staticmethod
+    def fourcc(*code: str) -> int:
+        return 0
+
     def isOpened(self) -> bool:  # noqa: N802 - OpenCV's name
         return True
 
