@@ -26,16 +26,17 @@ import re
 import stat
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
-from .errors import OutputPathError
+from .errors import InputError, OutputPathError
 
 __all__ = [
     "atomic_path",
     "atomic_write_bytes",
     "atomic_write_text",
     "check_folder",
+    "check_no_clobber",
     "check_writable",
     "remove_stale_temporaries",
 ]
@@ -280,3 +281,47 @@ def atomic_torch_save(path: str | os.PathLike[str], obj: object) -> Path:
             e.__traceback__ = None  # let go of torch's writer (and its open file) now
             raise OutputPathError(f"cannot write {path}: the write failed ({first})") from None
     return Path(path)
+
+
+def _identity(path: Path) -> tuple[str, tuple[int, int] | None]:
+    """The resolved path and, when it exists, the (device, inode) of the file it names (links followed)."""
+    try:
+        st = os.stat(path)
+        inode: tuple[int, int] | None = (st.st_dev, st.st_ino)
+    except (OSError, ValueError):
+        inode = None
+    return os.path.realpath(path), inode
+
+
+def check_no_clobber(
+    outputs: Iterable[tuple[str, Path | None]], inputs: Iterable[tuple[str, Path | None]] = ()
+) -> None:
+    """Refuse outputs that would overwrite an input file or another output, before any work.
+
+    Two paths are the same file when they resolve to the same path (symbolic links followed)
+    or, when both exist, name the same (device, inode): hard links count too.
+
+    Args:
+        outputs: ``(label, path)`` of every file the command will write (None: not written).
+        inputs: ``(label, path)`` of every file it reads (None: not given).
+
+    Raises:
+        InputError: an output is an input, or two outputs are one file.
+    """
+    ins = [(label, p, _identity(p)) for label, p in inputs if p is not None]
+    seen: list[tuple[str, Path, tuple[str, tuple[int, int] | None]]] = []
+    for label, p in outputs:
+        if p is None:
+            continue
+        ident = _identity(p)
+
+        def same(other: tuple[str, tuple[int, int] | None], ident: tuple = ident) -> bool:
+            return ident[0] == other[0] or (ident[1] is not None and ident[1] == other[1])
+
+        for in_label, q, q_ident in ins:
+            if same(q_ident):
+                raise InputError(f"{label} {p} is also the input {in_label} ({q}): refusing to overwrite an input")
+        for out_label, q, q_ident in seen:
+            if same(q_ident):
+                raise InputError(f"two outputs point at the same file: {out_label} {q} and {label} {p}")
+        seen.append((label, p, ident))

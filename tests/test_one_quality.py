@@ -16,9 +16,8 @@ from typing import Any
 import pytest
 import torch
 
+from macsplat_cli import evaluation
 from macsplat_cli.cameras import load_cameras
-from macsplat_cli.cli import bench as bench_cli
-from macsplat_cli.cli import eval as eval_cli
 from macsplat_cli.cli import main
 from macsplat_cli.cli._options import parse_refine_list
 from macsplat_cli.engine import EngineConfig, reconstruct
@@ -51,12 +50,14 @@ def _run(args: list[Any]) -> None:
     assert code == 0, err.getvalue()
 
 
-def _captured(monkeypatch: pytest.MonkeyPatch, module: Any, name: str, args: list[Any]) -> dict[str, Any]:
-    """The keyword arguments a command hands its worker ``module.name`` (replaced: no data set is read)."""
-    seen: dict[str, Any] = {}
-    monkeypatch.setattr(module, name, lambda **kwargs: seen.update(kwargs))
+def _captured(monkeypatch: pytest.MonkeyPatch, name: str, args: list[Any]) -> Any:
+    """The spec a command hands the library's entry point ``evaluation.name`` (replaced: no data set is read)."""
+    seen: list[Any] = []
+    done = {"run": SimpleNamespace(check=lambda: None), "benchmark": []}[name]  # what the command reads back (-q)
+    monkeypatch.setattr(evaluation, name, lambda spec, progress=None: seen.append(spec) or done)
     _run(args)
-    return seen
+    [spec] = seen
+    return spec
 
 
 def _case(pair: tuple[Path, Path, Path]) -> tuple[Any, Any, ReconstructSettings]:
@@ -90,14 +91,14 @@ def test_one_quality_gives_one_scene_in_every_command(
 
     # eval: the engine settings the command builds from the same options, through the evaluation's reconstructor
     data = ["--data", tmp_path, "--out", tmp_path / "results", "-q"]
-    engine = _captured(monkeypatch, eval_cli, "_eval", ["eval", *data, *options])["engine"]
+    engine = _captured(monkeypatch, "run", ["eval", *data, *options]).engine
     scene, case, settings = _case(pair)
     ev = EngineReconstructor(engine)(scene, case, settings)
 
     # bench: the grid point the command makes of the same options, its engine settings as run_bench makes them
-    kw = _captured(monkeypatch, bench_cli, "_bench", ["bench", *data, *options])
-    [point] = grid(kw["backends"], kw["sizes"], kw["taus"], kw["steps"], kw["qualities"], kw["matchers"])
-    base = eval_cli.engine_config("classical", neural=kw["neural"])
+    spec = _captured(monkeypatch, "benchmark", ["bench", *data, *options])
+    [point] = grid(spec.backends, spec.sizes, spec.taus, spec.steps, spec.qualities, spec.matchers)
+    base = EngineConfig(neural=spec.neural)  # as evaluation.benchmark hands it to run_bench
     bn = make_reconstructor(setting_config(base, point))(scene, case, settings)
 
     steps = AUTO_STEPS if refine is None else int(refine)
@@ -116,10 +117,9 @@ def test_refine_is_one_option_type_in_every_command(
     and the same refusal."""
     data = ["--data", tmp_path, "--out", tmp_path / "results", "-q"]
     for text, steps in (("auto", AUTO_STEPS), ("off", 0), ("7", 7)):
-        engine = _captured(monkeypatch, eval_cli, "_eval", ["eval", *data, "--refine", text])["engine"]
+        engine = _captured(monkeypatch, "run", ["eval", *data, "--refine", text]).engine
         assert engine.overrides.refine == steps and engine.settings().refine.steps == steps
-    kw = _captured(monkeypatch, bench_cli, "_bench", ["bench", *data, "--refine", "off,auto,7"])
-    assert kw["steps"] == [0, AUTO_STEPS, 7]
+    assert _captured(monkeypatch, "benchmark", ["bench", *data, "--refine", "off,auto,7"]).steps == [0, AUTO_STEPS, 7]
     assert parse_refine_list(None) == [None]  # not given: each quality's
     assert [s.refine_steps for s in grid(qualities=["fast", "balanced", "best"])] == [0, 0, AUTO_STEPS]
     for command in (["reconstruct", pair[0], pair[1], "-o", tmp_path / "s.ply"], ["eval", *data], ["bench", *data]):

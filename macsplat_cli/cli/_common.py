@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import os
 import warnings
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
@@ -15,6 +14,7 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
+from .._atomic import check_no_clobber
 from .._log import remove_logging, setup_logging
 from ..errors import MacsplatError
 
@@ -61,53 +61,10 @@ def _one_line(msg: str) -> str:
     return escape(line if len(line) <= MAX_ERROR_CHARS else line[: MAX_ERROR_CHARS - 1] + "…")
 
 
-def _identity(path: Path) -> tuple[str, tuple[int, int] | None]:
-    """The resolved path and, when it exists, the (device, inode) of the file it names (links followed)."""
-    try:
-        st = os.stat(path)
-        inode: tuple[int, int] | None = (st.st_dev, st.st_ino)
-    except (OSError, ValueError):
-        inode = None
-    return os.path.realpath(path), inode
-
-
-def check_no_clobber(
-    outputs: Iterable[tuple[str, Path | None]], inputs: Iterable[tuple[str, Path | None]] = ()
-) -> None:
-    """Refuse outputs that would overwrite an input file or another output, before any work.
-
-    Two paths are the same file when they resolve to the same path (symbolic links followed)
-    or, when both exist, name the same (device, inode): hard links count too.
-
-    Args:
-        outputs: ``(label, path)`` of every file the command will write (None: not written).
-        inputs: ``(label, path)`` of every file it reads (None: not given).
-
-    Raises:
-        InputError: an output is an input, or two outputs are one file.
-    """
-    from ..errors import InputError
-
-    ins = [(label, p, _identity(p)) for label, p in inputs if p is not None]
-    seen: list[tuple[str, Path, tuple[str, tuple[int, int] | None]]] = []
-    for label, p in outputs:
-        if p is None:
-            continue
-        ident = _identity(p)
-
-        def same(other: tuple[str, tuple[int, int] | None], ident: tuple = ident) -> bool:
-            return ident[0] == other[0] or (ident[1] is not None and ident[1] == other[1])
-
-        for in_label, q, q_ident in ins:
-            if same(q_ident):
-                raise InputError(f"{label} {p} is also the input {in_label} ({q}): refusing to overwrite an input")
-        for out_label, q, q_ident in seen:
-            if same(q_ident):
-                raise InputError(f"two outputs point at the same file: {out_label} {q} and {label} {p}")
-        seen.append((label, p, ident))
-
-
-def _log_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int, *_: object) -> None:
+def _log_warning(
+    message: Warning | str, category: type[Warning], filename: str, lineno: int, file: object = None,
+    line: str | None = None,
+) -> None:  # fmt: skip
     """``warnings.showwarning`` for CLI commands: one DEBUG line naming the category and where it came from."""
     logger.debug("%s from %s:%d: %s", category.__name__, Path(filename).name, lineno, " ".join(str(message).split()))
 

@@ -8,13 +8,16 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from ..cameras import CameraSet
     from ..gaussians import Gaussians
     from ..pipeline.run import Reconstruction
 
 __all__ = ["OutputExtras", "check_exports", "export_requests", "up_choice", "world_outputs", "write_exports"]
 
-UP_CHOICES = ("camera", "auto")
+Up = Literal["camera", "auto"]
+UP_CHOICES: tuple[Up, ...] = ("camera", "auto")
 UP_WORLD = "camera_0_up_y"
 """The cameras file's world name with ``--up auto``: camera 0's frame turned so that the cameras' mean up is +y."""
 
@@ -26,7 +29,7 @@ class OutputExtras:
 
     exports: list[tuple[str, Path]] = field(default_factory=list)
     force: bool = False
-    up: Literal["camera", "auto"] = "camera"
+    up: Up = "camera"
 
 
 def export_requests(pairs: Sequence[tuple[str, Path]]) -> list[tuple[str, Path]]:
@@ -38,7 +41,7 @@ def export_requests(pairs: Sequence[tuple[str, Path]]) -> list[tuple[str, Path]]
     from ..camera_formats.export import EXPORT_FORMATS
     from ..errors import InputError
 
-    out = []
+    out: list[tuple[str, Path]] = []
     for fmt, folder in pairs:
         f = fmt.strip().lower()
         if f not in EXPORT_FORMATS:
@@ -51,7 +54,7 @@ def export_requests(pairs: Sequence[tuple[str, Path]]) -> list[tuple[str, Path]]
     return out
 
 
-def up_choice(text: str) -> Literal["camera", "auto"]:
+def up_choice(text: str) -> Up:
     """``--up`` checked.
 
     Raises:
@@ -60,9 +63,10 @@ def up_choice(text: str) -> Literal["camera", "auto"]:
     from ..errors import InputError
 
     t = text.strip().lower()
-    if t not in UP_CHOICES:
-        raise InputError(f"--up {text!r}: use camera (the first camera's frame, the default) or auto (mean up on +y)")
-    return t  # type: ignore[return-value]
+    for up in UP_CHOICES:
+        if up == t:
+            return up
+    raise InputError(f"--up {text!r}: use camera (the first camera's frame, the default) or auto (mean up on +y)")
 
 
 def check_exports(extras: OutputExtras, keep: Sequence[tuple[str, Path | None]], photos: Sequence[Path] = ()) -> None:
@@ -82,7 +86,7 @@ def check_exports(extras: OutputExtras, keep: Sequence[tuple[str, Path | None]],
             raise InputError(f"--export colmap: a COLMAP image name has no spaces; rename the photo {spaced[0]!r}")
 
 
-def world_outputs(result: Reconstruction, up: str) -> tuple[Gaussians, CameraSet, object]:
+def world_outputs(result: Reconstruction, up: str) -> tuple[Gaussians, CameraSet, np.ndarray | None]:
     """The scene, its cameras and the world rotation (None, or ``[3, 3]`` with ``--up auto``) to write them in."""
     import dataclasses
 
@@ -98,7 +102,7 @@ def world_outputs(result: Reconstruction, up: str) -> tuple[Gaussians, CameraSet
     return rotate_gaussians(result.gaussians, R), turned, np.asarray(R)
 
 
-def write_exports(result: Reconstruction, extras: OutputExtras, rotation: object) -> dict[str, Path]:
+def write_exports(result: Reconstruction, extras: OutputExtras, rotation: np.ndarray | None) -> dict[str, Path]:
     """Each ``--export`` folder written (whole or not at all); role → folder."""
     from ..camera_formats.export import write_export
     from ..pipeline.sparse import export_cameras, sparse_points
@@ -109,7 +113,7 @@ def write_exports(result: Reconstruction, extras: OutputExtras, rotation: object
     cameras, photos = export_cameras(result)
     points = sparse_points(result, cameras)
     if rotation is not None:
-        cameras, points = rotate_cameras(cameras, rotation), rotate_points(points, rotation)  # type: ignore[arg-type]
+        cameras, points = rotate_cameras(cameras, rotation), rotate_points(points, rotation)
     written = {}
     for fmt, folder in extras.exports:
         written[f"export {fmt}"] = write_export(fmt, folder, cameras, points, photos)  # type: ignore[arg-type]

@@ -8,7 +8,7 @@ Like every CLI module, this one imports the library only inside functions: ``mac
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, TypeVar
 
 import typer
 
@@ -28,6 +28,7 @@ __all__ = [
     "RefineGridOpt",
     "RefineOpt",
     "WeightsOpt",
+    "choice",
     "engine_config",
     "neural_options",
     "parse_refine",
@@ -106,16 +107,36 @@ PrecisionOpt = Annotated[
 ]
 
 
+C = TypeVar("C", bound=str)
+
+
+def choice(option: str, text: str, choices: tuple[C, ...], *, sep: str = " or ") -> C:
+    """A choice option's value, stripped and lower-cased, as its typed name (one of ``choices``).
+
+    Every choice option of the CLI is a plain string with the choices in its metavar, checked here or by the
+    library with :func:`~macsplat_cli.presets.check_choice` (one message: ``--option 'value': use a or b``).
+
+    Raises:
+        InputError: a value not in ``choices``.
+    """
+    from ..presets import check_choice
+
+    value = text.strip().lower()
+    check_choice(option, value, choices, sep=sep)
+    return next(c for c in choices if c == value)
+
+
 def neural_options(
     weights: Path | None, gaussian_head: Path | None, dino: Path | None, fusion: Path | None, device: str,
     precision: str,
 ) -> NeuralOptions:  # fmt: skip
     """The options as the engine takes them (checked by :meth:`~macsplat_cli.engine.EngineConfig.validate`)."""
     from ..engine import NeuralOptions
+    from ..presets import DEVICES, PRECISIONS
 
     return NeuralOptions(
         weights=weights, gaussian_head=gaussian_head, dino=dino, fusion=fusion,
-        device=device.strip().lower(), precision=precision.strip().lower(),
+        device=choice("--device", device, DEVICES), precision=choice("--precision", precision, PRECISIONS),
     )  # fmt: skip
 
 
@@ -164,12 +185,14 @@ def engine_config(
     """The engine settings of ``eval``/``bench`` from their options, as ``reconstruct`` makes them (``refine``: the
     parsed ``--refine``, None: the quality's; the working size and intrinsics come per case)."""
     from ..engine import EngineConfig, NeuralOptions
-    from ..presets import Overrides
+    from ..presets import QUALITIES, Overrides
 
     return EngineConfig(
+        # a name of evaluation.BACKENDS, a registry wider than presets.Backend (tests register "oracle"); the
+        # reconstructor's factory checks it (make_reconstructor): no narrowing here
         backend=backend.strip().lower(),  # type: ignore[arg-type]
-        quality=quality.strip().lower(),  # type: ignore[arg-type]
-        matcher=matcher.strip().lower(),  # type: ignore[arg-type]
+        quality=choice("--quality", quality, QUALITIES, sep=", "),
+        matcher=choice("--matcher", matcher, MATCHERS, sep=", "),
         overrides=Overrides(conf_threshold=conf_threshold, refine=refine),
         neural=neural or NeuralOptions(),
     )

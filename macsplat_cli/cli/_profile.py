@@ -12,8 +12,12 @@ import resource
 import sys
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from rich.table import Table
+
+if TYPE_CHECKING:
+    from rich.text import JustifyMethod
 
 __all__ = ["StageProfile"]
 
@@ -68,9 +72,12 @@ class StageProfile:
     def table(self) -> Table:
         total = time.perf_counter() - self.started
         t = Table(title="where the time and memory went", title_justify="left", box=None, pad_edge=False)
-        for name, justify in (("stage", "left"), ("seconds", "right"), ("share", "right"), ("RSS MiB", "right"),
-                              ("peak MiB", "right"), ("peak +MiB", "right")):  # fmt: skip
-            t.add_column(name, justify=justify)  # type: ignore[arg-type]
+        columns: tuple[tuple[str, JustifyMethod], ...] = (
+            ("stage", "left"), ("seconds", "right"), ("share", "right"), ("RSS MiB", "right"), ("peak MiB", "right"),
+            ("peak +MiB", "right"),
+        )  # fmt: skip
+        for name, justify in columns:
+            t.add_column(name, justify=justify)
         for r in self.rows:
             rss = f"{r.rss:,.0f}" if r.rss is not None else "-"
             name = f"{r.stage} (failed)" if r.failed else r.stage

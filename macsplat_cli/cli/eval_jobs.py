@@ -26,10 +26,14 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .._atomic import check_folder
 from ._common import err_console, escape, out_console
 from ._eval_report import print_summary
+
+if TYPE_CHECKING:
+    from ..evaluation import EvalRun
 
 __all__ = ["JOB_MEMORY_BYTES", "STOP_WAIT_S", "available_memory", "eval_jobs", "job_cap", "run_jobs"]
 
@@ -70,7 +74,7 @@ def job_cap(jobs: int, cases: int, memory: int | None) -> tuple[int, str | None]
     n = max(1, min(jobs, cases, by_memory))
     if n == jobs:
         return n, None
-    if n == max(1, cases):
+    if n == max(1, cases) or memory is None:  # memory None: nothing but the cases caps it
         return n, f"--jobs {jobs} capped at {n}: the run has {cases} case(s)"
     return n, (f"--jobs {jobs} capped at {n}: {memory / 1e9:.1f} GB of memory available, about "
                f"{JOB_MEMORY_BYTES / 1e6:.0f} MB a process")  # fmt: skip
@@ -100,7 +104,7 @@ def _stop(procs: list[subprocess.Popen[str]]) -> None:
                     p.stderr.close()
 
 
-def run_jobs(jobs: int, out: Path, *, quiet: bool) -> tuple[object, float]:
+def run_jobs(jobs: int, out: Path, *, quiet: bool) -> tuple[EvalRun, float]:
     """Run the shards, wait for them, merge them into ``out``; ``(merged run, seconds)``. The shards are stopped
     (:func:`_stop`) if this returns early.
 
@@ -165,7 +169,7 @@ def eval_jobs(
     if why is not None:
         logger.warning(why)
     run, seconds = run_jobs(jobs, out, quiet=quiet)
-    rows = summarize(run)  # type: ignore[arg-type]
+    rows = summarize(run)
     writer = ResultWriter(out)
     if not quiet:
         print_summary(run, rows, writer, splatt3r_compatible, seconds)

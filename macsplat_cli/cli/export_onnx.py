@@ -177,7 +177,9 @@ def _export(output: Path, config: Any, files: dict[str, Path], from_checkpoint: 
             current.append(name)
 
         try:
-            sources = {("checkpoint" if k == "weights" and from_checkpoint else k): v for k, v in files.items()}
+            sources: dict[str, Path | str] = {
+                ("checkpoint" if k == "weights" and from_checkpoint else k): v for k, v in files.items()
+            }
             result = export_onnx(
                 predictor, output, config, sample=sample_pair(config.size), sources=sources, on_step=on_step
             )

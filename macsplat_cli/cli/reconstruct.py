@@ -35,6 +35,7 @@ from ._options import (
     PrecisionOpt,
     RefineOpt,
     WeightsOpt,
+    choice,
     neural_options,
     parse_refine,
 )
@@ -257,11 +258,11 @@ def reconstruct_config(
     precision: str = "fp32", matcher: str = DEFAULT_MATCHER,
 ) -> EngineConfig:  # fmt: skip
     """``reconstruct``'s options (the command's defaults) as the engine takes them, one field each: the presets
-    apply in the engine (:meth:`~macsplat_cli.engine.EngineConfig.settings`), the values are checked by
-    :meth:`~macsplat_cli.engine.EngineConfig.validate`.
+    apply in the engine (:meth:`~macsplat_cli.engine.EngineConfig.settings`), the choices are checked here
+    (:func:`~._options.choice`), their combinations by :meth:`~macsplat_cli.engine.EngineConfig.validate`.
 
     Raises:
-        InputError: ``--refine`` is not ``STEPS|auto|off`` (:func:`~._options.parse_refine`).
+        InputError: an unknown choice; ``--refine`` is not ``STEPS|auto|off`` (:func:`~._options.parse_refine`).
     """
     from ..engine import EngineConfig
     from ..pipeline.background import BackgroundConfig
@@ -270,12 +271,12 @@ def reconstruct_config(
     from ..pipeline.refine import RefineConfig
     from ..pipeline.run import ReconstructConfig
     from ..pipeline.views import ViewConfig
-    from ..presets import Overrides
+    from ..presets import BACKENDS, MATCHERS, QUALITIES, Overrides
 
-    return EngineConfig(  # the choices are checked by EngineConfig.validate
-        backend=backend.strip().lower(),  # type: ignore[arg-type]
-        quality=quality.strip().lower(),  # type: ignore[arg-type]
-        matcher=matcher.strip().lower(),  # type: ignore[arg-type]
+    return EngineConfig(  # their combinations are checked by EngineConfig.validate
+        quality=choice("--quality", quality, QUALITIES, sep=", "),  # in check_choices' order
+        backend=choice("--backend", backend, BACKENDS),
+        matcher=choice("--matcher", matcher, MATCHERS, sep=", "),
         overrides=Overrides(size=size, conf_threshold=conf_threshold, budget=budget, refine=parse_refine(refine)),
         pipeline=ReconstructConfig(
             views=ViewConfig(

@@ -5,31 +5,26 @@ from __future__ import annotations
 import logging
 import re
 import time
-from enum import Enum
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from .._limits import MAX_PATH_VIEWS
 from ._app import app
 from ._common import QuietOpt, VerboseOpt, check_no_clobber, command_context, err_console, escape
+from ._options import choice
+
+if TYPE_CHECKING:
+    from ..render.rasterize import Backend as Rasterizer
 
 logger = logging.getLogger("macsplat_cli.cli.render")
 
 _NAMED_COLOURS = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0), "gray": (0.5, 0.5, 0.5), "grey": (0.5, 0.5, 0.5)}
 
 
-class BackendChoice(str, Enum):
-    auto = "auto"
-    numba = "numba"
-    torch = "torch"
-    gsplat = "gsplat"
-
-
-class DeviceChoice(str, Enum):
-    cpu = "cpu"
-    cuda = "cuda"
+RASTERIZERS: tuple[Rasterizer, ...] = ("auto", "numba", "torch", "gsplat")
+"""``--backend``: :data:`macsplat_cli.render.rasterize.Backend`'s names, here so that ``--help`` loads no torch."""
 
 
 def parse_colour(text: str) -> tuple[float, float, float]:
@@ -40,7 +35,8 @@ def parse_colour(text: str) -> tuple[float, float, float]:
     if t in _NAMED_COLOURS:
         return _NAMED_COLOURS[t]
     if re.fullmatch(r"#[0-9a-f]{6}", t):
-        return tuple(int(t[i : i + 2], 16) / 255.0 for i in (1, 3, 5))  # type: ignore[return-value]
+        r, g, b = (int(t[i : i + 2], 16) / 255.0 for i in (1, 3, 5))
+        return r, g, b
     parts = t.split(",")
     try:
         vals = tuple(float(p) for p in parts)
@@ -48,7 +44,7 @@ def parse_colour(text: str) -> tuple[float, float, float]:
         vals = ()
     if len(vals) != 3 or not all(0.0 <= v <= 1.0 for v in vals):
         raise InputError(f"--background {text!r}: use black, white, gray, #rrggbb or r,g,b with values in [0, 1]")
-    return vals  # type: ignore[return-value]
+    return vals[0], vals[1], vals[2]
 
 
 @app.command("render")
@@ -91,8 +87,8 @@ def render_command(
         Path | None, typer.Option("--video", help="With --path: also write the frames as .mp4 or .gif.")
     ] = None,
     fps: Annotated[float, typer.Option("--fps", help="Video frame rate (0.01 to 240).")] = 24.0,
-    backend: Annotated[BackendChoice, typer.Option("--backend", help="Rasterizer.")] = BackendChoice.auto,
-    device: Annotated[DeviceChoice, typer.Option("--device", help="Where to render.")] = DeviceChoice.cpu,
+    backend: Annotated[str, typer.Option("--backend", metavar="|".join(RASTERIZERS), help="Rasterizer.")] = "auto",
+    device: Annotated[str, typer.Option("--device", metavar="cpu|cuda", help="Where to render.")] = "cpu",
     verbose: VerboseOpt = False,
     quiet: QuietOpt = False,
 ) -> None:
@@ -116,8 +112,8 @@ def render_command(
             depth=depth,
             video=video,
             fps=fps,
-            backend=backend.value,
-            device=device.value,
+            backend=choice("--backend", backend, RASTERIZERS, sep=", "),
+            device=choice("--device", device, ("cpu", "cuda")),
             quiet=state.quiet,
         )
 
@@ -125,11 +121,13 @@ def render_command(
 def _one_camera_file(pose: Path | None, cameras: Path | None) -> Path:
     from ..errors import InputError
 
-    if pose is None and cameras is None:
-        raise InputError("a camera file is required: --pose CAM.json (or --cameras CAMS.json)")
-    if pose is not None and cameras is not None and pose != cameras:
+    if pose is None:
+        if cameras is None:
+            raise InputError("a camera file is required: --pose CAM.json (or --cameras CAMS.json)")
+        return cameras
+    if cameras is not None and pose != cameras:
         raise InputError("give one camera file: --pose and --cameras are the same option")
-    return pose if pose is not None else cameras  # type: ignore[return-value]
+    return pose
 
 
 def _render(
@@ -276,7 +274,8 @@ def _render_targets(
             out = render_camera(gaussians, cam, background=background, backend=backend)
             n_visible.append(int(out.visible.numel()))
             if single:
-                written.append(save_image(output, out.rgb))  # type: ignore[arg-type]
+                assert output is not None  # a single view is written to -o (checked with the outputs)
+                written.append(save_image(output, out.rgb))
                 if depth is not None:
                     written.append(save_depth(depth, out.depth))
             else:

@@ -7,7 +7,8 @@ angle) → :mod:`.contexts` (more than two context views per case) → :mod:`.re
 case: the engine with a backend, or the ground truth) → :mod:`.protocol` (measuring a case and a run, into
 :mod:`.results`; :mod:`.alignment`: the pose errors and the frame of more than two context views) →
 :mod:`.summary` (the tables) and :mod:`.result_files` (the files written as the run goes) →
-:mod:`.bench` (a grid of settings and its Pareto front). :mod:`.metrics` and
+:mod:`.bench` (a grid of settings and its Pareto front) → :mod:`.commands` (the entry points: :func:`run`,
+:func:`benchmark`, :func:`select`, one spec each). :mod:`.metrics` and
 :mod:`.baselines` hold the measures. The CLI commands ``macsplat eval`` and
 ``macsplat bench`` only parse options and draw progress and tables.
 """
@@ -18,6 +19,7 @@ from ..datasets import EvalDataset, EvalScene, Frame, detect_layout, load_datase
 from .alignment import Similarity, aligned_camera, fit_similarity, pairwise_pose_errors
 from .baselines import PointsConfig, nearest_context, point_cloud, render_points
 from .bench import BenchRow, BenchSetting, bench_markdown, bench_plot, grid, pareto_front, run_bench
+from .commands import BenchSpec, CaseSpec, EvalOutcome, EvalProgress, EvalSpec, benchmark, run, select
 from .contexts import check_context_views, extend_case, extend_cases
 from .metrics import depth_metrics, image_metrics, pose_auc, splatt3r_psnr
 from .protocol import evaluate, evaluate_case
@@ -39,14 +41,19 @@ __all__ = [
     "SPLITS",
     "BenchRow",
     "BenchSetting",
+    "BenchSpec",
+    "CaseSpec",
     "CaseResult",
     "CaseSelection",
     "EngineReconstructor",
     "EvalCase",
     "EvalConfig",
     "EvalDataset",
+    "EvalOutcome",
+    "EvalProgress",
     "EvalRun",
     "EvalScene",
+    "EvalSpec",
     "Frame",
     "OracleReconstructor",
     "PointsConfig",
@@ -58,6 +65,7 @@ __all__ = [
     "aligned_camera",
     "bench_markdown",
     "bench_plot",
+    "benchmark",
     "check_context_views",
     "depth_metrics",
     "detect_layout",
@@ -79,7 +87,9 @@ __all__ = [
     "point_cloud",
     "pose_auc",
     "render_points",
+    "run",
     "run_bench",
+    "select",
     "splatt3r_psnr",
     "summarize",
 ]

@@ -46,7 +46,7 @@ from ..presets import BACKENDS as ENGINE
 from ..presets import DEFAULT_MATCHER, Quality
 from ..presets import refine_steps as preset_refine_steps
 from .protocol import evaluate
-from .reconstructors import BACKENDS, Reconstructor, ReconstructSettings, make_reconstructor
+from .reconstructors import BACKENDS, IntrinsicsMode, Reconstructor, ReconstructSettings, make_reconstructor
 from .result_files import ResultWriter
 from .results import EvalConfig, EvalRun
 from .splits import EvalCase
@@ -265,7 +265,7 @@ def run_bench(
     settings: Sequence[BenchSetting],
     *,
     metric: str = "psnr",
-    intrinsics: str = "given",
+    intrinsics: IntrinsicsMode = "given",
     eval_size: int | None = None,
     splatt3r_compatible: bool = False,
     out_dir: Path | None = None,
@@ -316,7 +316,7 @@ def run_bench(
             models[s.backend] = load_models(config.replace(refine=RefineConfig())) if s.backend in ENGINE else Models()
         recon = make_reconstructor(config, models[s.backend])
         cfg = EvalConfig(
-            settings=ReconstructSettings(size=s.size, intrinsics=intrinsics),  # type: ignore[arg-type]
+            settings=ReconstructSettings(size=s.size, intrinsics=intrinsics),
             eval_size=eval_size,
             splatt3r_compatible=splatt3r_compatible,
             baselines=(),
@@ -364,7 +364,7 @@ BENCH_COLUMNS = (
 
 def bench_markdown(rows: Sequence[BenchRow], metric: str) -> str:
     """The grid as a Markdown table (Pareto-front settings in bold), then the front in time order."""
-    columns = BENCH_COLUMNS
+    columns: tuple[tuple[str, str, int], ...] = BENCH_COLUMNS
     n_views = max((int(r.summary.get("context_views") or 2) for r in rows), default=2)
     if n_views > 2:  # more than two contexts: how many of them were registered, on average
         columns = (*columns, ("registered", f"registered / {n_views}", 2))

@@ -73,7 +73,9 @@ class ReconstructSettings:
 class Reconstructor(Protocol):
     """Reconstructs the context frames of a case (may raise ReconstructionError)."""
 
-    name: str
+    @property
+    def name(self) -> str:
+        """The backend's name, as ``--backend`` gives it."""
 
     def __call__(self, scene: EvalScene, case: EvalCase, settings: ReconstructSettings) -> Reconstruction: ...
 
