@@ -82,7 +82,7 @@ def disagreement(trainer: Trainer) -> dict[str, float]:
 def objective(name: str) -> LossConfig:
     """``--losses`` entry → the loss of that recipe (``none``: the paper's without MAC), with the point-map term
     a from-scratch backbone needs."""
-    loss = get_recipe("paper" if name == "none" else name).loss
+    loss = get_recipe("paper" if name == "none" else name, Path("unused")).loss  # its loss only: no run folder
     return dataclasses.replace(loss, geometry_weight=1.0, mac_weight=0.0 if name == "none" else loss.mac_weight)
 
 

@@ -11,12 +11,12 @@ import typer
 
 from ._app import app
 from ._common import QuietOpt, VerboseOpt, command_context, err_console, escape
-from ._options import DeviceOpt, DinoOpt, GaussianHeadOpt, WeightsOpt
+from ._options import DeviceOpt, DinoOpt, GaussianHeadOpt, WeightsOpt, choice
 
 if TYPE_CHECKING:  # the command imports torch only once it runs
-    from ..lpips import LPIPS
+    from rich.progress import Progress, TaskID
+
     from ..training.config import TrainConfig
-    from ..training.recipes import TrainRecipe
 
 logger = logging.getLogger("macsplat_cli.cli.train")
 
@@ -146,155 +146,50 @@ def train_command(
     with command_context(ctx, verbose, quiet) as state:
         if int(os.environ.get("RANK", "0")) > 0:  # under torchrun only rank 0 reports
             logging.getLogger("macsplat_cli").setLevel(logging.WARNING)
+        from ..training import TrainSpec, train
+        from ..training.model import INITS, MODELS
+
         chosen = {
             "steps": steps, "batch": batch, "lr": lr, "weight_decay": weight_decay, "warmup": warmup,
             "grad_clip": grad_clip, "size": _size(size) if size is not None else None, "targets": targets,
             "mac_weight": 0.0 if no_mac else mac_weight,
             "mac_weighting": mac_weighting.strip().lower() if mac_weighting is not None else None,
         }  # fmt: skip
-        _train(
-            data=data, out=out, layout=layout, scenes=scenes, split=split,
-            recipe=_recipe(recipe.strip().lower(), chosen, {"mac_weight": "--no-mac"} if no_mac else {}),
-            accumulate=accumulate,
-            precision=precision.strip().lower(), coverage=_range(coverage, "--coverage"), val_every=val_every,
-            val_pairs=val_pairs, ckpt_every=ckpt_every, seed=seed, workers=workers, model=model.strip().lower(),
-            init=init.strip().lower(), weights=weights, gaussian_head=gaussian_head, dino=dino, no_dino=no_dino,
-            lpips_weights=lpips_weights, train_backbone=train_backbone, device=device.strip().lower(),
-            resume=resume, force=force, quiet=state.quiet,
+        config, overridden = _config(
+            recipe.strip().lower(), out, chosen, {"mac_weight": "--no-mac"} if no_mac else {}, accumulate=accumulate,
+            precision=precision.strip().lower(), val_every=val_every, ckpt_every=ckpt_every, seed=seed,
+            workers=workers, device=device.strip().lower(),
         )  # fmt: skip
+        spec = TrainSpec(
+            data=data, config=config, overridden=overridden, layout=layout, split=split,
+            scenes=[s.strip() for s in scenes.split(",") if s.strip()] if scenes else None,
+            coverage=_range(coverage, "--coverage"), val_pairs=val_pairs, model=choice("--model", model, MODELS),
+            init=choice("--init", init, INITS), weights=weights, gaussian_head=gaussian_head, dino=dino,
+            no_dino=no_dino, lpips_weights=lpips_weights, train_backbone=train_backbone, resume=resume, force=force,
+        )  # fmt: skip
+        outcome = train(spec, _TrainProgress(state.quiet))
+        if not state.quiet and outcome.is_main:
+            err_console.print(escape(_summary(outcome.result, out)), highlight=False, soft_wrap=True)
 
 
-def _recipe(name: str, chosen: dict[str, Any], labels: dict[str, str]) -> tuple[TrainRecipe, list[str]]:
-    """The named recipe with the options given on the command line in place of its values, and the options' names
-    (``labels``: a value's option when it is not ``--`` + its name)."""
+def _config(
+    name: str, out: Path, chosen: dict[str, Any], labels: dict[str, str], **loop: Any
+) -> tuple[TrainConfig, list[str]]:
+    """The named recipe's config for ``out`` with the options given on the command line in place of its values
+    and the loop's options (``loop``), and the names of the options that replaced the recipe's values (``labels``:
+    a value's option when it is not ``--`` + its name)."""
     import dataclasses
 
     from ..training.recipes import get_recipe
 
-    recipe = get_recipe(name)
+    config = get_recipe(name, out)
     given = {k: v for k, v in chosen.items() if v is not None}
     loss = {k: given.pop(k) for k in ("mac_weight", "mac_weighting") if k in given}
     if "steps" in given:
         given["steps_per_scene"] = None
-    recipe = dataclasses.replace(recipe, **given, loss=dataclasses.replace(recipe.loss, **loss))  # checks them
+    config = dataclasses.replace(config, **given, **loop, loss=dataclasses.replace(config.loss, **loss))
     overridden = [labels.get(k, "--" + k.replace("_", "-")) for k, v in chosen.items() if v is not None]
-    return recipe, overridden
-
-
-def _train(
-    *, data: Path, out: Path, layout: str, scenes: str | None, split: str, recipe: tuple[TrainRecipe, list[str]],
-    accumulate: int, precision: str, coverage: tuple[float, float], val_every: int, val_pairs: int, ckpt_every: int,
-    seed: int, workers: int, model: str, init: str, weights: Path | None, gaussian_head: Path | None,
-    dino: Path | None, no_dino: bool, lpips_weights: Path | None, train_backbone: bool, device: str, resume: bool,
-    force: bool, quiet: bool,
-) -> None:  # fmt: skip
-    from ..neural.predictor import resolve_device
-    from ..training.data import PairSamplingConfig
-    from ..training.model import ModelSpec, build_training_model, freeze_for_training
-    from ..training.recipes import recipe_record
-    from ..training.setup import load_training_data
-    from ..training.trainer import Trainer
-
-    rec, overridden = recipe
-    has_weights = weights is not None or gaussian_head is not None
-    _check_options(model, init, has_weights, resume, force, rec.loss.mac_weight)
-    resolve_device(device)
-    if rec.loss.mac_weighting == "c0c1" and rec.loss.mac_weight > 0 and not no_dino:
-        logger.info("match weights c0·c1 (the paper's): the fusion module gets no gradient from MAC, and no other "
-                    "term trains it")  # fmt: skip
-    config = _train_config(rec, out=out, accumulate=accumulate, precision=precision, val_every=val_every,
-                           ckpt_every=ckpt_every, seed=seed, workers=workers, device=device)  # fmt: skip
-    from .._atomic import check_writable
-
-    for name in ("run.json", "metrics.csv", "last.pt", "best.pt"):  # before the data and the model load
-        check_writable(out / name)
-    lpips = _lpips(lpips_weights, rec)
-    sampling = PairSamplingConfig(
-        coverage=coverage, targets=rec.targets, size=rec.size, crop=rec.crop, per_scene=rec.per_scene
-    )
-    names = [s.strip() for s in scenes.split(",") if s.strip()] if scenes else None
-    train_data, val_data, info = load_training_data(
-        data, layout=layout, split=split, scenes=names, sampling=sampling, val_pairs=val_pairs, seed=seed,
-        exclude=rec.exclude_scenes,
-    )  # fmt: skip
-    config.steps = rec.steps_for(info["scenes"], int(os.environ.get("WORLD_SIZE", "1")))
-    config.validate()
-    spec = ModelSpec(
-        model=model, init=init, weights=weights, gaussian_head=gaussian_head, dino=dino, no_dino=no_dino, seed=seed,
-        dino_variant=rec.dino, max_scale=rec.max_scale,
-    )  # type: ignore[arg-type]  # fmt: skip
-    if init == "random":  # a random backbone has no geometry to keep: it learns it, from ground-truth depth
-        train_backbone = True
-        config.loss.geometry_weight = 1.0
-        logger.info("--init random: the backbone trains too, with a point-map regression on ground-truth depth")
-    predictor = freeze_for_training(build_training_model(spec), train_backbone=train_backbone)
-    n_train = sum(p.numel() for p in predictor.parameters() if p.requires_grad)
-    files = {"weights": weights, "gaussian_head": gaussian_head, "dino": dino}
-    options = {"model": model, "init": init, "no_dino": no_dino, "train_backbone": train_backbone}
-    run_info = {"recipe": recipe_record(rec, overridden), "data": info,
-                "model": {**options, **files, "trainable_parameters": n_train}}  # fmt: skip
-    with _TrainProgress(config.steps, disabled=quiet) as progress:
-        trainer = Trainer(predictor, train_data, val_data, config, lpips=lpips, run_info=run_info,
-                          on_step=progress.update)  # fmt: skip
-        progress.disabled = progress.disabled or not trainer.ctx.is_main
-        trainer.prepare_run_folder(resume=resume, force=force)
-        progress.start_at(trainer.step)
-        if not quiet and trainer.ctx.is_main:
-            err_console.print(
-                escape(
-                    f"recipe {rec.name}: {info['train_pairs']} training pair(s), {info['val_pairs']} validation "
-                    f"pair(s) from {info['scenes']} scene(s); {config.steps} step(s); {n_train:,} trainable "
-                    f"parameters; {trainer.ctx.world_size} process(es)"
-                ),
-                highlight=False,
-            )
-        result = trainer.fit()
-    if not quiet and trainer.ctx.is_main:
-        err_console.print(escape(_summary(result, out)), highlight=False, soft_wrap=True)
-
-
-def _train_config(rec: TrainRecipe, **loop: Any) -> TrainConfig:
-    """The loop's settings from the recipe (its steps are set once the data's scenes are counted)."""
-    import copy
-
-    from ..training.config import TrainConfig
-
-    config = TrainConfig(
-        steps=rec.steps or 1, batch=rec.batch, lr=rec.lr, weight_decay=rec.weight_decay, warmup=rec.warmup,
-        optimizer=rec.optimizer, schedule=rec.schedule, lr_drop_at=rec.lr_drop_at, lr_drop=rec.lr_drop,
-        grad_clip=rec.grad_clip, loss=copy.deepcopy(rec.loss), **loop,
-    )  # fmt: skip
-    config.validate()
-    return config
-
-
-def _lpips(path: Path | None, rec: TrainRecipe) -> LPIPS | None:
-    if path is None:
-        logger.info("no --lpips-weights: the photometric loss uses D-SSIM (weight %g) instead of LPIPS (%g)",
-                    rec.loss.ssim_weight, rec.loss.lpips_weight)  # fmt: skip
-        return None
-    from ..lpips import load_lpips
-
-    return load_lpips(path)
-
-
-def _check_options(model: str, init: str, has_weights: bool, resume: bool, force: bool, mac_weight: float) -> None:
-    """The options' values and combinations, before anything is read."""
-    from ..errors import InputError
-
-    if model not in ("tiny", "full"):
-        raise InputError(f"--model {model!r}: use tiny or full")
-    if init not in ("weights", "random"):
-        raise InputError(f"--init {init!r}: use weights or random")
-    if init == "weights" and not has_weights:
-        raise InputError(
-            "--init weights needs --weights (MASt3R) or --gaussian-head (Splatt3R); or train from scratch with "
-            "--init random (--model tiny trains in minutes on a CPU)"
-        )
-    if resume and force:
-        raise InputError("--resume and --force contradict each other: give one")
-    if not (mac_weight >= 0 and mac_weight == mac_weight):
-        raise InputError(f"--mac-weight {mac_weight}: give a number ≥ 0")
+    return config, overridden
 
 
 def _summary(result: Any, out: Path) -> str:
@@ -311,19 +206,16 @@ def _summary(result: Any, out: Path) -> str:
 
 
 class _TrainProgress:
-    """A Rich progress bar over the optimiser steps with the latest loss terms (rank 0 only)."""
+    """The run's :class:`~macsplat_cli.training.runner.TrainProgress` on stderr: a Rich bar over the optimiser steps
+    with the latest loss terms, below the run's one-line description; nothing when quiet."""
 
-    def __init__(self, steps: int, disabled: bool) -> None:
-        self.steps = steps
-        self.disabled = disabled
-        self.progress: Any = None
-        self.task: Any = None
+    def __init__(self, quiet: bool) -> None:
+        self.quiet = quiet
+        self.progress: Progress | None = None
+        self.task: TaskID | None = None
 
-    def __enter__(self) -> _TrainProgress:
-        return self
-
-    def start_at(self, step: int) -> None:
-        if self.disabled:
+    def start(self, total: int, step: int, about: str) -> None:
+        if self.quiet:
             return
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
@@ -331,14 +223,15 @@ class _TrainProgress:
             TextColumn("train"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
             TextColumn("{task.fields[last]}", markup=False), console=err_console, transient=False,
         )  # fmt: skip
-        self.task = self.progress.add_task("", total=self.steps, completed=step, last="")
+        self.task = self.progress.add_task("", total=total, completed=step, last="")
         self.progress.start()
+        err_console.print(escape(about), highlight=False)
 
-    def update(self, step: int, row: dict[str, float]) -> None:
-        if self.progress is not None:
+    def step(self, step: int, row: dict[str, float]) -> None:
+        if self.progress is not None and self.task is not None:
             mac = f", mac {row['mac']:.4f}" if row.get("mac") else ""
             self.progress.update(self.task, completed=step, last=f"loss {row['loss']:.4f}{mac}")
 
-    def __exit__(self, *exc: object) -> None:
+    def stop(self) -> None:
         if self.progress is not None:
             self.progress.stop()

@@ -1,4 +1,4 @@
-"""The settings of ``macsplat train``'s loop (:class:`~.trainer.Trainer`), checked before any work."""
+"""The settings of ``macsplat train`` (a recipe's and the loop's), checked before any work."""
 
 from __future__ import annotations
 
@@ -14,11 +14,15 @@ __all__ = ["TrainConfig"]
 
 @dataclass
 class TrainConfig:
-    """Settings of the loop (the model and the data are given separately).
+    """Every setting of a training run: what a recipe fixes (:mod:`.recipes`; the defaults are the ``paper``
+    recipe's) and the loop's own. The model's files and the data are given separately (:class:`~.runner.TrainSpec`).
 
     Args:
         out: the run folder.
-        steps: optimiser steps in all.
+        recipe: the recipe these values started from (``paper`` or ``released-code``; a resumed run keeps it).
+        steps: optimiser steps in all (unless ``steps_per_scene``).
+        steps_per_scene: when set, the run's steps are this × the training scenes ÷ the processes
+            (:meth:`steps_for`; the release: 10 epochs × 20 samples a scene).
         batch: pairs per process and micro-step.
         accumulate: micro-steps per optimiser step.
         lr: learning rate (the paper: 1e-5).
@@ -36,11 +40,20 @@ class TrainConfig:
         workers: data-loader worker processes.
         max_bad_steps: non-finite losses in a row that stop the run.
         device: ``"cpu"`` or ``"cuda"``.
-        loss: the objective's weights.
+        loss: the objective (:class:`~.loss.LossConfig`, with its :class:`~macsplat_cli.mac.MACConfig`).
+        size: ``(W, H)`` of the training frames.
+        crop: ``centre`` or ``principal-point`` (:class:`~.data.PairSamplingConfig`).
+        targets: target views per sample.
+        per_scene: samples per scene and epoch, drawn scene first (None: every candidate pair once an epoch).
+        max_scale: cap of the Gaussians' scales (None: none), kept in the checkpoint.
+        dino_variant: DINOv3 variant of a ``--model full --init random`` model (with ``--dino``, the file's).
+        exclude_scenes: scenes left out of training and validation.
     """
 
     out: Path
+    recipe: str = "paper"
     steps: int = 1000
+    steps_per_scene: int | None = None
     batch: int = 2
     accumulate: int = 1
     lr: float = 1e-5
@@ -59,6 +72,19 @@ class TrainConfig:
     max_bad_steps: int = 10
     device: str = "cpu"
     loss: LossConfig = field(default_factory=LossConfig)
+    size: tuple[int, int] = (256, 192)
+    crop: str = "centre"
+    targets: int = 2
+    per_scene: int | None = None
+    max_scale: float | None = None
+    dino_variant: str = "vitl16"
+    exclude_scenes: tuple[str, ...] = ()
+
+    def steps_for(self, scenes: int, world_size: int) -> int:
+        """The run's steps: ``steps``, or ``steps_per_scene · scenes / world_size`` rounded up."""
+        if self.steps_per_scene is None:
+            return self.steps
+        return max(1, -(-self.steps_per_scene * scenes // max(1, world_size)))
 
     def validate(self) -> None:
         """Raises :class:`~macsplat_cli.errors.InputError` naming the option of a bad setting."""

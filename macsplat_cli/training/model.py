@@ -19,7 +19,7 @@ import dataclasses
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Literal, get_args
 
 import torch
 
@@ -31,9 +31,26 @@ from ..neural.fusion import FusionConfig, ResidualSemanticFusion
 from ..neural.gaussian_head import GaussianHead
 from ..neural.predictor import PairPredictor
 
-__all__ = ["ModelSpec", "build_training_model", "freeze_for_training", "trainable_parameters"]
+__all__ = [
+    "INITS",
+    "MODELS",
+    "Init",
+    "ModelKind",
+    "ModelSpec",
+    "build_training_model",
+    "freeze_for_training",
+    "trainable_parameters",
+]
 
 logger = logging.getLogger(__name__)
+
+
+ModelKind = Literal["tiny", "full"]
+"""``--model``: the architecture of a random init."""
+Init = Literal["weights", "random"]
+"""``--init``: start from checkpoints, or at random."""
+MODELS: tuple[ModelKind, ...] = get_args(ModelKind)
+INITS: tuple[Init, ...] = get_args(Init)
 
 
 @dataclass
@@ -53,8 +70,8 @@ class ModelSpec:
             None keeps a loaded macsplat checkpoint's cap (a fresh head: none).
     """
 
-    model: Literal["tiny", "full"] = "tiny"
-    init: Literal["random", "weights"] = "random"
+    model: ModelKind = "tiny"
+    init: Init = "random"
     weights: Path | None = None
     gaussian_head: Path | None = None
     dino: Path | None = None

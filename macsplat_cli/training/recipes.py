@@ -1,4 +1,5 @@
-"""Training recipes: every setting of ``macsplat train`` that decides what is reproduced, one dataclass each.
+"""Training recipes: the values of every setting of ``macsplat train`` that decides what is reproduced, each recipe a
+named :class:`~.config.TrainConfig` (as hloc's named confs).
 
 * ``paper`` (default): what the MAC-Splat paper states — AdamW at 1e-5, ``L = L_photo + 0.25 · L_MAC`` with
   λp = 1, λs = 0.02, λa = 0.1, the L1 sums and one normaliser of its equations, ``w = c(f'₁)·c(f'₂)`` — and
@@ -14,95 +15,35 @@
   (:data:`RELEASED_CODE_BUGS`, written to ``run.json`` with what this recipe does instead) and the parts macsplat
   does not rebuild (:data:`RELEASED_CODE_NOT_REPRODUCED`).
 
-Options given on the command line override a recipe's values (``run.json`` records the values used).
+Options given on the command line override a recipe's values (``run.json`` records the values used, and which
+options overrode them).
 """
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from ..errors import InputError
 from ..mac import MACConfig
+from .config import TrainConfig
 from .loss import LossConfig
 
 __all__ = [
     "RECIPES",
     "RELEASED_CODE_BUGS",
     "RELEASED_CODE_NOT_REPRODUCED",
-    "TrainRecipe",
     "get_recipe",
     "recipe_record",
 ]
 
 
-@dataclass(frozen=True)
-class TrainRecipe:
-    """The settings a recipe fixes.
-
-    Args:
-        name: ``paper`` or ``released-code``.
-        optimizer: ``adamw`` or ``adam`` (:mod:`.optim`).
-        lr: learning rate.
-        weight_decay: weight decay (0: none).
-        schedule: ``cosine`` or ``step``.
-        warmup: linear warm-up steps.
-        lr_drop_at: where ``step`` drops (fraction of the steps).
-        lr_drop: ``step``'s factor.
-        grad_clip: gradient-norm clip.
-        batch: pairs per process and step.
-        steps: optimiser steps; None: ``steps_per_scene`` × the training scenes ÷ the processes.
-        steps_per_scene: with ``steps`` None: samples per scene over the whole run (the release: 10 epochs × 20).
-        size: ``(W, H)`` of the training frames.
-        crop: ``centre`` or ``principal-point`` (:class:`~.pairs.PairSamplingConfig`).
-        targets: target views per sample.
-        per_scene: samples per scene and epoch, drawn scene first (None: every candidate pair once an epoch).
-        loss: the objective (:class:`~.loss.LossConfig`, with its :class:`~macsplat_cli.mac.MACConfig`).
-        max_scale: cap of the Gaussians' scales (None: none), kept in the checkpoint.
-        dino: DINOv3 variant of a ``--model full --init random`` model (with ``--dino``, the file's).
-        exclude_scenes: scenes left out of training and validation.
-    """
-
-    name: str
-    optimizer: str
-    lr: float
-    weight_decay: float
-    schedule: str
-    warmup: int
-    lr_drop_at: float
-    lr_drop: float
-    grad_clip: float
-    batch: int
-    steps: int | None
-    steps_per_scene: int | None
-    size: tuple[int, int]
-    crop: str
-    targets: int
-    loss: LossConfig = field(default_factory=LossConfig)
-    max_scale: float | None = None
-    dino: str = "vitl16"
-    exclude_scenes: tuple[str, ...] = ()
-    per_scene: int | None = None
-
-    def steps_for(self, scenes: int, world_size: int) -> int:
-        """The run's steps: ``steps``, or ``steps_per_scene · scenes / world_size`` rounded up."""
-        if self.steps is not None:
-            return self.steps
-        assert self.steps_per_scene is not None
-        return max(1, -(-self.steps_per_scene * scenes // max(1, world_size)))
+def _paper(out: Path) -> TrainConfig:
+    return TrainConfig(out=out, recipe="paper")  # TrainConfig's defaults are the paper's values
 
 
-def _paper() -> TrainRecipe:
-    return TrainRecipe(
-        name="paper", optimizer="adamw", lr=1e-5, weight_decay=0.05, schedule="cosine", warmup=50, lr_drop_at=0.5,
-        lr_drop=0.1, grad_clip=0.5, batch=2, steps=1000, steps_per_scene=None, size=(256, 192), crop="centre",
-        targets=2, loss=LossConfig(),
-    )  # fmt: skip
-
-
-def _released_code() -> TrainRecipe:
+def _released_code(out: Path) -> TrainConfig:
     mac = MACConfig(
         lambda_pos=1.0, lambda_shape=0.02, lambda_app=0.1, delta_pos=0.05, delta_shape=0.05, reduction="mean",
         clamp_pos=1.0, clamp_shape=1.0, clamp_opacity=1.0, clamp_colour=2.0, weight=0.2,
@@ -111,16 +52,17 @@ def _released_code() -> TrainRecipe:
         lpips_weight=0.1, mac_weight=0.2, mac=mac, mac_weighting="c0c1", conf_floor=1.0, max_matches=4096,
         photo_reduction="mask", matcher="seeded", seed_stride=8, seed_iters=10, near_plane=0.1,
     )  # fmt: skip
-    return TrainRecipe(
-        name="released-code", optimizer="adam", lr=1e-6, weight_decay=0.0, schedule="step", warmup=0, lr_drop_at=0.5,
-        lr_drop=0.1, grad_clip=0.5, batch=1, steps=None, steps_per_scene=10 * 20, size=(512, 512),
+    return TrainConfig(
+        out=out, recipe="released-code", optimizer="adam", lr=1e-6, weight_decay=0.0, schedule="step", warmup=0,
+        lr_drop_at=0.5, lr_drop=0.1, grad_clip=0.5, batch=1, steps_per_scene=10 * 20, size=(512, 512),
         crop="principal-point", targets=3, loss=loss, max_scale=0.5, exclude_scenes=("303745abc7", "cc5237fd77"),
         per_scene=20,
     )  # fmt: skip
 
 
-RECIPES: dict[str, Callable[[], TrainRecipe]] = {"paper": _paper, "released-code": _released_code}
-"""Recipe name → a fresh :class:`TrainRecipe` (its loss config is mutable)."""
+RECIPES: dict[str, Callable[[Path], TrainConfig]] = {"paper": _paper, "released-code": _released_code}
+"""Recipe name → a fresh :class:`~.config.TrainConfig` of its values for a run folder (its loss config is
+mutable)."""
 
 RELEASED_CODE_BUGS: dict[str, str] = {
     "B1": "view 2's Gaussians (in camera 1's frame) are moved by camera 2's pose in the MAC position term: here both "
@@ -153,19 +95,20 @@ RELEASED_CODE_NOT_REPRODUCED: tuple[str, ...] = (
 """Differences of ``--recipe released-code`` from the release that are not bugs, named in ``run.json``."""
 
 
-def get_recipe(name: str) -> TrainRecipe:
-    """A fresh recipe by name. Raises :class:`~macsplat_cli.errors.InputError` for an unknown one."""
+def get_recipe(name: str, out: Path) -> TrainConfig:
+    """A fresh config of the named recipe for the run folder ``out``. Raises :class:`~macsplat_cli.errors.InputError`
+    for an unknown one."""
     try:
-        return RECIPES[name]()
+        return RECIPES[name](out)
     except KeyError:
         raise InputError(f"--recipe {name!r}: use {' or '.join(RECIPES)}") from None
 
 
-def recipe_record(recipe: TrainRecipe, overridden: list[str]) -> dict[str, Any]:
-    """What ``run.json`` says of the recipe: its name and values, the options that overrode them, and for
-    ``released-code`` each omitted bug and each part not reproduced."""
-    out: dict[str, Any] = {"name": recipe.name, "values": dataclasses.asdict(recipe), "overridden": overridden}
-    if recipe.name == "released-code":
+def recipe_record(config: TrainConfig, overridden: list[str]) -> dict[str, Any]:
+    """What ``run.json`` says of the recipe (its values are the run's ``config``): its name, the options that
+    overrode them, and for ``released-code`` each omitted bug and each part not reproduced."""
+    out: dict[str, Any] = {"name": config.recipe, "overridden": overridden}
+    if config.recipe == "released-code":
         out["omitted_bugs"] = dict(RELEASED_CODE_BUGS)
         out["not_reproduced"] = list(RELEASED_CODE_NOT_REPRODUCED)
     return out

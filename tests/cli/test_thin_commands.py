@@ -33,7 +33,7 @@ def _bodies(path: Path) -> dict[str, int]:
     return out
 
 
-@pytest.mark.parametrize("module", ["eval.py", "bench.py"])
+@pytest.mark.parametrize("module", ["eval.py", "bench.py", "train.py"])
 def test_the_command_modules_keep_no_orchestration(module: str) -> None:
     """Before, ``cli/eval.py`` drew the cases (``select_cases``, 62 lines) and ran them (``_eval``, 75); ``_bench``
     and ``_train`` did the same for theirs."""

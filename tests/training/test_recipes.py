@@ -36,10 +36,10 @@ def scannetpp(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_recipes_hold_what_they_claim() -> None:
-    paper, released = get_recipe("paper"), get_recipe("released-code")
+    paper, released = get_recipe("paper", Path("run")), get_recipe("released-code", Path("run"))
     assert (paper.optimizer, paper.lr, paper.schedule, paper.loss.mac_weight) == ("adamw", 1e-5, "cosine", 0.25)
     assert (paper.loss.mac.lambda_pos, paper.loss.mac.lambda_shape, paper.loss.mac.lambda_app) == (1.0, 0.02, 0.1)
-    assert paper.loss.mac.reduction == "sum" and paper.max_scale is None and paper.dino == "vitl16"
+    assert paper.loss.mac.reduction == "sum" and paper.max_scale is None and paper.dino_variant == "vitl16"
     assert (released.optimizer, released.lr, released.weight_decay, released.schedule) == ("adam", 1e-6, 0.0, "step")
     assert (released.batch, released.size, released.crop, released.targets) == (1, (512, 512), "principal-point", 3)
     loss = released.loss
@@ -48,9 +48,9 @@ def test_recipes_hold_what_they_claim() -> None:
     assert (loss.matcher, loss.seed_stride, loss.near_plane, released.per_scene) == ("seeded", 8, 0.1, 20)
     assert released.max_scale == 0.5 and set(released.exclude_scenes) == {"303745abc7", "cc5237fd77"}
     assert released.steps_for(scenes=7, world_size=4) == math.ceil(200 * 7 / 4)  # 10 epochs × 20 samples a scene
-    assert get_recipe("released-code").loss is not loss  # fresh objects: a run's changes never leak
+    assert get_recipe("released-code", Path("run")).loss is not loss  # fresh objects: a run's changes never leak
     with pytest.raises(InputError, match="--recipe 'splatt3r': use paper or released-code"):
-        get_recipe("splatt3r")
+        get_recipe("splatt3r", Path("run"))
     assert list(RECIPES) == ["paper", "released-code"]
 
 
@@ -95,7 +95,7 @@ def test_a_released_code_step_loss_equals_its_formula() -> None:
     weights (1+c₀)(1+c₁) on the seeded matcher's pairs, means over xyz / log σ / SH, Huber δ 0.05, clamps, one
     normaliser — recomputed here from the definitions (random LPIPS weights, float64)."""
     h, w, t = 32, 32, 3
-    loss_cfg = get_recipe("released-code").loss
+    loss_cfg = get_recipe("released-code", Path("run")).loss
     pred = _prediction(h, w, 0)
     g = torch.Generator().manual_seed(1)
     c2w = torch.eye(4, dtype=D).repeat(1, 2, 1, 1)
