@@ -12,6 +12,7 @@ import typer
 from ._app import app
 from ._common import QuietOpt, VerboseOpt, command_context, err_console, escape
 from ._options import DeviceOpt, DinoOpt, GaussianHeadOpt, WeightsOpt, choice
+from .eval import LAYOUTS, LayoutOpt
 
 if TYPE_CHECKING:  # the command imports torch only once it runs
     from rich.progress import Progress, TaskID
@@ -54,7 +55,7 @@ def train_command(
         Path, typer.Option("--data", metavar="DIR", help="Posed images: ScanNet++ root, generic folder, CO3D, ICL.")
     ],
     out: Annotated[Path, typer.Option("--out", "-o", help="Run folder (run.json, metrics.csv, last.pt, best.pt).")],
-    layout: Annotated[str, typer.Option("--layout", help="Data layout (auto: detect it).")] = "auto",
+    layout: LayoutOpt = "auto",
     scenes: Annotated[str | None, typer.Option("--scenes", help="Only these scenes (comma-separated).")] = None,
     split: Annotated[
         str, typer.Option("--split", help="ScanNet++: training split list (validation: nvs_sem_val when present).")
@@ -161,7 +162,8 @@ def train_command(
             workers=workers, device=device.strip().lower(),
         )  # fmt: skip
         spec = TrainSpec(
-            data=data, config=config, overridden=overridden, layout=layout, split=split,
+            data=data, config=config, overridden=overridden, layout=choice("--layout", layout, LAYOUTS, sep=", "),
+            split=split,
             scenes=[s.strip() for s in scenes.split(",") if s.strip()] if scenes else None,
             coverage=_range(coverage, "--coverage"), val_pairs=val_pairs, model=choice("--model", model, MODELS),
             init=choice("--init", init, INITS), weights=weights, gaussian_head=gaussian_head, dino=dino,

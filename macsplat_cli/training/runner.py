@@ -22,6 +22,7 @@ from .model import Init, ModelKind, ModelSpec, build_training_model, freeze_for_
 from .trainer import Trainer, TrainResult
 
 if TYPE_CHECKING:
+    from ..datasets import Layout
     from ..lpips import LPIPS
     from ..neural.predictor import PairPredictor
 
@@ -91,7 +92,7 @@ class TrainSpec:
     data: Path
     config: TrainConfig
     overridden: list[str] = dataclasses.field(default_factory=list)
-    layout: str = "auto"
+    layout: Layout = "auto"
     scenes: list[str] | None = None
     split: str = "nvs_sem_train"
     coverage: tuple[float, float] = (0.3, 1.0)

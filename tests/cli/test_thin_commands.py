@@ -61,6 +61,8 @@ def test_every_choice_option_is_a_string_with_its_choices_in_the_metavar() -> No
         (["eval", "--split-by", "depth"], "--split-by 'depth': use auto, coverage, angle"),
         (["bench", "--assignment", "all"], "--assignment 'all': use bin or threshold"),
         (["bench", "--quality", "fast,ultra"], "--quality 'ultra': use fast, balanced, best"),
+        (["train", "--layout", "tree"], "--layout 'tree': use auto, generic, scannetpp, co3d-json, icl-nuim, nyu-rgbd"),
+        (["train", "--model", "huge"], "--model 'huge': use tiny or full"),
     ],
 )
 def test_a_bad_choice_is_one_error_line(tmp_path: Path, args: list[str], line: str) -> None:
