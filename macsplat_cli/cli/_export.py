@@ -5,11 +5,12 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Literal, get_args
 
 if TYPE_CHECKING:
     import numpy as np
 
+    from ..camera_formats.export import ExportFormat
     from ..cameras import CameraSet
     from ..gaussians import Gaussians
     from ..pipeline.run import Reconstruction
@@ -27,24 +28,25 @@ class OutputExtras:
     """The options beyond the scene and its cameras: each ``--export`` as ``(format, folder)``, ``--force`` (an
     export folder may be replaced), ``--up`` (``camera``: the first camera's frame; ``auto``: mean up on +y)."""
 
-    exports: list[tuple[str, Path]] = field(default_factory=list)
+    exports: list[tuple[ExportFormat, Path]] = field(default_factory=list)
     force: bool = False
     up: Up = "camera"
 
 
-def export_requests(pairs: Sequence[tuple[str, Path]]) -> list[tuple[str, Path]]:
+def export_requests(pairs: Sequence[tuple[str, Path]]) -> list[tuple[ExportFormat, Path]]:
     """``--export`` values checked: a known format each, no folder named twice.
 
     Raises:
         InputError: an unknown format, or one folder for two exports.
     """
-    from ..camera_formats.export import EXPORT_FORMATS
+    from ..camera_formats.export import EXPORT_FORMATS, ExportFormat
     from ..errors import InputError
 
-    out: list[tuple[str, Path]] = []
+    kinds: tuple[ExportFormat, ...] = get_args(ExportFormat)
+    out: list[tuple[ExportFormat, Path]] = []
     for fmt, folder in pairs:
-        f = fmt.strip().lower()
-        if f not in EXPORT_FORMATS:
+        f = next((k for k in kinds if k == fmt.strip().lower()), None)
+        if f is None:
             raise InputError(
                 f"--export {fmt} {folder}: unknown format {fmt!r} (use one of {', '.join(EXPORT_FORMATS)})"
             )
@@ -116,5 +118,5 @@ def write_exports(result: Reconstruction, extras: OutputExtras, rotation: np.nda
         cameras, points = rotate_cameras(cameras, rotation), rotate_points(points, rotation)
     written = {}
     for fmt, folder in extras.exports:
-        written[f"export {fmt}"] = write_export(fmt, folder, cameras, points, photos)  # type: ignore[arg-type]
+        written[f"export {fmt}"] = write_export(fmt, folder, cameras, points, photos)
     return written
