@@ -62,8 +62,6 @@ of more than 30° with as little parallax is what a homography's matches give)."
 PARALLAX_CHECK_ABOVE_DEG = 30.0
 """The parallax check applies above this rotation (°): a handheld pan at small angles has as little parallax and
 is right."""
-MIN_SPREAD = 0.0
-"""Smallest share of each photo covered by the verified matches' convex hull (0: not checked, only reported)."""
 MAX_MATCHES = 1000
 """The fits use at most this many verified matches (a fixed-seed random sample)."""
 EVIDENCE_BAND_PX = 2.0
@@ -166,17 +164,10 @@ def _focal_unknown(v0: View, v1: View, geometry: TwoViewGeometry) -> tuple[bool,
 def _spread_and_parallax(
     v0: View, v1: View, g: TwoViewGeometry, checks: dict, scores: dict, doubts: list[Doubt]
 ) -> None:
-    """The spread and parallax checks (module docstring), into ``checks``, ``scores`` and ``doubts``."""
+    """The spread (reported) and the parallax check (module docstring), into ``checks``, ``scores`` and ``doubts``."""
     inl = g.inliers
     spread = min(hull_share(inl.xy0, v0.width, v0.height), hull_share(inl.xy1, v1.width, v1.height))
-    checks["spread"] = spread
-    if MIN_SPREAD > 0:
-        scores["spread"] = _lower(spread, MIN_SPREAD)
-        if spread < MIN_SPREAD:
-            doubts.append(Doubt("spread", (
-                f"pose confidence low: the {len(inl)} verified matches cover only {100 * spread:.0f} % of a photo "
-                f"(need {100 * MIN_SPREAD:.0f} %), too small a cluster to pin the pose down"
-            )))  # fmt: skip
+    checks["spread"] = spread  # reported, not checked
     rotation = rotation_angle_deg(g.R)
     parallax = g.median_parallax_deg
     if parallax is not None and math.isfinite(parallax) and rotation > 0:
