@@ -266,7 +266,7 @@ def _evidence_doubts(e: PoseEvidence, scores: dict[str, float], *, from_matches:
 def _support_doubts(geometry: TwoViewGeometry, pose: PoseConfig) -> list[Doubt]:
     """The pose's support in the matches, as doubts: at least ``pose.min_inliers`` verified matches.
 
-    Not ``pose.min_inlier_ratio``: it was measured on SIFT matches verified within 1 px of their epipolar lines;
+    Not :data:`~.checks.MIN_INLIER_RATIO`: it was measured on SIFT matches verified within 1 px of their epipolar lines;
     the neural backend's grid-sampled matches verified against the point maps agree at lower ratios.
     """
     n = len(geometry.inliers)
