@@ -9,10 +9,10 @@ wide-baseline tier's affine-simulated SIFT), the tier's filtered matches give th
 (``dominant_plane``), and ``plane_poses`` scores the plane's physical poses with the primary keypoints, as
 ``macsplat_cli.pipeline.pose.tiebreak.plane_tiebreak`` does. Per case: the plane's share of the matches, each
 candidate's rotation error against the ground truth and its score (guided matches explained off the plane), whether
-the tie-break's guards (``plane_tiebreak_plane`` and half of the matches on the plane, ``plane_tiebreak_min``,
+the tie-break's guards (``PLANE_TIEBREAK_PLANE`` and half of the matches on the plane, ``PLANE_TIEBREAK_MIN``,
 ``plane_tiebreak_margin``) let the leader through, whether the leader is the candidate nearer the truth (the right
 side of the twofold ambiguity) and whether it is within 5°. The pose the pipeline would then re-estimate from the
-leader's guided matches stays near the leader (within ``guided_max_change_deg``), so a leader several degrees off is
+leader's guided matches stays near the leader (within ``GUIDED_MAX_CHANGE_DEG``), so a leader several degrees off is
 a pose several degrees off.
 
 Cases: the 24 CO3D apple pairs of ``pose_confidence.py`` (8–105°) and synthetic orbits (room, object; 20–90°;
@@ -31,7 +31,7 @@ from benchmarks._common import progress
 from macsplat_cli.metrics import rotation_error_deg
 from macsplat_cli.pipeline.descriptors import SiftDescriptors
 from macsplat_cli.pipeline.matching import match_features
-from macsplat_cli.pipeline.pose import dominant_plane, plane_poses, tiebreak_plane_ok, tiebreak_winner_ok
+from macsplat_cli.pipeline.pose import WIDE_SIFT, dominant_plane, plane_poses, tiebreak_plane_ok, tiebreak_winner_ok
 from macsplat_cli.pipeline.run import ReconstructConfig
 from macsplat_cli.pipeline.views import load_views
 
@@ -56,8 +56,7 @@ def run(case: dict[str, Any], data: Path, tmp: Path) -> list[dict[str, Any]]:
     views = load_views(paths, cfg.views)
     primary = [SiftDescriptors(cfg.descriptors)(v) for v in views]
     rows = []
-    assert cfg.search.wide_descriptors is not None
-    for tier, sift_cfg in (("primary", None), ("wide", cfg.search.wide_descriptors)):
+    for tier, sift_cfg in (("primary", None), ("wide", WIDE_SIFT)):
         feats = primary if sift_cfg is None else [SiftDescriptors(sift_cfg)(v) for v in views]
         m = match_features(feats[0], feats[1], cfg.matching)
         if len(m) < cfg.pose.min_inliers:
@@ -83,7 +82,7 @@ def verdict(row: dict[str, Any], cfg: ReconstructConfig) -> tuple[bool, bool, bo
     if not cands:
         return False, False, False
     scores = [s for _, s in cands]
-    through = tiebreak_plane_ok(row["plane"], row["matches"], cfg.search) and tiebreak_winner_ok(scores, cfg.search)
+    through = tiebreak_plane_ok(row["plane"], row["matches"]) and tiebreak_winner_ok(scores, cfg.search)
     nearer = all(cands[0][0] <= e for e, _ in cands[1:])
     return through, nearer, cands[0][0] < RIGHT_DEG
 

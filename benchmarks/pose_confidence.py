@@ -202,7 +202,7 @@ def main() -> None:
             continue
         if args.no_wide:
             search = getattr(cfg, "search", cfg)  # a checkout before issue 24 has the fields on the config
-            search.wide_descriptors = None
+            search.wide = False
             search.plane_tiebreak_margin = None
         res = run_case(paths, cfg, R, t)
         results.append({"case": case, "result": res})

@@ -341,7 +341,7 @@ def reconstruct(
     """Reconstruct a Gaussian scene from two or more photos (more than two: :mod:`.pipeline.multiview`).
 
     Args:
-        images: the photos (2 to ``max_photos``); the first (registered) one defines the world frame.
+        images: the photos (2 to ``_limits.MAX_PHOTOS``); the first (registered) one defines the world frame.
         config: the settings (default: the classical backend, no refinement).
         models: models loaded by :func:`load_models` for this configuration (loaded here when None,
             reported as the ``"weights"`` stage).
@@ -407,7 +407,7 @@ def _check_photos(images: Sequence[str | Path], config: EngineConfig) -> None:
     """
     from ._limits import check_photo_count
 
-    check_photo_count(len(images), config.pipeline.multiview.max_photos)
+    check_photo_count(len(images))
     if len(images) == 2 and config.pipeline.multiview.poses is None:
         return
     what = f"{len(images)} photos" if len(images) > 2 else "--poses"

@@ -296,7 +296,7 @@ def configure(
     elif backend == "neural":
         from .pipeline.neural import NeuralConfig
 
-        c.search = dataclasses.replace(c.search, fallback_descriptors=None, guided_band_px=None)
+        c.search = dataclasses.replace(c.search, fallback=False, guided_band_px=None)
         tau = NEURAL_TAU if o.conf_threshold is None else o.conf_threshold
         c.matching = MatchConfig(conf_threshold=tau, ratio_confidence=False, max_block_elems=c.matching.max_block_elems)
         neural = NeuralConfig(precision=precision, fusion=fusion_policy(quality))
@@ -319,5 +319,5 @@ def learned_search(search: PoseSearchConfig, matcher: Matcher) -> PoseSearchConf
         return dataclasses.replace(search, learned=search.learned or LearnedConfig(), learned_primary=False)
     if matcher == "aliked":
         return dataclasses.replace(search, learned=search.learned or LearnedConfig(), learned_primary=True,
-                                   fallback_descriptors=None, wide_descriptors=None)  # fmt: skip
+                                   fallback=False, wide=False)  # fmt: skip
     assert_never(matcher)

@@ -227,7 +227,7 @@ def test_settings_apply_the_presets_once_and_leave_the_config_alone() -> None:
     assert EngineConfig(quality="best", overrides=Overrides(size=256)).settings().pipeline.views.size == 256
     neural = EngineConfig(backend="neural", quality="fast").settings()
     assert neural.pipeline.matching.conf_threshold == 1.0 and not neural.pipeline.matching.ratio_confidence
-    assert neural.pipeline.search.fallback_descriptors is None and neural.pipeline.search.guided_band_px is None
+    assert neural.pipeline.search.fallback is False and neural.pipeline.search.guided_band_px is None
     assert neural.neural is not None and neural.neural.fusion == "auto"
     tau = EngineConfig(backend="neural", overrides=Overrides(conf_threshold=2.0)).settings().pipeline.matching
     assert tau.conf_threshold == 2.0

@@ -41,26 +41,27 @@ __all__ = ["BackgroundConfig", "BackgroundLayer", "background_gaussians", "backg
 
 logger = logging.getLogger(__name__)
 
+MARGIN = 0.6
+"""How far the far layer extends past each image border, as a fraction of the image's width / height."""
+CELL = 16
+"""Grid step of the layer, in working pixels."""
+OVERLAP = 0.65
+"""Gaussian std in grid steps (≥ 0.5 leaves no gap between cells)."""
+OPACITY = 0.99
+"""Opacity of the layer's Gaussians."""
+BEHIND_FACTOR = 2.0
+"""The interior layer's depth relative to the farthest depth in its cell."""
+
 
 @dataclass
 class BackgroundConfig:
     """Args:
     enabled: build the far layer (off: regions no photo saw render as the renderer's background colour).
-    margin: how far the layer extends past each image border, as a fraction of the image's width / height.
-    cell: grid step of the layer, in working pixels.
-    overlap: Gaussian std in grid steps (≥ 0.5 leaves no gap between cells).
-    opacity: opacity of the layer's Gaussians.
     behind: also put a layer behind each photo's interior (fills disocclusions with the far colour).
-    behind_factor: the interior layer's depth relative to the farthest depth in its cell.
     """
 
     enabled: bool = True
-    margin: float = 0.6
-    cell: int = 16
-    overlap: float = 0.65
-    opacity: float = 0.99
     behind: bool = True
-    behind_factor: float = 2.0
 
 
 @dataclass
@@ -147,7 +148,7 @@ def background_layer(
     n = sum(len(p.means) for p in parts)
     means, scales, quats = t([p.means for p in parts]), t([p.scales for p in parts]), t([p.quats for p in parts])
     colours = t([p.colours for p in parts]).clamp(0, 1)
-    g = Gaussians.from_activated(means, scales, quats, torch.full((n,), cfg.opacity), colours)
+    g = Gaussians.from_activated(means, scales, quats, torch.full((n,), OPACITY), colours)
     logger.debug("background layer: %s", counts)
     return BackgroundLayer(g, counts)
 
@@ -185,9 +186,9 @@ def _view_layer(
     placed in the world, less the exterior cells another view sees."""
     h, w = dm.depth.shape
     valid = dm.valid
-    cell = max(2, int(cfg.cell))
+    cell = max(2, int(CELL))
     hc, wc = -(-h // cell), -(-w // cell)
-    py, px = int(np.ceil(cfg.margin * hc)), int(np.ceil(cfg.margin * wc))
+    py, px = int(np.ceil(MARGIN * hc)), int(np.ceil(MARGIN * wc))
     col, inv_ext, inv, z_med = _extended_cells(view, dm.depth, valid, (hc, wc), (py, px))
     gy, gx = np.mgrid[0 : hc + 2 * py, 0 : wc + 2 * px]
     u = (gx - px + 0.5) * (w / wc)  # working-image pixel coordinates (+0.5 centres) of the cell centres
@@ -198,7 +199,7 @@ def _view_layer(
         far = _cell_min(np.where(valid, inv, np.inf).astype(np.float32), cell, np.inf)[:hc, :wc]
         far = np.where(np.isfinite(far), far, 1.0 / z_med)
         z_far = np.zeros_like(z)
-        z_far[py : py + hc, px : px + wc] = cfg.behind_factor / np.maximum(far, 1e-12)
+        z_far[py : py + hc, px : px + wc] = BEHIND_FACTOR / np.maximum(far, 1e-12)
         z = np.where(inside, np.maximum(z_far, z), z)
         keep = np.ones_like(inside)
     else:
@@ -212,7 +213,7 @@ def _view_layer(
     outside_kept = keep & ~inside & ~seen
     sel = outside_kept | (keep & inside)
     f = 0.5 * (K[0, 0] + K[1, 1])
-    s = cfg.overlap * cell * z[sel] / f
+    s = OVERLAP * cell * z[sel] / f
     return _ViewLayer(
         means=Pw[sel],
         scales=np.stack([s, s, 0.1 * s], 1),

@@ -36,23 +36,25 @@ from .types import DepthMap, TwoViewGeometry, View
 __all__ = ["GaussianInitConfig", "gaussians_from_depth", "view_gaussians"]
 
 
+THICKNESS = 0.1
+"""A Gaussian's std along the normal relative to its std across the surface (a flat disc)."""
+MAX_TILT_STRETCH = 4.0
+"""Cap of the 1/cos θ stretch along the tilt direction (a surface seen edge-on would stretch without bound)."""
+OPACITY_MIN = 0.8
+"""Opacity of a Gaussian at depth confidence 0+."""
+OPACITY_MAX = 0.97
+"""Opacity of a Gaussian at depth confidence 1."""
+
+
 @dataclass
 class GaussianInitConfig:
     """Args:
-    footprint: Gaussian std across the surface, in pixels at the source view.
-    thickness: std along the normal relative to the std across the surface.
-    max_tilt_stretch: cap of the 1/cos θ stretch along the tilt direction.
-    opacity_min: opacity at confidence 0+.
-    opacity_max: opacity at confidence 1.
+    footprint: Gaussian std across the surface, in pixels at the source view (> 0).
     edge_ratio: a pixel whose neighbours' depths differ by more than ``edge_ratio − 1`` of its own depth is on a
         depth step: camera-facing, unstretched disc.
     """
 
     footprint: float = 0.7
-    thickness: float = 0.1
-    max_tilt_stretch: float = 4.0
-    opacity_min: float = 0.8
-    opacity_max: float = 0.97
     edge_ratio: float = 1.1
 
 
@@ -121,7 +123,7 @@ def view_gaussians(
     Pf = P.reshape(-1, 3)
     z = np.maximum(Pf[:, 2], 1e-12)
     view_dir = -Pf / np.maximum(np.linalg.norm(Pf, axis=1, keepdims=True), 1e-12)
-    cos = np.clip(np.sum(n * view_dir, axis=1), 1.0 / cfg.max_tilt_stretch, 1.0)
+    cos = np.clip(np.sum(n * view_dir, axis=1), 1.0 / MAX_TILT_STRETCH, 1.0)
     # tilt axis: the viewing direction projected onto the tangent plane
     t1 = view_dir - np.sum(view_dir * n, axis=1, keepdims=True) * n
     t1_norm = np.linalg.norm(t1, axis=1, keepdims=True)
@@ -134,9 +136,9 @@ def view_gaussians(
     quats = rotmat_to_quat_np(np.stack([t1, t2, n], axis=2))  # columns: local x, y, z axes
     f = 0.5 * (K[0, 0] + K[1, 1])
     base = cfg.footprint * z / f
-    scales = np.stack([base / cos, base, base * cfg.thickness], 1)
+    scales = np.stack([base / cos, base, base * THICKNESS], 1)
     conf = dm.confidence.reshape(-1)
-    opacity = cfg.opacity_min + (cfg.opacity_max - cfg.opacity_min) * np.clip(conf, 0.0, 1.0)
+    opacity = OPACITY_MIN + (OPACITY_MAX - OPACITY_MIN) * np.clip(conf, 0.0, 1.0)
     t = lambda a: torch.from_numpy(np.ascontiguousarray(a, np.float32))  # noqa: E731
     g = Gaussians.from_activated(t(Pf), t(scales), t(quats), t(opacity), t(view.image.reshape(-1, 3)))
     return GaussianMaps(

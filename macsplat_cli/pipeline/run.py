@@ -32,7 +32,7 @@ from .gaussian_init import GaussianInitConfig
 from .learned import learned_tier
 from .matching import MatchConfig
 from .multiview import MultiViewConfig, MultiViewResult, reconstruct_views
-from .pose import PoseConfig, PoseResult, PoseSearch, PoseSearchConfig
+from .pose import FALLBACK_SIFT, WIDE_SIFT, PoseConfig, PoseResult, PoseSearch, PoseSearchConfig
 from .slots import DepthStage, DescribeStage, GaussianStage, MatchStage, PairStage, PoseStage
 from .stages import DepthGaussians, EssentialPose, FilteredMatcher, PerViewDescriptors, PlaneSweepDepth
 from .types import DepthMap, TwoViewGeometry, View
@@ -154,9 +154,10 @@ class Pipeline:
             :class:`~.stages.PerViewDescriptors`.
         matcher, pose, depth, gaussians: the other slots (signatures in :mod:`.stages`).
         fallback_descriptors: the descriptors tried when the first ones verify too few matches (default:
-            ``config.search.fallback_descriptors``).
+            :data:`~.pose.FALLBACK_SIFT` when ``config.search.fallback`` is on).
         wide_descriptors: the second fallback tier, tried when neither the descriptors nor the fallback give a
-            pose (default: ``config.search.wide_descriptors`` when both of those are the classical ones).
+            pose (default: :data:`~.pose.WIDE_SIFT` when ``config.search.wide`` is on and both of those are the
+            classical ones).
         scale: ``"metric"`` when the backend's geometry is in metres, else ``"relative"`` (baseline 1).
 
     The descriptor, matcher and pose slots and the descriptor tiers are held by :attr:`search`, the pose search
@@ -180,14 +181,13 @@ class Pipeline:
         self.config = config or ReconstructConfig()
         c = self.config
         self.pair = pair
-        fb_cfg, wide_cfg = c.search.fallback_descriptors, c.search.wide_descriptors
         # the default wide tier follows the classical chain only (a backend with its own descriptors, or none to
         # fall back to, e.g. the neural one, gets no SIFT tier unless given one)
-        classical = descriptors is None and fb_cfg is not None
-        if fallback_descriptors is None and fb_cfg is not None:
-            fallback_descriptors = PerViewDescriptors(SiftDescriptors(fb_cfg))
-        if wide_descriptors is None and wide_cfg is not None and classical:
-            wide_descriptors = PerViewDescriptors(SiftDescriptors(wide_cfg))
+        classical = descriptors is None and c.search.fallback
+        if fallback_descriptors is None and c.search.fallback:
+            fallback_descriptors = PerViewDescriptors(SiftDescriptors(FALLBACK_SIFT))
+        if wide_descriptors is None and c.search.wide and classical:
+            wide_descriptors = PerViewDescriptors(SiftDescriptors(WIDE_SIFT))
         learned = None
         if c.search.learned is not None:  # --matcher auto|aliked (presets.configure)
             learned = learned_tier(c.search.learned, required=c.search.learned_primary)
@@ -240,7 +240,7 @@ class Pipeline:
             InputError: unreadable photos or intrinsics.
             ReconstructionError: the scene cannot be reconstructed (the message says why).
         """
-        check_photo_count(len(paths), self.config.multiview.max_photos)
+        check_photo_count(len(paths))
         times: dict[str, float] = {}
         notify = on_stage or (lambda stage, event: None)
 

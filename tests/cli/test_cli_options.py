@@ -128,7 +128,7 @@ def test_neural_flags_make_the_neural_options_and_stage_settings() -> None:
     )  # fmt: skip
     s = config.settings()
     assert s.neural is not None and (s.neural.precision, s.neural.fusion) == ("bf16", "always")
-    assert s.pipeline.search.fallback_descriptors is None and s.pipeline.search.guided_band_px is None
+    assert s.pipeline.search.fallback is False and s.pipeline.search.guided_band_px is None
     assert not s.pipeline.matching.ratio_confidence
     assert _settings("--backend", "neural", "--weights", "w.pth", "--quality", "fast").neural.fusion == "auto"
 
@@ -142,11 +142,11 @@ def test_matcher_chooses_the_pose_search_tiers() -> None:
     assert _settings().pipeline.search.learned is None
     auto = _settings("--matcher", "auto").pipeline.search
     assert auto.learned == LearnedConfig() and not auto.learned_primary
-    assert auto.fallback_descriptors is not None and auto.wide_descriptors is not None
+    assert auto.fallback and auto.wide
     assert _settings("--matcher", "sift").pipeline.search.learned is None
     forced = _settings("--matcher", "aliked").pipeline.search
     assert forced.learned == LearnedConfig() and forced.learned_primary
-    assert forced.fallback_descriptors is None and forced.wide_descriptors is None
+    assert not forced.fallback and not forced.wide
     with pytest.raises(InputError, match="--matcher"):
         _settings("--matcher", "orb")
     with pytest.raises(InputError, match="--matcher aliked"):

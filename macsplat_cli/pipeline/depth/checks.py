@@ -20,7 +20,6 @@ import cv2
 import numpy as np
 
 from ..types import TwoViewGeometry, View
-from .config import DepthConfig
 from .pair import carry_depth, relative_pose
 from .sweep import VolumeDepth
 
@@ -33,6 +32,12 @@ __all__ = [
     "winner_depth",
 ]
 
+MIN_UNIQUENESS = 0.02
+"""Smallest uniqueness margin of the winning hypothesis."""
+MAX_COST = 0.35
+"""Largest matching cost (1 − ZNCC)/2 of the winning hypothesis."""
+CONSISTENCY = 0.02
+"""Largest relative depth disagreement between the two views' estimates (the left-right check)."""
 COLOUR_WINDOW = 5
 """Side of the box over which :func:`colour_outliers` averages the colours before comparing them."""
 
@@ -43,12 +48,12 @@ CONFIDENCE_FLOOR = 0.2
 """Smallest factor the uniqueness and the winning cost each put on a consistent pixel's confidence."""
 
 
-def winner_depth(vol: VolumeDepth, cfg: DepthConfig) -> np.ndarray:
+def winner_depth(vol: VolumeDepth) -> np.ndarray:
     """Depth where the winner passes the window, cost and uniqueness tests, else 0. [h, w] float32"""
-    uniq_ok = vol.uniq >= cfg.min_uniqueness
+    uniq_ok = vol.uniq >= MIN_UNIQUENESS
     if vol.refined is not None:  # a refined plane has no SGM uniqueness: its own cost must be lower
         uniq_ok = uniq_ok | vol.refined
-    ok = vol.has_window & (vol.inv_depth > 0) & (vol.win_cost <= cfg.max_cost) & uniq_ok
+    ok = vol.has_window & (vol.inv_depth > 0) & (vol.win_cost <= MAX_COST) & uniq_ok
     return np.where(ok, 1.0 / np.maximum(vol.inv_depth, 1e-12), 0.0).astype(np.float32)
 
 
@@ -78,7 +83,7 @@ def left_right_error(
 
 
 def checked_depth(
-    vols: list[VolumeDepth], winners: list[np.ndarray], geometry: TwoViewGeometry, ref: int, cfg: DepthConfig
+    vols: list[VolumeDepth], winners: list[np.ndarray], geometry: TwoViewGeometry, ref: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """View ``ref``'s depth after the left-right check, and its confidence.
 
@@ -87,7 +92,6 @@ def checked_depth(
         winners: both views' depths that passed the winner tests (:func:`winner_depth`). [h, w] each
         geometry: the two cameras.
         ref: the view (0 or 1).
-        cfg: the stage's configuration.
 
     Returns:
         ``(depth, confidence)``: 0 where the check fails. [h, w] float32 each
@@ -96,10 +100,10 @@ def checked_depth(
     uniq, win_cost, Kr, Ko = vols[ref].uniq, vols[ref].win_cost, vols[ref].K, vols[1 - ref].K
     R, t = relative_pose(geometry, ref)
     err = left_right_error(depth, depth_o, Kr, Ko, R, t)
-    consistent = err < cfg.consistency
-    conf = consistent * np.clip(1.0 - err / cfg.consistency, 0.0, 1.0) ** 0.5
+    consistent = err < CONSISTENCY
+    conf = consistent * np.clip(1.0 - err / CONSISTENCY, 0.0, 1.0) ** 0.5
     conf = conf * np.clip(uniq / UNIQUENESS_FULL, CONFIDENCE_FLOOR, 1.0)
-    conf = conf * np.clip(1.0 - win_cost / cfg.max_cost, CONFIDENCE_FLOOR, 1.0)
+    conf = conf * np.clip(1.0 - win_cost / MAX_COST, CONFIDENCE_FLOOR, 1.0)
     conf = conf.astype(np.float32)
     depth = np.where(conf > 0, depth, 0.0).astype(np.float32)
     return depth, conf

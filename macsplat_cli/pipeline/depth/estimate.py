@@ -20,6 +20,19 @@ __all__ = ["estimate_depths"]
 
 logger = logging.getLogger(__name__)
 
+FILL_SIGMA_COLOR = 12.0
+"""Colour similarity scale of the fill, in 8-bit intensity units."""
+FILL_CONFIDENCE = 0.35
+"""Confidence of filled pixels with strong support nearby."""
+FILL_CLAMP_NEAR = True
+"""Keep filled depths no nearer than the median measured depth."""
+EDGE_RATIO = 1.1
+"""Depth ratio across a 3×3 neighbourhood that counts as a step (``DepthConfig.snap_edges``)."""
+FUSE_TOL = 0.05
+"""Relative depth margin of the both-view fusion's free-space test (``DepthConfig.fuse``)."""
+SPECKLE_STEP = 0.04
+"""Relative depth difference that still connects two neighbouring measured pixels (``DepthConfig.speckle_size``)."""
+
 
 @dataclass
 class _ViewDepth:
@@ -61,7 +74,7 @@ def estimate_depths(views: list[View], geometry: TwoViewGeometry, config: DepthC
     vols = [sweep_view(views, geometry, ref, ranges[ref], cfg) for ref in (0, 1)]
     if cfg.slanted_iters > 0:
         refine_slanted(vols, geometry, cfg)
-    winners = [winner_depth(vol, cfg) for vol in vols]
+    winners = [winner_depth(vol) for vol in vols]
     per_view = [_view_depth(views, geometry, vols, winners, ref, cfg) for ref in (0, 1)]
     return _fused(per_view, geometry, cfg)
 
@@ -76,7 +89,7 @@ def _view_depth(
 ) -> _ViewDepth:
     """View ``ref``: the left-right check, the upsampling to the working resolution, the colour and speckle checks,
     the fill and the snapping of depth steps."""
-    depth, conf = checked_depth(vols, winners, geometry, ref, cfg)
+    depth, conf = checked_depth(vols, winners, geometry, ref)
     v = views[ref]
     refined = vols[ref].refined
     slanted = refined if refined is not None else np.zeros(depth.shape, bool)
@@ -89,19 +102,19 @@ def _view_depth(
     if cfg.colour_tol > 0:
         colour_bad = colour_outliers(depth, measured, v, views[1 - ref], geometry, ref, cfg.colour_tol)
         depth, conf, measured = _unmeasure(depth, conf, measured, colour_bad)
-    speckles = remove_speckles(np.where(measured, depth, 0.0), round(cfg.speckle_size * depth.size), cfg.speckle_step)
+    speckles = remove_speckles(np.where(measured, depth, 0.0), round(cfg.speckle_size * depth.size), SPECKLE_STEP)
     depth, conf, measured = _unmeasure(depth, conf, measured, speckles)
     rule = np.where(measured, 0, 3).astype(np.uint8)
     if cfg.fill:
         depth, conf, rule = fill_depth_rules(
-            depth, conf, v.image, lam=cfg.fill_lambda, sigma_color=cfg.fill_sigma_color,
-            fill_confidence=cfg.fill_confidence, clamp_near=cfg.fill_clamp_near,
+            depth, conf, v.image, lam=cfg.fill_lambda, sigma_color=FILL_SIGMA_COLOR,
+            fill_confidence=FILL_CONFIDENCE, clamp_near=FILL_CLAMP_NEAR,
         )  # fmt: skip
     conf = np.where(v.mask, conf, 0.0).astype(np.float32)
     depth = np.where(conf > 0, depth, 0.0).astype(np.float32)
     snapped = np.zeros(depth.shape, bool)
     if cfg.snap_edges:
-        depth, snapped = snap_depth_edges(depth, cfg.edge_ratio)
+        depth, snapped = snap_depth_edges(depth, EDGE_RATIO)
     counts = {
         "slanted_refined": int((measured & slanted).sum()),
         "colour_rejected": int(colour_bad.sum()),
@@ -126,7 +139,7 @@ def _fused(per_view: list[_ViewDepth], geometry: TwoViewGeometry, cfg: DepthConf
     measured = [p.measured for p in per_view]
     dropped = transferred = [np.zeros(d.shape, bool) for d in depths]
     if cfg.fuse:
-        depths, confs, dropped, transferred = fuse_views(depths, confs, measured, geometry, cfg.fuse_tol)
+        depths, confs, dropped, transferred = fuse_views(depths, confs, measured, geometry, FUSE_TOL)
     out: list[DepthMap] = []
     for ref in (0, 1):
         rule = np.where(depths[ref] > 0, per_view[ref].rule, 3)

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..types import TwoViewGeometry
 from . import _patchmatch_kernels
-from .checks import left_right_error, winner_depth
+from .checks import CONSISTENCY, left_right_error, winner_depth
 from .config import DepthConfig
 from .pair import relative_pose
 from .sweep import VolumeDepth
@@ -25,6 +25,15 @@ from .sweep import VolumeDepth
 __all__ = ["inverse_depth_slopes", "refine_slanted"]
 
 logger = logging.getLogger(__name__)
+
+SLANTED_RADIUS = 2
+"""The refinement's ZNCC window has ``(2·SLANTED_RADIUS + 1)²`` samples ..."""
+SLANTED_STEP = 2
+"""... spaced this many volume pixels (radius 2, step 2: 25 samples over a 9 × 9 window)."""
+SLANTED_SLOPE_MAX = 3.0
+"""Largest normalised slope ``|∂ρ/∂u|·f/ρ`` (≈ tan of the tilt from fronto-parallel)."""
+SLANTED_SEED = 0
+"""Seed of the refinement's random perturbations (the result does not depend on the threads)."""
 
 
 def inverse_depth_slopes(inv_depth: np.ndarray, valid: np.ndarray, radius: int = 2) -> tuple[np.ndarray, np.ndarray]:
@@ -52,12 +61,12 @@ def refine_slanted(raw: list[VolumeDepth], geometry: TwoViewGeometry, cfg: Depth
     """PatchMatch refinement of slanted planes (:mod:`._patchmatch_kernels`) for the pixels the SGM winner
     leaves unconfirmed (fails the tests or the left-right check), seeded by the confirmed ones; in place: sets
     ``inv_depth``, ``win_cost`` and ``refined`` of both views' :class:`~.sweep.VolumeDepth`."""
-    confident = [winner_depth(r, cfg) for r in raw]
+    confident = [winner_depth(r) for r in raw]
     for ref in (0, 1):
         r = raw[ref]
         R, t = relative_pose(geometry, ref)
         err = left_right_error(confident[ref], confident[1 - ref], r.K, raw[1 - ref].K, R, t)
-        seed = err < cfg.consistency
+        seed = err < CONSISTENCY
         active = r.has_window & ~seed
         rho = np.clip(r.inv_depth, r.rho[0], r.rho[1]).astype(np.float64)
         gu, gv = inverse_depth_slopes(rho, seed | active)
@@ -65,13 +74,13 @@ def refine_slanted(raw: list[VolumeDepth], geometry: TwoViewGeometry, cfg: Depth
         b = r.K_src @ t
         ref_g = r.gray.astype(np.float64)
         src_g = r.gray_src.astype(np.float64)
-        rad, step = cfg.slanted_radius, cfg.slanted_step
+        rad, step = SLANTED_RADIUS, SLANTED_STEP
         cost = _patchmatch_kernels.initial_costs(ref_g, src_g, A, b, rho, gu, gv, rad, step)
         f = 0.5 * (r.K[0, 0] + r.K[1, 1])
         rho0 = rho.copy()
         _patchmatch_kernels.refine(
-            ref_g, src_g, A, b, rho, gu, gv, cost, active, r.rho[0], r.rho[1], f, cfg.slanted_slope_max,
-            rad, step, cfg.slanted_iters, cfg.slanted_seed,
+            ref_g, src_g, A, b, rho, gu, gv, cost, active, r.rho[0], r.rho[1], f, SLANTED_SLOPE_MAX,
+            rad, step, cfg.slanted_iters, SLANTED_SEED,
         )  # fmt: skip
         changed = active & (rho != rho0)
         r.inv_depth = np.where(changed, rho, r.inv_depth)

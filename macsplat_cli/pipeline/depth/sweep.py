@@ -32,6 +32,21 @@ from .pair import relative_pose
 
 __all__ = ["VolumeDepth", "inverse_depth_ranges", "plane_count", "plane_sweep_cost", "sweep_view", "upsample_depth"]
 
+MAX_PLANES = 128
+"""Most depth hypotheses; fewer when the depth range moves the image less."""
+MIN_PLANES = 32
+"""Fewest depth hypotheses."""
+WINDOW = 5
+"""ZNCC window side, volume pixels (odd)."""
+P1 = 0.04
+"""SGM penalty for a one-plane jump (cost units; costs lie in [0, 1])."""
+P2 = 0.5
+"""SGM penalty for larger jumps, before lowering across edges."""
+EDGE_GAMMA = 8.0
+"""P2 is divided by ``1 + EDGE_GAMMA·|ΔI|`` (intensity in [0, 1])."""
+EIGHT_PATHS = False
+"""Aggregate along the diagonals too (slower, smoother); four paths by default."""
+
 
 def inverse_depth_ranges(geometry: TwoViewGeometry) -> list[tuple[float, float]]:
     """Per view, (ρ_min, ρ_max) covering the triangulated matches with margins."""
@@ -99,13 +114,13 @@ def plane_sweep_cost(
     return np.ascontiguousarray(cost.transpose(1, 2, 0)), any_valid
 
 
-def plane_count(geometry: TwoViewGeometry, ref: int, rho: tuple[float, float], scale: float, cfg: DepthConfig) -> int:
+def plane_count(geometry: TwoViewGeometry, ref: int, rho: tuple[float, float], scale: float) -> int:
     """Planes so that consecutive ones shift the source image by about one (volume) pixel."""
     K_src = geometry.K1 if ref == 0 else geometry.K0
     _, t = relative_pose(geometry, ref)
     f = 0.5 * (K_src[0, 0] + K_src[1, 1]) * scale
     shift = f * float(np.linalg.norm(t[:2]) + abs(t[2]) * 0.5) * (rho[1] - rho[0])
-    return int(np.clip(math.ceil(shift), cfg.min_planes, cfg.max_planes))
+    return int(np.clip(math.ceil(shift), MIN_PLANES, MAX_PLANES))
 
 
 @dataclass
@@ -161,10 +176,10 @@ def sweep_view(
     g_src = cv2.resize(v_src.gray, (ws, hs), interpolation=cv2.INTER_AREA)
     Kr = rescale_intrinsics(K_ref, w / v_ref.width, h / v_ref.height)
     Ks = rescale_intrinsics(K_src, ws / v_src.width, hs / v_src.height)
-    n = plane_count(geometry, ref, rho, cfg.scale, cfg)
+    n = plane_count(geometry, ref, rho, cfg.scale)
     rhos = np.linspace(rho[0], rho[1], n)
-    cost, has_window = plane_sweep_cost(g_ref, g_src, Kr, Ks, R, t, rhos, cfg.window)
-    agg = _sgm_kernels.aggregate(cost, g_ref, cfg.p1, cfg.p2, cfg.edge_gamma, cfg.eight_paths)
+    cost, has_window = plane_sweep_cost(g_ref, g_src, Kr, Ks, R, t, rhos, WINDOW)
+    agg = _sgm_kernels.aggregate(cost, g_ref, P1, P2, EDGE_GAMMA, EIGHT_PATHS)
     idx, off, uniq = _sgm_kernels.winner(agg)
     step = (rho[1] - rho[0]) / max(n - 1, 1)
     inv_depth = rho[0] + (idx + off.astype(np.float64)) * step

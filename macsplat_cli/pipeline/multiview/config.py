@@ -6,8 +6,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..._limits import MAX_PHOTOS
-from .depth import DepthPlanConfig
-from .register import RegisterConfig
 from .shortlist import ShortlistConfig
 
 __all__ = ["MAX_PHOTOS", "MultiViewConfig"]
@@ -15,19 +13,13 @@ __all__ = ["MAX_PHOTOS", "MultiViewConfig"]
 
 @dataclass
 class MultiViewConfig:
-    """Args:
-    max_photos: more photos than this are refused (a usage error) before any is read.
-    shortlist: which pairs are matched (all of them up to a size, else by image similarity and file order).
-    register: the incremental registration and its bundle adjustment.
-    depth: each photo's depth from its neighbours.
-    poses: a cameras file with every photo's pose (``--poses``): no pose is estimated, the scene is in its frame.
-    known_pose_max_px: with given poses, a match is kept within this Sampson distance (px) of their epipolar
-        geometry (the given poses are trusted to about a pixel: a calibrated rig's, an SfM's).
+    """The settings of more than two photos (at most :data:`MAX_PHOTOS`); the registration's and the depth plan's
+    thresholds are constants of :mod:`.register` and :mod:`.depth` (benchmarks/history/settings.md).
+
+    Args:
+        shortlist: which pairs are matched (all of them up to a size, else by image similarity and file order).
+        poses: a cameras file with every photo's pose (``--poses``): no pose is estimated, the scene is in its frame.
     """
 
-    max_photos: int = MAX_PHOTOS
     shortlist: ShortlistConfig = field(default_factory=ShortlistConfig)
-    register: RegisterConfig = field(default_factory=RegisterConfig)
-    depth: DepthPlanConfig = field(default_factory=DepthPlanConfig)
     poses: Path | None = None
-    known_pose_max_px: float = 2.0

@@ -11,40 +11,30 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 
 import numpy as np
 
 from ..types import DepthMap, Matches, TwoViewGeometry, View
 from .register import Registration
 
-__all__ = [
-    "DepthPlanConfig", "depth_pairs", "free_space_check", "fuse_estimates", "multiview_depths", "pair_geometry",
-]  # fmt: skip
+__all__ = ["depth_pairs", "free_space_check", "fuse_estimates", "multiview_depths", "pair_geometry"]
 
 logger = logging.getLogger(__name__)
 
 
-@dataclass
-class DepthPlanConfig:
-    """Args:
-    neighbours: each photo's depth comes from this many neighbours (more: fewer holes and outliers, one depth
-        pair's time each).
-    min_shared: a neighbour shares at least this many tracks with the photo (fewer cannot bound the depth range).
-    agree: two estimates of a pixel agree within this relative depth difference.
-    contradicted: confidence factor of a pixel another estimate contradicts.
-    check_views: each photo's fused depth is checked against this many co-visible photos' depths (0: no check).
-    free_space: a point this much (relative) in front of what another photo sees there lies in space that photo
-        sees through: a floater, dropped when no checked photo confirms it (measured: benchmarks/history/
-        multiview.md).
-    """
-
-    neighbours: int = 2
-    min_shared: int = 30
-    agree: float = 0.03
-    contradicted: float = 0.5
-    check_views: int = 4
-    free_space: float = 0.05
+NEIGHBOURS = 2
+"""Each photo's depth comes from this many neighbours (more: fewer holes and outliers, one depth pair's time each)."""
+MIN_SHARED = 30
+"""A neighbour shares at least this many tracks with the photo (fewer cannot bound the depth range)."""
+AGREE = 0.03
+"""Two estimates of a pixel agree within this relative depth difference."""
+CONTRADICTED = 0.5
+"""Confidence factor of a pixel another estimate contradicts."""
+CHECK_VIEWS = 4
+"""Each photo's fused depth is checked against this many co-visible photos' depths (0: no check)."""
+FREE_SPACE = 0.05
+"""A point this much (relative) in front of what another photo sees there lies in space that photo sees through: a
+floater, dropped when no checked photo confirms it (measured: benchmarks/history/multiview.md)."""
 
 
 def _shared(reg: Registration) -> np.ndarray:
@@ -60,15 +50,15 @@ def _shared(reg: Registration) -> np.ndarray:
     return S
 
 
-def depth_pairs(reg: Registration, cfg: DepthPlanConfig) -> list[tuple[int, int]]:
+def depth_pairs(reg: Registration) -> list[tuple[int, int]]:
     """The pairs whose two-view depth runs: each registered photo with its ``neighbours`` most co-visible
     registered photos (pairs as (a, b), a < b, unique)."""
     S = _shared(reg)
     pairs: set[tuple[int, int]] = set()
     for k in np.flatnonzero(reg.registered).tolist():
         order = np.argsort(-S[k], kind="stable")
-        for o in order[: cfg.neighbours]:
-            if S[k, o] >= cfg.min_shared and reg.registered[o]:
+        for o in order[:NEIGHBOURS]:
+            if S[k, o] >= MIN_SHARED and reg.registered[o]:
                 pairs.add((min(k, int(o)), max(k, int(o))))
     return sorted(pairs)
 
@@ -90,7 +80,7 @@ def pair_geometry(reg: Registration, a: int, b: int) -> tuple[TwoViewGeometry, f
     return TwoViewGeometry(R, t / base, reg.K[a], reg.K[b], m), base
 
 
-def fuse_estimates(estimates: Sequence[DepthMap], cfg: DepthPlanConfig) -> DepthMap:
+def fuse_estimates(estimates: Sequence[DepthMap]) -> DepthMap:
     """One photo's depth estimates from several neighbours → one (module docstring). All [H, W]."""
     if len(estimates) == 1:
         return estimates[0]
@@ -101,11 +91,11 @@ def fuse_estimates(estimates: Sequence[DepthMap], cfg: DepthPlanConfig) -> Depth
     d0 = np.take_along_axis(D, best[None], 0)[0]
     c0 = np.take_along_axis(C, best[None], 0)[0]
     valid = c0 > 0
-    close = (C > 0) & (np.abs(D - d0) <= cfg.agree * np.maximum(d0, 1e-12))
+    close = (C > 0) & (np.abs(D - d0) <= AGREE * np.maximum(d0, 1e-12))
     against = (C > 0) & ~close
     w = np.where(close, C, 0.0)
     depth = np.where(valid, (w * D).sum(0) / np.maximum(w.sum(0), 1e-12), 0.0)
-    conf = np.where(against.any(0), c0 * cfg.contradicted, c0)
+    conf = np.where(against.any(0), c0 * CONTRADICTED, c0)
     measured = (M & close).any(0) & valid
     return DepthMap(depth.astype(np.float32), np.where(valid, conf, 0.0).astype(np.float32), measured)
 
@@ -115,11 +105,11 @@ DepthFn = Callable[[list[View], TwoViewGeometry], list[DepthMap]]
 
 
 def multiview_depths(
-    views: Sequence[View], reg: Registration, two_view: DepthFn, cfg: DepthPlanConfig
+    views: Sequence[View], reg: Registration, two_view: DepthFn
 ) -> tuple[list[DepthMap | None], list[tuple[int, int]]]:
     """Every registered photo's fused depth (None for the others, and for a photo no depth pair reached), and the
     depth pairs that ran."""
-    pairs = depth_pairs(reg, cfg)
+    pairs = depth_pairs(reg)
     found: dict[int, list[DepthMap]] = {}
     for a, b in pairs:
         g, base = pair_geometry(reg, a, b)
@@ -127,31 +117,28 @@ def multiview_depths(
         for k, d in ((a, da), (b, db)):
             found.setdefault(k, []).append(DepthMap(d.depth * np.float32(base), d.confidence, d.measured))
         logger.debug("depth pair %s–%s: baseline %.3f", views[a].name, views[b].name, base)
-    out: list[DepthMap | None] = [fuse_estimates(found[k], cfg) if k in found else None for k in range(len(views))]
-    if cfg.check_views > 0:
-        out = [_free_space_checked(k, out, reg, cfg) for k in range(len(out))]
+    out: list[DepthMap | None] = [fuse_estimates(found[k]) if k in found else None for k in range(len(views))]
+    if CHECK_VIEWS > 0:
+        out = [_free_space_checked(k, out, reg) for k in range(len(out))]
     return out, pairs
 
 
-def _free_space_checked(
-    k: int, depths: list[DepthMap | None], reg: Registration, cfg: DepthPlanConfig
-) -> DepthMap | None:
+def _free_space_checked(k: int, depths: list[DepthMap | None], reg: Registration) -> DepthMap | None:
     """Photo ``k``'s depth checked (:func:`free_space_check`) against its most co-visible photos with a depth."""
     d = depths[k]
     if d is None:
         return None
     S = _shared(reg)[k]
     others = [int(j) for j in np.argsort(-S, kind="stable") if j != k and depths[j] is not None and S[j] > 0]
-    return free_space_check(k, depths, reg.K, reg.R, reg.t, others[: cfg.check_views], cfg)
+    return free_space_check(k, depths, reg.K, reg.R, reg.t, others[:CHECK_VIEWS])
 
 
 def free_space_check(
-    k: int, depths: Sequence[DepthMap | None], K: np.ndarray, R: np.ndarray, t: np.ndarray, others: Sequence[int],
-    cfg: DepthPlanConfig,
-) -> DepthMap:  # fmt: skip
+    k: int, depths: Sequence[DepthMap | None], K: np.ndarray, R: np.ndarray, t: np.ndarray, others: Sequence[int]
+) -> DepthMap:
     """Photo ``k``'s depth less the pixels that one of the ``others`` sees through (its depth there farther by
-    ``free_space``) and none confirms (within ``agree``): floaters. ``K``, ``R``, ``t``: every photo's intrinsics
-    and world → camera pose ([N, 3, 3], [N, 3, 3], [N, 3])."""
+    :data:`FREE_SPACE`) and none confirms (within :data:`AGREE`): floaters. ``K``, ``R``, ``t``: every photo's
+    intrinsics and world → camera pose ([N, 3, 3], [N, 3, 3], [N, 3])."""
     d = depths[k]
     assert d is not None
     ys, xs = np.nonzero(d.valid)
@@ -177,8 +164,8 @@ def free_space_check(
         )
         seen = inside & dj.valid[vi, ui]
         rel = (Xj[:, 2] - dj.depth[vi, ui]) / np.maximum(dj.depth[vi, ui], 1e-12)
-        support |= seen & (np.abs(rel) <= cfg.agree)
-        through |= seen & (rel < -cfg.free_space)
+        support |= seen & (np.abs(rel) <= AGREE)
+        through |= seen & (rel < -FREE_SPACE)
     drop = through & ~support
     if not drop.any():
         return d

@@ -23,6 +23,10 @@ from .pairwise import PairOutcome
 
 __all__ = ["KnownPoses", "known_pose_pairs", "load_known_poses"]
 
+KNOWN_POSE_MAX_PX = 2.0
+"""With given poses (``--poses``), a match is kept within this Sampson distance (px) of their epipolar geometry: the
+given poses are trusted to about a pixel (a calibrated rig's, an SfM's)."""
+
 
 @dataclass
 class KnownPoses:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -27,47 +27,42 @@ from .resection import anchored_pose, pair_anchor, pnp_pose
 from .tracks import Tracks
 from .triangulate import project, triangulate_tracks
 
-__all__ = ["Registration", "RegisterConfig", "register_known", "register_views"]
+__all__ = ["Registration", "register_known", "register_views"]
 
 logger = logging.getLogger(__name__)
 
 
-@dataclass
-class RegisterConfig:
-    """Args:
-    init_min_parallax_deg: the first pair needs this median parallax (°): less, and its triangulation is too
-        uncertain to register the others on (a pair below it still starts when no other pair has it).
-    min_pnp_inliers: PnP inliers a photo needs (the two-view support minimum's order of magnitude).
-    min_pnp_share: and this share of its 2D–3D correspondences (a random pose explains few; the correspondences
-        chained through epipolar-guided matches are often three-quarters wrong on wide real pairs).
-    min_anchor_inliers: a pose anchored on an accepted pair (one free parameter, the baseline's length) needs this
-        many points it reprojects within ``pnp_error_px``.
-    pnp_error_px: PnP's RANSAC threshold (px at the working size: the matches' noise is ~1 px).
-    max_pair_disagreement_deg: a registered pose's rotation relative to each registered photo it has an accepted
-        pair with must agree with that pair's within this (°): the two-view poses are accurate to ~1°.
-    max_error_px: an observation farther than this from its point's projection after the bundle adjustment is an
-        outlier (dropped) — and a triangulated point needs all its observations within it.
-    min_angle_deg: a point is triangulated when its rays span at least this angle (°).
-    focal_scan: an unknown shared focal's starts, as factors of the pairs' estimate (or the prior's); the
-        registration whose truncated reprojection cost is lowest is kept. One start by default: the adjustment
-        converges from far-off starts on the tests' object orbit (tests/pipeline/multiview/test_multiview.py).
-    bundle_growth: the whole registration is adjusted each time the registered photos have grown by this factor
-        (and at the end): N − 1 ever larger adjustments grow with N² (benchmarks/history/multiview_scaling.md).
-    bundle: the bundle adjustment's settings; its cost tolerance 1e-4 (not 1e-6): the poses end within 0.01° of
-        the fully converged ones (far below the matches' noise) in a third of the evaluations.
-    """
-
-    init_min_parallax_deg: float = 2.0
-    min_pnp_inliers: int = 30
-    min_pnp_share: float = 0.2
-    min_anchor_inliers: int = 15
-    pnp_error_px: float = 3.0
-    max_pair_disagreement_deg: float = 5.0
-    max_error_px: float = 4.0
-    min_angle_deg: float = 1.5
-    focal_scan: tuple[float, ...] = (1.0,)
-    bundle_growth: float = 1.2
-    bundle: BundleConfig = field(default_factory=lambda: BundleConfig(ftol=1e-4))
+INIT_MIN_PARALLAX_DEG = 2.0
+"""The first pair needs this median parallax (°): less, and its triangulation is too uncertain to register the
+others on (a pair below it still starts when no other pair has it)."""
+MIN_PNP_INLIERS = 30
+"""PnP inliers a photo needs (the two-view support minimum's order of magnitude)."""
+MIN_PNP_SHARE = 0.2
+"""...and this share of its 2D–3D correspondences (a random pose explains few; the correspondences chained through
+epipolar-guided matches are often three-quarters wrong on wide real pairs)."""
+MIN_ANCHOR_INLIERS = 15
+"""A pose anchored on an accepted pair (one free parameter, the baseline's length) needs this many points it
+reprojects within :data:`PNP_ERROR_PX`."""
+PNP_ERROR_PX = 3.0
+"""PnP's RANSAC threshold (px at the working size: the matches' noise is ~1 px)."""
+MAX_PAIR_DISAGREEMENT_DEG = 5.0
+"""A registered pose's rotation relative to each registered photo it has an accepted pair with must agree with that
+pair's within this (°): the two-view poses are accurate to ~1°."""
+MAX_ERROR_PX = 4.0
+"""An observation farther than this (px) from its point's projection after the bundle adjustment is an outlier
+(dropped), and a triangulated point needs all its observations within it."""
+MIN_ANGLE_DEG = 1.5
+"""A point is triangulated when its rays span at least this angle (°)."""
+FOCAL_SCAN = (1.0,)
+"""An unknown shared focal's starts, as factors of the pairs' estimate (or the prior's); the registration whose
+truncated reprojection cost is lowest is kept. One start: the adjustment converges from far-off starts on the tests'
+object orbit (tests/pipeline/multiview/test_multiview.py)."""
+BUNDLE_GROWTH = 1.2
+"""The whole registration is adjusted each time the registered photos have grown by this factor (and at the end):
+N − 1 ever larger adjustments grow with N² (benchmarks/history/multiview_scaling.md)."""
+BUNDLE = BundleConfig(ftol=1e-4)
+"""The registration's bundle adjustment: cost tolerance 1e-4 (not 1e-6), the poses end within 0.01° of the fully
+converged ones (far below the matches' noise) in a third of the evaluations."""
 
 
 @dataclass
@@ -122,9 +117,9 @@ class Registration:
 class _State:
     """The registration in progress."""
 
-    def __init__(self, views: Sequence[View], tracks: Tracks, cfg: RegisterConfig) -> None:
+    def __init__(self, views: Sequence[View], tracks: Tracks) -> None:
         n = len(views)
-        self.views, self.tracks, self.cfg = views, tracks, cfg
+        self.views, self.tracks = views, tracks
         self.R = np.full((n, 3, 3), np.nan)
         self.t = np.full((n, 3), np.nan)
         self.K = np.stack([v.K for v in views]).astype(np.float64)
@@ -153,8 +148,8 @@ class _State:
         index = np.full(len(self.registered), -1)
         index[cams] = np.arange(len(cams))
         tri = triangulate_tracks(self.R[cams], self.t[cams], self.K[cams], index[tr.view[sel]], tr.track[sel],
-                                 tr.xy[sel], tr.n_tracks, max_error_px=self.cfg.max_error_px,
-                                 min_angle_deg=self.cfg.min_angle_deg)  # fmt: skip
+                                 tr.xy[sel], tr.n_tracks, max_error_px=MAX_ERROR_PX,
+                                 min_angle_deg=MIN_ANGLE_DEG)  # fmt: skip
         new = tri.ok & ~self.point_ok
         self.points[new] = tri.points[new]
         self.point_ok |= tri.ok
@@ -180,7 +175,7 @@ class _State:
         photo's keypoint that a wrong match chained to an old point), before they reach the adjustment."""
         sel = self._kept()
         e, z = self._errors(sel)
-        self.inlier[sel[~(e <= self.cfg.max_error_px) | (z <= 0)]] = False
+        self.inlier[sel[~(e <= MAX_ERROR_PX) | (z <= 0)]] = False
         alive = np.bincount(self.tracks.track[self._obs()], minlength=self.tracks.n_tracks)
         self.point_ok &= alive >= 2
 
@@ -200,7 +195,7 @@ class _State:
         with threadpool_limits(1, user_api="blas"):  # LSMR's many small products: one BLAS thread is fastest
             res = bundle_adjust(self.R[cams], self.t[cams], self.K[cams], self.points[pts], index[tr.view[sel]],
                                 pindex[tr.track[sel]], tr.xy[sel], fixed_pose=fixed, focal_group=groups,
-                                config=self.cfg.bundle)  # fmt: skip
+                                config=BUNDLE)  # fmt: skip
         self.R[cams], self.t[cams], self.K[cams], self.points[pts] = res.R, res.t, res.K, res.points
         for g in np.unique(groups[groups >= 0]):  # a shared focal: the photos not yet registered start from it
             members = np.flatnonzero(self.focal_group == g).tolist()
@@ -208,7 +203,7 @@ class _State:
             for m in members:
                 self.K[m, :2, :2] = self.views[m].K[:2, :2] * f
         self.residual[sel] = res.residual_px
-        bad = np.flatnonzero(sel)[res.residual_px > self.cfg.max_error_px]
+        bad = np.flatnonzero(sel)[res.residual_px > MAX_ERROR_PX]
         self.inlier[bad] = False
         # a point left with < 2 observations is no longer kept
         alive = np.bincount(tr.track[self._obs()], minlength=tr.n_tracks)
@@ -231,15 +226,15 @@ class _State:
         return self.points[tr.track[sel]], tr.xy[sel]
 
 
-def _init_pair(outcomes: Sequence[PairOutcome], cfg: RegisterConfig) -> PairOutcome | None:
+def _init_pair(outcomes: Sequence[PairOutcome]) -> PairOutcome | None:
     """The accepted pair to start from: among those that close a consistent loop of three (when any does; else
     all), those with enough parallax (else all), the one with the most verified matches."""
     ok = [o for o in outcomes if o.result is not None and not o.provisional]
     ok = ok or [o for o in outcomes if o.result is not None]
     if not ok:
         return None
-    ok = _in_consistent_loops(ok, cfg.max_pair_disagreement_deg) or ok
-    wide = [o for o in ok if (o.geometry.median_parallax_deg or 0.0) >= cfg.init_min_parallax_deg]
+    ok = _in_consistent_loops(ok, MAX_PAIR_DISAGREEMENT_DEG) or ok
+    wide = [o for o in ok if (o.geometry.median_parallax_deg or 0.0) >= INIT_MIN_PARALLAX_DEG]
     return max(wide or ok, key=lambda o: (o.inliers, -o.i, -o.j))
 
 
@@ -304,11 +299,9 @@ def _unknown_focal(views: Sequence[View], outcomes: Sequence[PairOutcome]) -> tu
     return K, groups
 
 
-def register_views(
-    views: Sequence[View], outcomes: Sequence[PairOutcome], tracks: Tracks, config: RegisterConfig | None = None
-) -> Registration:
+def register_views(views: Sequence[View], outcomes: Sequence[PairOutcome], tracks: Tracks) -> Registration:
     """Incremental registration of ``views`` (module docstring). Photos with an unknown focal share one per image
-    size; with ≥ 3 photos it is scanned (:attr:`RegisterConfig.focal_scan`: the registration at each start, the one
+    size; with ≥ 3 photos it is scanned (:data:`FOCAL_SCAN`: the registration at each start, the one
     whose reprojection errors, truncated, are smallest) and then refined by the bundle adjustment — which alone
     stays in the basin of a far-off start.
 
@@ -316,18 +309,17 @@ def register_views(
         The :class:`Registration`; photos that could not be registered carry their reason. With no accepted pair
         nothing is registered (the caller refuses the scene).
     """
-    cfg = config or RegisterConfig()
     K0, groups = _unknown_focal(views, outcomes)
-    first = _init_pair(outcomes, cfg)
+    first = _init_pair(outcomes)
     if first is None:
-        st = _State(views, tracks, cfg)
+        st = _State(views, tracks)
         return _finish(st, ["no pair with this photo gave an accepted pose"] * len(views), (-1, -1))
-    scales = cfg.focal_scan if (groups >= 0).any() and len(views) >= 3 else (1.0,)
+    scales = FOCAL_SCAN if (groups >= 0).any() and len(views) >= 3 else (1.0,)
     best: tuple[tuple[int, float], _State, list[str | None]] | None = None
     for s in scales:
         K = K0.copy()
         K[groups >= 0, :2, :2] *= s
-        st, reasons = _incremental(views, outcomes, tracks, cfg, first, K, groups)
+        st, reasons = _incremental(views, outcomes, tracks, first, K, groups)
         score = (-int(st.registered.sum()), st.truncated_cost())
         logger.debug("focal start ×%.2f: %d registered, truncated cost %.3f", s, -score[0], score[1])
         if best is None or score < best[0]:
@@ -337,18 +329,18 @@ def register_views(
 
 
 def _incremental(
-    views: Sequence[View], outcomes: Sequence[PairOutcome], tracks: Tracks, cfg: RegisterConfig, first: PairOutcome,
+    views: Sequence[View], outcomes: Sequence[PairOutcome], tracks: Tracks, first: PairOutcome,
     K: np.ndarray, groups: np.ndarray,
 ) -> tuple[_State, list[str | None]]:  # fmt: skip
     """One incremental registration from ``first`` with the starting intrinsics ``K`` [N, 3, 3]."""
-    st = _State(views, tracks, cfg)
+    st = _State(views, tracks)
     st.K, st.focal_group = K, groups
     if groups[first.i] < 0 and groups[first.j] < 0:
         g = first.geometry
         st.K[first.i], st.K[first.j] = g.K0, g.K1
         R, t = g.R, g.t
     else:  # the pair's pose at these intrinsics
-        R, t = _pose_at(first, st.K[first.i], st.K[first.j], cfg.pnp_error_px)
+        R, t = _pose_at(first, st.K[first.i], st.K[first.j], PNP_ERROR_PX)
     st.add(first.i, np.eye(3), np.zeros(3))
     st.add(first.j, R, t)
     st.triangulate()
@@ -365,7 +357,7 @@ def _incremental(
             continue
         failed.clear()  # more points: the photos that failed may register now
         st.triangulate()
-        if len(st.order) >= cfg.bundle_growth * adjusted:  # the whole set, each time it has grown by a fifth
+        if len(st.order) >= BUNDLE_GROWTH * adjusted:  # the whole set, each time it has grown by a fifth
             st.adjust()
             st.triangulate()
             adjusted = len(st.order)
@@ -423,19 +415,19 @@ def _register_next(
     for k in failed:
         counts[k] = -1
     k = int(np.argmax(counts))
-    if counts[k] < min(st.cfg.min_pnp_inliers, st.cfg.min_anchor_inliers):
+    if counts[k] < min(MIN_PNP_INLIERS, MIN_ANCHOR_INLIERS):
         return None, None
     obj, xy = st.correspondences(k)
-    n, thr = len(obj), st.cfg.pnp_error_px
-    found = pnp_pose(obj, xy, st.K[k], thr) if n >= st.cfg.min_pnp_inliers else None
+    n, thr = len(obj), PNP_ERROR_PX
+    found = pnp_pose(obj, xy, st.K[k], thr) if n >= MIN_PNP_INLIERS else None
     how = "PnP"
-    if found is None or found[2] < st.cfg.min_pnp_inliers or found[2] < st.cfg.min_pnp_share * n:
+    if found is None or found[2] < MIN_PNP_INLIERS or found[2] < MIN_PNP_SHARE * n:
         found, how = _anchored(st, k, obj, xy, outcomes), "anchored on an accepted pair"
         if found is None:
             return k, f"neither PnP nor its accepted pairs explain its {n} matches to triangulated points"
     R, t, n_in = found
     worst, other = _disagreement(st, k, R, outcomes)
-    if worst > st.cfg.max_pair_disagreement_deg:
+    if worst > MAX_PAIR_DISAGREEMENT_DEG:
         return k, f"its pose disagrees by {worst:.1f}° with its accepted pose relative to {other}"
     st.add(k, R, t)
     logger.debug("registered %s (%s): %d of %d inliers", st.views[k].name, how, n_in, n)
@@ -457,19 +449,18 @@ def _anchored(
             continue
         g = o.result.geometry
         # a provisional pair's pose is re-estimated at the shared focal found so far
-        Rp, tp = _pose_at(o, st.K[o.i], st.K[o.j], st.cfg.pnp_error_px) if o.provisional else (g.R, g.t)
+        Rp, tp = _pose_at(o, st.K[o.i], st.K[o.j], PNP_ERROR_PX) if o.provisional else (g.R, g.t)
         R, a, b = pair_anchor(Rp, tp, st.R[r], st.t[r], new_is_second=o.j == k)
-        fit = anchored_pose(obj, xy, st.K[k], R, a, b, st.cfg.pnp_error_px)
+        fit = anchored_pose(obj, xy, st.K[k], R, a, b, PNP_ERROR_PX)
         if fit is not None and (best is None or fit[1] > best[2]):
             best = (R, fit[0], fit[1])
-    return best if best is not None and best[2] >= st.cfg.min_anchor_inliers else None
+    return best if best is not None and best[2] >= MIN_ANCHOR_INLIERS else None
 
 
-def register_known(views: Sequence[View], tracks: Tracks, R: np.ndarray, t: np.ndarray,
-                   config: RegisterConfig | None = None) -> Registration:  # fmt: skip
+def register_known(views: Sequence[View], tracks: Tracks, R: np.ndarray, t: np.ndarray) -> Registration:
     """Every photo at its given pose (world → camera ``R`` [N, 3, 3], ``t`` [N, 3]): the tracks triangulated from
     them, in their frame and unit; nothing is estimated or adjusted."""
-    st = _State(views, tracks, config or RegisterConfig())
+    st = _State(views, tracks)
     for k in range(len(views)):
         st.add(k, R[k], t[k])
     st.triangulate()

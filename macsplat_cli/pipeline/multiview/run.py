@@ -22,8 +22,8 @@ from ..gaussian_init import GaussianInitConfig, view_gaussians
 from ..pose import PoseSearch
 from ..types import DepthMap, MatchSet, View
 from .config import MultiViewConfig
-from .depth import DepthFn, multiview_depths, pair_geometry
-from .known import known_pose_pairs, load_known_poses
+from .depth import MIN_SHARED, DepthFn, multiview_depths, pair_geometry
+from .known import KNOWN_POSE_MAX_PX, known_pose_pairs, load_known_poses
 from .pairwise import PairOutcome, cached_search, match_all
 from .register import Registration, register_known, register_views
 from .shortlist import select_pairs
@@ -153,7 +153,7 @@ def reconstruct_views(
         chosen = select_pairs(len(sub), feats, config.shortlist)
         if known is not None:
             full = [(live[i], live[j]) for i, j in chosen]
-            return known_pose_pairs(views, full, cached.describe, cached.match, known, config.known_pose_max_px)
+            return known_pose_pairs(views, full, cached.describe, cached.match, known, KNOWN_POSE_MAX_PX)
         outs = match_all(sub, chosen, cached)
         return [dataclasses.replace(o, i=live[o.i], j=live[o.j]) for o in outs]
 
@@ -162,8 +162,8 @@ def reconstruct_views(
     def register_stage() -> Registration:
         tracks = build_tracks(outcomes)
         if known is None:
-            return register_views(views, outcomes, tracks, config.register)
-        reg = register_known(views, tracks, known.R, known.t, config.register)
+            return register_views(views, outcomes, tracks)
+        reg = register_known(views, tracks, known.R, known.t)
         reg.registered[list(dups)] = False
         return reg
 
@@ -173,10 +173,10 @@ def reconstruct_views(
     if int(reg.registered.sum()) < 2:
         raise ReconstructionError(_refusal(views, reg, outcomes, len(live)))
     views = [_calibrated(v, reg, k) for k, v in enumerate(views)]
-    depths, dpairs = timed("depth", lambda: multiview_depths(views, reg, two_view_depth, config.depth))
+    depths, dpairs = timed("depth", lambda: multiview_depths(views, reg, two_view_depth))
     if not dpairs:
         raise ReconstructionError(
-            f"no two registered photos share {config.depth.min_shared} triangulated points: no depth can be estimated"
+            f"no two registered photos share {MIN_SHARED} triangulated points: no depth can be estimated"
         )
 
     def gaussian_stage() -> tuple[list[GaussianMaps], list[int], BackgroundLayer | None]:

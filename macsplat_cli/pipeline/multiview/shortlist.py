@@ -55,21 +55,17 @@ single descriptors and their residuals, the VLAD itself, vanish (one descriptor 
 
 @dataclass
 class ShortlistConfig:
-    """Args:
-    all_pairs_max: up to this many photos every pair is matched (12: 66 pairs, fewer than retrieval's bound
-        N · (similar + sequence_neighbours) = 84 at the defaults, and no retrieval mistake is possible).
-    similar: beyond it, each photo's k most similar photos by the global descriptor (5: an ordered capture
-        overlaps well with 2–3 photos on each side; 5 covers them with a margin for retrieval mistakes).
-    sequence_neighbours: plus photos i±1..i±n in file order (2: consecutive shots overlap; a cheap safety net
-        for retrieval misses, e.g. on low-texture photos).
-    vocabulary: VLAD visual words (32: a 4,096-d VLAD for SIFT; fitted on this scene's own descriptors, so a
-        small vocabulary suffices, with ~600 sampled descriptors per word; on the tests' synthetic scenes 8–128
-        words all rank correctly, 32 with the widest margin).
-    sample: descriptors sampled (all photos together) to fit the vocabulary (20,000: ~600 per word, enough for
-        stable centres, and the k-means takes ~0.2 s).
-    seed: seed of the sample and of the k-means seeding (same input → same pairs).
-    hellinger: apply the Hellinger map (L1-normalise, square root) to non-negative descriptors first, for plain
-        SIFT (False: the classical backend already gives RootSIFT, and a second root would give a 4th root).
+    """Which pairs of photos are matched (why each default: benchmarks/history/settings.md).
+
+    Args:
+        all_pairs_max: up to this many photos (≥ 0) every pair is matched.
+        similar: beyond it, each photo's k most similar photos by the global descriptor (≥ 0).
+        sequence_neighbours: plus photos i±1..i±n in file order (≥ 0; a safety net for retrieval misses).
+        vocabulary: VLAD visual words (≥ 1), fitted on this scene's own descriptors.
+        sample: descriptors sampled (all photos together, ≥ 1) to fit the vocabulary.
+        seed: seed of the sample and of the k-means seeding (same input → same pairs).
+        hellinger: apply the Hellinger map (L1-normalise, square root) to non-negative descriptors first, for plain
+            SIFT (off for RootSIFT, which would get a 4th root).
     """
 
     all_pairs_max: int = 12

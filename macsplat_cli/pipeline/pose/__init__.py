@@ -3,7 +3,8 @@
 ==================  ===========================================================================================
 module              what it holds
 ==================  ===========================================================================================
-``config``          :class:`PoseConfig`, :class:`ConfidenceConfig`, :class:`EvidenceConfig`, :class:`PoseSearchConfig`
+``config``          :class:`PoseConfig`, :class:`PoseSearchConfig`, the constants several modules share
+``diagnostics``     :class:`PoseDiagnostics`: what the classical pose measured, for the report
 ``geometry``        epipolar constraint, Sampson distance, triangulation, cheirality, decompositions
 ``robust``          OpenCV's MAGSAC++ estimators within their preconditions (essential, fundamental, homography)
 ``refit``           the one non-linear refit of (R, t[, focal]): LM on Cauchy-weighted Sampson distances
@@ -29,7 +30,8 @@ from __future__ import annotations
 
 from .checks import flipped_fraction
 from .confidence import accept_pose, assess_pose
-from .config import ConfidenceConfig, EvidenceConfig, PoseConfig, PoseSearchConfig
+from .config import FALLBACK_SIFT, WIDE_SIFT, PoseConfig, PoseSearchConfig
+from .diagnostics import PoseDiagnostics
 from .essential import estimate_pose
 from .evidence import PoseEvidence, pose_evidence
 from .geometry import epipolar_fit, fundamental_from_pose, sampson_distance, triangulate
@@ -42,19 +44,20 @@ from .tiebreak import PlanePose, dominant_plane, plane_poses, tiebreak_plane_ok,
 
 __all__ = [
     "LOW_CONFIDENCE_HINT",
-    "ConfidenceConfig",
     "Doubt",
-    "EvidenceConfig",
+    "FALLBACK_SIFT",
     "PlanePose",
     "PnPResult",
     "PoseConfidence",
     "PoseConfig",
+    "PoseDiagnostics",
     "PoseEvidence",
     "PoseResult",
     "PoseSearch",
     "PoseSearchConfig",
     "Refit",
     "StageTimer",
+    "WIDE_SIFT",
     "Tier",
     "accept_pose",
     "assess_pose",

@@ -14,10 +14,20 @@ from ...errors import NonFiniteError, ReconstructionError
 from ...metrics import rotation_angle_deg
 from ..types import Matches, View
 from .config import PoseConfig
+from .diagnostics import PoseDiagnostics
 from .geometry import fundamental_from_pose, homog, line_spread_px, parallax_deg, sampson_distance, triangulate
 from .robust import MIN_POINTS_FUNDAMENTAL, distinct_matches
 
 __all__ = ["check_finite", "check_matches", "final_inliers", "flipped_fraction", "summarise"]
+
+MIN_INLIER_RATIO = 0.5
+"""Smallest fraction of the matches that must agree with the pose (wrong poses had 28–37 %)."""
+SAME_VIEW_SHIFT_PX = 0.5
+"""The median displacement of the matches (px) below which two same-size photos may be one view."""
+SAME_VIEW_STILL_PX = 1.0
+"""A match that moves less than this (px) has not moved."""
+SAME_VIEW_SHARE = 0.8
+"""More than this share of matches that have not moved makes the two photos one view."""
 
 
 def check_finite(v0: View, v1: View, matches: Matches) -> None:
@@ -57,8 +67,8 @@ def check_matches(v0: View, v1: View, xy0: np.ndarray, xy1: np.ndarray, cfg: Pos
             )
     if v0.image.shape == v1.image.shape:
         shift = np.median(np.linalg.norm(xy1 - xy0, axis=1))
-        still = np.linalg.norm(xy1 - xy0, axis=1) < cfg.same_view_still_px
-        if shift < cfg.same_view_shift_px and np.mean(still) > cfg.same_view_share:
+        still = np.linalg.norm(xy1 - xy0, axis=1) < SAME_VIEW_STILL_PX
+        if shift < SAME_VIEW_SHIFT_PX and np.mean(still) > SAME_VIEW_SHARE:
             raise ReconstructionError(
                 f"the two images show the same view (median match displacement {shift:.2f} px): "
                 "move the camera between the photos"
@@ -81,10 +91,10 @@ def final_inliers(
 
 
 def summarise(
-    R: np.ndarray, final: np.ndarray, d: np.ndarray, x0n: np.ndarray, x1n: np.ndarray, n: int, info: dict,
+    R: np.ndarray, final: np.ndarray, d: np.ndarray, x0n: np.ndarray, x1n: np.ndarray, n: int, diag: PoseDiagnostics,
     cfg: PoseConfig,
 ) -> tuple[int, float]:  # fmt: skip
-    """Record the inlier diagnostics of a pose in ``info`` and raise on too few inliers, no baseline or a low
+    """Record the inlier diagnostics of a pose in ``diag`` and raise on too few inliers, no baseline or a low
     inlier ratio. Returns the number of final inliers and their median parallax (°)."""
     n_final = int(final.sum())
     if n_final < cfg.min_inliers:
@@ -92,21 +102,17 @@ def summarise(
             f"pose could not be estimated: {n_final} verified matches after refinement, need at least {cfg.min_inliers}"
         )
     parallax = float(np.median(parallax_deg(R, x0n[final], x1n[final])))
-    info.update(
-        inliers=n_final,
-        inlier_ratio=n_final / n,
-        median_sampson_px=float(np.median(d[final])),
-        rotation_deg=rotation_angle_deg(R),
-    )
+    diag.inliers, diag.inlier_ratio = n_final, n_final / n
+    diag.median_sampson_px, diag.rotation_deg = float(np.median(d[final])), rotation_angle_deg(R)
     if parallax < cfg.min_parallax_deg:
         raise ReconstructionError(
             f"no baseline: the median parallax of the {n_final} verified matches is {parallax:.2f}°, below "
             f"{cfg.min_parallax_deg}° (a pure rotation, or a scene too far away): move the camera sideways"
         )
-    if n_final < cfg.min_inlier_ratio * n:
+    if n_final < MIN_INLIER_RATIO * n:
         raise ReconstructionError(
             f"pose is unreliable: only {n_final} of {n} matches ({100 * n_final / n:.0f} %) agree with the best "
-            f"relative pose, need {100 * cfg.min_inlier_ratio:.0f} % (too little overlap or texture?)"
+            f"relative pose, need {100 * MIN_INLIER_RATIO:.0f} % (too little overlap or texture?)"
         )
     return n_final, parallax
 

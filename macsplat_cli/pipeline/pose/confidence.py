@@ -9,12 +9,12 @@ hardly constrain it) or by parallax (a rotation without parallax, what a homogra
   verified matches at the given intrinsics: a pose that is not the optimum of its own matches moves.
 * ``focal_rotation_deg`` (only when a view's focal length comes from the field-of-view prior and nothing but the
   matches can tell it: not when the pose stage measured it on other evidence, ``TwoViewGeometry.focal_evidence``):
-  the pose is re-fitted with the focal ``focal_probe`` lower and higher; the rise of the median Sampson distance
+  the pose is re-fitted with the focal ``FOCAL_PROBE`` lower and higher; the rise of the median Sampson distance
   at the better of the two and the rotation's swing between them give the rotation change over the focal change
-  the matches cannot reject (a rise of ``focal_tolerance``, growing quadratically, at most ``focal_max_change``);
-  a second minimum at ``focal_scan`` counts with its whole swing. The fits use the filtered matches the pose was
+  the matches cannot reject (a rise of ``FOCAL_TOLERANCE``, growing quadratically, at most ``FOCAL_MAX_CHANGE``);
+  a second minimum at ``FOCAL_SCAN`` counts with its whole swing. The fits use the filtered matches the pose was
   first estimated from (``evidence``), not the guided ones, which agree with the pose they were guided by.
-* ``parallax_to_rotation``: the median parallax over the rotation angle, checked above ``parallax_check_above_deg``.
+* ``parallax_to_rotation``: the median parallax over the rotation angle, checked above ``PARALLAX_CHECK_ABOVE_DEG``.
 * ``spread``: the share of each photo that the verified matches' convex hull covers (the smaller), reported.
 
 Each check gives a score in [0, 1] that is 0.5 at its threshold (``x² / (x² + thr²)`` for a lower bound, the
@@ -34,13 +34,53 @@ import numpy as np
 
 from ...metrics import rotation_angle_deg, rotation_error_deg
 from ..types import Matches, TwoViewGeometry, View
-from .config import ConfidenceConfig, EvidenceConfig, PoseConfig
+from .config import PoseConfig
 from .evidence import PoseEvidence, pose_evidence
 from .geometry import fundamental_from_pose, hull_share, sampson_distance
 from .refit import refit_pose
 from .result import Doubt, PoseConfidence
 
 __all__ = ["acceptance_rule", "accept_pose", "assess_pose", "weigh_evidence"]
+
+MAX_REFIT_ROTATION_DEG = 1.0
+"""Largest rotation change (°) when the pose is re-fitted on its verified matches."""
+FOCAL_PROBE = 0.10
+"""Relative focal-length change at which the pose is re-fitted (both directions)."""
+FOCAL_SCAN = (0.8, 1.25)
+"""Further focal factors at which the pose is re-fitted: a second minimum of the fit there (a rise within
+:data:`FOCAL_TOLERANCE`) counts with its rotation swing."""
+FOCAL_TOLERANCE = 0.10
+"""Relative rise of the median Sampson distance that the matches are taken to reject."""
+FOCAL_MAX_CHANGE = 0.5
+"""The largest focal change considered (ordinary cameras, 40–90° across the long side, lie within ±50 % of the 60°
+prior)."""
+MAX_FOCAL_ROTATION_DEG = 4.0
+"""Largest rotation uncertainty (°) left by an unknown focal length."""
+MIN_PARALLAX_TO_ROTATION = 0.15
+"""Smallest median parallax / rotation angle of a pose rotating more than :data:`PARALLAX_CHECK_ABOVE_DEG` (a pan
+of more than 30° with as little parallax is what a homography's matches give)."""
+PARALLAX_CHECK_ABOVE_DEG = 30.0
+"""The parallax check applies above this rotation (°): a handheld pan at small angles has as little parallax and
+is right."""
+MAX_MATCHES = 1000
+"""The fits use at most this many verified matches (a fixed-seed random sample)."""
+EVIDENCE_BAND_PX = 2.0
+"""The matches of ``evidence`` within this Sampson distance (px) of the pose are the focal check's fit set."""
+MIN_EVIDENCE = 200
+"""Fewer such matches than this and the verified matches are the fit set instead (the median of fewer residuals
+is too noisy to see a 10 % rise)."""
+MIN_REFIT_MATCHES = 8
+"""The re-fit checks need at least this many verified matches (a fundamental matrix's eight)."""
+MIN_RISE = 1e-3
+"""The residual rise is floored at this before the plausible focal change is extrapolated from it (no rise at all
+would claim any focal length fits)."""
+MAX_LOG10_NFA = -3.0
+"""A pose is meaningful when its log10 NFA is below this: at most one false alarm in 1000 pairs of random matches
+(a stated rate, not a tuned threshold)."""
+MAX_ROTATION_3SIGMA_DEG = 2.0
+"""The largest three-sigma rotation uncertainty (°) of an accepted pose estimated from the matches: 5° let three
+poses 13–26° off through on the pose protocol's tuning split where 2° let the search go on to a tier that found
+the right one."""
 
 
 def _upper(x: float, thr: float) -> float:
@@ -58,18 +98,18 @@ def _lower(x: float, thr: float) -> float:
 
 
 def _fit_set(
-    g: TwoViewGeometry, evidence: Matches | None, cfg: ConfidenceConfig, xy0: np.ndarray, xy1: np.ndarray
+    g: TwoViewGeometry, evidence: Matches | None, xy0: np.ndarray, xy1: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The matches of ``evidence`` near the pose (at most ``max_matches``), or ``xy0, xy1`` when too few."""
-    if evidence is None or len(evidence) < cfg.min_evidence:
+    """The matches of ``evidence`` near the pose (at most :data:`MAX_MATCHES`), or ``xy0, xy1`` when too few."""
+    if evidence is None or len(evidence) < MIN_EVIDENCE:
         return xy0, xy1
     e0, e1 = evidence.xy0.astype(np.float64), evidence.xy1.astype(np.float64)
-    near = np.abs(sampson_distance(fundamental_from_pose(g.R, g.t, g.K0, g.K1), e0, e1)) < cfg.evidence_band_px
+    near = np.abs(sampson_distance(fundamental_from_pose(g.R, g.t, g.K0, g.K1), e0, e1)) < EVIDENCE_BAND_PX
     idx = np.flatnonzero(near)
-    if len(idx) < cfg.min_evidence:
+    if len(idx) < MIN_EVIDENCE:
         return xy0, xy1
-    if len(idx) > cfg.max_matches:
-        idx = np.sort(np.random.default_rng(0).choice(idx, cfg.max_matches, replace=False))
+    if len(idx) > MAX_MATCHES:
+        idx = np.sort(np.random.default_rng(0).choice(idx, MAX_MATCHES, replace=False))
     return e0[idx], e1[idx]
 
 
@@ -85,7 +125,7 @@ def _focal_times(K: np.ndarray, k: float, unknown: bool) -> np.ndarray:
 
 
 def _focal_uncertainty(
-    geometry: TwoViewGeometry, xy0: np.ndarray, xy1: np.ndarray, unknown: tuple[bool, bool], cfg: ConfidenceConfig
+    geometry: TwoViewGeometry, xy0: np.ndarray, xy1: np.ndarray, unknown: tuple[bool, bool]
 ) -> tuple[float, float, float]:
     """``(rotation uncertainty °, residual rise at the probe, focal change the matches cannot reject)`` of the
     pose re-fitted on the matches ``xy0, xy1`` [M, 2]."""
@@ -98,20 +138,20 @@ def _focal_uncertainty(
         fit = refit_pose(base.R, base.t, K0k, K1k, xy0, xy1)
         return float(np.median(np.abs(fit.residuals))) / r0 - 1.0, rotation_error_deg(fit.R, base.R)
 
-    near = [probe(1.0 - cfg.focal_probe), probe(1.0 + cfg.focal_probe)]
+    near = [probe(1.0 - FOCAL_PROBE), probe(1.0 + FOCAL_PROBE)]
     swing = max(m for _, m in near)
     rise = min(r for r, _ in near)
     scanned = 0.0
     # the swing grows about linearly with the focal change: when even the largest change considered leaves the
     # rotation within the threshold, no second minimum can matter (easy pairs stop here)
-    if swing * cfg.focal_max_change / cfg.focal_probe > cfg.max_focal_rotation_deg:
-        for k in cfg.focal_scan:
+    if swing * FOCAL_MAX_CHANGE / FOCAL_PROBE > MAX_FOCAL_ROTATION_DEG:
+        for k in FOCAL_SCAN:
             r_k, m_k = probe(k)
-            if r_k <= cfg.focal_tolerance:  # another focal length fits as well: its pose is as plausible
+            if r_k <= FOCAL_TOLERANCE:  # another focal length fits as well: its pose is as plausible
                 scanned = max(scanned, m_k)
     # the rise grows ~quadratically with the focal change: the change whose rise is the tolerance
-    plausible = min(cfg.focal_probe * math.sqrt(cfg.focal_tolerance / max(rise, cfg.min_rise)), cfg.focal_max_change)
-    return max(swing * plausible / cfg.focal_probe, scanned), rise, plausible
+    plausible = min(FOCAL_PROBE * math.sqrt(FOCAL_TOLERANCE / max(rise, MIN_RISE)), FOCAL_MAX_CHANGE)
+    return max(swing * plausible / FOCAL_PROBE, scanned), rise, plausible
 
 
 def _focal_unknown(v0: View, v1: View, geometry: TwoViewGeometry) -> tuple[bool, bool]:
@@ -122,37 +162,27 @@ def _focal_unknown(v0: View, v1: View, geometry: TwoViewGeometry) -> tuple[bool,
 
 
 def _spread_and_parallax(
-    v0: View, v1: View, g: TwoViewGeometry, cfg: ConfidenceConfig, checks: dict, scores: dict, doubts: list[Doubt]
+    v0: View, v1: View, g: TwoViewGeometry, checks: dict, scores: dict, doubts: list[Doubt]
 ) -> None:
-    """The spread and parallax checks (module docstring), into ``checks``, ``scores`` and ``doubts``."""
+    """The spread (reported) and the parallax check (module docstring), into ``checks``, ``scores`` and ``doubts``."""
     inl = g.inliers
     spread = min(hull_share(inl.xy0, v0.width, v0.height), hull_share(inl.xy1, v1.width, v1.height))
-    checks["spread"] = spread
-    if cfg.min_spread > 0:
-        scores["spread"] = _lower(spread, cfg.min_spread)
-        if spread < cfg.min_spread:
-            doubts.append(Doubt("spread", (
-                f"pose confidence low: the {len(inl)} verified matches cover only {100 * spread:.0f} % of a photo "
-                f"(need {100 * cfg.min_spread:.0f} %), too small a cluster to pin the pose down"
-            )))  # fmt: skip
+    checks["spread"] = spread  # reported, not checked
     rotation = rotation_angle_deg(g.R)
     parallax = g.median_parallax_deg
     if parallax is not None and math.isfinite(parallax) and rotation > 0:
         ratio = float(parallax) / rotation
         checks["parallax_to_rotation"] = ratio
-        if rotation > cfg.parallax_check_above_deg:
-            scores["parallax"] = _lower(ratio, cfg.min_parallax_to_rotation)
-            if ratio < cfg.min_parallax_to_rotation:
+        if rotation > PARALLAX_CHECK_ABOVE_DEG:
+            scores["parallax"] = _lower(ratio, MIN_PARALLAX_TO_ROTATION)
+            if ratio < MIN_PARALLAX_TO_ROTATION:
                 doubts.append(Doubt("parallax", (
                     f"pose confidence low: the pose is mostly rotation ({rotation:.0f}°) with little parallax "
                     f"({float(parallax):.1f}°), what matches on repeated texture or one plane produce"
                 )))  # fmt: skip
 
 
-def assess_pose(
-    v0: View, v1: View, geometry: TwoViewGeometry, config: ConfidenceConfig | None = None, *,
-    evidence: Matches | None = None,
-) -> PoseConfidence:  # fmt: skip
+def assess_pose(v0: View, v1: View, geometry: TwoViewGeometry, *, evidence: Matches | None = None) -> PoseConfidence:
     """How far the relative pose ``geometry`` can be trusted (module docstring).
 
     Args:
@@ -161,40 +191,39 @@ def assess_pose(
             unless the pose stage measured it on other evidence (``geometry.focal_evidence``).
         geometry: the final pose and its verified matches.
         evidence: the filtered matches the pose was first estimated from, before any matching guided by the pose;
-            the focal check fits on those within ``evidence_band_px`` of the pose. None: on the verified matches.
+            the focal check fits on those within :data:`EVIDENCE_BAND_PX` of the pose. None: on the verified matches.
 
     Returns:
         :class:`PoseConfidence`; its doubts are one user-facing line each.
     """
-    cfg = config or ConfidenceConfig()
     t0 = time.perf_counter()
     g = geometry
     checks: dict[str, float] = {}
     scores: dict[str, float] = {}
     doubts: list[Doubt] = []
-    _spread_and_parallax(v0, v1, g, cfg, checks, scores, doubts)
+    _spread_and_parallax(v0, v1, g, checks, scores, doubts)
     inl = g.inliers
     n = len(inl)
-    if n >= cfg.min_refit_matches:
+    if n >= MIN_REFIT_MATCHES:
         keep = np.arange(n)
-        if n > cfg.max_matches:
-            keep = np.sort(np.random.default_rng(0).choice(n, cfg.max_matches, replace=False))
+        if n > MAX_MATCHES:
+            keep = np.sort(np.random.default_rng(0).choice(n, MAX_MATCHES, replace=False))
         xy0, xy1 = inl.xy0[keep].astype(np.float64), inl.xy1[keep].astype(np.float64)
         moved = rotation_error_deg(refit_pose(g.R, g.t, g.K0, g.K1, xy0, xy1).R, g.R)
         checks["refit_rotation_deg"] = moved
-        scores["refit"] = _upper(moved, cfg.max_refit_rotation_deg)
-        if moved > cfg.max_refit_rotation_deg:
+        scores["refit"] = _upper(moved, MAX_REFIT_ROTATION_DEG)
+        if moved > MAX_REFIT_ROTATION_DEG:
             doubts.append(Doubt("refit", (
                 f"pose confidence low: re-fitted on its own {n} verified matches the rotation moves by {moved:.1f}°"
             )))  # fmt: skip
         unknown = _focal_unknown(v0, v1, g)
         if any(unknown):
-            f0, f1 = _fit_set(g, evidence, cfg, xy0, xy1)
+            f0, f1 = _fit_set(g, evidence, xy0, xy1)
             checks["focal_fit_matches"] = len(f0)
-            u, rise, plausible = _focal_uncertainty(g, f0, f1, unknown, cfg)
+            u, rise, plausible = _focal_uncertainty(g, f0, f1, unknown)
             checks.update(focal_rotation_deg=u, focal_residual_rise=rise, focal_plausible_change=plausible)
-            scores["focal"] = _upper(u, cfg.max_focal_rotation_deg)
-            if u > cfg.max_focal_rotation_deg:
+            scores["focal"] = _upper(u, MAX_FOCAL_ROTATION_DEG)
+            if u > MAX_FOCAL_ROTATION_DEG:
                 doubts.append(Doubt("focal", (
                     f"pose confidence low: the matches do not pin down the focal length (±{100 * plausible:.0f} % "
                     f"fits them about as well), and within that range the rotation changes by up to {u:.0f}°; "
@@ -206,24 +235,22 @@ def assess_pose(
                           seconds=time.perf_counter() - t0)  # fmt: skip
 
 
-def _evidence_doubts(
-    e: PoseEvidence, cfg: EvidenceConfig, scores: dict[str, float], *, from_matches: bool
-) -> list[Doubt]:
+def _evidence_doubts(e: PoseEvidence, scores: dict[str, float], *, from_matches: bool) -> list[Doubt]:
     """The a contrario test and, for a pose estimated ``from_matches``, the uncertainty (:mod:`.evidence`) as
     doubts, their scores into ``scores``. A pose from a point map (PnP on thousands of points) is not the matches'
     estimate: their uncertainty is reported, not checked."""
     doubts = []
-    scores["nfa"] = _lower(max(-e.log10_nfa, 0.0), -cfg.max_log10_nfa) if math.isfinite(e.log10_nfa) else 0.0
-    if not e.log10_nfa < cfg.max_log10_nfa:
+    scores["nfa"] = _lower(max(-e.log10_nfa, 0.0), -MAX_LOG10_NFA) if math.isfinite(e.log10_nfa) else 0.0
+    if not e.log10_nfa < MAX_LOG10_NFA:
         doubts.append(Doubt("evidence", (
             f"pose confidence low: the {e.putative} matches found before the pose do not single it out (log10 NFA "
-            f"{e.log10_nfa:.1f}, need below {cfg.max_log10_nfa:g}: random matches would agree with some pose as well)"
+            f"{e.log10_nfa:.1f}, need below {MAX_LOG10_NFA:g}: random matches would agree with some pose as well)"
         )))  # fmt: skip
     three_sigma = 3.0 * e.rotation_sigma_deg
     if not from_matches:
         return doubts
-    scores["uncertainty"] = _upper(three_sigma, cfg.max_rotation_3sigma_deg)
-    if not three_sigma < cfg.max_rotation_3sigma_deg:
+    scores["uncertainty"] = _upper(three_sigma, MAX_ROTATION_3SIGMA_DEG)
+    if not three_sigma < MAX_ROTATION_3SIGMA_DEG:
         focal = "; the focal length is free" if e.focal_free else ""
         planar = (
             f"; {100 * e.plane_share:.0f} % of the {e.putative} matches lie on one plane" if e.planar else ""
@@ -231,7 +258,7 @@ def _evidence_doubts(
         doubts.append(Doubt("uncertainty", (
             f"pose confidence low: the {e.inliers} matches that support the pose cover {100 * e.coverage:.0f} % of the "
             f"photo and leave its rotation uncertain by ±{three_sigma:.1f}° (3σ{focal}{planar}); a pose needs "
-            f"±{cfg.max_rotation_3sigma_deg:g}°"
+            f"±{MAX_ROTATION_3SIGMA_DEG:g}°"
         )))  # fmt: skip
     return doubts
 
@@ -239,7 +266,7 @@ def _evidence_doubts(
 def _support_doubts(geometry: TwoViewGeometry, pose: PoseConfig) -> list[Doubt]:
     """The pose's support in the matches, as doubts: at least ``pose.min_inliers`` verified matches.
 
-    Not ``pose.min_inlier_ratio``: it was measured on SIFT matches verified within 1 px of their epipolar lines;
+    Not :data:`~.checks.MIN_INLIER_RATIO`: it was measured on SIFT matches verified within 1 px of their epipolar lines;
     the neural backend's grid-sampled matches verified against the point maps agree at lower ratios.
     """
     n = len(geometry.inliers)
@@ -252,7 +279,7 @@ def _support_doubts(geometry: TwoViewGeometry, pose: PoseConfig) -> list[Doubt]:
 
 
 def accept_pose(
-    v0: View, v1: View, geometry: TwoViewGeometry, pose: PoseConfig, config: ConfidenceConfig | None, *,
+    v0: View, v1: View, geometry: TwoViewGeometry, pose: PoseConfig, checks: bool, *,
     evidence: Matches | None = None,
 ) -> PoseConfidence:  # fmt: skip
     """The acceptance of a relative pose, for every backend: one place, one set of thresholds.
@@ -261,7 +288,8 @@ def accept_pose(
         v0, v1: the two views as loaded (a view with the prior's focal has an unknown focal length).
         geometry: the final pose, its verified matches and its ``doubts`` (the pose stage's own).
         pose: the minimum of support (``min_inliers``).
-        config: the checks of :func:`assess_pose`; None skips them (the support is still checked).
+        checks: run :func:`assess_pose` and :func:`weigh_evidence`; False skips them (the support is still
+            checked).
         evidence: as for :func:`assess_pose`.
 
     Returns:
@@ -275,14 +303,13 @@ def accept_pose(
     doubts = [Doubt("pose", str(d)) for d in geometry.doubts]
     support = _support_doubts(geometry, pose)
     doubts += support
-    if config is not None:
-        conf = assess_pose(v0, v1, geometry, config, evidence=evidence)
-        score, checks = conf.score, conf.checks
-        more: list[Doubt] = []
-        if config.evidence is not None:
-            found, more, scores = weigh_evidence(v0, v1, geometry, evidence, config.evidence)
-            checks.update(found.checks())
-            score = min(score, *scores.values())
+    measured: dict[str, float] = {}
+    if checks:
+        conf = assess_pose(v0, v1, geometry, evidence=evidence)
+        score, measured = conf.score, conf.checks
+        found, more, scores = weigh_evidence(v0, v1, geometry, evidence)
+        measured.update(found.checks())
+        score = min(score, *scores.values())
         # the order a refusal names them in: the a contrario test, the checks (the focal's advice first among its
         # causes), then the uncertainty they may explain
         seen = [d.message for d in doubts]
@@ -290,42 +317,37 @@ def accept_pose(
         doubts += [d for d in conf.doubts if d.message not in seen]
         doubts += [d for d in more if d.check != "evidence"]
     else:
-        score, checks = 1.0, {}
+        score = 1.0
     if support:
         score = 0.0
-    return PoseConfidence(score=float(score), ok=not doubts, doubts=doubts, checks=checks,
+    return PoseConfidence(score=float(score), ok=not doubts, doubts=doubts, checks=measured,
                           seconds=time.perf_counter() - t0, evidence=found,
-                          rule=acceptance_rule(pose, config))  # fmt: skip
+                          rule=acceptance_rule(pose, checks))  # fmt: skip
 
 
 def weigh_evidence(
-    v0: View, v1: View, geometry: TwoViewGeometry, putative: Matches | None, config: EvidenceConfig
+    v0: View, v1: View, geometry: TwoViewGeometry, putative: Matches | None
 ) -> tuple[PoseEvidence, list[Doubt], dict[str, float]]:
     """The evidence of the ``putative`` matches for ``geometry`` (:func:`~.evidence.pose_evidence`; the verified
     matches when None), its doubts and scores. ``v0, v1``: the views as loaded."""
     found = pose_evidence(
-        v0, v1, geometry, putative if putative is not None else geometry.inliers, _focal_unknown(v0, v1, geometry),
-        config,
-    )  # fmt: skip
+        v0, v1, geometry, putative if putative is not None else geometry.inliers, _focal_unknown(v0, v1, geometry)
+    )
     scores: dict[str, float] = {}
-    doubts = _evidence_doubts(found, config, scores, from_matches=geometry.source == "matches")
+    doubts = _evidence_doubts(found, scores, from_matches=geometry.source == "matches")
     return found, doubts, scores
 
 
-def acceptance_rule(pose: PoseConfig, config: ConfidenceConfig | None) -> str:
+def acceptance_rule(pose: PoseConfig, checks: bool) -> str:
     """The acceptance rule in words: what a pose must satisfy to be written without a doubt."""
     parts = ["no doubt from the pose stage", f"at least {pose.min_inliers} verified matches"]
-    if config is not None:
-        e = config.evidence
-        if e is not None:
-            parts += [
-                f"log10 NFA below {e.max_log10_nfa:g} on the tier's putative matches (gathered before the pose)",
-                f"rotation 3-sigma below {e.max_rotation_3sigma_deg:g} deg on them (a pose estimated from the matches)",
-            ]
+    if checks:
         parts += [
-            f"a refit on its verified matches moves the rotation less than {config.max_refit_rotation_deg:g} deg",
-            f"an unknown focal length leaves less than {config.max_focal_rotation_deg:g} deg of rotation uncertainty",
-            f"parallax over rotation at least {config.min_parallax_to_rotation:g} above "
-            f"{config.parallax_check_above_deg:g} deg of rotation",
+            f"log10 NFA below {MAX_LOG10_NFA:g} on the tier's putative matches (gathered before the pose)",
+            f"rotation 3-sigma below {MAX_ROTATION_3SIGMA_DEG:g} deg on them (a pose estimated from the matches)",
+            f"a refit on its verified matches moves the rotation less than {MAX_REFIT_ROTATION_DEG:g} deg",
+            f"an unknown focal length leaves less than {MAX_FOCAL_ROTATION_DEG:g} deg of rotation uncertainty",
+            f"parallax over rotation at least {MIN_PARALLAX_TO_ROTATION:g} above "
+            f"{PARALLAX_CHECK_ABOVE_DEG:g} deg of rotation",
         ]
     return "; ".join(parts)

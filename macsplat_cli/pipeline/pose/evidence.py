@@ -12,7 +12,7 @@ descriptor tier that produced it), never on matches guided by the pose, which ag
   that would do as well by chance among all those a minimal-sample search could test (``s`` matches per sample,
   ``N_out`` models per sample: 5 and 10 for the essential matrix, 7 and 3 when a focal length is estimated too).
   ``ε`` is chosen by the NFA itself (the residuals sorted, the ``k`` that minimises it), up to
-  ``max_threshold_px``. A pose is meaningful when ``NFA < 10^max_log10_nfa``: under the background model, fewer than
+  ``MAX_THRESHOLD_PX``. A pose is meaningful when ``NFA < 10^MAX_LOG10_NFA``: under the background model, fewer than
   that many accepted poses per pair are false alarms. Matches behind either camera never count as explained.
 * **Uncertainty**: the covariance of the pose's parameters (rotation 3, translation direction 2, and the log focal
   scale of views whose focal length only the matches can tell) from the Gauss–Newton Jacobian of the Sampson
@@ -35,12 +35,11 @@ import cv2
 import numpy as np
 
 from ..types import Matches, TwoViewGeometry, View
-from .config import EvidenceConfig
 from .geometry import epipolar_fit, fundamental_from_pose, homog, hull_share, sampson_distance
 from .refit import MAD_TO_STD, pose_jacobian
 from .robust import distinct_matches
 
-__all__ = ["EvidenceConfig", "PoseEvidence", "epipolar_nfa", "fundamental_residuals", "log10_nfa", "pose_evidence"]
+__all__ = ["PoseEvidence", "epipolar_nfa", "fundamental_residuals", "log10_nfa", "pose_evidence"]
 
 ESSENTIAL_SAMPLE = (5, 10)
 """The essential matrix's minimal sample and the most models one sample gives (the five-point solver)."""
@@ -48,6 +47,19 @@ FOCAL_SAMPLE = (7, 3)
 """With a focal length estimated as well: the fundamental matrix's (the seven-point solver), an upper bound."""
 HOMOGRAPHY_SAMPLE = (4, 1)
 """A homography's minimal sample and models per sample."""
+MIN_NOISE_PX = 0.1
+"""The residuals' noise level is at least this (px): keypoints are located to no better than a tenth of a pixel,
+and exact synthetic matches would otherwise claim an exact pose."""
+MAX_THRESHOLD_PX = 4.0
+"""A residual above this (px) is no agreement at any threshold: the NFA's adaptive threshold stays within a few
+pose-stage thresholds (at a larger one, the matches near the true epipolar lines agree with any nearby pose better
+than chance does)."""
+MAX_MATCHES = 2000
+"""The uncertainty uses at most this many of the NFA's inliers (a fixed-seed sample)."""
+GRIC_LAMBDA3 = 2.0
+"""GRIC's bound on a residual's cost, in units of its degrees of freedom (Torr's 2)."""
+HOMOGRAPHY_THRESHOLD_PX = 1.5
+"""The homography of the GRIC comparison is fitted by RANSAC with this threshold (px)."""
 
 
 @dataclass
@@ -60,7 +72,7 @@ class PoseEvidence:
         inliers: the matches within the NFA's threshold and in front of both cameras.
         threshold_px: the NFA's adaptive residual threshold (symmetric epipolar distance, px).
         coverage: the share of each photo that the inliers' convex hull covers (the smaller).
-        noise_px: the inliers' robust residual level (Sampson distance, px), floored at ``min_noise_px``.
+        noise_px: the inliers' robust residual level (Sampson distance, px), floored at ``MIN_NOISE_PX``.
         rotation_sigma_deg: the rotation's standard deviation (°; ``inf``: undetermined).
         translation_sigma_deg: the translation direction's standard deviation (°).
         focal_free: the log focal scale was a free parameter of the uncertainty.
@@ -173,37 +185,35 @@ def _epipolar_residuals(g: TwoViewGeometry, xy0: np.ndarray, xy1: np.ndarray) ->
 
 
 def epipolar_nfa(
-    v0: View, v1: View, geometry: TwoViewGeometry, xy0: np.ndarray, xy1: np.ndarray, unknown: tuple[bool, bool],
-    config: EvidenceConfig | None = None,
-) -> tuple[float, int, float, np.ndarray]:  # fmt: skip
+    v0: View, v1: View, geometry: TwoViewGeometry, xy0: np.ndarray, xy1: np.ndarray, unknown: tuple[bool, bool]
+) -> tuple[float, int, float, np.ndarray]:
     """The pose's smallest log10 NFA on the distinct putative matches ``xy0, xy1`` [M, 2] (module docstring).
 
     Returns:
         ``(log10 NFA, k, ε, residuals [M])``: as :func:`log10_nfa`, and each match's symmetric epipolar distance
-        (``inf``: behind a camera, or farther than ``max_threshold_px``).
+        (``inf``: behind a camera, or farther than :data:`MAX_THRESHOLD_PX`).
     """
-    cfg = config or EvidenceConfig()
     res = _epipolar_residuals(geometry, xy0, xy1) if len(xy0) else np.zeros(0)
-    res = np.where(res <= cfg.max_threshold_px, res, np.inf)
+    res = np.where(res <= MAX_THRESHOLD_PX, res, np.inf)
     sample = FOCAL_SAMPLE if any(unknown) else ESSENTIAL_SAMPLE
-    nfa, k, eps = log10_nfa(res, _line_alpha(v0, v1), 1, sample, min_residual=cfg.min_noise_px)
+    nfa, k, eps = log10_nfa(res, _line_alpha(v0, v1), 1, sample, min_residual=MIN_NOISE_PX)
     return nfa, k, eps, res
 
 
 # ============================================================================================== uncertainty
 def _uncertainty(
-    g: TwoViewGeometry, xy0: np.ndarray, xy1: np.ndarray, unknown: tuple[bool, bool], cfg: EvidenceConfig
+    g: TwoViewGeometry, xy0: np.ndarray, xy1: np.ndarray, unknown: tuple[bool, bool]
 ) -> tuple[float, float, float]:
     """``(noise px, rotation σ °, translation direction σ °)`` of the pose on the matches ``xy0, xy1`` [M, 2]."""
-    if len(xy0) > cfg.max_matches:
-        keep = np.sort(np.random.default_rng(0).choice(len(xy0), cfg.max_matches, replace=False))
+    if len(xy0) > MAX_MATCHES:
+        keep = np.sort(np.random.default_rng(0).choice(len(xy0), MAX_MATCHES, replace=False))
         xy0, xy1 = xy0[keep], xy1[keep]
     n_par = 6 if any(unknown) else 5
     if len(xy0) <= n_par:
         return math.nan, math.inf, math.inf
     J = pose_jacobian(g.R, g.t, g.K0, g.K1, xy0, xy1, unknown=unknown, n_par=n_par)
     r = np.abs(fundamental_residuals(g, xy0, xy1))
-    noise = max(MAD_TO_STD * float(np.median(r)), cfg.min_noise_px)
+    noise = max(MAD_TO_STD * float(np.median(r)), MIN_NOISE_PX)
     try:
         cov = noise**2 * np.linalg.inv(J.T @ J)
     except np.linalg.LinAlgError:
@@ -249,9 +259,8 @@ def _homography_residuals(xy0: np.ndarray, xy1: np.ndarray, threshold: float) ->
 
 # ============================================================================================== the whole
 def pose_evidence(
-    v0: View, v1: View, geometry: TwoViewGeometry, putative: Matches, unknown: tuple[bool, bool],
-    config: EvidenceConfig | None = None,
-) -> PoseEvidence:  # fmt: skip
+    v0: View, v1: View, geometry: TwoViewGeometry, putative: Matches, unknown: tuple[bool, bool]
+) -> PoseEvidence:
     """The a contrario test, uncertainty and GRIC of ``geometry`` on the ``putative`` matches (module docstring).
 
     Args:
@@ -261,33 +270,32 @@ def pose_evidence(
         unknown: which views' focal lengths only the matches can tell (a free parameter of the uncertainty; the
             NFA then counts the seven-point sample).
     """
-    cfg = config or EvidenceConfig()
     first, _ = distinct_matches(putative.xy0, putative.xy1)
     xy0 = putative.xy0[first].astype(np.float64)
     xy1 = putative.xy1[first].astype(np.float64)
     n = len(xy0)
-    nfa, k, eps, res = epipolar_nfa(v0, v1, geometry, xy0, xy1, unknown, cfg)
+    nfa, k, eps, res = epipolar_nfa(v0, v1, geometry, xy0, xy1, unknown)
     inl = res <= eps if k else np.zeros(n, bool)
     coverage = min(hull_share(xy0[inl], v0.width, v0.height), hull_share(xy1[inl], v1.width, v1.height))
-    noise, rot_sigma, t_sigma = _uncertainty(geometry, xy0[inl], xy1[inl], unknown, cfg)
+    noise, rot_sigma, t_sigma = _uncertainty(geometry, xy0[inl], xy1[inl], unknown)
     # GRIC on the putative matches, at the inliers' noise level
-    sigma = noise if math.isfinite(noise) else cfg.min_noise_px
+    sigma = noise if math.isfinite(noise) else MIN_NOISE_PX
     e2_epi = fundamental_residuals(geometry, xy0, xy1) ** 2 if n else np.zeros(0)
     e2_epi = np.where(np.isfinite(res), e2_epi, np.inf)
-    e2_h = _homography_residuals(xy0, xy1, cfg.homography_threshold_px)
+    e2_h = _homography_residuals(xy0, xy1, HOMOGRAPHY_THRESHOLD_PX)
     k_epi = 7 if any(unknown) else 5
     if e2_h is None:
-        gric_e, gric_h, on_plane = _gric(e2_epi, sigma, 3, k_epi, cfg.gric_lambda3), math.inf, np.zeros(n, bool)
+        gric_e, gric_h, on_plane = _gric(e2_epi, sigma, 3, k_epi, GRIC_LAMBDA3), math.inf, np.zeros(n, bool)
     else:
         # on the matches either model explains: one neither explains costs each model its cap, which differs by
         # model dimension and would favour the epipolar model by the outlier count alone
-        either = (e2_epi / sigma**2 < cfg.gric_lambda3 * (4 - 3)) | (e2_h / sigma**2 < cfg.gric_lambda3 * (4 - 2))
-        gric_e = _gric(e2_epi[either], sigma, 3, k_epi, cfg.gric_lambda3)
-        gric_h = _gric(e2_h[either], sigma, 2, 8, cfg.gric_lambda3)
-        on_plane = e2_h <= (cfg.homography_threshold_px**2) / 2.0
+        either = (e2_epi / sigma**2 < GRIC_LAMBDA3 * (4 - 3)) | (e2_h / sigma**2 < GRIC_LAMBDA3 * (4 - 2))
+        gric_e = _gric(e2_epi[either], sigma, 3, k_epi, GRIC_LAMBDA3)
+        gric_h = _gric(e2_h[either], sigma, 2, 8, GRIC_LAMBDA3)
+        on_plane = e2_h <= (HOMOGRAPHY_THRESHOLD_PX**2) / 2.0
     off = ~on_plane
     sample = FOCAL_SAMPLE if any(unknown) else ESSENTIAL_SAMPLE
-    off_nfa, _, _ = log10_nfa(res[off], _line_alpha(v0, v1), 1, sample, min_residual=cfg.min_noise_px)
+    off_nfa, _, _ = log10_nfa(res[off], _line_alpha(v0, v1), 1, sample, min_residual=MIN_NOISE_PX)
     return PoseEvidence(
         putative=n, log10_nfa=nfa, inliers=int(inl.sum()), threshold_px=eps, coverage=coverage, noise_px=noise,
         rotation_sigma_deg=rot_sigma, translation_sigma_deg=t_sigma, focal_free=any(unknown), gric_epipolar=gric_e,

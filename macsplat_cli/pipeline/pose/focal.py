@@ -3,8 +3,8 @@
 A fundamental matrix is fitted first (it needs no intrinsics); the focal scale that makes ``K1ᵀ F K0`` closest
 to an essential matrix initialises it (Mendonça–Cipolla), and the refit (:mod:`.refit`) refines it with the pose
 under a log-normal prior. The estimate replaces the prior only if the matches pin it down: its data-only standard
-deviation is below ``focal_max_std`` and that std times the rotation's sensitivity to the focal is below
-``focal_max_rotation_deg``. Object-centric pairs (both optical axes through one point at equal distances, Sturm's
+deviation is below ``FOCAL_MAX_STD`` and that std times the rotation's sensitivity to the focal is below
+``FOCAL_MAX_ROTATION_DEG``. Object-centric pairs (both optical axes through one point at equal distances, Sturm's
 critical configuration) are the classic case where they do not; then the prior is kept and, when the pose depends
 on the focal, a doubt is recorded. Measured: benchmarks/history/pose.md.
 """
@@ -20,6 +20,7 @@ import numpy as np
 from ...camera_math import scale_focal
 from ...metrics import rotation_angle_deg
 from .config import PoseConfig
+from .diagnostics import PoseDiagnostics
 from .refit import POSE_LM, SENSITIVITY_LM, FocalFit, Refit, refit_pose
 from .robust import essential_pose, find_fundamental
 
@@ -36,14 +37,38 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
+FOCAL_PRIOR_SIGMA = 0.5
+"""Std of the log focal prior (0.5 ≈ ×/÷ 1.65)."""
+FOCAL_MAX_STD = 0.05
+"""Largest data-only std of the log focal for the estimate to be used (computed with the residuals' robust noise
+level, 1.4826·MAD)."""
+FOCAL_MAX_ROTATION_DEG = 0.25
+"""The self-calibrated focal is used only if its data-only std times the rotation's sensitivity to the focal stays
+below this (°); else the prior is kept and, when the prior's std times that sensitivity exceeds it too, a doubt is
+recorded."""
+FOCAL_SEARCH_RANGE = (0.4, 2.5)
+"""The focal factors over which the essential-matrix defect is searched (ordinary cameras, 20–120° across the long
+side, lie within it around the 60° prior)."""
+FOCAL_SEARCH_STEPS = 121
+"""Grid points of that search (log-spaced: 0.8 % apart)."""
+FOCAL_NOISE_FLOOR_PX = 0.02
+"""The residuals' noise level used for the focal's data-only std is at least this (px): exact synthetic matches
+would claim a perfect focal."""
+FOCAL_SENSITIVITY_STEP = 0.1
+"""The log-focal step (±) at which the rotation's sensitivity to the focal is measured."""
+OBJECT_AXES_GAP = 0.1
+"""The doubt names an object-centric pair when the optical axes pass within this many baselines of each other..."""
+OBJECT_AXES_ASYMMETRY = 0.3
+"""...and their closest points' distances from the two cameras differ by less than this many baselines."""
+
 
 def focal_search(
     F: np.ndarray, K0: np.ndarray, K1: np.ndarray, unknown: tuple[bool, bool], cfg: PoseConfig
 ) -> tuple[float, float]:
     """Focal log-scale ``s`` minimising the essential-matrix defect (σ1 − σ2)/σ1 of Kᵀ F K, on a log grid over
-    ``focal_search_range``. Returns ``(s, defect)``."""
-    lo, hi = cfg.focal_search_range
-    grid = np.linspace(math.log(lo), math.log(hi), cfg.focal_search_steps)
+    ``FOCAL_SEARCH_RANGE``. Returns ``(s, defect)``."""
+    lo, hi = FOCAL_SEARCH_RANGE
+    grid = np.linspace(math.log(lo), math.log(hi), FOCAL_SEARCH_STEPS)
     costs = []
     for s in grid:
         K0s = scale_focal(K0, s) if unknown[0] else K0
@@ -56,17 +81,17 @@ def focal_search(
 
 
 def initial_focal(
-    xy0: np.ndarray, xy1: np.ndarray, K0: np.ndarray, K1: np.ndarray, unknown: tuple[bool, bool], info: dict,
+    xy0: np.ndarray, xy1: np.ndarray, K0: np.ndarray, K1: np.ndarray, unknown: tuple[bool, bool], diag: PoseDiagnostics,
     cfg: PoseConfig,
 ) -> float | None:  # fmt: skip
-    """The starting log focal scale from a fundamental matrix of the matches (recorded in ``info``), or None when
+    """The starting log focal scale from a fundamental matrix of the matches (recorded in ``diag``), or None when
     no fundamental matrix with ``min_inliers`` inliers fits (the focal is then not estimated)."""
     F, fmask = find_fundamental(xy0, xy1, cfg)
     if F is None or F.shape != (3, 3) or fmask is None or int(fmask.sum()) < cfg.min_inliers:
         return None
     s, defect = focal_search(F, K0, K1, unknown, cfg)
-    info["focal_search_scale"] = math.exp(s)
-    info["focal_search_defect"] = defect
+    diag.focal_search_scale = math.exp(s)
+    diag.focal_search_defect = defect
     return s
 
 
@@ -77,7 +102,7 @@ def focal_rotation_sensitivity(
     """Degrees the refined rotation moves per unit of log focal: the pose refitted with the focal scaled by
     ``exp(±focal_sensitivity_step)``. About the angle between the views for cameras that look at one point (an
     orbit), ~0 for a sideways translation without rotation (a rectified stereo pair), whose pose no focal changes."""
-    step = cfg.focal_sensitivity_step
+    step = FOCAL_SENSITIVITY_STEP
     moves = []
     for ds in (-step, step):
         fit = refit_pose(
@@ -117,7 +142,7 @@ focal to the bundle adjustment of more photos)."""
 
 
 def _focal_doubt(axes: dict[str, float], cfg: PoseConfig) -> str:
-    looking = axes["focal_axes_gap"] < cfg.object_axes_gap and axes["focal_axes_asymmetry"] < cfg.object_axes_asymmetry
+    looking = axes["focal_axes_gap"] < OBJECT_AXES_GAP and axes["focal_axes_asymmetry"] < OBJECT_AXES_ASYMMETRY
     why = " (both cameras look at the same point, as when photographing an object)" if looking else ""
     return (
         f"{FOCAL_DOUBT_START} from these two photos{why}, and the pose depends on it: "
@@ -137,34 +162,36 @@ class FocalOutcome:
 
 def settle_focal(
     fit: Refit, xy0: np.ndarray, xy1: np.ndarray, K0: np.ndarray, K1: np.ndarray, unknown: tuple[bool, bool],
-    info: dict, cfg: PoseConfig,
+    diag: PoseDiagnostics, cfg: PoseConfig,
 ) -> FocalOutcome:  # fmt: skip
     """Keep the focal that the refit ``fit`` estimated with the pose on the verified matches ``xy0, xy1`` [M, 2],
     or the prior's.
 
-    The estimate is kept when its data-only std is at most ``focal_max_std`` and the rotation uncertainty it leaves
-    (the std times the rotation's sensitivity to the focal) at most ``focal_max_rotation_deg``; otherwise a doubt is
+    The estimate is kept when its data-only std is at most ``FOCAL_MAX_STD`` and the rotation uncertainty it leaves
+    (the std times the rotation's sensitivity to the focal) at most ``FOCAL_MAX_ROTATION_DEG``; otherwise a doubt is
     raised when the prior's std (or the estimate's) times that sensitivity exceeds the limit. The measurements go
-    to ``info``.
+    to ``diag``.
     """
     R, t, s_new, std_s = fit.R, fit.t, fit.log_focal, fit.log_focal_std
     if fit.noise_px is not None:
-        info["focal_noise_px"] = fit.noise_px
-    info["focal_data_std"] = std_s
-    info["focal_scale_fitted"] = math.exp(s_new)
-    determined = std_s <= cfg.focal_max_std
+        diag.focal_noise_px = fit.noise_px
+    diag.focal_data_std = std_s
+    diag.focal_scale_fitted = math.exp(s_new)
+    determined = std_s <= FOCAL_MAX_STD
     # how far the rotation moves per unit of log focal, times how uncertain the focal is: the rotation error the
     # unknown focal may cause
     s_at = s_new if determined else 0.0
     sens = focal_rotation_sensitivity(R, t, s_at, xy0, xy1, K0, K1, unknown, cfg)
-    spread = sens * (std_s if determined else cfg.focal_prior_sigma)
+    spread = sens * (std_s if determined else FOCAL_PRIOR_SIGMA)
     axes = axes_geometry(R, t)
-    info.update(focal_rotation_sensitivity_deg=sens, focal_rotation_uncertainty_deg=spread, **axes)
-    observable = determined and spread <= cfg.focal_max_rotation_deg
-    info["focal_observable"] = observable
-    doubts = [_focal_doubt(axes, cfg)] if not observable and spread > cfg.focal_max_rotation_deg else []
+    diag.focal_rotation_sensitivity_deg, diag.focal_rotation_uncertainty_deg = sens, spread
+    diag.focal_axes_gap, diag.focal_axes_asymmetry = axes["focal_axes_gap"], axes["focal_axes_asymmetry"]
+    diag.focal_axes_angle_deg = axes["focal_axes_angle_deg"]
+    observable = determined and spread <= FOCAL_MAX_ROTATION_DEG
+    diag.focal_observable = observable
+    doubts = [_focal_doubt(axes, cfg)] if not observable and spread > FOCAL_MAX_ROTATION_DEG else []
     if observable:
-        info["focal_scale"] = math.exp(s_new)
+        diag.focal_scale = math.exp(s_new)
         return FocalOutcome(True, s_new, doubts)
     logger.debug(
         "focal not determined by the matches (std %.3f, rotation uncertainty %.2f°); keeping the prior", std_s, spread
@@ -185,4 +212,4 @@ def refine_at_prior(
 
 def focal_fit(cfg: PoseConfig) -> FocalFit:
     """The refit's focal prior of ``cfg``."""
-    return FocalFit(cfg.focal_prior_sigma, cfg.focal_noise_floor_px)
+    return FocalFit(FOCAL_PRIOR_SIGMA, FOCAL_NOISE_FLOOR_PX)

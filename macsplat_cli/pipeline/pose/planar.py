@@ -1,10 +1,10 @@
 """The pose of a planar scene (issue 14): a plane seen from two views fits two relative poses.
 
-When a homography explains ``planar_fraction`` of the verified matches, the essential matrix's pose and the poses
-of the homography's decomposition compete: those that explain as many verified matches contend, and all the
-matches decide — the verified ones and those below the confidence gate (``Matches.below_gate``): a pose wins with
-matches it explains (in front of both cameras) that the other refutes (behind a camera: the plane's wrong pose often
-puts part of it there; or far off its epipolar lines: points off the plane). Tied evidence is refused.
+When a homography explains :data:`~.essential.PLANAR_FRACTION` of the verified matches, the essential matrix's pose
+and the poses of the homography's decomposition compete: those that explain as many verified matches contend, and
+all the matches decide — the verified ones and those below the confidence gate (``Matches.below_gate``): a pose wins
+with matches it explains (in front of both cameras) that the other refutes (behind a camera: the plane's wrong pose
+often puts part of it there; or far off its epipolar lines: points off the plane). Tied evidence is refused.
 """
 
 from __future__ import annotations
@@ -18,16 +18,29 @@ from ...camera_math import scale_focal
 from ...errors import ReconstructionError
 from ...metrics import angle_between_deg, rotation_angle_deg
 from ..types import Matches
-from .config import PoseConfig
+from .config import SAME_POSE_DEG, PoseConfig
+from .diagnostics import PoseDiagnostics
 from .geometry import MIN_TRANSLATION, decompose_homography, epipolar_fit, homog, parallax_deg, same_pose, support
 from .refit import POSE_LM, refit_pose
-from .robust import find_homography
 
-__all__ = ["PlanarVerdict", "ambiguous", "planar_check", "planar_pose", "resolve_planar"]
+__all__ = ["PlanarVerdict", "ambiguous", "planar_pose", "resolve_planar"]
 
 DIRECTION_WEIGHT = 3
 """In ``planar_agreement_deg`` a translation-direction difference counts a third of a rotation difference (the
 direction of a short baseline is the less determined)."""
+SAME_SOLUTION_DEG = (2.0, 10.0)
+"""Two poses within this (rotation, translation direction, °) are one solution found twice (a decomposition and
+the essential matrix's pose, or a refit sliding along a plane's valley): no ambiguity between them."""
+PLANAR_CONTEND = 0.8
+"""A plane's pose that explains at least this fraction of the best one's verified matches contends: it must be
+beaten by evidence, not by a count a few matches short."""
+PLANAR_MIN_EVIDENCE = 8
+"""Fewest matches that the winning pose must explain and each rival refute."""
+PLANAR_EVIDENCE_RATIO = 3.0
+"""How many times the converse count (explained by the rival, refuted by the winner) those must be."""
+PLANAR_REFUTE_FACTOR = 3.0
+"""A pose refutes a match behind one of its cameras or farther than this many ``threshold_px`` from its epipolar
+geometry (the band between explained and refuted is no evidence)."""
 
 
 def ambiguous(n_final: int, rival: int, evidence: tuple[int, int] | None = None) -> ReconstructionError:
@@ -40,8 +53,8 @@ def ambiguous(n_final: int, rival: int, evidence: tuple[int, int] | None = None)
 
 
 def _candidates(
-    R: np.ndarray, t: np.ndarray, H: np.ndarray, s: float, K0: np.ndarray, K1: np.ndarray, unknown: tuple[bool, bool],
-    xy0: np.ndarray, xy1: np.ndarray, cfg: PoseConfig,
+    R: np.ndarray, t: np.ndarray, H: np.ndarray, *, s: float, K0: np.ndarray, K1: np.ndarray,
+    unknown: tuple[bool, bool], xy0: np.ndarray, xy1: np.ndarray, cfg: PoseConfig,
 ) -> tuple[list[tuple[np.ndarray, np.ndarray]], float]:  # fmt: skip
     """The essential matrix's pose ``(R, t)`` and the distinct poses of ``H``'s decomposition that explain
     ``min_inliers`` gated matches, each refined on those; and how far ``(R, t)`` is from the nearest decomposition
@@ -67,12 +80,12 @@ def _candidates(
                 Ri, ti, K0, K1, xy0[sup], xy1[sup], scale_px=cfg.threshold_px, schedule=POSE_LM, log_focal=s,
                 unknown=unknown,
             )  # fmt: skip
-            collapsed = any(same_pose(fit.R, fit.t, Rc, tc, cfg.same_pose_deg) for Rc, tc in candidates)
-            if not (collapsed and not any(same_pose(Ri, ti, Rc, tc, cfg.same_solution_deg) for Rc, tc in candidates)):
+            collapsed = any(same_pose(fit.R, fit.t, Rc, tc, SAME_POSE_DEG) for Rc, tc in candidates)
+            if not (collapsed and not any(same_pose(Ri, ti, Rc, tc, SAME_SOLUTION_DEG) for Rc, tc in candidates)):
                 Ri, ti = fit.R, fit.t
             # else: refined, a distinct decomposition slid onto another candidate (the planar valley: a plane with
             # little rotation fits a range of translations). It stays as it was, a rival the evidence must beat
-        if not any(same_pose(Ri, ti, Rc, tc, cfg.same_pose_deg) for Rc, tc in candidates):
+        if not any(same_pose(Ri, ti, Rc, tc, SAME_POSE_DEG) for Rc, tc in candidates):
             candidates.append((Ri, ti))
     return candidates, agreement
 
@@ -91,7 +104,7 @@ def _usable(
     usable: list[int] = []
     for k in sorted(range(len(candidates)), key=lambda k: -gated[k]):
         if parallax[k] >= cfg.min_parallax_deg and not any(
-            same_pose(*candidates[k], *candidates[j], cfg.same_solution_deg) for j in usable
+            same_pose(*candidates[k], *candidates[j], SAME_SOLUTION_DEG) for j in usable
         ):
             usable.append(k)
     return usable
@@ -109,12 +122,17 @@ def _all_matches(xy0: np.ndarray, xy1: np.ndarray, below_gate: Matches | None) -
 
 
 def planar_pose(
-    R: np.ndarray, t: np.ndarray, H: np.ndarray, s: float, K0: np.ndarray, K1: np.ndarray, unknown: tuple[bool, bool],
-    xy0: np.ndarray, xy1: np.ndarray, below_gate: Matches | None, info: dict, cfg: PoseConfig,
+    R: np.ndarray, t: np.ndarray, H: np.ndarray, *, log_focal: float, K0: np.ndarray, K1: np.ndarray,
+    unknown: tuple[bool, bool], xy0: np.ndarray, xy1: np.ndarray, below_gate: Matches | None, diag: PoseDiagnostics,
+    cfg: PoseConfig,
 ) -> tuple[np.ndarray, np.ndarray, bool]:  # fmt: skip
     """The relative pose of a pair whose matches ``xy0, xy1`` [M, 2] lie mostly on one plane (module docstring).
 
-    Candidates (:func:`_candidates`) that explain ``planar_contend`` of the best support on the gated matches
+    ``(R, t)`` is the essential matrix's pose, ``H`` [3, 3] the matches' dominant homography, ``log_focal`` the log
+    focal scale of the ``unknown`` views (intrinsics ``K0``, ``K1`` before it), ``below_gate`` the matches below the
+    confidence gate; the measurements go to ``diag``.
+
+    Candidates (:func:`_candidates`) that explain :data:`PLANAR_CONTEND` of the best support on the gated matches
     contend; when more than one does, all the matches (gated and ``below_gate``) decide (:func:`resolve_planar`).
 
     Returns:
@@ -123,41 +141,35 @@ def planar_pose(
     Raises:
         ReconstructionError: the contenders are tied on all the evidence.
     """
+    s = log_focal
     K0s = scale_focal(K0, s) if unknown[0] else K0
     K1s = scale_focal(K1, s) if unknown[1] else K1
     Ki0, Ki1 = np.linalg.inv(K0s), np.linalg.inv(K1s)
     x0n, x1n = homog(xy0) @ Ki0.T, homog(xy1) @ Ki1.T
-    candidates, agreement = _candidates(R, t, H, s, K0, K1, unknown, xy0, xy1, cfg)
+    candidates, agreement = _candidates(R, t, H, s=s, K0=K0, K1=K1, unknown=unknown, xy0=xy0, xy1=xy1, cfg=cfg)
     masks = [support(Rc, tc, K0s, K1s, xy0, xy1, cfg.threshold_px) for Rc, tc in candidates]
     gated = [int(m.sum()) for m in masks]
     usable = _usable(candidates, masks, gated, x0n, x1n, cfg)
-    info.update(
-        planar_candidates=len(candidates),
-        planar_gated_support=",".join(map(str, gated)),
-        planar_rival_inliers=max(gated[1:], default=0),
-        planar_agreement_deg=agreement,
-    )
+    diag.planar_candidates, diag.planar_gated_support = len(candidates), ",".join(map(str, gated))
+    diag.planar_rival_inliers, diag.planar_agreement_deg = max(gated[1:], default=0), agreement
     if not usable:
         return R, t, False
     top = max(gated[k] for k in usable)
-    contenders = [k for k in usable if gated[k] >= cfg.planar_contend * top]
+    contenders = [k for k in usable if gated[k] >= PLANAR_CONTEND * top]
     all0, all1 = xy0, xy1
     if len(contenders) > 1:
         all0, all1 = _all_matches(xy0, xy1, below_gate)
         verdict = resolve_planar([candidates[k] for k in contenders], K0s, K1s, all0, all1, cfg)
-        info.update(
-            planar_support=",".join(map(str, verdict.support)),
-            planar_evidence=verdict.exclusive[0],
-            planar_counter_evidence=verdict.exclusive[1],
-            planar_matches_scored=len(all0),
-        )
+        diag.planar_support = ",".join(map(str, verdict.support))
+        diag.planar_evidence, diag.planar_counter_evidence = verdict.exclusive
+        diag.planar_matches_scored = len(all0)
         if verdict.winner is None:
             ranked = sorted((gated[k] for k in contenders), reverse=True)
             raise ambiguous(ranked[0], ranked[1], verdict.exclusive)
         winner = contenders[verdict.winner]
     else:
         winner = contenders[0]
-    info["planar_resolved"] = "essential" if winner == 0 else "homography"
+    diag.planar_resolved = "essential" if winner == 0 else "homography"
     if winner == 0:
         return R, t, False
     R, t = candidates[winner]
@@ -196,8 +208,8 @@ def resolve_planar(
     camera). Each candidate is scored by the matches it explains with positive depth among ``xy0, xy1`` (all
     matches: the verified ones, the rest of the gated ones and those below the confidence gate). The best wins
     when, against every other candidate, the matches it explains (within ``threshold_px``, in front) and the
-    other refutes (behind a camera, or beyond ``planar_refute_factor · threshold_px``) number at least
-    ``planar_min_evidence`` and ``planar_evidence_ratio`` times the converse; else the candidates are tied.
+    other refutes (behind a camera, or beyond ``PLANAR_REFUTE_FACTOR · threshold_px``) number at least
+    :data:`PLANAR_MIN_EVIDENCE` and :data:`PLANAR_EVIDENCE_RATIO` times the converse; else the candidates are tied.
     Matches near the threshold of either count for neither: noise there is not evidence.
 
     Returns:
@@ -205,7 +217,7 @@ def resolve_planar(
     """
     fits = [epipolar_fit(R, t, K0, K1, xy0, xy1) for R, t in candidates]
     explained = [(d < cfg.threshold_px) & front for d, front in fits]
-    refuted = [(d > cfg.planar_refute_factor * cfg.threshold_px) | ~front for d, front in fits]
+    refuted = [(d > PLANAR_REFUTE_FACTOR * cfg.threshold_px) | ~front for d, front in fits]
     supports = [int(m.sum()) for m in explained]
     order = np.argsort(supports, kind="stable")[::-1]
     if len(candidates) < 2:
@@ -215,48 +227,8 @@ def resolve_planar(
     for k in order[1:]:
         a = int((explained[order[0]] & refuted[k]).sum())
         b = int((explained[k] & refuted[order[0]]).sum())
-        if worst is None or a - cfg.planar_evidence_ratio * b < worst[0] - cfg.planar_evidence_ratio * worst[1]:
+        if worst is None or a - PLANAR_EVIDENCE_RATIO * b < worst[0] - PLANAR_EVIDENCE_RATIO * worst[1]:
             worst = (a, b)
     assert worst is not None
-    won = worst[0] >= cfg.planar_min_evidence and worst[0] >= cfg.planar_evidence_ratio * worst[1]
+    won = worst[0] >= PLANAR_MIN_EVIDENCE and worst[0] >= PLANAR_EVIDENCE_RATIO * worst[1]
     return PlanarVerdict(int(order[0]) if won else None, supports, worst)
-
-
-def planar_check(
-    R: np.ndarray, t: np.ndarray, K0: np.ndarray, K1: np.ndarray, xy0: np.ndarray, xy1: np.ndarray, cfg: PoseConfig
-) -> tuple[int, int, float, list[tuple[np.ndarray, np.ndarray]]]:
-    """How the verified matches relate to their dominant plane (the check with ``planar_resolve`` off).
-
-    The homography is fitted robustly (MAGSAC++) to the verified matches: a least-squares fit through the few
-    off-plane matches missed the ambiguity of a wide pair whose matches lie almost all on one wall.
-
-    Returns:
-        ``(off_plane, rival, agreement_deg, rivals)``: matches off the plane's homography; the most matches
-        that a relative pose other than ``(R, t)`` among the homography's decompositions explains (a plane has
-        two physical ones); how far ``(R, t)`` is from the nearest decomposition (max of rotation and
-        translation-direction/3 differences, °); and those other poses ``(R, t)`` (unit ``t``), distinct from
-        each other, that explain at least one match.
-    """
-    H, hmask = find_homography(xy0, xy1, cfg.homography_factor * cfg.threshold_px, cfg.max_iters)
-    if H is None or hmask is None:
-        return len(xy0), 0, 0.0, []
-    off_plane = int(len(xy0) - hmask.sum())
-    Hn = np.linalg.inv(K1) @ H @ K0
-    Rs, ts = decompose_homography(Hn)
-    best, agreement = 0, math.inf
-    rivals: list[tuple[np.ndarray, np.ndarray]] = []
-    for Ri, ti in zip(Rs, ts):
-        ti = ti.ravel()
-        if np.linalg.norm(ti) < MIN_TRANSLATION:
-            continue
-        ti = ti / np.linalg.norm(ti)
-        dr = rotation_angle_deg(Ri @ R.T)
-        dt = float(angle_between_deg(ti, t))
-        agreement = min(agreement, max(dr, dt / DIRECTION_WEIGHT))
-        if dr < cfg.same_pose_deg[0] and dt < cfg.same_pose_deg[1]:
-            continue  # the same pose
-        n_ok = int(support(Ri, ti, K0, K1, xy0, xy1, cfg.threshold_px).sum())
-        best = max(best, n_ok)
-        if n_ok > 0 and not any(same_pose(Ri, ti, Rr, tr, cfg.same_pose_deg) for Rr, tr in rivals):
-            rivals.append((Ri, ti))
-    return off_plane, best, agreement, rivals

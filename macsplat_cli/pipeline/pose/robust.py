@@ -15,7 +15,7 @@ import numpy as np
 
 from ...camera_math import scale_focal
 from ...errors import ReconstructionError
-from .config import PoseConfig
+from .config import RANSAC_MAX_ITERS, PoseConfig
 from .geometry import cheirality, homog
 
 __all__ = [
@@ -30,6 +30,9 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
+
+RANSAC_CONFIDENCE = 0.99999
+"""RANSAC confidence of the essential and fundamental fits."""
 
 MIN_POINTS_ESSENTIAL = 5
 """Correspondences the five-point essential-matrix solver needs."""
@@ -109,7 +112,9 @@ def find_fundamental(xy0: np.ndarray, xy1: np.ndarray, cfg: PoseConfig) -> tuple
     """MAGSAC++ fundamental matrix of the matches [M, 2] (it needs no intrinsics): ([3, 3], inliers [M] bool), or
     (None, None)."""
     return robust_fit(
-        lambda a, b: cv2.findFundamentalMat(a, b, cv2.USAC_MAGSAC, cfg.threshold_px, cfg.confidence, cfg.max_iters),
+        lambda a, b: cv2.findFundamentalMat(
+            a, b, cv2.USAC_MAGSAC, cfg.threshold_px, RANSAC_CONFIDENCE, RANSAC_MAX_ITERS
+        ),
         xy0, xy1, MIN_POINTS_FUNDAMENTAL, "fundamental matrix",
     )  # fmt: skip
 
@@ -118,7 +123,8 @@ def _essential(x0v: np.ndarray, x1v: np.ndarray, f_v: float, cfg: PoseConfig) ->
     Kv = np.array([[f_v, 0.0, 0.0], [0.0, f_v, 0.0], [0.0, 0.0, 1.0]])
     E, inl = robust_fit(
         lambda a, b: cv2.findEssentialMat(
-            a, b, Kv, method=cv2.USAC_MAGSAC, prob=cfg.confidence, threshold=cfg.threshold_px, maxIters=cfg.max_iters
+            a, b, Kv, method=cv2.USAC_MAGSAC, prob=RANSAC_CONFIDENCE, threshold=cfg.threshold_px,
+            maxIters=RANSAC_MAX_ITERS,
         ),
         x0v, x1v, MIN_POINTS_ESSENTIAL, "essential matrix",
     )  # fmt: skip

@@ -7,7 +7,7 @@
    test and the uncertainty of :func:`~.confidence.weigh_evidence`) does not stop the search: the later tiers run,
    and the first whose pose their matches support replaces it. Last, the learned tier (ALIKED + LightGlue,
    :mod:`..learned`) when the SIFT tiers' pose still fails or is not supported; it competes the same way.
-2. Guided re-matching: with fewer than ``guided_below`` verified matches, every keypoint is matched again along
+2. Guided re-matching: with fewer than ``GUIDED_BELOW`` verified matches, every keypoint is matched again along
    the pose's epipolar lines and the pose re-estimated, kept if it verifies more and stays near. Guided matches
    refine a pose; they are never evidence for accepting it.
 3. Acceptance (:func:`~.confidence.accept_pose`): the pose stage's doubts, the support minimum, the checks, and the
@@ -32,7 +32,7 @@ from ..matching import guided_matches
 from ..slots import DescribeStage, MatchStage, PoseStage
 from ..types import Features, Matches, TwoViewGeometry, View
 from .confidence import accept_pose, weigh_evidence
-from .config import PoseConfig, PoseSearchConfig
+from .config import GUIDED_MAX_CHANGE_DEG, GUIDED_RATIO, PoseConfig, PoseSearchConfig
 from .geometry import fundamental_from_pose
 from .result import Doubt, PoseConfidence, PoseResult, Tier
 from .tiebreak import plane_tiebreak
@@ -43,6 +43,12 @@ if TYPE_CHECKING:
 __all__ = ["LOW_CONFIDENCE_HINT", "PoseSearch", "StageTimer", "calibrated_views"]
 
 logger = logging.getLogger(__name__)
+
+WIDE_MIN_INLIERS = 30
+"""The wide tier's pose needs this many verified matches (a handful at a wide baseline is a guess that guided
+matching would then "confirm")."""
+GUIDED_BELOW = 1000
+"""The guided re-matching is skipped when the first pose already has this many verified matches."""
 
 LOW_CONFIDENCE_HINT = "use --accept-low-confidence to write the scene anyway"
 """Appended to a refusal for low pose confidence."""
@@ -125,7 +131,7 @@ class PoseSearch:
         assert found.geometry is not None
         geometry, guided = self._guided(views, found.features, found.geometry, pair, timed)
         confidence = self._accept(views, geometry, found.matches, timed)
-        assessed = self.config.confidence is not None
+        assessed = self.config.confidence
         return PoseResult(
             geometry=geometry,
             views=calibrated_views(views, geometry),
@@ -211,10 +217,9 @@ class PoseSearch:
         is no pose, when the acceptance does not weigh evidence, and when the pose stage itself doubts the pose: its
         doubt (an unobservable focal length, a plane's ambiguity) is about the geometry, which another tier's
         matches do not change, and it refuses the pose anyway."""
-        cfg = self.config.confidence
-        if cfg is None or cfg.evidence is None or attempt.geometry is None or attempt.geometry.doubts:
+        if not self.config.confidence or attempt.geometry is None or attempt.geometry.doubts:
             return True
-        _, doubts, _ = weigh_evidence(views[0], views[1], attempt.geometry, attempt.matches, cfg.evidence)
+        _, doubts, _ = weigh_evidence(views[0], views[1], attempt.geometry, attempt.matches)
         return not doubts
 
     def _learned(self, views: list[View], pair: Any, timed: StageTimer, best: _Attempt) -> _Attempt:
@@ -237,10 +242,10 @@ class PoseSearch:
         assert self.wide is not None
         logger.debug("still too few verified matches: retrying with %s", self.wide.name)
         att = self._chain(views, pair, timed, self.wide, "wide", " (wide)")
-        if att.geometry is not None and len(att.geometry.inliers) < c.wide_min_inliers:
+        if att.geometry is not None and len(att.geometry.inliers) < WIDE_MIN_INLIERS:
             failure = ReconstructionError(
                 f"pose could not be estimated: {len(att.geometry.inliers)} verified matches, need at least "
-                f"{c.wide_min_inliers} at a wide baseline"
+                f"{WIDE_MIN_INLIERS} at a wide baseline"
             )
             att = dataclasses.replace(att, geometry=None, failure=failure)
         if att.geometry is not None or c.plane_tiebreak_margin is None:
@@ -260,7 +265,7 @@ class PoseSearch:
         """Epipolar-guided re-matching under the pose (module docstring, 2). Returns the pose kept and whether it
         is the guided one."""
         c = self.config
-        if c.guided_band_px is None or len(geometry.inliers) >= c.guided_below:
+        if c.guided_band_px is None or len(geometry.inliers) >= GUIDED_BELOW:
             return geometry, False
         if geometry.doubts:
             # matches picked within the band of a doubtful pose (e.g. one built on the prior's focal) agree with
@@ -269,7 +274,7 @@ class PoseSearch:
         band = c.guided_band_px
         F = fundamental_from_pose(geometry.R, geometry.t, geometry.K0, geometry.K1)
         guided = timed(
-            "matching (guided)", lambda: guided_matches(feats[0], feats[1], F, band_px=band, ratio=c.guided_ratio)
+            "matching (guided)", lambda: guided_matches(feats[0], feats[1], F, band_px=band, ratio=GUIDED_RATIO)
         )
         guided.counts = {**geometry.inliers.counts, **guided.counts}
         guided.counts.pop("verified", None)
@@ -277,8 +282,8 @@ class PoseSearch:
         if (
             refined is not None
             and len(refined.inliers) > len(geometry.inliers)
-            and rotation_error_deg(refined.R, geometry.R) <= c.guided_max_change_deg[0]
-            and translation_direction_error_deg(refined.t, geometry.t) <= c.guided_max_change_deg[1]
+            and rotation_error_deg(refined.R, geometry.R) <= GUIDED_MAX_CHANGE_DEG[0]
+            and translation_direction_error_deg(refined.t, geometry.t) <= GUIDED_MAX_CHANGE_DEG[1]
         ):
             return refined, True
         return geometry, False

@@ -14,7 +14,8 @@ import pytest
 
 from macsplat_cli.errors import ReconstructionError
 from macsplat_cli.pipeline.learned import LearnedConfig, LearnedTier
-from macsplat_cli.pipeline.pose import ConfidenceConfig, EvidenceConfig, PoseConfig, PoseSearch, PoseSearchConfig
+from macsplat_cli.pipeline.pose import PoseConfig, PoseSearch, PoseSearchConfig
+from macsplat_cli.pipeline.pose import confidence as acceptance
 from macsplat_cli.pipeline.types import Features, Matches, TwoViewGeometry, View
 
 W, H = 64, 48
@@ -70,8 +71,7 @@ class Pose:
 
 def _search(need: int, *, learned_n: int = 120, consistent: bool = False, evidence: bool = False,
             sift: tuple[int, int, int] = (20, 40, 60), **config: object) -> PoseSearch:  # fmt: skip
-    conf = ConfidenceConfig(evidence=EvidenceConfig(max_rotation_3sigma_deg=360.0)) if evidence else None
-    cfg = PoseSearchConfig(confidence=conf, guided_band_px=None, accept_low_confidence=True, **config)  # type: ignore[arg-type]
+    cfg = PoseSearchConfig(confidence=evidence, guided_band_px=None, accept_low_confidence=True, **config)  # type: ignore[arg-type]
     tier = LearnedTier(Describe("learned:stub", learned_n, consistent=consistent), Match("lightglue"), LearnedConfig())
     return PoseSearch(
         cfg, PoseConfig(), describe=Describe("primary", sift[0]), match=Match("filtered"), pose=Pose(need),
@@ -114,9 +114,12 @@ def test_when_the_learned_tier_fails_too_the_sift_failure_stands() -> None:
         _search(200, learned_n=150)(_views())
 
 
-def test_the_learned_pose_replaces_an_unsupported_sift_pose_only_when_its_matches_support_it() -> None:
+def test_the_learned_pose_replaces_an_unsupported_sift_pose_only_when_its_matches_support_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     """SIFT's random matches verify a pose they do not single out (the a contrario test fails): the learned tier
     runs; its consistent matches support its pose, which stands. Random learned matches do not replace it."""
+    monkeypatch.setattr(acceptance, "MAX_ROTATION_3SIGMA_DEG", 360.0)  # 64×48 photos: the uncertainty is not gated
     search = _search(10, consistent=True, evidence=True, sift=(200, 150, 100), fallback_min_inliers=10)
     result = search(_views())
     assert result.tier == "learned" and "evidence" not in {d.check for d in result.doubts}

@@ -102,7 +102,7 @@ def test_pnp_pose_on_exact_correspondences() -> None:
 
 
 def test_a_wrong_pair_outside_every_consistent_loop_does_not_start_the_registration() -> None:
-    from macsplat_cli.pipeline.multiview.register import RegisterConfig, _init_pair
+    from macsplat_cli.pipeline.multiview.register import _init_pair
 
     truth = [_rot([0, 1, 0], a) for a in (0.0, 10.0, 20.0, 30.0)]  # world → camera of four photos
     f = _features(3, 0)
@@ -115,17 +115,17 @@ def test_a_wrong_pair_outside_every_consistent_loop_does_not_start_the_registrat
 
     # (0, 2) is 14° off and has the most matches; (0, 1), (1, 3), (0, 3) close a loop
     outs = [pair(0, 2, 600, 14.0), pair(0, 1, 300), pair(1, 3, 200), pair(0, 3, 150), pair(2, 3, 100, 9.0)]
-    first = _init_pair(outs, RegisterConfig())
+    first = _init_pair(outs)
     assert (first.i, first.j) == (0, 1)
     # without a consistent loop, the most matches start it
-    assert (lambda o: (o.i, o.j))(_init_pair(outs[:1] + outs[4:], RegisterConfig())) == (0, 2)
+    assert (lambda o: (o.i, o.j))(_init_pair(outs[:1] + outs[4:])) == (0, 2)
 
 
 def test_free_space_check_drops_a_floater_and_keeps_the_surface() -> None:
     """Two cameras 0.5 apart facing a wall at z = 4: view 0's depth holds the wall and a block at z = 2 that view 1
     sees through (it sees the wall there) → dropped; the wall is confirmed by view 1 → kept; a pixel view 1 cannot
     see (outside its image) is kept: nobody sees through it."""
-    from macsplat_cli.pipeline.multiview.depth import DepthPlanConfig, free_space_check
+    from macsplat_cli.pipeline.multiview.depth import free_space_check
     from macsplat_cli.pipeline.types import DepthMap
 
     h, w = 60, 80
@@ -135,7 +135,7 @@ def test_free_space_check_drops_a_floater_and_keeps_the_surface() -> None:
     d0 = wall.copy()
     d0[25:35, 30:40] = 2.0  # the floater
     maps = [DepthMap(d0, np.ones((h, w), np.float32)), DepthMap(wall, np.ones((h, w), np.float32))]
-    out = free_space_check(0, maps, Ks, Rs, ts, [1], DepthPlanConfig())
+    out = free_space_check(0, maps, Ks, Rs, ts, [1])
     assert not out.valid[25:35, 30:40].any()
     assert out.valid[:, 20:].sum() == (h * (w - 20) - 100)  # every wall pixel view 1 sees is confirmed
     assert out.valid[:, :5].all()  # the wall's left edge: outside view 1's image (it moved right), kept

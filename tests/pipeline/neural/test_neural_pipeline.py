@@ -589,8 +589,7 @@ def test_fusion_auto_skips_dinov3_while_matches_verify_and_runs_it_on_demand(
         fast.pipeline.search.fallback_min_inliers = 0  # every pair verifies "enough": the fusion is never needed
         # ... and its pose stands (random weights give a pose that the matches do not single out: a doubted pose
         # tries the fallback tier too)
-        assert fast.pipeline.search.confidence is not None
-        fast.pipeline.search.confidence.evidence = None
+        fast.pipeline.search.confidence = False
         skip = build_pipeline(fast, Models(predictor=predictor))
         rec_skip = skip.run([scene.a, scene.b])
         assert len(calls) == 1  # DINOv3 did not run

@@ -25,13 +25,13 @@ from macsplat_cli.errors import ReconstructionError
 from macsplat_cli.metrics import rotation_error_deg
 from macsplat_cli.pipeline.pose import (
     LOW_CONFIDENCE_HINT,
-    ConfidenceConfig,
     PoseConfidence,
     PoseConfig,
     PoseSearchConfig,
     assess_pose,
     refit_pose,
 )
+from macsplat_cli.pipeline.pose.confidence import MIN_PARALLAX_TO_ROTATION
 from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig
 from macsplat_cli.pipeline.stages import EssentialPose
 from macsplat_cli.pipeline.types import Matches, TwoViewGeometry, View
@@ -152,7 +152,7 @@ def test_rotation_without_parallax_is_flagged() -> None:
     geometry.median_parallax_deg = 3.0
     conf = _assess(geometry, cam0, cam1)
     assert not conf.ok
-    assert conf.checks["parallax_to_rotation"] < ConfidenceConfig().min_parallax_to_rotation
+    assert conf.checks["parallax_to_rotation"] < MIN_PARALLAX_TO_ROTATION
     assert any("mostly rotation" in r for r in conf.reasons)
 
 

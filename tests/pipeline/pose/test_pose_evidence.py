@@ -14,8 +14,8 @@ import cv2
 import numpy as np
 import pytest
 
-from macsplat_cli.pipeline.pose import EvidenceConfig, PoseConfig
-from macsplat_cli.pipeline.pose.confidence import accept_pose, weigh_evidence
+from macsplat_cli.pipeline.pose import PoseConfig
+from macsplat_cli.pipeline.pose.confidence import MAX_LOG10_NFA, MAX_ROTATION_3SIGMA_DEG, accept_pose, weigh_evidence
 from macsplat_cli.pipeline.pose.evidence import epipolar_nfa, log10_nfa, pose_evidence
 from macsplat_cli.pipeline.types import Matches, TwoViewGeometry, View
 
@@ -80,10 +80,9 @@ def test_log10_nfa_is_the_formula_at_its_minimum() -> None:
 
 def test_random_matches_are_not_meaningful_at_the_stated_rate() -> None:
     """Under the background model (uniform independent matches) a pose is meaningful by chance at most
-    ``10^max_log10_nfa`` times per pair: 2,000 pairs of random matches against random poses give at most the
+    ``10^MAX_LOG10_NFA`` times per pair: 2,000 pairs of random matches against random poses give at most the
     2 false alarms that rate allows."""
     rng = np.random.default_rng(1)
-    cfg = EvidenceConfig()
     v = _view()
     trials, alarms = 2000, 0
     for _ in range(trials):
@@ -91,15 +90,15 @@ def test_random_matches_are_not_meaningful_at_the_stated_rate() -> None:
         m = Matches(rng.uniform((0, 0), (W, H), (n, 2)), rng.uniform((0, 0), (W, H), (n, 2)),
                     np.ones(n, np.float32), np.arange(n), np.arange(n))  # fmt: skip
         R = _rot(tuple(rng.normal(0.0, 20.0, 3)))
-        nfa, _, _, _ = epipolar_nfa(v, v, _geometry(R, rng.normal(size=3), m), m.xy0, m.xy1, (False, False), cfg)
-        alarms += nfa < cfg.max_log10_nfa
-    assert alarms <= trials * 10**cfg.max_log10_nfa
+        nfa, _, _, _ = epipolar_nfa(v, v, _geometry(R, rng.normal(size=3), m), m.xy0, m.xy1, (False, False))
+        alarms += nfa < MAX_LOG10_NFA
+    assert alarms <= trials * 10**MAX_LOG10_NFA
 
 
 # ------------------------------------------------------------------------------ right, wrong, unsupported poses
 def test_right_pose_is_supported_and_certain() -> None:
     m = _matches(400, rng=np.random.default_rng(2))
-    found, doubts, _ = weigh_evidence(_view(), _view(), _geometry(R_TRUE, T_TRUE, m), m, EvidenceConfig())
+    found, doubts, _ = weigh_evidence(_view(), _view(), _geometry(R_TRUE, T_TRUE, m), m)
     assert doubts == []
     assert found.log10_nfa < -100 and found.inliers >= 0.75 * 320
     assert found.rotation_sigma_deg < 0.2 and found.coverage > 0.4 and not found.planar
@@ -109,7 +108,7 @@ def test_pose_twenty_degrees_off_is_not_supported() -> None:
     """The same matches with the rotation 20° off: far fewer explained within a few px (NFA), a large noise."""
     m = _matches(400, rng=np.random.default_rng(3))
     wrong = _rot((0.0, 20.0, 0.0)) @ _rot((5.0, 18.0, 3.0))
-    found, doubts, _ = weigh_evidence(_view(), _view(), _geometry(wrong, T_TRUE, m), m, EvidenceConfig())
+    found, doubts, _ = weigh_evidence(_view(), _view(), _geometry(wrong, T_TRUE, m), m)
     assert {d.check for d in doubts} & {"evidence", "uncertainty"}, found
 
 
@@ -117,11 +116,11 @@ def test_small_cluster_leaves_the_rotation_uncertain() -> None:
     """16 exact-ish matches in a small patch: meaningful against random matches, but the rotation is not pinned
     down (the case of issue 25: 16 matches on 7 % of the photo, a pose 57° off)."""
     m = _matches(16, rng=np.random.default_rng(4), outliers=0.0, extent=0.25)
-    found, doubts, _ = weigh_evidence(_view(), _view(), _geometry(R_TRUE, T_TRUE, m), m, EvidenceConfig())
-    assert found.log10_nfa < EvidenceConfig().max_log10_nfa  # the NFA alone would accept it
+    found, doubts, _ = weigh_evidence(_view(), _view(), _geometry(R_TRUE, T_TRUE, m), m)
+    assert found.log10_nfa < MAX_LOG10_NFA  # the NFA alone would accept it
     assert [d.check for d in doubts] == ["uncertainty"]
     assert "cover" in doubts[0].message and "±" in doubts[0].message
-    assert 3 * found.rotation_sigma_deg > EvidenceConfig().max_rotation_3sigma_deg
+    assert 3 * found.rotation_sigma_deg > MAX_ROTATION_3SIGMA_DEG
 
 
 def test_unknown_focal_widens_the_uncertainty() -> None:
@@ -147,9 +146,9 @@ def test_point_map_pose_is_not_asked_for_the_matches_uncertainty() -> None:
     """A pose from a point map (PnP) is tested by the NFA of the matches; their uncertainty is reported only."""
     m = _matches(16, rng=np.random.default_rng(4), outliers=0.0, extent=0.25)
     found, doubts, _ = weigh_evidence(
-        _view(), _view(), _geometry(R_TRUE, T_TRUE, m, source="pointmap"), m, EvidenceConfig()
+        _view(), _view(), _geometry(R_TRUE, T_TRUE, m, source="pointmap"), m
     )  # fmt: skip
-    assert doubts == [] and 3 * found.rotation_sigma_deg > EvidenceConfig().max_rotation_3sigma_deg
+    assert doubts == [] and 3 * found.rotation_sigma_deg > MAX_ROTATION_3SIGMA_DEG
 
 
 def test_acceptance_weighs_the_putative_matches_not_the_verified_ones() -> None:
@@ -159,12 +158,10 @@ def test_acceptance_weighs_the_putative_matches_not_the_verified_ones() -> None:
     verified = _matches(400, rng=rng, outliers=0.0)
     putative = _matches(16, rng=rng, outliers=0.0, extent=0.25)
     g = _geometry(R_TRUE, T_TRUE, verified)
-    conf = accept_pose(_view(), _view(), g, PoseConfig(), None)
+    conf = accept_pose(_view(), _view(), g, PoseConfig(), False)
     assert conf.ok  # without the checks: the support minimum only
-    from macsplat_cli.pipeline.pose import ConfidenceConfig
-
-    conf = accept_pose(_view(), _view(), g, PoseConfig(), ConfidenceConfig(), evidence=putative)
+    conf = accept_pose(_view(), _view(), g, PoseConfig(), True, evidence=putative)
     assert [d.check for d in conf.doubts] == ["uncertainty"]
     assert conf.evidence is not None and conf.evidence.putative == 16 and "log10 NFA below -3" in conf.rule
-    conf = accept_pose(_view(), _view(), g, PoseConfig(), ConfidenceConfig(), evidence=verified)
+    conf = accept_pose(_view(), _view(), g, PoseConfig(), True, evidence=verified)
     assert conf.ok and conf.checks["log10_nfa"] < -100

@@ -9,6 +9,7 @@ and records a doubt instead of presenting a guess as an estimate.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -19,13 +20,12 @@ import pytest
 from macsplat_cli.datasets.synthetic.planar import PlanarMatches, planar_case
 from macsplat_cli.errors import ReconstructionError
 from macsplat_cli.metrics import rotation_error_deg, translation_direction_error_deg
-from macsplat_cli.pipeline.pose import PoseConfig, estimate_pose
+from macsplat_cli.pipeline.pose import PoseConfig, PoseDiagnostics, estimate_pose
 from macsplat_cli.pipeline.types import IntrinsicsSource, Matches, View
 from macsplat_cli.pipeline.views import prior_focal
 
 W, H = 320, 240
 K = np.array([[300.0, 0, W / 2], [0, 300.0, H / 2], [0, 0, 1]])
-OLD = PoseConfig(planar_resolve=False)  # the refusal before issue 14
 
 
 def _view(K_: np.ndarray = K, source: IntrinsicsSource = "file", width: int = W, height: int = H) -> View:
@@ -97,10 +97,8 @@ def _pose(m: Matches, config: PoseConfig | None = None, seed: int = 0, v: View |
 # ------------------------------------------------------------------------------------------------ planar scenes
 def test_a_pure_plane_resolved_by_cheirality() -> None:
     """A table seen obliquely: the plane's other pose puts part of it behind a camera, so it is resolved where
-    the old check refused it as ambiguous."""
+    the check before issue 14 refused it as ambiguous."""
     m, R, t = _table_pure_plane(0)
-    with pytest.raises(ReconstructionError, match="one plane"):
-        _pose(m, OLD)
     g = _pose(m)
     assert _right(g, R, t)
     assert g.diagnostics["planar_candidates"] >= 2 and len(g.inliers) >= 195
@@ -117,11 +115,9 @@ def test_a_tied_pure_plane_is_refused() -> None:
 @pytest.mark.parametrize("seed, off", [(8, 0.05), (23, 0.05), (9, 0.1)])
 def test_matches_below_the_gate_resolve_the_plane(seed: int, off: float) -> None:
     """A table-top with a few matches on objects, half of them below the confidence gate: without those the
-    plane's two poses tie (refused), with them the right one wins; the old check refused."""
+    plane's two poses tie (refused), with them the right one wins."""
     m, R, t = _random_plane_case(seed, off)
     assert m.below_gate is not None
-    with pytest.raises(ReconstructionError, match="one plane"):
-        _pose(m, OLD, seed)
     with pytest.raises(ReconstructionError, match="ambiguous"):
         _pose(_matches(m.xy0, m.xy1), None, seed)
     g = _pose(m, None, seed)
@@ -183,6 +179,24 @@ def test_an_object_orbit_keeps_the_prior_focal_with_a_doubt() -> None:
     assert "focal length cannot be determined" in doubts[0] and "--focal" in doubts[0]
     assert "look at the same point" in doubts[0]
     assert g.diagnostics["focal_axes_gap"] < 0.1
+
+
+def test_the_pose_diagnostics_are_one_typed_record_in_the_order_of_the_steps() -> None:
+    """The classical pose fills one :class:`PoseDiagnostics` (no free-form dict through its helpers); the report's
+    ``pose`` keys are the measured fields, in the order the steps measure them: the focal, the RANSAC, the plane,
+    the final inliers, the plausibility checks. A planar pair with the prior's focal runs every step."""
+    m, _, _ = _table_pure_plane(0)
+    g = _pose(m, v=_prior_view())
+    names = [f.name for f in dataclasses.fields(PoseDiagnostics)]
+    keys = list(g.diagnostics)
+    assert keys == [n for n in names if n in keys]
+    for step in ("ransac_inliers", "focal_data_std", "focal_observable", "planar_candidates", "inliers",
+                 "flipped_triangles", "homography_inliers"):  # fmt: skip
+        assert step in keys
+    assert PoseDiagnostics(inliers=3, planar_resolved="essential").as_dict() == {
+        "planar_resolved": "essential",
+        "inliers": 3,
+    }
 
 
 def test_a_general_pair_self_calibrates_without_a_doubt() -> None:

@@ -16,14 +16,13 @@ import pytest
 from macsplat_cli.errors import ReconstructionError
 from macsplat_cli.pipeline.pose import (
     LOW_CONFIDENCE_HINT,
-    ConfidenceConfig,
     Doubt,
-    EvidenceConfig,
     PoseConfig,
     PoseResult,
     PoseSearch,
     PoseSearchConfig,
 )
+from macsplat_cli.pipeline.pose import confidence as acceptance
 from macsplat_cli.pipeline.types import Features, Matches, TwoViewGeometry, View
 
 W, H = 64, 48
@@ -80,7 +79,7 @@ class Pose:
 
 
 def _search(pose: Pose, *, n: tuple[int, int, int] = (20, 40, 60), **config: object) -> PoseSearch:
-    cfg = PoseSearchConfig(confidence=None, guided_band_px=None, **config)  # type: ignore[arg-type]
+    cfg = PoseSearchConfig(confidence=False, guided_band_px=None, **config)  # type: ignore[arg-type]
     return PoseSearch(
         cfg, PoseConfig(), describe=Describe("primary", n[0]), match=match, pose=pose,
         fallback=Describe("fallback", n[1]), wide=Describe("wide", n[2]),
@@ -195,12 +194,12 @@ class Consistent(Describe):
         return [Features(xy, np.ones((self.n, 4), np.float32), np.ones(self.n, np.float32)) for xy in (xy0, xy1)]
 
 
-def test_a_tier_whose_matches_do_not_support_its_pose_lets_the_next_one_run() -> None:
+def test_a_tier_whose_matches_do_not_support_its_pose_lets_the_next_one_run(monkeypatch: pytest.MonkeyPatch) -> None:
     """Issue 25: the primary tier verifies plenty (no fallback by count), but its own putative matches do not
     single the pose out (random matches: the a contrario test fails); the fallback tier runs and its pose, which
     its matches support, stands. The rotation's uncertainty is not gated here (64×48 photos)."""
-    lenient = ConfidenceConfig(evidence=EvidenceConfig(max_rotation_3sigma_deg=360.0))
-    cfg = PoseSearchConfig(confidence=lenient, guided_band_px=None, fallback_min_inliers=10, accept_low_confidence=True)
+    monkeypatch.setattr(acceptance, "MAX_ROTATION_3SIGMA_DEG", 360.0)
+    cfg = PoseSearchConfig(guided_band_px=None, fallback_min_inliers=10, accept_low_confidence=True)
     search = PoseSearch(
         cfg, PoseConfig(), describe=Describe("primary", 200), match=match, pose=Pose(10),
         fallback=Consistent("fallback", 80), wide=Describe("wide", 60),
@@ -208,7 +207,7 @@ def test_a_tier_whose_matches_do_not_support_its_pose_lets_the_next_one_run() ->
     result = search(_views("file"))
     assert result.tier == "fallback" and search.wide.calls == 0  # type: ignore[union-attr]
     assert result.confidence is not None and result.confidence.evidence is not None
-    assert result.confidence.evidence.log10_nfa < EvidenceConfig().max_log10_nfa
+    assert result.confidence.evidence.log10_nfa < acceptance.MAX_LOG10_NFA
     assert "evidence" not in {d.check for d in result.doubts}
     summary = result.report()["evidence"]
     assert summary["tier"] == "fallback" and summary["putative_matches"] == 80 and "log10 NFA" in summary["rule"]

@@ -15,7 +15,7 @@ from macsplat_cli.errors import ReconstructionError
 from macsplat_cli.metrics import rotation_error_deg
 from macsplat_cli.pipeline.descriptors import SiftConfig, SiftDescriptors
 from macsplat_cli.pipeline.matching import match_features
-from macsplat_cli.pipeline.pose import PoseSearchConfig, dominant_plane
+from macsplat_cli.pipeline.pose import PoseSearchConfig, dominant_plane, tiebreak
 from macsplat_cli.pipeline.pose.tiebreak import plane_tiebreak
 from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig
 from macsplat_cli.pipeline.types import Features, Matches, TwoViewGeometry, View
@@ -70,20 +70,19 @@ def test_plane_matches_alone_are_ambiguous_and_the_tiebreak_finds_the_true_pose(
     assert tied is not None
     g, scores = tied
     assert rotation_error_deg(g.R, R) < 2.0
-    assert scores[0] >= cfg.search.plane_tiebreak_min
+    assert scores[0] >= tiebreak.PLANE_TIEBREAK_MIN
     assert len(scores) == 1 or scores[0] >= cfg.search.plane_tiebreak_margin * scores[1]
     assert not old_ok or len(g.inliers) > len(plane)  # the tie-break adds the scene off the plane
 
 
-def test_tiebreak_refuses_without_a_clear_winner(table_pair) -> None:
+def test_tiebreak_refuses_without_a_clear_winner(table_pair, monkeypatch: pytest.MonkeyPatch) -> None:
     cfg, views, feats, plane, _, _ = table_pair
     tied = _tiebreak(Pipeline(cfg), views, feats, plane)
     assert tied is not None and len(tied[1]) == 2  # the plane's two physical poses were scored
-    for strict in (
-        PoseSearchConfig(plane_tiebreak_margin=1e6),  # no winner by that margin
-        PoseSearchConfig(plane_tiebreak_min=10**6),  # too little support
-    ):
-        assert _tiebreak(Pipeline(ReconstructConfig(views=cfg.views, search=strict)), views, feats, plane) is None
+    strict = PoseSearchConfig(plane_tiebreak_margin=1e6)  # no winner by that margin
+    assert _tiebreak(Pipeline(ReconstructConfig(views=cfg.views, search=strict)), views, feats, plane) is None
+    monkeypatch.setattr(tiebreak, "PLANE_TIEBREAK_MIN", 10**6)  # too little support
+    assert _tiebreak(Pipeline(cfg), views, feats, plane) is None
 
 
 def test_tiebreak_is_not_diluted_by_the_planes_own_matches(table_pair) -> None:
