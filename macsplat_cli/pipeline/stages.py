@@ -4,7 +4,7 @@ that fills a pipeline with them: :func:`~.run.classical_stages`).
 =========  ===============================================================  =======================
 slot       signature                                                        classical backend
 =========  ===============================================================  =======================
-pair       ``(views) → P``: a two-view network's one pass (or no slot)      — (none)
+pair       ``(views) → NetworkPair``: a network's one pass (or no slot)     — (none)
 describe   ``(views, pair) → [Features, Features]``                         SIFT per view
 matcher    ``(features0, features1) → Matches``                             reciprocal NN + τ gate
 pose       ``(view0, view1, matches, pair) → TwoViewGeometry``              essential matrix

@@ -10,6 +10,7 @@ the accuracy tests are printed as a table at the end of the module (``pytest -s`
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 from collections.abc import Callable, Iterator
@@ -276,15 +277,20 @@ def test_cli_exits_0_and_prints_a_summary(cli_run: CliRun) -> None:
 def test_summary_names_the_descriptors_that_gave_the_pose(cli_run: CliRun) -> None:
     """The summary's matches row names the fallback or the wide-baseline tier when their matches were kept."""
     from macsplat_cli.cli._summary import _matches_line
+    from macsplat_cli.report import RunReport
 
-    report = json.loads((cli_run.folder / "report.json").read_text())
-    plain = _matches_line(report)
+    doc = json.loads((cli_run.folder / "report.json").read_text())
+    report = RunReport(doc["macsplat_version"], doc["inputs"], doc["backends"], doc["times_s"], [], doc["keypoints"],
+                       doc["fallback_used"], doc["matches"], doc["inlier_ratio"], doc["pose"], doc["depth_coverage"],
+                       doc["depth_measured"], doc["gaussians"], {})  # fmt: skip
+    plain = _matches_line(report, report.pose)
     assert "verified" in plain and "(" not in plain  # an easy pair: the first descriptors
     assert plain.split(" → ")[0] in cli_run.err  # the row as printed (long rows wrap in the table)
-    fallback = _matches_line({**report, "fallback_used": True})
+    fell_back = dataclasses.replace(report, fallback_used=True)
+    fallback = _matches_line(fell_back, report.pose)
     assert fallback.startswith(plain) and "affine-simulated fallback" in fallback
     for tier, words in (("wide", "wide-baseline tier"), ("wide+plane-tiebreak", "plane's two poses")):
-        line = _matches_line({**report, "fallback_used": True, "pose": {**report["pose"], "descriptors_tier": tier}})
+        line = _matches_line(fell_back, {**report.pose, "descriptors_tier": tier})
         assert line.startswith(plain) and words in line
 
 
