@@ -17,6 +17,11 @@ import numpy as np
 from macsplat_cli.errors import MacsplatError
 from macsplat_cli.metrics import rotation_error_deg, translation_direction_error_deg
 from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig
+
+try:  # the stage factory (a checkout before it took the slots as keywords)
+    from macsplat_cli.pipeline.run import classical_stages
+except ImportError:
+    classical_stages = None  # type: ignore[assignment]
 from macsplat_cli.pipeline.views import load_views
 
 RIGHT_DEG = 5.0
@@ -59,7 +64,7 @@ def pose_case(paths: list[Path], cfg: ReconstructConfig, R_gt: np.ndarray, t_gt:
     """
     _allow_low_confidence(cfg)
     stop = _StopAtDepth()
-    pipe = Pipeline(cfg, depth=stop)
+    pipe = Pipeline(cfg, classical_stages(cfg, depth=stop)) if classical_stages else Pipeline(cfg, depth=stop)
     t0 = time.perf_counter()
     tier = None
     try:

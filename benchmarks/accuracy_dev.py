@@ -114,7 +114,7 @@ def run_case(
     dt = time.perf_counter() - t0
     T_gt = np.linalg.inv(c2w(f1)) @ c2w(f0)  # camera 0 → camera 1
     R_gt, t_gt = T_gt[:3, :3], T_gt[:3, 3]
-    g = rec.geometry
+    g = rec.pose.geometry
     layer = rec.background
     out = {
         "rotation_error_deg": rotation_error_deg(g.R, R_gt),

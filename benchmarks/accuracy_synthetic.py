@@ -66,7 +66,7 @@ def run(
         rec = reconstruct(paths, EngineConfig(pipeline=cfg))
     except MacsplatError as e:
         return {"failed": str(e)}
-    rot, tdir = S.pose_errors(rec.geometry.R, rec.geometry.t, R_gt, t_gt)
+    rot, tdir = S.pose_errors(rec.pose.geometry.R, rec.pose.geometry.t, R_gt, t_gt)
     v0 = rec.views[0]
     f_gt = c0.K[0, 0] * v0.width / c0.width
     gt = cv2.resize(views[0].depth, (v0.width, v0.height), interpolation=cv2.INTER_NEAREST) / np.linalg.norm(t_gt)
@@ -78,7 +78,7 @@ def run(
     return {
         "rot": rot,
         "tdir": tdir,
-        "focal": 100 * (rec.geometry.K0[0, 0] / f_gt - 1),
+        "focal": 100 * (rec.pose.geometry.K0[0, 0] / f_gt - 1),
         "depth": 100 * depth_err,
         "measured": 100 * float(rec.depths[0].measured.mean()),
         "depth_all": 100 * float(np.median(rel_all)) if a.any() else math.nan,

@@ -86,7 +86,7 @@ def dev_case(data: Path, scene: str, name: str, pair: tuple[int, int], tmp: Path
         T = np.linalg.inv(c2w(ft)) @ c2w(f0)
         T[:3, 3] *= scale
         w, h = working_size(*photo_size(ft), SIZE)
-        K = target_intrinsics(rec.geometry.K0, rec.views[0], (w, h))
+        K = target_intrinsics(rec.views[0].K, rec.views[0], (w, h))
         targets.append(Camera(f"t{ti}", w, h, K, np.linalg.inv(T)))
         photos.append(load_rgb(ft.image, (w, h)))
     return Case(f"{scene} {name}", rec, targets, photos)

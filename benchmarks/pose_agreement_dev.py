@@ -39,7 +39,7 @@ def main() -> None:
         tmp = save_intrinsics(Path(tempfile.mkdtemp()) / "k.json", (f0, f1))
         g = reconstruct(
             [f0.image, f1.image], EngineConfig(pipeline=ReconstructConfig(views=ViewConfig(intrinsics=tmp)))
-        ).geometry
+        ).pose.geometry
         T = np.linalg.inv(c2w(f1)) @ c2w(f0)
         R_gt, t_gt = T[:3, :3], T[:3, 3] / np.linalg.norm(T[:3, 3])
         m = g.inliers

@@ -48,7 +48,7 @@ def _errors(paths: list[Path], truth: tuple, config: EngineConfig) -> str:
         rec = reconstruct(paths, config)
     except ReconstructionError:
         return "refused"
-    rot, tdir = syn.pose_errors(rec.geometry.R, rec.geometry.t, *truth)
+    rot, tdir = syn.pose_errors(rec.pose.geometry.R, rec.pose.geometry.t, *truth)
     return f"{rot:.2f} / {tdir:.2f}"
 
 
@@ -90,7 +90,7 @@ def flipped(data: Path, tmp: Path) -> None:
     for name, paths in cases:
         try:
             rec = reconstruct(paths, EngineConfig(quality="best", overrides=NO_REFINE))
-            print(f"| {name} | {rec.geometry.diagnostics['flipped_triangles']:.3f} | accepted |")
+            print(f"| {name} | {rec.pose.geometry.diagnostics['flipped_triangles']:.3f} | accepted |")
         except ReconstructionError as e:
             print(f"| {name} | – | refused: {str(e)[:70]} |")
 
@@ -103,9 +103,9 @@ def wrong_focal(tmp: Path) -> None:
         print(f"\nobject 45°, 40° field of view: refused ({e})")
         return
     f_true = cam0.K[0, 0] * rec.views[0].width / cam0.width
-    rot, tdir = syn.pose_errors(rec.geometry.R, rec.geometry.t, *truth)
+    rot, tdir = syn.pose_errors(rec.pose.geometry.R, rec.pose.geometry.t, *truth)
     print(f"\nobject 45°, 40° field of view, no intrinsics: accepted with rotation error {rot:.1f}°, direction "
-          f"{tdir:.1f}°; focal {rec.geometry.K0[0, 0]:.0f} px estimated, {f_true:.0f} px true")  # fmt: skip
+          f"{tdir:.1f}°; focal {rec.pose.geometry.K0[0, 0]:.0f} px estimated, {f_true:.0f} px true")  # fmt: skip
 
 
 def main() -> None:

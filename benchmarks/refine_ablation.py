@@ -50,7 +50,7 @@ def _scenes(rec, steps: int, scale: int) -> dict[str, tuple[Gaussians, float]]: 
             continue
         t0 = time.perf_counter()
         cfg = RefineConfig(steps=steps, scale=scale, **opts)
-        r = refine(rec.views, rec.geometry, rec.maps, cfg, depths=rec.depths)
+        r = refine(rec.views, rec.pose.geometry, rec.maps, cfg, depths=rec.depths)
         with torch.no_grad():
             out[name] = (Gaussians.cat([m.to_gaussians() for m in r.maps]), time.perf_counter() - t0)
     return out
@@ -123,7 +123,7 @@ def real_rows(data: Path, steps: int, scale: int) -> list[list[str]]:
                 T = np.linalg.inv(c2w(ft)) @ c2w(f0)
                 T[:3, 3] *= s
                 w, h = working_size(*photo_size(ft), 512)
-                K = target_intrinsics(rec.geometry.K0, rec.views[0], (w, h))
+                K = target_intrinsics(rec.views[0].K, rec.views[0], (w, h))
                 ms.append(_image_metrics(g, Camera("t", w, h, K, np.linalg.inv(T)), load_rgb(ft.image, (w, h))))
             p, s_, pm = np.mean(ms, axis=0)
             rows.append([f"{scene} {name}", f"{len(targets)} targets", mode, f"{p:.2f}", f"{s_:.3f}", f"{pm:.2f}", "–",

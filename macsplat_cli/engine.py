@@ -26,13 +26,21 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
 
 from .errors import InputError
 from .pipeline.refine import RefineConfig
-from .pipeline.run import Pipeline, ReconstructConfig, Reconstruction, StageEvent, count_gaussians
+from .pipeline.run import (
+    Pipeline,
+    ReconstructConfig,
+    Reconstruction,
+    StageClock,
+    StageEvent,
+    classical_stages,
+    count_gaussians,
+)  # fmt: skip
 from .pipeline.views import ViewConfig
 from .presets import (
     DEFAULT_MATCHER,
@@ -66,7 +74,6 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 RefineEvent = Callable[[int, dict[str, float]], None]
-T = TypeVar("T")
 
 
 @dataclass
@@ -290,9 +297,11 @@ def build_pipeline(config: EngineConfig, models: Models) -> Pipeline:
 
 
 def _build_pipeline(config: EngineConfig, settings: StageSettings, models: Models) -> Pipeline:
+    """The pipeline of the backend's stages: :func:`~.pipeline.run.classical_stages` or, around the loaded
+    network, :func:`~.pipeline.neural.neural_stages`."""
     backend = config.backend
     if backend == "classical":
-        return Pipeline(settings.pipeline)
+        return Pipeline(settings.pipeline, classical_stages(settings.pipeline))
     if backend == "neural":
         from .pipeline.neural import neural_stages
 
@@ -300,24 +309,11 @@ def _build_pipeline(config: EngineConfig, settings: StageSettings, models: Model
             raise ValueError("the neural backend needs models.predictor (load_models)")
         # onnxruntime takes and returns CPU arrays whatever its provider; torch runs where it was asked to
         device = "cpu" if config.neural.is_onnx else config.neural.device
-        stages = neural_stages(models.predictor, settings.pipeline, settings.neural, device)
-        return Pipeline(settings.pipeline, scale="metric", **stages)
+        return Pipeline(settings.pipeline, neural_stages(models.predictor, settings.pipeline, settings.neural, device))
     assert_never(backend)
 
 
-def _stage(notify: StageEvent, name: str, fn: Callable[[], T]) -> T:
-    """``fn()`` between the stage's ``start`` and ``end`` events (``fail`` when it raises)."""
-    notify(name, "start")
-    try:
-        out = fn()
-    except BaseException:
-        notify(name, "fail")
-        raise
-    notify(name, "end")
-    return out
-
-
-def _models_for(config: EngineConfig, models: Models | None, notify: StageEvent) -> Models:
+def _models_for(config: EngineConfig, models: Models | None, clock: StageClock) -> Models:
     """The given models (the configuration checked against them), or the configuration's, loaded as the
     ``"weights"`` stage when there is something to load."""
     if models is not None:
@@ -326,7 +322,7 @@ def _models_for(config: EngineConfig, models: Models | None, notify: StageEvent)
     config.validate()
     _check_device(config)  # before the weights stage starts: a usage error, not a failed stage
     if config.backend == "neural" or config.refine.lpips_weights is not None:
-        return _stage(notify, "weights", lambda: _load_models(config))
+        return clock("weights", lambda: _load_models(config))
     return _load_models(config)
 
 
@@ -357,18 +353,18 @@ def reconstruct(
         ReconstructionError: the scene cannot be reconstructed (the message says why).
     """
     config = config or EngineConfig()
-    notify = on_stage or (lambda stage, event: None)
+    clock = StageClock(on_stage)  # the stages around the pipeline's (its own clock times stages 1-6)
     _check_photos(images, config)
     _compile_kernels_in_background()
-    models = _models_for(config, models, notify)
+    models = _models_for(config, models, clock)
     settings = config.settings()
     pipeline = _build_pipeline(config, settings, models)
     rec = pipeline.run(images, on_stage=on_stage)
     if config.backend == "neural":
         _add_network(rec, pipeline, config, models)
     if settings.refine.steps > 0:
-        rec = _refine(rec, settings.refine, models, notify, on_refine_step)
-    return _compact(rec, settings, notify)
+        rec = _refine(rec, settings.refine, models, clock, on_refine_step)
+    return _compact(rec, settings, clock)
 
 
 _COMPILING: list[threading.Thread] = []
@@ -400,7 +396,7 @@ def _compile_kernels_in_background() -> None:
 
 def _check_photos(images: Sequence[str | Path], config: EngineConfig) -> None:
     """The photo count, and what more than two photos cannot have yet (the neural backend): before any weights
-    load.
+    load, the one place that checks them (the CLI and :meth:`~.pipeline.run.Pipeline.run` leave it here).
 
     Raises:
         InputError: fewer than 2 or too many photos; more than two, or given poses, with the neural backend.
@@ -420,11 +416,14 @@ def _check_photos(images: Sequence[str | Path], config: EngineConfig) -> None:
 
 def _add_network(rec: Reconstruction, pipeline: Pipeline, config: EngineConfig, models: Models) -> None:
     """The neural backend's section of the report: the network, its pass and what the fusion did."""
-    predictor = models.predictor
-    section = {**pipeline.pair.report(), "files": dict(models.files), "load_s": models.load_s}  # type: ignore[union-attr]
-    fusion = section["fusion"]
-    if fusion.get("policy") == "auto" and fusion["applied"]:  # it ran on demand: were its matches better?
-        fusion["matches_kept"] = "fused" if rec.report.fallback_used else "unfused (the fused ones verified fewer)"
+    from .pipeline.neural import NeuralPair
+
+    predictor, pair = models.predictor, pipeline.pair
+    assert isinstance(pair, NeuralPair)  # the neural backend's pair slot (neural_stages)
+    section = dataclasses.replace(pair.report(), files=dict(models.files), load_s=models.load_s)
+    fusion = section.fusion
+    if fusion.policy == "auto" and fusion.applied:  # it ran on demand: were its matches better?
+        fusion.matches_kept = "fused" if rec.report.fallback_used else "unfused (the fused ones verified fewer)"
     rec.report.add_network(f"{predictor.network_name()} on {config.neural.device}", predictor.fusion_name(), section)
 
 
@@ -435,20 +434,18 @@ def _layer_size(rec: Reconstruction) -> int:
 
 
 def _refine(
-    rec: Reconstruction, config: RefineConfig, models: Models, notify: StageEvent, on_step: RefineEvent | None
+    rec: Reconstruction, config: RefineConfig, models: Models, clock: StageClock, on_step: RefineEvent | None
 ) -> Reconstruction:
     """Stage 7 on the pipeline's maps; the refined maps replace them."""
     from .pipeline.refine import check_scale, refine_reconstruction
 
     check_scale(rec.maps, config.scale)  # a usage error, before the stage starts
-    out, section = _stage(
-        notify, "refine", lambda: refine_reconstruction(rec, config, lpips=models.lpips, on_step=on_step)
-    )
+    out, section = clock("refine", lambda: refine_reconstruction(rec, config, lpips=models.lpips, on_step=on_step))
     rec.report.add_refine(section, count_gaussians(out.maps) + _layer_size(rec))
     return dataclasses.replace(rec, maps=out.maps)
 
 
-def _compact(rec: Reconstruction, settings: StageSettings, notify: StageEvent) -> Reconstruction:
+def _compact(rec: Reconstruction, settings: StageSettings, clock: StageClock) -> Reconstruction:
     """Stage 8: the scene without what it does not need (the quality's compaction, ``--budget`` bounding the scene
     written, the far layer included), reported step by step."""
     from .pipeline.compact import compact_reconstruction
@@ -462,8 +459,8 @@ def _compact(rec: Reconstruction, settings: StageSettings, notify: StageEvent) -
             background, n_layer = None, 0
         else:  # --budget bounds what is written: the layer counts
             compact = dataclasses.replace(compact, budget=budget - n_layer)
-    gaussians, report = _stage(notify, "compact", lambda: compact_reconstruction(rec, compact))
-    rec.report.add_compact(report.to_dict(), report.seconds, len(gaussians) + n_layer)
+    gaussians, report = clock("compact", lambda: compact_reconstruction(rec, compact))
+    rec.report.add_compact(report, len(gaussians) + n_layer)
     logger.info("compaction (%s): %s", compact.name, report.summary())
     return dataclasses.replace(rec, compacted=gaussians, background=background)
 

@@ -62,6 +62,12 @@ def test_engine_without_refinement_is_the_pipeline_then_the_compaction(pair: tup
 
     rec = reconstruct(pair[:2], _config(pair[2]))
     ref = Pipeline(_config(pair[2]).settings().pipeline).run(pair[:2])
+    # one result shape for any number of photos: every view's pose; the two-view geometry, a detail of the pair
+    assert rec.pose is not None and rec.multiview is None and len(rec.poses) == len(rec.views) == 2
+    for k, T in enumerate(rec.poses):
+        assert np.array_equal(T, rec.pose.geometry.cam_to_world(k))
+        assert np.array_equal(rec.cameras(original_size=False).cameras[k].cam_to_world, T)
+        assert np.array_equal(rec.views[k].K, (rec.pose.geometry.K0, rec.pose.geometry.K1)[k])
     for m, r in zip(rec.maps, ref.maps):
         for a, b in zip(m.tensors(), r.tensors()):
             assert torch.equal(a, b)
@@ -77,7 +83,7 @@ def test_engine_without_refinement_is_the_pipeline_then_the_compaction(pair: tup
     assert "compact" in doc["times_s"] and rec.report.refine is None and "refine" not in doc
     best_config = _config(pair[2]).replace(quality="best", overrides=Overrides(size=SIZE[0], budget=1000, refine=0))
     best = reconstruct(pair[:2], best_config)
-    assert len(best.gaussians) == 1000 and best.report.compact["steps"][-1]["name"] == "budget"
+    assert len(best.gaussians) == 1000 and best.report.compact.steps[-1].name == "budget"
 
 
 def test_cli_and_evaluation_build_the_same_refined_scene(pair: tuple[Path, Path, Path], tmp_path: Path) -> None:
@@ -278,3 +284,51 @@ def test_background_compilation_compiles_the_signatures_the_stages_use(pair: tup
     assert res.returncode == 0, res.stderr[-2000:]
     counts = json.loads(res.stdout.strip().splitlines()[-1])
     assert counts and all(n == 1 for n in counts.values()), counts
+
+
+def test_stage_clock_times_each_stage_and_tells_its_events() -> None:
+    """One stage timer for the pipeline and the engine: start/end around a stage, fail when it raises, its time."""
+    from macsplat_cli.pipeline.run import StageClock
+
+    events: list[tuple[str, str]] = []
+    clock = StageClock(lambda stage, event: events.append((stage, event)))
+    assert clock("images", lambda: 7) == 7
+    with pytest.raises(ZeroDivisionError):
+        clock("pose", lambda: 1 / 0)
+    assert events == [("images", "start"), ("images", "end"), ("pose", "start"), ("pose", "fail")]
+    assert list(clock.times) == ["images"] and clock.times["images"] >= 0.0
+
+
+def test_the_photos_and_the_settings_are_checked_once(
+    pair: tuple[Path, Path, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``macsplat reconstruct`` counts the photos and validates its settings once, in the engine, before any model
+    or stage."""
+    from macsplat_cli import _limits
+
+    calls: list[int] = []
+    validated: list[bool] = []
+    real, real_validate = _limits.check_photo_count, EngineConfig.validate
+
+    def counted(n: int, *args: object, **kwargs: object) -> None:
+        calls.append(n)
+        real(n, *args, **kwargs)  # type: ignore[arg-type]
+
+    def validate(self: EngineConfig, **kwargs: bool) -> None:
+        validated.append(True)
+        real_validate(self, **kwargs)
+
+    class Stop(Exception):
+        pass
+
+    def stop(*args: object) -> None:
+        raise Stop
+
+    monkeypatch.setattr(_limits, "check_photo_count", counted)
+    monkeypatch.setattr(EngineConfig, "validate", validate)
+    monkeypatch.setattr(engine, "_build_pipeline", stop)
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        code = main(["reconstruct", str(pair[0]), str(pair[1]), "-o", str(tmp_path / "s.ply"), "-q"])
+    assert code != 0 and "Stop" in err.getvalue()  # stopped where the pipeline would be built
+    assert calls == [2] and validated == [True]

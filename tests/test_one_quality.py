@@ -105,7 +105,7 @@ def test_one_quality_gives_one_scene_in_every_command(
     results: list[Reconstruction] = [lib, ev, bn]
     for rec in results:
         assert rec.report.refine is not None and rec.report.refine.steps == steps
-        assert rec.report.compact["preset"] == quality
+        assert rec.report.compact is not None and rec.report.compact.preset == quality
         assert _same(rec.gaussians, cli)
     assert point.refine_steps == steps
 

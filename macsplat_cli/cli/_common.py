@@ -180,15 +180,14 @@ _GLOB = set("*?[")
 
 def expand_photos(args: Iterable[Path]) -> list[Path]:
     """The photos named on the command line: a folder gives its image files (sorted by name, not recursive), an
-    unexpanded glob pattern (``'photos/*.jpg'``) its matches (sorted); the count is checked
-    (:func:`~macsplat_cli._limits.check_photo_count`).
+    unexpanded glob pattern (``'photos/*.jpg'``) its matches (sorted); the engine checks the count
+    (:func:`~macsplat_cli.engine.reconstruct`, before any weights load).
 
     Raises:
-        InputError: a folder or pattern with no photos, or fewer than 2 or more than the limit in all.
+        InputError: a folder or pattern with no photos.
     """
     import glob
 
-    from .._limits import check_photo_count
     from ..errors import InputError
     from ..images import IMAGE_FORMATS
 
@@ -206,5 +205,4 @@ def expand_photos(args: Iterable[Path]) -> list[Path]:
             out += found
         else:
             out.append(a)
-    check_photo_count(len(out))
     return out

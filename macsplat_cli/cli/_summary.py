@@ -1,11 +1,16 @@
-"""``reconstruct``'s summary table on stderr: the photos, the matches, the pose and its confidence, the files."""
+"""``reconstruct``'s summary table on stderr: the photos, the matches, the pose and its confidence, the files; read
+from the typed :class:`~macsplat_cli.report.RunReport` (its ``pose`` and ``multiview`` sections are still dicts:
+read as their JSON values)."""
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ._common import err_console, escape
+
+if TYPE_CHECKING:
+    from ..report import RunReport
 
 __all__ = ["summary"]
 
@@ -16,11 +21,11 @@ _TIERS = {
 }
 
 
-def _matches_line(report: dict[str, Any]) -> str:
+def _matches_line(report: RunReport, pose: dict[str, Any]) -> str:
     """The match counts of each step, and which descriptors gave them when it was not the first ones."""
-    line = " → ".join(f"{v} {k}" for k, v in report["matches"].items())
-    tier = _TIERS.get(str(report.get("pose", {}).get("descriptors_tier")))
-    if tier is None and report.get("fallback_used"):
+    line = " → ".join(f"{v} {k}" for k, v in report.matches.items())
+    tier = _TIERS.get(str(pose.get("descriptors_tier")))
+    if tier is None and report.fallback_used:
         tier = "the affine-simulated fallback's matches"
     return line if tier is None else f"{line} ({tier})"
 
@@ -42,68 +47,78 @@ def _photos_line(mv: dict[str, Any]) -> str:
     return line + "".join(left)
 
 
-def summary(report: dict[str, Any], written: dict[str, Any]) -> None:
+def summary(report: RunReport, written: dict[str, Any]) -> None:
     from rich.table import Table
+
+    from .._json import to_jsonable
 
     t = Table(title="macsplat reconstruct", show_header=False, title_justify="left")
     t.add_column(style="bold")
     t.add_column()
-    imgs = report["images"]
     t.add_row(
         "images",
         "\n".join(
-            f"{escape(Path(p).name)}: {i['original_size'][0]}x{i['original_size'][1]} → {i['working_size'][0]}x"
-            f"{i['working_size'][1]}, focal {i['focal_px_working']:.0f} px ({escape(str(i['intrinsics_source']))})"
-            for p, i in zip(report["inputs"], imgs)
+            f"{escape(Path(p).name)}: {i.original_size[0]}x{i.original_size[1]} → {i.working_size[0]}x"
+            f"{i.working_size[1]}, focal {i.focal_px_working:.0f} px ({escape(str(i.intrinsics_source))})"
+            for p, i in zip(report.inputs, report.images)
         ),
     )
-    mv = report.get("multiview")
+    mv = to_jsonable(report.multiview) if report.multiview is not None else None
     if mv is not None:
         t.add_row("photos", escape(_photos_line(mv)))
-    t.add_row("keypoints", " / ".join(str(k) for k in report["keypoints"]))
-    t.add_row("matches" if mv is None else "first pair", escape(_matches_line(report)))
-    pose = report["pose"]
-
-    def num(key: str, fmt: str) -> str:
-        v = pose.get(key)
-        return format(v, fmt) if isinstance(v, (int, float)) else "n/a"
-
-    line = (
-        f"rotation {num('rotation_deg', '.1f')}°, median parallax {num('median_parallax_deg', '.1f')}°, "
-        f"inlier ratio {num('inlier_ratio', '.2f')}, median epipolar error {num('median_sampson_px', '.2f')} px"
-    )
-    if "translation_norm" in pose:
-        line += f", baseline {num('translation_norm', '.3f')} m"
-    t.add_row("pose", escape(line))
+    t.add_row("keypoints", " / ".join(str(k) for k in report.keypoints))
+    pose = to_jsonable(report.pose)
+    t.add_row("matches" if mv is None else "first pair", escape(_matches_line(report, pose)))
+    t.add_row("pose", escape(_pose_line(pose)))
     if pose.get("confidence") is not None or pose.get("doubts"):
-        line = f"confidence {num('confidence', '.2f')}"
-        ev = pose.get("evidence") or {}
-        if isinstance(ev.get("log10_nfa"), (int, float)):  # what the acceptance weighed (issue 25)
-            line += (
-                f", {ev['inliers']} of {ev['putative_matches']} putative matches ({ev['tier']} tier), "
-                f"log10 NFA {ev['log10_nfa']:.0f}, rotation ±{3 * ev['rotation_sigma_deg']:.2f}° (3σ)"
-            )
-        if pose.get("accepted_low_confidence"):
-            line = (
-                "[yellow]warning: the pose may be wrong (written with --accept-low-confidence): "
-                + escape("; ".join(str(d) for d in pose.get("doubts", [])))
-                + "[/]"
-            )
-        else:
-            line = escape(line)
-        t.add_row("pose check", line)
-    if "neural" in report:
-        n = report["neural"]
-        t.add_row("backend", escape(f"neural ({n['device']}): forward pass {n['forward_s']:.2f} s"))
-        t.add_row("fusion", escape(str(n["fusion"]["detail"])))
-    t.add_row("depth", " / ".join(f"{100 * c:.0f} %" for c in report["depth_coverage"]) + " of pixels")
-    line = f"{report.get('gaussians_written', report['gaussians']):,}"
-    if "compact" in report:
-        c = report["compact"]
-        changed = [f"{s['name']} −{s['before'] - s['after']:,}" for s in c["steps"] if s["before"] != s["after"]]
-        line += f" of {c['before']:,} ({c['preset']}: {', '.join(changed) or 'nothing to remove'})"
+        t.add_row("pose check", _pose_check_line(pose))
+    if report.neural is not None:
+        n = report.neural
+        t.add_row("backend", escape(f"neural ({n.device}): forward pass {n.forward_s:.2f} s"))
+        t.add_row("fusion", escape(n.fusion.detail))
+    t.add_row("depth", " / ".join(f"{100 * c:.0f} %" for c in report.depth_coverage) + " of pixels")
+    written_n = report.gaussians_written if report.gaussians_written is not None else report.gaussians
+    line = f"{written_n:,}"
+    if report.compact is not None:
+        c = report.compact
+        changed = [f"{s.name} −{s.before - s.after:,}" for s in c.steps if s.before != s.after]
+        line += f" of {c.before:,} ({c.preset}: {', '.join(changed) or 'nothing to remove'})"
     t.add_row("Gaussians", escape(line))
-    times = report["times_s"]
-    t.add_row("time", escape(", ".join(f"{k} {v:.2f} s" for k, v in times.items())))
+    t.add_row("time", escape(", ".join(f"{k} {v:.2f} s" for k, v in report.times_s.items())))
     t.add_row("wrote", "\n".join(escape(str(v)) for v in written.values()))
     err_console.print(t)
+
+
+def _num(section: dict[str, Any], key: str, fmt: str) -> str:
+    v = section.get(key)
+    return format(v, fmt) if isinstance(v, (int, float)) else "n/a"
+
+
+def _pose_line(pose: dict[str, Any]) -> str:
+    """Rotation, parallax, inlier ratio, epipolar error (and the metric baseline)."""
+    line = (
+        f"rotation {_num(pose, 'rotation_deg', '.1f')}°, median parallax {_num(pose, 'median_parallax_deg', '.1f')}°, "
+        f"inlier ratio {_num(pose, 'inlier_ratio', '.2f')}, median epipolar error "
+        f"{_num(pose, 'median_sampson_px', '.2f')} px"
+    )
+    if "translation_norm" in pose:
+        line += f", baseline {_num(pose, 'translation_norm', '.3f')} m"
+    return line
+
+
+def _pose_check_line(pose: dict[str, Any]) -> str:
+    """The acceptance: its confidence and what it weighed, or the warning of a doubted pose kept (markup)."""
+    line = f"confidence {_num(pose, 'confidence', '.2f')}"
+    ev = pose.get("evidence") or {}
+    if isinstance(ev.get("log10_nfa"), (int, float)):  # what the acceptance weighed (issue 25)
+        line += (
+            f", {ev['inliers']} of {ev['putative_matches']} putative matches ({ev['tier']} tier), "
+            f"log10 NFA {ev['log10_nfa']:.0f}, rotation ±{3 * ev['rotation_sigma_deg']:.2f}° (3σ)"
+        )
+    if pose.get("accepted_low_confidence"):
+        return (
+            "[yellow]warning: the pose may be wrong (written with --accept-low-confidence): "
+            + escape("; ".join(str(d) for d in pose.get("doubts", [])))
+            + "[/]"
+        )
+    return escape(line)

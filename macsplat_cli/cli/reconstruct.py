@@ -351,7 +351,6 @@ def _reconstruct(
     from ..engine import reconstruct
     from ._export import check_exports
 
-    config.validate()
     cameras = cameras or output.with_name(output.stem + ".cameras.json")
     n = config.neural
     inputs = [*((f"photo {k + 1}", p) for k, p in enumerate(images)),
@@ -387,7 +386,7 @@ def _reconstruct(
     if not quiet:
         from ._summary import summary
 
-        summary(doc, written)
+        summary(result.report, written)
     if profile is not None:
         err_console.print(profile.table())
 

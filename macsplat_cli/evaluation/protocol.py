@@ -147,7 +147,7 @@ def evaluate_case(
         return res
     res.time_s = time.perf_counter() - t0
 
-    if rec.poses is not None:  # more than two photos
+    if len(case.context) > 2 or rec.multiview is not None:  # the views registered together, not a pair
         try:
             _measure_views(res, rec, targets, scene, gt, has_depth, cfg)
         except ReconstructionError as e:
@@ -207,14 +207,16 @@ def _measure_pose(res: CaseResult, rec: Reconstruction, gt: list[Camera]) -> lis
     """Pose errors, the scale ``s`` and the focal errors into ``res``; the (fx, fy) estimated-to-true focal ratio
     of each context view."""
     T_gt = gt[1].world_to_cam @ gt[0].cam_to_world
-    g = rec.geometry
-    if g is None:  # pragma: no cover - a reconstruction has poses (more than two photos) or a two-view geometry
-        raise ReconstructionError("the two-photo reconstruction has no relative pose")
-    res.rotation_error_deg = rotation_error_deg(g.R, T_gt[:3, :3])
-    res.translation_error_deg = translation_direction_error_deg(g.t, T_gt[:3, 3])
-    t_est = float(np.linalg.norm(g.t))
+    if rec.pose is not None:  # the pair's relative pose, as the pose stage estimated it
+        R, t = rec.pose.geometry.R, rec.pose.geometry.t
+    else:  # a reconstruction given its cameras: camera 1's pose in camera 0's frame
+        T = np.linalg.inv(rec.poses[1]) @ rec.poses[0]
+        R, t = T[:3, :3], T[:3, 3]
+    res.rotation_error_deg = rotation_error_deg(R, T_gt[:3, :3])
+    res.translation_error_deg = translation_direction_error_deg(t, T_gt[:3, 3])
+    t_est = float(np.linalg.norm(t))
     res.scale = float(np.linalg.norm(T_gt[:3, 3])) / t_est if rec.scale == "relative" and t_est > 0 else 1.0
-    K_est = (g.K0, g.K1)
+    K_est = (rec.views[0].K, rec.views[1].K)
     ratios = []
     for k, v in enumerate(rec.views):
         K_true = gt[k].rescaled(v.width, v.height).K
@@ -314,8 +316,6 @@ def _measure_views(
         {"frame": case.context[k], "name": scene.frames[case.context[k]].name, "reason": why}
         for k, why in sorted(reasons.items())
     ]
-    if rec.poses is None:  # pragma: no cover - measured only for more than two photos, which have poses
-        raise ReconstructionError("the reconstruction has no camera poses")
     est = np.stack([np.asarray(T, np.float64) for T in rec.poses])  # [M, 4, 4]
     true = np.stack([gt[k].cam_to_world for k in pos])
     errors = pairwise_pose_errors(est, true, pos)

@@ -127,9 +127,8 @@ class EngineReconstructor:
 class OracleReconstructor:
     """Ground-truth geometry through the classical Gaussian stage (for testing the evaluation).
 
-    Two context views give a two-view reconstruction (``geometry``); more give one shaped like the multi-view
-    pipeline's (``poses`` in context view 0's frame, ``geometry`` None, every photo registered in the report's
-    ``multiview`` section).
+    The cameras' ``poses`` in context view 0's frame (no pose search: ``pose`` None); more than two context views
+    give every photo registered in the report's ``multiview`` section, as the multi-view pipeline's.
 
     Args:
         scale: ``"metric"`` keeps the scene's units; ``"relative"`` divides lengths by the
@@ -164,12 +163,13 @@ class OracleReconstructor:
             maps = [view_gaussians(v, d, v.K, P, self.gaussians) for v, d, P in zip(views, depths, poses)]
             photos = [{"name": v.name, "registered": True} for v in views]
             report = self._report(views, depths, maps, {"photos": photos, "registered": len(views)})
-            return Reconstruction(views, None, depths, maps, report, scale=self.scale, poses=poses)
+            return Reconstruction(views, poses, depths, maps, report, scale=self.scale)
         empty = np.zeros((0, 2))
         no_matches = Matches(empty, empty, np.zeros(0, np.float32), np.zeros(0, np.int64), np.zeros(0, np.int64))
         geometry = TwoViewGeometry(T[:3, :3].copy(), T[:3, 3] * s, views[0].K, views[1].K, no_matches, {})
         maps = gaussians_from_depth(views, geometry, depths, self.gaussians)
-        return Reconstruction(views, geometry, depths, maps, self._report(views, depths, maps), scale=self.scale)
+        poses = [geometry.cam_to_world(0), geometry.cam_to_world(1)]
+        return Reconstruction(views, poses, depths, maps, self._report(views, depths, maps), scale=self.scale)
 
     def _report(
         self, views: list[View], depths: list[DepthMap], maps: list[GaussianMaps], multiview: dict | None = None

@@ -346,7 +346,8 @@ def refine_reconstruction(
     check_scale(rec.maps, config.scale)
     f = config.scale
     sets = rec.multiview.match_sets() if rec.multiview is not None else None
-    out = refine(rec.views, rec.geometry, rec.maps, config, depths=rec.depths, lpips=lpips, on_step=on_step,
+    pair = rec.pose.geometry if rec.multiview is None and rec.pose is not None else None  # a pair: its matches
+    out = refine(rec.views, pair, rec.maps, config, depths=rec.depths, lpips=lpips, on_step=on_step,
                  match_sets=sets)  # fmt: skip
     report = RefineReport(
         steps=out.steps,

@@ -43,8 +43,9 @@ def export_cameras(rec: Reconstruction) -> tuple[CameraSet, list[Path]]:
 
 def _observations(rec: Reconstruction) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(points [P, 3], obs_image [O], obs_point [O], obs_xy [O, 2] working pixels) of the verified matches."""
-    if rec.geometry is not None:
-        g = rec.geometry
+    if rec.multiview is None:  # a pair: its verified matches
+        assert rec.pose is not None
+        g = rec.pose.geometry
         m = g.inliers
         K = (g.K0, g.K1)
         x0, x1 = (homog(xy) @ np.linalg.inv(k).T for xy, k in zip((m.xy0, m.xy1), K))

@@ -1,9 +1,10 @@
-"""The classical (weight-free) backend of each pipeline slot (the slots' interfaces: :mod:`.slots`).
+"""The classical (weight-free) backend of each pipeline slot (the slots' interfaces: :mod:`.slots`; the factory
+that fills a pipeline with them: :func:`~.run.classical_stages`).
 
 =========  ===============================================================  =======================
 slot       signature                                                        classical backend
 =========  ===============================================================  =======================
-pair       ``(views) → P``: a two-view network's one pass (or no slot)      — (none)
+pair       ``(views) → NetworkPair``: a network's one pass (or no slot)     — (none)
 describe   ``(views, pair) → [Features, Features]``                         SIFT per view
 matcher    ``(features0, features1) → Matches``                             reciprocal NN + τ gate
 pose       ``(view0, view1, matches, pair) → TwoViewGeometry``              essential matrix
@@ -11,9 +12,11 @@ depth      ``(views, geometry, pair) → [DepthMap, DepthMap]``               pl
 gaussians  ``(views, geometry, depths, pair) → [GaussianMaps, GaussianMaps]``  per-pixel surfels
 =========  ===============================================================  =======================
 
-``pair`` is the output of the ``pair`` slot (``None`` when the pipeline has none): a backend that
-needs both views at once (a two-view network) computes it once and every later stage receives it
-explicitly. Each backend has a ``name`` (the report names the backend of every stage).
+``pair`` is the output of the ``pair`` slot (:data:`~.slots.PairPass`: the network's pass, ``None`` when the
+pipeline has none): a backend that needs both views at once (a two-view network) computes it once and every later
+stage receives it explicitly. The classical backends take it and leave it unread (in a neural pipeline without a
+Gaussian head, :class:`DepthGaussians` receives the network's pass). Each backend has a ``name`` (the report names
+the backend of every stage).
 """
 
 from __future__ import annotations
@@ -21,7 +24,6 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any
 
 from ..gaussians import GaussianMaps
 from .depth import DepthConfig, estimate_depths
@@ -29,6 +31,7 @@ from .descriptors import DescriptorBackend
 from .gaussian_init import GaussianInitConfig, gaussians_from_depth
 from .matching import MatchConfig, match_features
 from .pose import PoseConfig, estimate_pose
+from .slots import PairPass
 from .types import DepthMap, Features, Matches, TwoViewGeometry, View
 
 __all__ = [
@@ -51,7 +54,7 @@ class PerViewDescriptors:
         self.backend = backend
         self.name = backend.name
 
-    def __call__(self, views: Sequence[View], pair: Any = None) -> list[Features]:
+    def __call__(self, views: Sequence[View], pair: PairPass = None) -> list[Features]:
         workers = min(len(views), os.cpu_count() or 1)
         if workers < 2 or not getattr(self.backend, "thread_safe", False):
             return [self.backend(v) for v in views]
@@ -75,7 +78,7 @@ class EssentialPose:
     def __init__(self, config: PoseConfig) -> None:
         self.config = config
 
-    def __call__(self, v0: View, v1: View, matches: Matches, pair: Any = None) -> TwoViewGeometry:
+    def __call__(self, v0: View, v1: View, matches: Matches, pair: PairPass = None) -> TwoViewGeometry:
         return estimate_pose(v0, v1, matches, self.config)
 
 
@@ -85,7 +88,7 @@ class PlaneSweepDepth:
     def __init__(self, config: DepthConfig) -> None:
         self.config = config
 
-    def __call__(self, views: list[View], geometry: TwoViewGeometry, pair: Any = None) -> list[DepthMap]:
+    def __call__(self, views: list[View], geometry: TwoViewGeometry, pair: PairPass = None) -> list[DepthMap]:
         return estimate_depths(views, geometry, self.config)
 
 
@@ -96,6 +99,6 @@ class DepthGaussians:
         self.config = config
 
     def __call__(
-        self, views: list[View], geometry: TwoViewGeometry, depths: list[DepthMap], pair: Any = None
+        self, views: list[View], geometry: TwoViewGeometry, depths: list[DepthMap], pair: PairPass = None
     ) -> list[GaussianMaps]:
         return gaussians_from_depth(views, geometry, depths, self.config)

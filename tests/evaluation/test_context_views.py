@@ -181,7 +181,7 @@ class _Gauge:
     def __call__(self, scene, case, settings) -> Reconstruction:  # noqa: ANN001
         rec = ORACLE(scene, case, settings)
         keep = [k for k in range(len(rec.views)) if k != self.drop]
-        poses = np.stack([rec.poses[k] for k in keep])  # type: ignore[index]
+        poses = np.stack([rec.poses[k] for k in keep])
         if self.turn is not None:
             poses[self.turn, :3, :3] = poses[self.turn, :3, :3] @ S.rotation_about((0, 1, 0), 2.0)
         s = 1.0
@@ -194,7 +194,7 @@ class _Gauge:
         if self.drop is not None:
             photos[self.drop]["reason"] = "PnP found 3 inliers"
         report = dataclasses.replace(rec.report, multiview={"photos": photos})
-        return Reconstruction(views, None, depths, maps, report, scale="relative", poses=list(poses))
+        return Reconstruction(views, list(poses), depths, maps, report, scale="relative")
 
 
 def _evaluate(plane: Path, reconstructor: object) -> CaseResult:

@@ -232,9 +232,9 @@ def test_the_onnx_path_writes_the_same_scene_as_the_torch_path(pair: tuple[Path,
     assert ort.input_size == SIZE
     got = reconstruct(list(pair), config.replace(neural=NeuralOptions(weights=path)), models=Models(predictor=ort))
     assert ref.report.matches == got.report.matches and ref.report.matches["verified"] > 60
-    np.testing.assert_allclose(got.geometry.R, ref.geometry.R, atol=1e-6)
-    np.testing.assert_allclose(got.geometry.t, ref.geometry.t, atol=1e-6)
-    np.testing.assert_allclose(got.geometry.K0, ref.geometry.K0, rtol=1e-6)
+    np.testing.assert_allclose(got.pose.geometry.R, ref.pose.geometry.R, atol=1e-6)
+    np.testing.assert_allclose(got.pose.geometry.t, ref.pose.geometry.t, atol=1e-6)
+    np.testing.assert_allclose(got.pose.geometry.K0, ref.pose.geometry.K0, rtol=1e-6)
     a, b = ref.gaussians, got.gaussians
     assert len(a) == len(b) > 0.9 * 2 * SIZE[0] * SIZE[1]
     for name in ("means", "log_scales", "quats", "opacity_logits", "sh"):

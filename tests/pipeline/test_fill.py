@@ -19,7 +19,7 @@ from macsplat_cli.pipeline.depth import FILL_RULES, FilledDepthMap, estimate_dep
 from macsplat_cli.pipeline.gaussian_init import GaussianInitConfig, gaussians_from_depth
 from macsplat_cli.pipeline.types import DepthMap, Matches, TwoViewGeometry, View
 from macsplat_cli.render import render_camera
-from macsplat_cli.report import RunReport
+from macsplat_cli.report import FillReport, RunReport
 from macsplat_cli.rotations import quat_to_rotmat
 
 W, H = 160, 120
@@ -221,7 +221,7 @@ def test_estimate_depths_counts_every_pixel_once_and_leaves_no_hole() -> None:
         assert c["dropped_free_space"] < 0.1 * v.mask.sum()
     report = RunReport("0", [], {}, {}, [], [], False, {}, None, {}, [], [], 0, {})
     assert "fill" not in report.to_json()
-    report.fill = {"depth": [d.fill_counts for d in depths]}
+    report.fill = FillReport(depth=[d.fill_counts for d in depths])
     assert report.to_json()["fill"]["depth"][0]["measured"] == depths[0].fill_counts["measured"]
 
 

@@ -10,6 +10,7 @@ the accuracy tests are printed as a table at the end of the module (``pytest -s`
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 from collections.abc import Callable, Iterator
@@ -24,10 +25,11 @@ import torch
 from macsplat_cli.cameras import Camera, CameraSet, load_cameras, save_cameras
 from macsplat_cli.cli import main
 from macsplat_cli.datasets import synthetic as syn
+from macsplat_cli.engine import reconstruct
 from macsplat_cli.errors import InputError, ReconstructionError
 from macsplat_cli.images import save_image
 from macsplat_cli.pipeline.pose import PoseConfig
-from macsplat_cli.pipeline.run import STAGES, Pipeline, ReconstructConfig, Reconstruction
+from macsplat_cli.pipeline.run import STAGES, Pipeline, ReconstructConfig, Reconstruction, classical_stages
 from macsplat_cli.pipeline.stages import EssentialPose
 from macsplat_cli.pipeline.types import Matches, TwoViewGeometry, View
 from macsplat_cli.pipeline.views import ViewConfig, prior_focal
@@ -126,7 +128,7 @@ def error_table() -> Iterator[list[tuple]]:
 
 def _pose_errors(rec: Reconstruction, pair: Pair) -> tuple[float, float]:
     R_gt, t_gt = syn.relative_pose(pair.cam0, pair.cam1)
-    return syn.pose_errors(rec.geometry.R, rec.geometry.t, R_gt, t_gt)
+    return syn.pose_errors(rec.pose.geometry.R, rec.pose.geometry.t, R_gt, t_gt)
 
 
 def _depth_error(rec: Reconstruction, pair: Pair) -> tuple[float, float]:
@@ -173,11 +175,11 @@ def test_pose_and_depth_accuracy_with_known_intrinsics(
         )
     )
     assert [im.intrinsics_source for im in rec.report.images] == ["file", "file"]
-    np.testing.assert_allclose(rec.geometry.K0, pair.cam0.rescaled(*SIZE).K, rtol=K_RTOL, atol=0)  # the file's K
+    np.testing.assert_allclose(rec.pose.geometry.K0, pair.cam0.rescaled(*SIZE).K, rtol=K_RTOL, atol=0)  # the file's K
     rot_tol, t_tol = POSE_TOL_DEG[angle]
     assert rot_err < rot_tol, f"rotation error {rot_err:.3f}°"
     assert t_err < t_tol, f"translation-direction error {t_err:.3f}°"
-    assert np.linalg.norm(rec.geometry.t) == pytest.approx(1.0, rel=0, abs=7 * U64)  # normalised (4u), the norm 3u
+    assert np.linalg.norm(rec.pose.geometry.t) == pytest.approx(1.0, rel=0, abs=7 * U64)  # normalised (4u), the norm 3u
     if angle in DEPTH_TOL:
         assert depth_err < DEPTH_TOL[angle], f"median relative depth error {100 * depth_err:.2f} %"
 
@@ -217,7 +219,7 @@ def test_focal_self_calibration_with_unknown_intrinsics(
     rot_err, t_err = _pose_errors(rec, pair)
     w, h = rec.views[0].width, rec.views[0].height
     f_true = pair.cam0.rescaled(w, h).K[0, 0]
-    f_errs = [abs(K[0, 0] / f_true - 1.0) for K in (rec.geometry.K0, rec.geometry.K1)]
+    f_errs = [abs(K[0, 0] / f_true - 1.0) for K in (rec.pose.geometry.K0, rec.pose.geometry.K1)]
     depth_err, measured = _depth_error(rec, pair)
     error_table.append(
         (kind, angle, f"{UNKNOWN_FOV_DEG:g}", "unknown", rot_err, t_err, 100 * max(f_errs), 100 * depth_err, measured,
@@ -227,7 +229,7 @@ def test_focal_self_calibration_with_unknown_intrinsics(
     assert [im.intrinsics_source for im in rec.report.images] == ["estimated", "estimated"]
     rot_tol, f_tol = UNKNOWN_TOL[angle]
     assert max(f_errs) < f_tol, f"focal errors {f_errs}"
-    assert rec.report.images[0].focal_px_working == pytest.approx(rec.geometry.K0[0, 0], rel=K_RTOL, abs=0)
+    assert rec.report.images[0].focal_px_working == pytest.approx(rec.pose.geometry.K0[0, 0], rel=K_RTOL, abs=0)
     assert rot_err < rot_tol, f"rotation error {rot_err:.3f}°"
     assert t_err < UNKNOWN_TDIR_TOL_DEG, f"translation-direction error {t_err:.3f}°"
 
@@ -275,15 +277,20 @@ def test_cli_exits_0_and_prints_a_summary(cli_run: CliRun) -> None:
 def test_summary_names_the_descriptors_that_gave_the_pose(cli_run: CliRun) -> None:
     """The summary's matches row names the fallback or the wide-baseline tier when their matches were kept."""
     from macsplat_cli.cli._summary import _matches_line
+    from macsplat_cli.report import RunReport
 
-    report = json.loads((cli_run.folder / "report.json").read_text())
-    plain = _matches_line(report)
+    doc = json.loads((cli_run.folder / "report.json").read_text())
+    report = RunReport(doc["macsplat_version"], doc["inputs"], doc["backends"], doc["times_s"], [], doc["keypoints"],
+                       doc["fallback_used"], doc["matches"], doc["inlier_ratio"], doc["pose"], doc["depth_coverage"],
+                       doc["depth_measured"], doc["gaussians"], {})  # fmt: skip
+    plain = _matches_line(report, report.pose)
     assert "verified" in plain and "(" not in plain  # an easy pair: the first descriptors
     assert plain.split(" → ")[0] in cli_run.err  # the row as printed (long rows wrap in the table)
-    fallback = _matches_line({**report, "fallback_used": True})
+    fell_back = dataclasses.replace(report, fallback_used=True)
+    fallback = _matches_line(fell_back, report.pose)
     assert fallback.startswith(plain) and "affine-simulated fallback" in fallback
     for tier, words in (("wide", "wide-baseline tier"), ("wide+plane-tiebreak", "plane's two poses")):
-        line = _matches_line({**report, "fallback_used": True, "pose": {**report["pose"], "descriptors_tier": tier}})
+        line = _matches_line(fell_back, {**report.pose, "descriptors_tier": tier})
         assert line.startswith(plain) and words in line
 
 
@@ -593,12 +600,12 @@ def test_library_cameras_at_original_and_working_size_agree(
         np.testing.assert_allclose(o.K, r.K, rtol=K_RTOL, atol=0)
         np.testing.assert_array_equal(o.cam_to_world, w.cam_to_world)
         np.testing.assert_allclose(o.rescaled(*SIZE).K, w.K, rtol=2 * K_RTOL, atol=0)  # a rescale and back
-    np.testing.assert_allclose(work[0].K, rec.geometry.K0, rtol=K_RTOL, atol=0)
+    np.testing.assert_allclose(work[0].K, rec.pose.geometry.K0, rtol=K_RTOL, atol=0)
     # cam_to_world holds Rᵀ and −Rᵀt; world_to_cam transposes back (exact) and forms −R(−Rᵀt) = RRᵀt: off t by
     # R's orthogonality defect and two 3-term products (2γ₃), of |t|₁
-    np.testing.assert_array_equal(work[1].world_to_cam[:3, :3], rec.geometry.R)
-    t = rec.geometry.t
-    tol = (3 * _orthogonality(rec.geometry.R) + 2 * 3 * U64) * float(np.abs(t).sum())
+    np.testing.assert_array_equal(work[1].world_to_cam[:3, :3], rec.pose.geometry.R)
+    t = rec.pose.geometry.t
+    tol = (3 * _orthogonality(rec.pose.geometry.R) + 2 * 3 * U64) * float(np.abs(t).sum())
     np.testing.assert_allclose(work[1].world_to_cam[:3, 3], t, rtol=0, atol=tol)
 
 
@@ -636,7 +643,7 @@ def test_library_custom_pose_backend_replaces_the_stage(cli_pair: Pair) -> None:
 
     pose = RecordingPose()
     config = ReconstructConfig(views=ViewConfig(size=256))  # small: only the stage wiring is under test
-    rec = Pipeline(config, pose=pose).run([cli_pair.a, cli_pair.b])
+    rec = Pipeline(config, classical_stages(config, pose=pose)).run([cli_pair.a, cli_pair.b])
     assert pose.calls >= 1
     assert rec.report.backends["pose"] == "test:recording-essential"
     assert rec.report.pose["recorded"] is True  # the reported geometry is the custom backend's
@@ -652,7 +659,19 @@ def test_library_rejects_unrelated_scenes(bad_files: dict[str, Path]) -> None:
 
 @pytest.mark.parametrize(("n", "message"), [(1, "1 photo given"), (65, "65 photos given: at most 64")])
 def test_library_takes_two_to_64_photos(bad_files: dict[str, Path], n: int, message: str) -> None:
-    """One photo, or more than the limit, is bad input (InputError), checked before anything is read (the files
-    here do not exist)."""
+    """One photo, or more than the limit, is bad input (InputError), checked once, at the library boundary, before
+    anything is read or loaded (the files here do not exist)."""
     with pytest.raises(InputError, match=message):
-        Pipeline().run([bad_files["missing"]] * n)
+        reconstruct([bad_files["missing"]] * n)
+
+
+def test_classical_stages_fill_every_slot_and_the_descriptor_tiers() -> None:
+    """The classical factory, as the neural one: every slot, the tiers of ``config.search``; a backend's own
+    descriptors get no SIFT wide tier; the pipeline's default is this factory's."""
+    config = ReconstructConfig()
+    stages = classical_stages(config)
+    assert stages.pair is None and stages.scale == "relative" and isinstance(stages.pose, EssentialPose)
+    assert stages.fallback is not None and stages.wide is not None and stages.learned is None
+    own = classical_stages(config, descriptors=stages.describe)
+    assert own.describe is stages.describe and own.wide is None and own.fallback is not None
+    assert Pipeline(config).backends() == Pipeline(config, stages).backends()

@@ -38,7 +38,7 @@ def rec(pair: tuple[Path, Path, Path]) -> Reconstruction:
 
 
 def _mac_value(rec: Reconstruction, maps: list[GaussianMaps], scale: int) -> float:
-    inl = rec.geometry.inliers
+    inl = rec.pose.geometry.inliers
     xy0 = torch.tensor(inl.xy0 / scale, dtype=torch.float32)
     xy1 = torch.tensor(inl.xy1 / scale, dtype=torch.float32)
     c2w = [m.cam_to_world.float() for m in maps]
@@ -49,7 +49,7 @@ def _mac_value(rec: Reconstruction, maps: list[GaussianMaps], scale: int) -> flo
 
 def test_refinement_lowers_the_loss_and_leaves_the_input_alone(rec: Reconstruction) -> None:
     before = [t.clone() for t in rec.maps[0].tensors()]
-    out = refine(rec.views, rec.geometry, rec.maps, RefineConfig(steps=12, scale=4, min_steps=100))
+    out = refine(rec.views, rec.pose.geometry, rec.maps, RefineConfig(steps=12, scale=4, min_steps=100))
     assert out.steps == 12 and not out.stopped_early and len(out.history) == 12
     assert out.history[-1]["photo"] < 0.9 * out.history[0]["photo"]
     assert {"photo", "mac", "mac_pos", "mac_shape", "loss"} <= set(out.history[0])
@@ -66,8 +66,9 @@ def test_mac_term_pulls_matched_gaussians_together(rec: Reconstruction) -> None:
     the two views end up closer than without it; without MAC the history has no MAC term."""
     strong = MACConfig(weight=25.0)
     cfg = RefineConfig(steps=8, scale=4, min_steps=100, mac=strong)
-    with_mac = refine(rec.views, rec.geometry, rec.maps, cfg)
-    no_mac = refine(rec.views, rec.geometry, rec.maps, RefineConfig(steps=8, scale=4, min_steps=100, use_mac=False))
+    with_mac = refine(rec.views, rec.pose.geometry, rec.maps, cfg)
+    no_mac = refine(rec.views, rec.pose.geometry, rec.maps,
+                    RefineConfig(steps=8, scale=4, min_steps=100, use_mac=False))  # fmt: skip
     assert "mac" not in no_mac.history[0]
     start = _mac_value(rec, [m.pooled(4) for m in rec.maps], 4)
     assert _mac_value(rec, with_mac.maps, 4) < 0.8 * min(start, _mac_value(rec, no_mac.maps, 4))
@@ -75,14 +76,14 @@ def test_mac_term_pulls_matched_gaussians_together(rec: Reconstruction) -> None:
 
 def test_refinement_stops_early_on_a_plateau(rec: Reconstruction) -> None:
     cfg = RefineConfig(steps=40, scale=4, min_steps=4, plateau_window=2, plateau_tol=10.0)
-    out = refine(rec.views, rec.geometry, rec.maps, cfg)
+    out = refine(rec.views, rec.pose.geometry, rec.maps, cfg)
     assert out.stopped_early and out.steps == 4
 
 
 def test_refinement_takes_one_map_per_view(rec: Reconstruction) -> None:
     both = GaussianMaps.cat([rec.maps[0], rec.maps[0]])
     with pytest.raises(InputError, match="B = 1"):
-        refine(rec.views, rec.geometry, [both, rec.maps[1]], RefineConfig(steps=1, scale=4))
+        refine(rec.views, rec.pose.geometry, [both, rec.maps[1]], RefineConfig(steps=1, scale=4))
 
 
 # ------------------------------------------------------------------------------ CLI
@@ -120,7 +121,7 @@ def test_refinement_with_an_lpips_term(rec: Reconstruction) -> None:
     model = LPIPS()
     for lin in model.lins:
         lin.weight.abs_()  # the official linear layers are non-negative
-    out = refine(rec.views, rec.geometry, rec.maps, RefineConfig(steps=4, scale=4, min_steps=100), lpips=model)
+    out = refine(rec.views, rec.pose.geometry, rec.maps, RefineConfig(steps=4, scale=4, min_steps=100), lpips=model)
     assert all(np.isfinite(h["lpips"]) and h["lpips"] > 0 for h in out.history)
     assert out.history[-1]["loss"] < out.history[0]["loss"]
 

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import Any, Literal
+from dataclasses import dataclass
+from typing import Literal
 
-from ..._json import to_jsonable
 from ...errors import InputError
+from ...report import CompactReport, CompactStep
 
 __all__ = ["CompactConfig", "CompactReport", "CompactStep"]
 
@@ -84,53 +84,3 @@ class CompactConfig:
                 raise InputError(f"{name} {v}: give a finite number ≥ 0")
         if not (math.isfinite(self.coverage) and self.coverage > 0):
             raise InputError(f"coverage {self.coverage}: give a finite number > 0")
-
-
-@dataclass
-class CompactStep:
-    """One step of :func:`~.run.compact`: Gaussians before and after it, its time and why it removed what it did."""
-
-    name: str
-    before: int
-    after: int
-    seconds: float
-    reason: str
-
-
-@dataclass
-class CompactReport:
-    """What :func:`~.run.compact` did.
-
-    Attributes:
-        preset: the settings' name.
-        before: Gaussians in the maps (valid pixels).
-        after: Gaussians returned.
-        sh_degree_before: SH degree of the maps.
-        sh_degree_after: SH degree of the result.
-        seconds: wall time of the whole compaction.
-        steps: each step that ran, in order.
-    """
-
-    preset: str
-    before: int
-    after: int
-    sh_degree_before: int
-    sh_degree_after: int
-    seconds: float
-    steps: list[CompactStep] = field(default_factory=list)
-
-    @property
-    def ratio(self) -> float:
-        """``before / after`` (inf for an empty result)."""
-        return self.before / self.after if self.after else math.inf
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain JSON values for the run report."""
-        out = to_jsonable(self)
-        out["ratio"] = to_jsonable(self.ratio)
-        return out
-
-    def summary(self) -> str:
-        """One line: counts and the reduction."""
-        fewer = f"{self.ratio:.1f}× fewer, {self.preset}"
-        return f"{self.before} → {self.after} Gaussians ({fewer}) in {self.seconds:.2f} s"

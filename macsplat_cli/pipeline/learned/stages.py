@@ -14,12 +14,12 @@ import functools
 import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import cv2
 import numpy as np
 import torch
 
+from ..slots import DescribeStage, MatchStage, PairPass
 from ..types import Features, Matches, View
 from .aliked_sparse import aliked_sparse
 from .config import LearnedConfig
@@ -74,7 +74,7 @@ class LearnedDescriptors:
         return LearnedFeatures(xy=xy, desc=np.ascontiguousarray(desc), conf=np.ascontiguousarray(conf),
                                image_wh=(w_d, h_d), to_detect=(1 / to_work[0], 1 / to_work[1]))  # fmt: skip
 
-    def __call__(self, views: Sequence[View], pair: Any = None) -> list[Features]:
+    def __call__(self, views: Sequence[View], pair: PairPass = None) -> list[Features]:
         models = learned_models(self.config)
         return [self._one(models, v) for v in views]
 
@@ -119,8 +119,8 @@ class LearnedTier:
     """The learned matcher as a tier of the pose search: its descriptors, its matcher, and ``load`` (loads the
     models once, timed as its own stage by the search; the describe and match stages would load them otherwise)."""
 
-    describe: Any
-    match: Any
+    describe: DescribeStage
+    match: MatchStage
     config: LearnedConfig
     load: Callable[[], object] = _no_load
 

@@ -12,7 +12,6 @@ import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -20,7 +19,7 @@ from ...errors import ReconstructionError
 from ..learned import LearnedTier
 from ..pose import PoseResult, PoseSearch
 from ..pose.focal import FOCAL_DOUBT_START
-from ..slots import DescribeStage
+from ..slots import DescribeStage, PairPass
 from ..types import Features, TwoViewGeometry, View
 
 __all__ = [
@@ -43,7 +42,7 @@ class CachedDescriptors:
         self._cache: dict[int, tuple[View, Features]] = {}
         self._lock = threading.Lock()
 
-    def __call__(self, views: Sequence[View], pair: Any = None) -> list[Features]:
+    def __call__(self, views: Sequence[View], pair: PairPass = None) -> list[Features]:
         missing = [v for v in views if id(v) not in self._cache]
         if missing:
             for v, f in zip(missing, self.stage(missing, pair)):

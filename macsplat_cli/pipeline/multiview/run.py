@@ -9,7 +9,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -20,6 +20,7 @@ from ...gaussians import GaussianMaps
 from ..background import BackgroundConfig, BackgroundLayer, background_layer
 from ..gaussian_init import GaussianInitConfig, view_gaussians
 from ..pose import PoseSearch
+from ..slots import StageTimer
 from ..types import DepthMap, MatchSet, View
 from .config import MultiViewConfig
 from .depth import MIN_SHARED, DepthFn, multiview_depths, pair_geometry
@@ -32,8 +33,6 @@ from .tracks import build_tracks
 __all__ = ["MultiViewResult", "reconstruct_views"]
 
 logger = logging.getLogger(__name__)
-
-Timer = Callable[[str, Callable[[], Any]], Any]
 
 
 @dataclass
@@ -133,7 +132,7 @@ def _duplicates(views: Sequence[View]) -> dict[int, int]:
 
 def reconstruct_views(
     views: list[View], search: PoseSearch, two_view_depth: DepthFn, gaussians: GaussianInitConfig,
-    background: BackgroundConfig, config: MultiViewConfig, timed: Timer,
+    background: BackgroundConfig, config: MultiViewConfig, timed: StageTimer,
 ) -> MultiViewResult:  # fmt: skip
     """The chain (module docstring) on ``views`` (≥ 3 photos, or ≥ 2 with ``config.poses``), already loaded.
 
@@ -180,12 +179,13 @@ def reconstruct_views(
         )
 
     def gaussian_stage() -> tuple[list[GaussianMaps], list[int], BackgroundLayer | None]:
-        ks = [k for k, d in enumerate(depths) if d is not None]
+        kept = [(k, d) for k, d in enumerate(depths) if d is not None]
+        ks = [k for k, _ in kept]
         Ts = [reg.cam_to_world(k) for k in ks]
-        maps = [view_gaussians(views[k], depths[k], reg.K[k], T, gaussians) for k, T in zip(ks, Ts)]
+        maps = [view_gaussians(views[k], d, reg.K[k], T, gaussians) for (k, d), T in zip(kept, Ts)]
         layer = None
         if background.enabled:
-            layer = background_layer([views[k] for k in ks], [reg.K[k] for k in ks], Ts, [depths[k] for k in ks],
+            layer = background_layer([views[k] for k in ks], [reg.K[k] for k in ks], Ts, [d for _, d in kept],
                                      background)  # fmt: skip
         return maps, ks, layer
 

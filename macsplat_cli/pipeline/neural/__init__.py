@@ -12,7 +12,15 @@ from __future__ import annotations
 
 from .geometry import estimate_focal_weiszfeld, pixel_grid, sample_descriptors
 from .pair import NetworkPair, NeuralConfig, NeuralPair
-from .stages import NeuralDepth, NeuralDescriptors, NeuralGaussians, NeuralPose, neural_stages, refine_matches
+from .stages import (
+    NeuralDepth,
+    NeuralDescriptors,
+    NeuralGaussians,
+    NeuralPose,
+    network_pass,
+    neural_stages,
+    refine_matches,
+)  # fmt: skip
 from .warp import ViewWarp
 
 __all__ = [
@@ -25,6 +33,7 @@ __all__ = [
     "NeuralPose",
     "ViewWarp",
     "estimate_focal_weiszfeld",
+    "network_pass",
     "neural_stages",
     "pixel_grid",
     "refine_matches",

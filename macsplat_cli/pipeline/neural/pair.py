@@ -18,7 +18,7 @@ import dataclasses
 import logging
 import time
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 import torch
@@ -26,6 +26,7 @@ import torch
 from ...errors import InputError
 from ...gaussians import GaussianMaps
 from ...neural.predictor import PairPredictor, prediction_from_outputs, resolve_device
+from ...report import FusionReport, NeuralReport
 from ..types import View
 from .warp import ViewWarp
 
@@ -222,33 +223,33 @@ class NeuralPair:
         self._images = None
         logger.info("semantic fusion run on demand: %.2f s", pair.fusion_seconds)
 
-    def report(self) -> dict[str, Any]:
-        """The ``neural`` section of the run report (after a run)."""
+    def report(self) -> NeuralReport:
+        """The ``neural`` section of the run report (after a run; the files and the load time are the engine's)."""
         p = self.predictor
         last = self.last
-        return {
-            "device": str(self.device),
-            "network": p.network_name(),
-            "network_size": list(last.net_size) if last is not None else None,
-            "forward_s": last.seconds if last is not None else None,
-            "fusion": self._fusion_report(),
-            "gaussian_head": p.has_gaussian_head,
-            "config": dataclasses.asdict(self.config),
-        }
+        return NeuralReport(
+            device=str(self.device),
+            network=p.network_name(),
+            network_size=list(last.net_size) if last is not None else None,
+            forward_s=last.seconds if last is not None else None,
+            fusion=self._fusion_report(),
+            gaussian_head=p.has_gaussian_head,
+            config=dataclasses.asdict(self.config),
+        )
 
-    def _fusion_report(self) -> dict[str, Any]:
+    def _fusion_report(self) -> FusionReport:
         p, last = self.predictor, self.last
         if last is None:
-            return {"applied": False, "detail": p.fusion_name()}
+            return FusionReport(applied=False, detail=p.fusion_name())
         if last.fusion == "deferred":
-            return {
-                "applied": False,
-                "policy": "auto",
-                "detail": "semantic fusion skipped: the backbone's descriptors verified enough matches without it "
+            return FusionReport(
+                applied=False,
+                policy="auto",
+                detail="semantic fusion skipped: the backbone's descriptors verified enough matches without it "
                 "(--quality fast)",
-            }
-        out: dict[str, Any] = {"applied": last.fusion == "applied", "detail": p.fusion_detail(last.net_size[::-1])}
+            )
+        out = FusionReport(applied=last.fusion == "applied", detail=p.fusion_detail(last.net_size[::-1]))
         if self.config.fusion == "auto" and last.fusion == "applied":
-            out.update(policy="auto", on_demand_s=last.fusion_seconds)
-            out["detail"] += " (on demand: too few matches verified without it)"
+            out.policy, out.on_demand_s = "auto", last.fusion_seconds
+            out.detail += " (on demand: too few matches verified without it)"
         return out

@@ -31,8 +31,8 @@ Symbols: ``H, W`` network input size (view 0's working size), ``D`` descriptor d
 
 from __future__ import annotations
 
+import dataclasses
 import logging
-from typing import Any
 
 import numpy as np
 import torch
@@ -43,7 +43,8 @@ from ...metrics import angle_between_deg, rotation_angle_deg
 from ...neural.predictor import PairPredictor
 from ...rotations import quat_multiply, rotmat_to_quat_np
 from ..pose import fundamental_from_pose, pose_from_pointmap, sampson_distance
-from ..run import ReconstructConfig
+from ..run import ReconstructConfig, Stages, classical_stages
+from ..slots import PairPass
 from ..stages import DepthGaussians, FilteredMatcher
 from ..types import DepthMap, Features, Matches, TwoViewGeometry, View
 from .geometry import estimate_focal_weiszfeld, pixel_grid, sample_descriptors
@@ -54,6 +55,7 @@ __all__ = [
     "NeuralDescriptors",
     "NeuralGaussians",
     "NeuralPose",
+    "network_pass",
     "neural_stages",
     "refine_matches",
 ]
@@ -63,22 +65,33 @@ logger = logging.getLogger(__name__)
 
 def neural_stages(
     predictor: PairPredictor, config: ReconstructConfig, neural: NeuralConfig | None = None, device: str = "cpu"
-) -> dict[str, Any]:
-    """The neural stage callables (keyword arguments of :class:`~..run.Pipeline`)."""
+) -> Stages:
+    """The neural backend's slots: the network's pass, descriptors, pose, depth and Gaussians (the head's, else the
+    classical surfels), the rest as :func:`~..run.classical_stages` fills them; metric."""
     neural = neural or NeuralConfig()
-    gaussians = NeuralGaussians() if predictor.has_gaussian_head else DepthGaussians(config.gaussians)
     pair = NeuralPair(predictor, neural, device)
-    stages: dict[str, Any] = {
-        "pair": pair,
-        "descriptors": NeuralDescriptors(predictor, neural),
-        "matcher": FilteredMatcher(config.matching),
-        "pose": NeuralPose(neural),
-        "depth": NeuralDepth(neural),
-        "gaussians": gaussians,
-    }
-    if pair.defers_fusion:  # the fusion is the fallback of the backbone's own descriptors
-        stages["fallback_descriptors"] = NeuralDescriptors(predictor, neural, fuse_with=pair)
-    return stages
+    stages = classical_stages(
+        config,
+        descriptors=NeuralDescriptors(predictor, neural),
+        matcher=FilteredMatcher(config.matching),
+        pose=NeuralPose(neural),
+        depth=NeuralDepth(neural),
+        gaussians=NeuralGaussians() if predictor.has_gaussian_head else DepthGaussians(config.gaussians),
+        # the fusion is the fallback of the backbone's own descriptors
+        fallback=NeuralDescriptors(predictor, neural, fuse_with=pair) if pair.defers_fusion else None,
+    )
+    return dataclasses.replace(stages, pair=pair, scale="metric")
+
+
+def network_pass(pair: PairPass) -> NetworkPair:
+    """The network's pass a neural stage was handed (:data:`~..slots.PairPass`).
+
+    Raises:
+        ValueError: None: a neural stage in a pipeline without the network's ``pair`` slot.
+    """
+    if pair is None:
+        raise ValueError("a neural stage needs the network's pass: build the pipeline with neural_stages")
+    return pair
 
 
 def refine_matches(pred: NetworkPair, matches: Matches, radius: int) -> Matches:
@@ -154,7 +167,8 @@ class NeuralDescriptors:
             grid=grid,
         )
 
-    def __call__(self, views: list[View], pair: NetworkPair) -> list[Features]:
+    def __call__(self, views: list[View], pair: PairPass) -> list[Features]:
+        pair = network_pass(pair)
         if self.fuse_with is not None:
             self.fuse_with.apply_fusion(pair)
         return [self.features(pair, 0), self.features(pair, 1)]
@@ -168,9 +182,9 @@ class NeuralPose:
     def __init__(self, config: NeuralConfig | None = None) -> None:
         self.config = config or NeuralConfig()
 
-    def __call__(self, v0: View, v1: View, matches: Matches, pair: NetworkPair) -> TwoViewGeometry:
+    def __call__(self, v0: View, v1: View, matches: Matches, pair: PairPass) -> TwoViewGeometry:
         cfg = self.config
-        pred = pair
+        pred = network_pass(pair)
         wn, hn = pred.net_size
         px = _scale_of_512(wn, hn)
         ok = (pred.conf > cfg.conf_threshold) & pred.mask & (np.isfinite(pred.pts3d).all(-1))  # [2, H, W]
@@ -279,9 +293,9 @@ class NeuralDepth:
     def __init__(self, config: NeuralConfig | None = None) -> None:
         self.config = config or NeuralConfig()
 
-    def __call__(self, views: list[View], geometry: TwoViewGeometry, pair: NetworkPair) -> list[DepthMap]:
+    def __call__(self, views: list[View], geometry: TwoViewGeometry, pair: PairPass) -> list[DepthMap]:
         cfg = self.config
-        pred = pair
+        pred = network_pass(pair)
         out = []
         for k, v in enumerate(views):
             X = pred.pts3d[k].astype(np.float64)
@@ -320,8 +334,9 @@ class NeuralGaussians:
     name = "neural:splatt3r-gaussian-head"
 
     def __call__(
-        self, views: list[View], geometry: TwoViewGeometry, depths: list[DepthMap], pair: NetworkPair
+        self, views: list[View], geometry: TwoViewGeometry, depths: list[DepthMap], pair: PairPass
     ) -> list[GaussianMaps]:
+        pair = network_pass(pair)
         if pair.gaussians is None:
             raise ValueError("NeuralGaussians needs the Gaussian head's outputs")
         out = []

@@ -24,12 +24,12 @@ import dataclasses
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, TypeVar
 
 from ...errors import ReconstructionError
 from ...metrics import rotation_error_deg, translation_direction_error_deg
 from ..matching import guided_matches
-from ..slots import DescribeStage, MatchStage, PoseStage
+from ..slots import DescribeStage, MatchStage, PairPass, PoseStage, StageTimer
 from ..types import Features, Matches, TwoViewGeometry, View
 from .confidence import accept_pose, weigh_evidence
 from .config import GUIDED_MAX_CHANGE_DEG, GUIDED_RATIO, PoseConfig, PoseSearchConfig
@@ -53,11 +53,10 @@ GUIDED_BELOW = 1000
 LOW_CONFIDENCE_HINT = "use --accept-low-confidence to write the scene anyway"
 """Appended to a refusal for low pose confidence."""
 
-StageTimer = Callable[[str, Callable[[], Any]], Any]
-"""``timed(stage, fn)``: runs ``fn()`` as the named stage (progress events, wall time) and returns its result."""
+T = TypeVar("T")
 
 
-def _untimed(stage: str, fn: Callable[[], Any]) -> Any:
+def _untimed(stage: str, fn: Callable[[], T]) -> T:
     return fn()
 
 
@@ -119,7 +118,7 @@ class PoseSearch:
         self.learned = learned
         self.warn_doubts = warn_doubts
 
-    def __call__(self, views: list[View], pair: Any = None, timed: StageTimer | None = None) -> PoseResult:
+    def __call__(self, views: list[View], pair: PairPass = None, timed: StageTimer | None = None) -> PoseResult:
         """The accepted pose of the two ``views`` (``pair``: the network pass, for backends that have one).
 
         Raises:
@@ -148,7 +147,7 @@ class PoseSearch:
 
     # ------------------------------------------------------------------------------------------- the tiers
     def _try_pose(
-        self, views: list[View], matches: Matches, pair: Any, timed: StageTimer, stage: str
+        self, views: list[View], matches: Matches, pair: PairPass, timed: StageTimer, stage: str
     ) -> tuple[TwoViewGeometry | None, ReconstructionError | None]:
         try:
             return timed(stage, lambda: self.pose(views[0], views[1], matches, pair)), None
@@ -158,7 +157,7 @@ class PoseSearch:
     def _chain(
         self,
         views: list[View],
-        pair: Any,
+        pair: PairPass,
         timed: StageTimer,
         describe: DescribeStage,
         tier: Tier,
@@ -174,7 +173,7 @@ class PoseSearch:
         names = (getattr(stage, "name", type(stage).__name__) for stage in (describe, matcher))
         return _Attempt(geometry, failure, feats, matches, tier, matcher="+".join(names))
 
-    def _tiers(self, views: list[View], pair: Any, timed: StageTimer) -> _Attempt:
+    def _tiers(self, views: list[View], pair: PairPass, timed: StageTimer) -> _Attempt:
         """The tier whose pose stands (module docstring, 1): the first that gives a pose, unless the putative
         matches do not support it (:func:`~.confidence.weigh_evidence`): then the later tiers run too, and the
         first of them whose pose they support replaces it.
@@ -222,7 +221,7 @@ class PoseSearch:
         _, doubts, _ = weigh_evidence(views[0], views[1], attempt.geometry, attempt.matches)
         return not doubts
 
-    def _learned(self, views: list[View], pair: Any, timed: StageTimer, best: _Attempt) -> _Attempt:
+    def _learned(self, views: list[View], pair: PairPass, timed: StageTimer, best: _Attempt) -> _Attempt:
         """The learned tier after the SIFT tiers (module docstring, 1): its pose replaces ``best`` when ``best`` has
         none, or when its own matches support it; ``best``'s failure stands when it gives none."""
         assert self.learned is not None
@@ -235,7 +234,7 @@ class PoseSearch:
         logger.debug("learned tier: %s", att.failure or "its pose is not supported either")
         return best
 
-    def _wide(self, views: list[View], primary: list[Features], pair: Any, timed: StageTimer) -> _Attempt:
+    def _wide(self, views: list[View], primary: list[Features], pair: PairPass, timed: StageTimer) -> _Attempt:
         """The second fallback tier: wide-baseline descriptors, matching and pose; when that pose fails, the
         plane's poses ranked by dense consistency (on the primary features)."""
         c = self.config
@@ -260,7 +259,7 @@ class PoseSearch:
 
     # ------------------------------------------------------------------------------------------- refinement
     def _guided(
-        self, views: list[View], feats: list[Features], geometry: TwoViewGeometry, pair: Any, timed: StageTimer
+        self, views: list[View], feats: list[Features], geometry: TwoViewGeometry, pair: PairPass, timed: StageTimer
     ) -> tuple[TwoViewGeometry, bool]:
         """Epipolar-guided re-matching under the pose (module docstring, 2). Returns the pose kept and whether it
         is the guided one."""

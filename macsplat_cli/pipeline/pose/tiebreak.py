@@ -10,7 +10,7 @@ decomposition needs them). Measured: benchmarks/history/pose.md.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -19,6 +19,7 @@ import numpy as np
 from ...errors import ReconstructionError
 from ...metrics import rotation_error_deg, translation_direction_error_deg
 from ..matching import guided_matches
+from ..slots import PairPass, PoseStage
 from ..types import Features, Matches, TwoViewGeometry, View
 from .config import (
     GUIDED_MAX_CHANGE_DEG,
@@ -130,11 +131,8 @@ def plane_poses(
     return sorted(poses, key=lambda p: -p.score)
 
 
-PoseSlot = Callable[[View, View, Matches, object], TwoViewGeometry]
-
-
 def plane_tiebreak(
-    views: Sequence[View], feats: Sequence[Features], matches: Matches, pair: object, pose_stage: PoseSlot,
+    views: Sequence[View], feats: Sequence[Features], matches: Matches, pair: PairPass, pose_stage: PoseStage,
     config: PoseSearchConfig, pose: PoseConfig,
 ) -> tuple[TwoViewGeometry, list[int]] | None:  # fmt: skip
     """Rank the physical poses of the matches' dominant plane and re-estimate the best (module docstring).

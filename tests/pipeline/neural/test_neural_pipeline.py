@@ -201,7 +201,7 @@ def test_pipeline_recovers_metric_pose_focal_and_depth(scene: Scene) -> None:
     rec = reconstruct([scene.a, scene.b], EngineConfig(backend="neural"), models=models)
     assert oracle.calls == 1  # one forward pass for descriptors, pose, depth and Gaussians
     assert rec.scale == "metric" and rec.cameras().scale == "metric" and rec.report.scale == "metric"
-    geo = rec.geometry
+    geo = rec.pose.geometry
     rot_err, t_err = syn.pose_errors(geo.R, geo.t, scene.R, scene.t)
     assert rot_err < 0.05 and t_err < 0.1, (rot_err, t_err)
     assert np.linalg.norm(geo.t) == pytest.approx(np.linalg.norm(scene.t), rel=1e-3)  # metric: no unit baseline
@@ -237,9 +237,9 @@ def test_pipeline_with_given_intrinsics_keeps_them(scene: Scene, tmp_path: Path)
     config = EngineConfig(backend="neural")
     config.pipeline.views = ViewConfig(intrinsics=tmp_path / "cams.json")
     rec = reconstruct([scene.a, scene.b], config, models=Models(predictor=PairPredictor(OracleBackbone(scene))))
-    np.testing.assert_allclose(rec.geometry.K0, scene.cam0.K)
-    assert rec.geometry.focal_estimated is False
-    assert syn.pose_errors(rec.geometry.R, rec.geometry.t, scene.R, scene.t)[0] < 0.05
+    np.testing.assert_allclose(rec.pose.geometry.K0, scene.cam0.K)
+    assert rec.pose.geometry.focal_estimated is False
+    assert syn.pose_errors(rec.pose.geometry.R, rec.pose.geometry.t, scene.R, scene.t)[0] < 0.05
 
 
 # ------------------------------------------------------------------------------ geometry units
@@ -594,8 +594,8 @@ def test_fusion_auto_skips_dinov3_while_matches_verify_and_runs_it_on_demand(
         rec_skip = skip.run([scene.a, scene.b])
         assert len(calls) == 1  # DINOv3 did not run
         assert skip.pair.last.fusion == "deferred" and not rec_skip.report.fallback_used
-        rep = skip.pair.report()["fusion"]
-        assert rep["applied"] is False and rep["policy"] == "auto" and "skipped" in rep["detail"]
+        rep = skip.pair.report().fusion
+        assert rep.applied is False and rep.policy == "auto" and "skipped" in rep.detail
         # the unfused pass gives the same geometry (the fusion only changes the descriptors)
         np.testing.assert_array_equal(skip.pair.last.pts3d, always.pair.last.pts3d)
         fast.pipeline.search.fallback_min_inliers = 10**9  # never enough: the fusion runs once, on demand
@@ -605,8 +605,8 @@ def test_fusion_auto_skips_dinov3_while_matches_verify_and_runs_it_on_demand(
         last = demand.pair.last
         assert last.fusion == "applied" and last.fusion_seconds > 0
         np.testing.assert_allclose(last.desc, always.pair.last.desc, atol=1e-6)
-        rep = demand.pair.report()["fusion"]
-        assert rep["applied"] is True and "on demand" in rep["detail"]
+        rep = demand.pair.report().fusion
+        assert rep.applied is True and "on demand" in rep.detail
         assert demand.backends()["descriptors_fallback"].endswith("(on demand)")
         # through the CLI: the report says what ran
         code, out, err = run_cli(
@@ -628,3 +628,11 @@ def test_fusion_auto_skips_dinov3_while_matches_verify_and_runs_it_on_demand(
         assert not fusion["applied"] or "matches_kept" in fusion
     finally:
         hook.remove()
+
+
+def test_a_neural_stage_without_the_networks_pass_says_so() -> None:
+    """The pass is typed (``PairPass``): a neural stage handed None (no ``pair`` slot) says what is missing."""
+    from macsplat_cli.pipeline.neural import NeuralDepth
+
+    with pytest.raises(ValueError, match="the network's pass"):
+        NeuralDepth()([], None, None)  # type: ignore[arg-type]

@@ -150,7 +150,7 @@ def test_exact_point_maps_with_unrelated_descriptors_fail_the_verified_match_min
     rec = _neural(scene, UnrelatedDescriptors(scene), accept=True)
     conf = rec.cameras().pose_confidence
     assert conf is not None and conf["accepted_low_confidence"] is True and conf["score"] == 0.0
-    assert len(rec.geometry.inliers) < PoseConfig().min_inliers
+    assert len(rec.pose.geometry.inliers) < PoseConfig().min_inliers
 
 
 def test_exact_point_maps_are_accepted(scene: Scene) -> None:
@@ -161,8 +161,8 @@ def test_exact_point_maps_are_accepted(scene: Scene) -> None:
     conf = pose.confidence
     assert conf is not None and conf.score > 0.5 and "refit_rotation_deg" in conf.checks
     # the same a contrario test as a classical pose, on the fused descriptors' matches (issue 25)
-    assert conf.evidence is not None and conf.evidence.log10_nfa < -3 and rec.geometry.source == "pointmap"
-    assert syn.pose_errors(rec.geometry.R, rec.geometry.t, scene.R, scene.t)[0] < 0.05
+    assert conf.evidence is not None and conf.evidence.log10_nfa < -3 and rec.pose.geometry.source == "pointmap"
+    assert syn.pose_errors(rec.pose.geometry.R, rec.pose.geometry.t, scene.R, scene.t)[0] < 0.05
 
 
 def test_both_backends_call_the_one_acceptance(scene: Scene, monkeypatch: pytest.MonkeyPatch) -> None:

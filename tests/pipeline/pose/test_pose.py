@@ -298,7 +298,7 @@ def test_small_working_sizes_scale_the_pixel_thresholds(size: int) -> None:
     config = EngineConfig(quality="best", overrides=Overrides(size=size, refine=0))  # the poses: no refinement
     rec = reconstruct([root / "left.jpg", root / "right.jpg"], config)
     assert abs(max(rec.report.images[0].working_size) - size) <= 8  # the working size asked for (multiple of 16)
-    assert rec.geometry.diagnostics["rotation_deg"] < 0.5 and rec.report.matches["verified"] > 1000
+    assert rec.pose.geometry.diagnostics["rotation_deg"] < 0.5 and rec.report.matches["verified"] > 1000
 
 
 def test_flipped_fraction_tells_a_mirror_from_a_view_change() -> None:

@@ -32,7 +32,7 @@ from macsplat_cli.pipeline.pose import (
     refit_pose,
 )
 from macsplat_cli.pipeline.pose.confidence import MIN_PARALLAX_TO_ROTATION
-from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig
+from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig, classical_stages
 from macsplat_cli.pipeline.stages import EssentialPose
 from macsplat_cli.pipeline.types import Matches, TwoViewGeometry, View
 from macsplat_cli.pipeline.views import ViewConfig
@@ -187,14 +187,15 @@ def test_pose_stage_doubts_are_honoured(pairs: dict[str, tuple[Path, Path, Path]
     ``accept_low_confidence`` the scene is built and the doubt recorded in the report and the cameras."""
     a, b, cams = pairs["easy"]
     views = ViewConfig(size=256, intrinsics=cams)
+    config = ReconstructConfig(views=views)
     with pytest.raises(ReconstructionError) as err:
-        Pipeline(ReconstructConfig(views=views), pose=_DoubtingPose()).run([a, b])
+        Pipeline(config, classical_stages(config, pose=_DoubtingPose())).run([a, b])
     msg = str(err.value)
     assert msg.startswith(_DoubtingPose.doubt) and msg.endswith(f"({LOW_CONFIDENCE_HINT})") and "\n" not in msg
     assert err.value.exit_code == 3
 
     accepting = ReconstructConfig(views=views, search=PoseSearchConfig(accept_low_confidence=True))
-    rec = Pipeline(accepting, pose=_DoubtingPose()).run([a, b])
+    rec = Pipeline(accepting, classical_stages(accepting, pose=_DoubtingPose())).run([a, b])
     assert rec.report.pose["doubts"] == [_DoubtingPose.doubt]
     assert rec.report.pose["accepted_low_confidence"] is True
     assert rec.report.pose["confidence"] > 0.5  # the independent checks themselves trust the pose
