@@ -27,5 +27,5 @@ class LearnedConfig:
     max_keypoints: int = 2048
     detect_size: int = 1024
     depth_confidence: float = 0.95
-    width_confidence: float = 0.99
+    width_confidence: float = 0.9
     filter_threshold: float = 0.1
