@@ -42,7 +42,7 @@ MAX_LOG10_NFA = -50.0
 """The a contrario test's bar for a learned pose (SIFT's: ``EvidenceConfig.max_log10_nfa``): LightGlue's wrong matches
 are not independent (its attention matches a region as a whole), so chance agreement is likelier than the
 background model says (tuning split: wrong learned poses accepted at −33 and −24; the right learned poses of the
-development pairs at −81 and below)."""
+development pairs at −68 and below)."""
 _ROWS = 256
 """Keypoints compared at once (bounds the distance matrices' memory: 256 × 2048)."""
 
