@@ -87,10 +87,11 @@ QUALITIES: tuple[Quality, ...] = get_args(Quality)
 BACKENDS: tuple[Backend, ...] = get_args(Backend)
 DEVICES: tuple[Device, ...] = get_args(Device)
 MATCHERS: tuple[Matcher, ...] = get_args(Matcher)
-DEFAULT_MATCHER: Matcher = "sift"
-"""``--matcher`` when none is given. Not ``auto`` yet: on the pose protocol's held-out split (`benchmarks/history/
-learned.md`) the learned tier let one pose through 179.5° off (a repeated texture LightGlue matched consistently),
-and no wrong pose accepted is the promise; ``auto`` stays one option away until a guard is calibrated."""
+DEFAULT_MATCHER: Matcher = "auto"
+"""``--matcher`` when none is given: SIFT's tiers, and the learned tier only where their pose fails or is not
+supported. Its poses pass the learned tier's own guard too (repeated textures, a stricter a contrario bar:
+``pipeline/learned/guard.py``), chosen on the pose protocol's tuning split, with no wrong learned pose accepted on
+a fresh held-out draw (benchmarks/history/learned.md)."""
 PRECISIONS: tuple[Precision, ...] = get_args(Precision)
 
 FAST_SIFT = (640, 8000)

@@ -134,12 +134,12 @@ def test_neural_flags_make_the_neural_options_and_stage_settings() -> None:
 
 
 def test_matcher_chooses_the_pose_search_tiers() -> None:
-    """``--matcher``: sift (default) no learned tier; auto adds it after the SIFT tiers; aliked the learned matcher
+    """``--matcher``: sift no learned tier; auto (default) adds it after the SIFT tiers; aliked the learned matcher
     alone; a learned matcher with the neural backend, or an unknown name, is a usage error."""
     from macsplat_cli.pipeline.learned import LearnedConfig
 
-    assert _config().matcher == "sift" and _config("--matcher", " AUTO").matcher == "auto"
-    assert _settings().pipeline.search.learned is None
+    assert _config().matcher == "auto" and _config("--matcher", " SIFT").matcher == "sift"
+    assert _settings().pipeline.search == _settings("--matcher", "auto").pipeline.search
     auto = _settings("--matcher", "auto").pipeline.search
     assert auto.learned == LearnedConfig() and not auto.learned_primary
     assert auto.fallback and auto.wide

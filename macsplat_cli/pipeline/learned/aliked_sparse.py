@@ -99,12 +99,18 @@ class _SparseMap:
         return (feats * wgt[..., None]).sum(0)
 
 
+def _layout(model: torch.nn.Module) -> torch.memory_format:
+    """The memory layout of the backbone's first convolution's weights (``models.ALIKED_LAYOUT``): the image's."""
+    w = next(p for p in model.parameters() if p.dim() == 4 and p.shape[-1] > 1)
+    return torch.channels_last if w.is_contiguous(memory_format=torch.channels_last) else torch.contiguous_format
+
+
 def _dense_parts(model: torch.nn.Module, image: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor, tuple]:
     """The backbone's four projections and the score map (unpadded, [1, 1, h, w]) of one image [1, 3, h, w]."""
     from kornia.feature.aliked.aliked import InputPadder
 
     padder = InputPadder(image.shape[-2], image.shape[-1], 32)
-    x = padder.pad(image)
+    x = padder.pad(image).contiguous(memory_format=_layout(model))
     x1 = model.block1(x)
     x2 = model.block2(model.pool2(x1))
     x3 = model.block3(model.pool4(x2))

@@ -19,7 +19,8 @@ class LearnedConfig:
     detect_size: long side of the image ALIKED runs on (capped at the photo's detail size; never upsampled).
     depth_confidence: LightGlue stops after a layer once this share of the points are confident (-1: all 9
         layers).
-    width_confidence: LightGlue drops the points it is confident will not match (-1: off).
+    width_confidence: LightGlue drops the points it is confident will not match (-1: off). 0.9 (kornia's default
+        0.99): LightGlue 30–40 % faster on the dev pairs, their outcomes unchanged.
     filter_threshold: LightGlue's match-score threshold (its default, 0.1).
     """
 
@@ -27,5 +28,5 @@ class LearnedConfig:
     max_keypoints: int = 2048
     detect_size: int = 1024
     depth_confidence: float = 0.95
-    width_confidence: float = 0.99
+    width_confidence: float = 0.9
     filter_threshold: float = 0.1

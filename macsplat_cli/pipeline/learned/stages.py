@@ -23,6 +23,7 @@ from ..slots import DescribeStage, MatchStage, PairPass
 from ..types import Features, Matches, View
 from .aliked_sparse import aliked_sparse
 from .config import LearnedConfig
+from .guard import learned_doubts
 from .models import LearnedModels, learned_models
 from .weights import WEIGHTS, LearnedWeightsError, locate
 
@@ -127,6 +128,10 @@ class LearnedTier:
     @property
     def name(self) -> str:
         return f"{self.describe.name}+{self.match.name}"
+
+    def doubts(self, features: list[Features], verified: Matches, final: Matches, log10_nfa: float | None) -> list[str]:
+        """Why the tier's pose is refused besides the acceptance's checks (:func:`.guard.learned_doubts`)."""
+        return learned_doubts(features, verified, final, log10_nfa)
 
 
 _WARNED: set[str] = set()

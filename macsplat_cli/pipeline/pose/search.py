@@ -129,7 +129,7 @@ class PoseSearch:
         found = self._tiers(views, pair, timed)
         assert found.geometry is not None
         geometry, guided = self._guided(views, found.features, found.geometry, pair, timed)
-        confidence = self._accept(views, geometry, found.matches, timed)
+        confidence = self._accept(views, geometry, found.matches, timed, found if found.tier == "learned" else None)
         assessed = self.config.confidence
         return PoseResult(
             geometry=geometry,
@@ -289,10 +289,12 @@ class PoseSearch:
 
     # ------------------------------------------------------------------------------------------- acceptance
     def _accept(
-        self, views: list[View], geometry: TwoViewGeometry, evidence: Matches, timed: StageTimer
-    ) -> PoseConfidence:
+        self, views: list[View], geometry: TwoViewGeometry, evidence: Matches, timed: StageTimer,
+        learned: _Attempt | None = None,
+    ) -> PoseConfidence:  # fmt: skip
         """The acceptance of the final pose (module docstring, 3), on the views as loaded (a view with the prior's
-        focal has an unknown focal length) and ``evidence``, the tier's filtered matches.
+        focal has an unknown focal length) and ``evidence``, the tier's filtered matches; a pose of the ``learned``
+        tier (its attempt, before guided re-matching) has the learned tier's doubts too (:mod:`..learned.guard`).
 
         Raises:
             ReconstructionError: the pose is doubted and ``accept_low_confidence`` is off.
@@ -302,6 +304,11 @@ class PoseSearch:
             "pose confidence",
             lambda: accept_pose(views[0], views[1], geometry, self.pose_config, c.confidence, evidence=evidence),
         )
+        if learned is not None and self.learned is not None and learned.geometry is not None:
+            nfa = conf.checks.get("log10_nfa") if c.confidence else None
+            more = self.learned.doubts(learned.features, learned.geometry.inliers, geometry.inliers, nfa)
+            conf = dataclasses.replace(conf, ok=conf.ok and not more,
+                                       doubts=[*conf.doubts, *(Doubt("evidence", m) for m in more)])  # fmt: skip
         doubts: list[Doubt] = conf.doubts
         if doubts and not c.accept_low_confidence:
             raise ReconstructionError(f"{doubts[0].message} ({LOW_CONFIDENCE_HINT})")

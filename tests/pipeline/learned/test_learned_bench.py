@@ -18,9 +18,10 @@ def test_grid_sweeps_the_matcher_of_the_classical_backend_only() -> None:
     g = grid(["classical", "neural"], [256], matchers=["sift", "auto"])
     assert g == [BenchSetting("classical", 256, matcher="sift"), BenchSetting("classical", 256, matcher="auto"),
                  BenchSetting("neural", 256, matcher=DEFAULT_MATCHER)]  # fmt: skip
-    assert DEFAULT_MATCHER == "sift"  # the default is named by neither slug nor label
-    assert g[1].slug.endswith("_mauto") and g[0].slug == "classical_s256_td_r0_qbalanced"
-    assert g[1].label.endswith("matcher=auto") and "matcher" not in g[0].label
+    by = {s.matcher: s for s in g[:2]}  # the default is named by neither slug nor label, the other by both
+    other = next(m for m in by if m != DEFAULT_MATCHER)
+    assert by[other].slug.endswith(f"_m{other}") and by[DEFAULT_MATCHER].slug == "classical_s256_td_r0_qbalanced"
+    assert by[other].label.endswith(f"matcher={other}") and "matcher" not in by[DEFAULT_MATCHER].label
 
 
 def test_bench_runs_each_setting_with_its_matcher(capsys, plane: Path, tmp_path: Path,  # noqa: ANN001

@@ -14,6 +14,7 @@ import pytest
 
 from macsplat_cli.errors import ReconstructionError
 from macsplat_cli.pipeline.learned import LearnedConfig, LearnedTier
+from macsplat_cli.pipeline.learned.guard import MAX_LOG10_NFA
 from macsplat_cli.pipeline.pose import PoseConfig, PoseSearch, PoseSearchConfig
 from macsplat_cli.pipeline.pose import confidence as acceptance
 from macsplat_cli.pipeline.types import Features, Matches, TwoViewGeometry, View
@@ -28,29 +29,42 @@ def _views() -> list[View]:
 
 
 class Describe:
-    """``n`` features per view; ``consistent``: index-wise matches that agree with the stub pose (R = I, t along x),
-    else random ones."""
+    """``n`` features per view with distinct random unit descriptors; ``consistent``: index-wise matches that agree
+    with the stub pose (R = I, t along x) up to ``noise_px`` across the epipolar lines, else random ones;
+    ``repeated``: each descriptor of view 0 twice, at the keypoint and at a twin at least 20 px away."""
 
-    def __init__(self, name: str, n: int, *, consistent: bool = False) -> None:
+    def __init__(self, name: str, n: int, *, consistent: bool = False, noise_px: float = 0.0,
+                 repeated: bool = False) -> None:  # fmt: skip
         self.name, self.n, self.consistent, self.calls = name, n, consistent, 0
+        self.noise_px, self.repeated = noise_px, repeated
 
     def __call__(self, views: list[View], pair: object = None) -> list[Features]:
         self.calls += 1
         rng = np.random.default_rng(self.n)
         xy0 = rng.uniform((0, 0), (W - 12, H), (self.n, 2))
         shift = np.c_[rng.uniform(1.0, 10.0, self.n), np.zeros(self.n)]
+        shift[:, 1] = rng.normal(0.0, self.noise_px, self.n)
         xy1 = xy0 + shift if self.consistent else rng.uniform((0, 0), (W, H), (self.n, 2))
-        return [Features(xy, np.ones((self.n, 4), np.float32), np.ones(self.n, np.float32)) for xy in (xy0, xy1)]
+        desc = rng.normal(size=(2, self.n, 128)).astype(np.float32)
+        desc /= np.linalg.norm(desc, axis=2, keepdims=True)
+        feats = [Features(xy, d, np.ones(self.n, np.float32)) for xy, d in zip((xy0, xy1), desc)]
+        if self.repeated:  # the twins come after the matched keypoints: the matches' indices stay
+            twin_xy = np.c_[(xy0[:, 0] + 32.0) % W, (xy0[:, 1] + 24.0) % H]
+            feats[0] = Features(np.r_[xy0, twin_xy], np.r_[desc[0], desc[0]], np.ones(2 * self.n, np.float32))
+        return feats
 
 
 class Match:
+    """Index-wise matches of the first ``len(f1)`` features (the twins of :class:`Describe` stay unmatched)."""
+
     def __init__(self, name: str) -> None:
         self.name, self.calls = name, 0
 
     def __call__(self, f0: Features, f1: Features) -> Matches:
         self.calls += 1
-        idx = np.arange(len(f0))
-        return Matches(f0.xy, f1.xy, np.ones(len(f0), np.float32), idx, idx, {self.name: len(f0)})
+        n = min(len(f0), len(f1))
+        idx = np.arange(n)
+        return Matches(f0.xy[:n], f1.xy[:n], np.ones(n, np.float32), idx, idx, {self.name: n})
 
 
 class Pose:
@@ -70,9 +84,11 @@ class Pose:
 
 
 def _search(need: int, *, learned_n: int = 120, consistent: bool = False, evidence: bool = False,
-            sift: tuple[int, int, int] = (20, 40, 60), **config: object) -> PoseSearch:  # fmt: skip
+            sift: tuple[int, int, int] = (20, 40, 60), noise_px: float = 0.0, repeated: bool = False,
+            **config: object) -> PoseSearch:  # fmt: skip
     cfg = PoseSearchConfig(confidence=evidence, guided_band_px=None, accept_low_confidence=True, **config)  # type: ignore[arg-type]
-    tier = LearnedTier(Describe("learned:stub", learned_n, consistent=consistent), Match("lightglue"), LearnedConfig())
+    describe = Describe("learned:stub", learned_n, consistent=consistent, noise_px=noise_px, repeated=repeated)
+    tier = LearnedTier(describe, Match("lightglue"), LearnedConfig())
     return PoseSearch(
         cfg, PoseConfig(), describe=Describe("primary", sift[0]), match=Match("filtered"), pose=Pose(need),
         fallback=Describe("fallback", sift[1]), wide=Describe("wide", sift[2]), learned=tier,
@@ -127,3 +143,32 @@ def test_the_learned_pose_replaces_an_unsupported_sift_pose_only_when_its_matche
     result = search(_views())
     assert result.tier != "learned" and "evidence" in {d.check for d in result.doubts}
     assert search.learned is not None and search.learned.describe.calls == 1  # type: ignore[attr-defined]
+
+
+def _learned_doubts(result: object) -> list[str]:
+    return [d.message for d in result.doubts if "learned matches" in d.message]  # type: ignore[attr-defined]
+
+
+def test_a_learned_pose_on_a_repeated_texture_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The learned matches verify the pose, but each of view 0's matched keypoints has a twin (the same descriptor
+    elsewhere in the photo): refused, however strong the evidence; without the twins the same pose stands."""
+    monkeypatch.setattr(acceptance, "MAX_ROTATION_3SIGMA_DEG", 360.0)  # 64×48 photos: the uncertainty is not gated
+    result = _search(10, consistent=True, evidence=True, sift=(200, 150, 100), fallback_min_inliers=10,
+                     repeated=True)(_views())  # fmt: skip
+    assert result.tier == "learned"
+    assert any("repeated" in m for m in _learned_doubts(result)), result.doubts
+    result = _search(10, consistent=True, evidence=True, sift=(200, 150, 100), fallback_min_inliers=10)(_views())
+    assert result.tier == "learned" and not result.doubts
+
+
+def test_a_learned_pose_needs_stronger_evidence_than_a_sift_one(monkeypatch: pytest.MonkeyPatch) -> None:
+    """30 learned matches along the pose within 1 px: meaningful for SIFT's bar (log10 NFA < -3), not for the
+    learned tier's (:data:`~macsplat_cli.pipeline.learned.guard.MAX_LOG10_NFA`); 120 of them pass both."""
+    monkeypatch.setattr(acceptance, "MAX_ROTATION_3SIGMA_DEG", 360.0)  # 64×48 photos: the uncertainty is not gated
+    result = _search(25, learned_n=30, consistent=True, noise_px=0.7, evidence=True, sift=(10, 10, 10))(_views())
+    assert result.tier == "learned" and result.confidence is not None
+    assert MAX_LOG10_NFA < result.confidence.checks["log10_nfa"] < -3.0
+    assert any("log10 NFA" in m for m in _learned_doubts(result)), result.doubts
+    result = _search(25, learned_n=120, consistent=True, noise_px=0.7, evidence=True, sift=(10, 10, 10))(_views())
+    assert result.tier == "learned" and result.confidence is not None and not _learned_doubts(result)
+    assert result.confidence.checks["log10_nfa"] < MAX_LOG10_NFA
