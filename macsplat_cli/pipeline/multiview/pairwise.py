@@ -98,17 +98,35 @@ def _components(n: int, outcomes: Sequence[PairOutcome]) -> np.ndarray:
     return np.array([root(a) for a in range(n)])
 
 
+LEARNED_TRIES_PER_JOIN = 2
+"""How many failed pairs between the same two groups of photos the learned tier runs on (in the shortlist's order):
+it costs 3–7 s a pair on a 2-core CPU, and with no cap CO3D's 8 photos ran it on every pair joining the isolated
+photos (584 s against 32 s; benchmarks/history/learned.md). The SIFT tiers still run on every such pair."""
+
+
+def without_learned(search: PoseSearch) -> PoseSearch:
+    """``search`` with every tier but the learned one."""
+    return PoseSearch(search.config, search.pose_config, describe=search.describe, match=search.match,
+                      pose=search.pose, fallback=search.fallback, wide=search.wide,
+                      warn_doubts=search.warn_doubts)  # fmt: skip
+
+
 def match_all(views: Sequence[View], pairs: Sequence[tuple[int, int]], search: PoseSearch) -> list[PairOutcome]:
     """Every pair with the primary tier; then, with every tier, the pairs that failed and would join two groups
-    of photos the accepted pairs leave apart (an isolated photo is a group): the slow tiers (the learned one
-    included) run where they can change what registers."""
+    of photos the accepted pairs leave apart (an isolated photo is a group): the slow tiers run where they can
+    change what registers, the learned one on at most :data:`LEARNED_TRIES_PER_JOIN` pairs per two groups."""
     outs = match_pairs(views, pairs, primary_only(search))
     if search.fallback is None and search.wide is None and search.learned is None:
         return outs
     label = _components(len(views), outs)
+    sift_only = without_learned(search)
+    tries: dict[tuple[int, int], int] = {}
     for n, o in enumerate(outs):
         if o.result is None and label[o.i] != label[o.j]:
-            again = match_pairs(views, [(o.i, o.j)], search)[0]
+            join = (min(label[o.i], label[o.j]), max(label[o.i], label[o.j]))
+            learned = search.learned is not None and tries.get(join, 0) < LEARNED_TRIES_PER_JOIN
+            tries[join] = tries.get(join, 0) + learned
+            again = match_pairs(views, [(o.i, o.j)], search if learned else sift_only)[0]
             outs[n] = dataclasses.replace(again, seconds=o.seconds + again.seconds)
             if again.result is not None:
                 label = _components(len(views), outs)
