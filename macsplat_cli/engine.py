@@ -445,7 +445,8 @@ def _refine(
         notify, "refine", lambda: refine_reconstruction(rec, config, lpips=models.lpips, on_step=on_step)
     )
     rec.report.add_refine(section, count_gaussians(out.maps) + _layer_size(rec))
-    return dataclasses.replace(rec, maps=out.maps)
+    poses = out.poses if out.poses is not None else rec.poses  # more than two photos: the refined poses
+    return dataclasses.replace(rec, maps=out.maps, poses=poses)
 
 
 def _compact(rec: Reconstruction, settings: StageSettings, notify: StageEvent) -> Reconstruction:

@@ -23,6 +23,8 @@ class MultiViewConfig:
     poses: a cameras file with every photo's pose (``--poses``): no pose is estimated, the scene is in its frame.
     known_pose_max_px: with given poses, a match is kept within this Sampson distance (px) of their epipolar
         geometry (the given poses are trusted to about a pixel: a calibrated rig's, an SfM's).
+    covisibility: one set of Gaussians for the scene: where several photos see a surface, only the best-observed
+        photo's Gaussians are kept, before the refinement and the compaction (:mod:`.covis`, issue 41).
     """
 
     max_photos: int = MAX_PHOTOS
@@ -31,3 +33,4 @@ class MultiViewConfig:
     depth: DepthPlanConfig = field(default_factory=DepthPlanConfig)
     poses: Path | None = None
     known_pose_max_px: float = 2.0
+    covisibility: bool = True
