@@ -438,15 +438,12 @@ def _refine(
     rec: Reconstruction, config: RefineConfig, models: Models, notify: StageEvent, on_step: RefineEvent | None
 ) -> Reconstruction:
     """Stage 7 on the pipeline's maps; the refined maps replace them."""
-    from .pipeline.refine import check_scale, refine_reconstruction
+    from .pipeline.refine_stage import check_scale, refine_stage
 
     check_scale(rec.maps, config.scale)  # a usage error, before the stage starts
-    out, section = _stage(
-        notify, "refine", lambda: refine_reconstruction(rec, config, lpips=models.lpips, on_step=on_step)
-    )
+    out, section = _stage(notify, "refine", lambda: refine_stage(rec, config, lpips=models.lpips, on_step=on_step))
     rec.report.add_refine(section, count_gaussians(out.maps) + _layer_size(rec))
-    poses = out.poses if out.poses is not None else rec.poses  # more than two photos: the refined poses
-    return dataclasses.replace(rec, maps=out.maps, poses=poses)
+    return dataclasses.replace(rec, maps=out.maps, poses=rec.poses if out.poses is None else out.poses)
 
 
 def _compact(rec: Reconstruction, settings: StageSettings, notify: StageEvent) -> Reconstruction:

@@ -349,8 +349,6 @@ def refine_reconstruction(
     check_scale(rec.maps, config.scale)
     f = config.scale
     sets = rec.multiview.match_sets() if rec.multiview is not None else None
-    if rec.multiview is not None and rec.poses is not None and lpips is None:
-        return _joint_reconstruction(rec, config, sets or [], on_step)
     out = refine(rec.views, rec.geometry, rec.maps, config, depths=rec.depths, lpips=lpips, on_step=on_step,
                  match_sets=sets)  # fmt: skip
     report = RefineReport(
@@ -365,23 +363,6 @@ def refine_reconstruction(
         loss_last=out.history[-1],
     )
     return out, report
-
-
-def _joint_reconstruction(
-    rec: Reconstruction, config: RefineConfig, sets: list[MatchSet], on_step: RefineStep | None
-) -> tuple[RefineResult, RefineReport]:
-    """More than two photos: the Gaussians and the poses refined together (:mod:`.multiview.joint`), camera 0 (the
-    world frame) fixed, stopped on held-out pixels."""
-    from .multiview.joint import joint_refine
-
-    assert rec.poses is not None
-    fixed = int(np.argmin([np.abs(T - np.eye(4)).max() for T in rec.poses]))
-    out = joint_refine(rec.views, rec.poses, rec.maps, config, match_sets=sets, fixed=fixed, on_step=on_step)
-    result = RefineResult(out.maps, out.steps, out.seconds, out.stopped_early, out.history, poses=out.poses)
-    report = RefineReport(steps=out.steps, max_steps=config.steps, stopped_early=out.stopped_early,
-                          seconds=out.seconds, scale=config.scale, mac=config.use_mac, lpips=False,
-                          loss_first=out.history[0], loss_last=out.history[-1], joint=out.report())  # fmt: skip
-    return result, report
 
 
 def _dense_matches(geometry: TwoViewGeometry, depths: list[DepthMap], stride: int) -> tuple[np.ndarray, ...]:

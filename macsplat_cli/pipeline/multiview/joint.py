@@ -25,6 +25,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -33,12 +34,16 @@ from ...gaussians import GaussianMaps, Gaussians
 from ...mac import mac_loss
 from ...metrics import ssim_map
 from ...render import render
+from ...report import RefineReport
 from ...rotations import quat_multiply, quat_to_rotmat
-from ..refine import RefineConfig, RefineStep, _downscale, _optimizer, _set_learning_rates
+from ..refine import RefineConfig, RefineResult, RefineStep, _downscale, _optimizer, _set_learning_rates
 from ..types import MatchSet, View
+
+if TYPE_CHECKING:
+    from ..run import Reconstruction
 from .sh_views import view_dependent
 
-__all__ = ["JointResult", "joint_refine"]
+__all__ = ["JointResult", "joint_reconstruction", "joint_refine"]
 
 logger = logging.getLogger(__name__)
 
@@ -315,3 +320,18 @@ def joint_refine(
     logger.debug("joint refinement: %d steps in %.1f s, held-out %.5f → %.5f", step, seconds,
                  history[0]["heldout"], history[-1]["heldout"])  # fmt: skip
     return JointResult(out, T_np, [float(a) for a in turned], step, seconds, stopped, history)
+
+
+def joint_reconstruction(
+    rec: Reconstruction, config: RefineConfig, sets: list[MatchSet], on_step: RefineStep | None
+) -> tuple[RefineResult, RefineReport]:
+    """:func:`joint_refine` on a finished N-photo reconstruction (its registered photos, poses, maps and the matched
+    pairs' MAC matches), camera 0 (the world frame) fixed, and the refinement's report section."""
+    assert rec.poses is not None
+    fixed = int(np.argmin([np.abs(T - np.eye(4)).max() for T in rec.poses]))
+    out = joint_refine(rec.views, rec.poses, rec.maps, config, match_sets=sets, fixed=fixed, on_step=on_step)
+    result = RefineResult(out.maps, out.steps, out.seconds, out.stopped_early, out.history, poses=out.poses)
+    report = RefineReport(steps=out.steps, max_steps=config.steps, stopped_early=out.stopped_early,
+                          seconds=out.seconds, scale=config.scale, mac=config.use_mac, lpips=False,
+                          loss_first=out.history[0], loss_last=out.history[-1], joint=out.report())  # fmt: skip
+    return result, report
