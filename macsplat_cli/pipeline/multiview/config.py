@@ -24,7 +24,9 @@ class MultiViewConfig:
     known_pose_max_px: with given poses, a match is kept within this Sampson distance (px) of their epipolar
         geometry (the given poses are trusted to about a pixel: a calibrated rig's, an SfM's).
     covisibility: one set of Gaussians for the scene: where several photos see a surface, only the best-observed
-        photo's Gaussians are kept, before the refinement and the compaction (:mod:`.covis`, issue 41).
+        photo's Gaussians are kept, before the refinement and the compaction (:mod:`.covis`, issue 41). On with
+        ``--quality best`` (:func:`~macsplat_cli.presets.configure`); off by default: with ``balanced``'s compaction
+        dedup after it, CO3D N = 5 lost 0.09 dB (benchmarks/history/multiview_joint.md).
     """
 
     max_photos: int = MAX_PHOTOS
@@ -33,4 +35,4 @@ class MultiViewConfig:
     depth: DepthPlanConfig = field(default_factory=DepthPlanConfig)
     poses: Path | None = None
     known_pose_max_px: float = 2.0
-    covisibility: bool = True
+    covisibility: bool = False

@@ -122,3 +122,10 @@ def test_sh_degree_one_where_three_photos_see_it_written_and_read_back(orbit: tu
     assert back.sh_degree == 1
     for a, b in zip(scene.tensors(), back.tensors()):
         assert torch.equal(a, b)
+
+
+def test_best_quality_turns_the_covisibility_init_on() -> None:
+    from macsplat_cli.presets import configure
+
+    assert configure("best", "classical").pipeline.multiview.covisibility
+    assert not configure("balanced", "classical").pipeline.multiview.covisibility
