@@ -165,8 +165,8 @@ def nearest_context(frames: Sequence[Frame], ctx: Sequence[int], ti: int) -> int
 
 
 # ------------------------------------------------------------------------------------------ our runs
-SETTINGS = {"quality": "balanced", "far_layer": True}
-"""``--quality`` and ``--no-far-layer``: for every run of ours, the N-view and the two-view ones alike."""
+SETTINGS = {"quality": "balanced", "far_layer": True, "pairs": True}
+"""``--quality``, ``--no-far-layer`` (for every run of ours, the N-view and the two-view ones alike), ``--no-pairs``."""
 
 
 def run_ours(frames: Sequence[Frame], ctx: Sequence[int], tgts: Sequence[int], known: bool, size: int) -> Outcome:
@@ -271,11 +271,11 @@ class TwoViewCache:
         return (float(np.mean(best)) if best else None), note
 
 
-def scene_cases(scene: str, frames: list[Frame], views: Sequence[int]) -> list[Case]:
-    """The rows of one scene: known K for every N that fits, also unknown K on CO3D."""
+def scene_cases(scene: str, frames: list[Frame], views: Sequence[int], known_only: bool = False) -> list[Case]:
+    """The rows of one scene: known K for every N that fits, also unknown K on CO3D (unless ``known_only``)."""
     cases = []
     for n in views:
-        for known in (True, False) if scene == "co3d" else (True,):
+        for known in (True, False) if scene == "co3d" and not known_only else (True,):
             if n > len(frames):
                 cases.append(Case(scene, n, known, [], [], skipped=f"only {len(frames)} frames"))
                 continue
@@ -292,7 +292,7 @@ def run_case(case: Case, frames: list[Frame], two_view: TwoViewCache, size: int,
         case.ours = two_view.get((case.ctx[0], case.ctx[1]))  # the same run, scored on every scene target
     else:
         case.ours = run_ours(frames, case.ctx, case.tgts, case.known, size)
-    if case.known and case.n >= 3 and case.tgts:
+    if case.known and case.n >= 3 and case.tgts and SETTINGS.get("pairs", True):
         case.best_two_view, case.two_view_note = two_view.best(case.ctx, case.tgts)
     if case.known and with_colmap:
         cf = [frames[i] for i in case.ctx]
@@ -361,10 +361,12 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--no-colmap", action="store_true", help="skip the pycolmap peer")
     ap.add_argument("--quality", default="balanced", help="our runs' --quality (fast, balanced, best)")
     ap.add_argument("--no-far-layer", action="store_true", help="our runs without the far background layer")
+    ap.add_argument("--known-only", action="store_true", help="only the known-K rows (CO3D: no unknown-K row)")
+    ap.add_argument("--no-pairs", action="store_true", help="skip the best 2-view column (its runs are unchanged)")
     ap.add_argument("--table", action="store_true", help="print only the table (no progress, no notes)")
     ap.add_argument("--json", type=Path, help="also write every case as JSON")
     args = ap.parse_args(argv)
-    SETTINGS.update(quality=args.quality, far_layer=not args.no_far_layer)
+    SETTINGS.update(quality=args.quality, far_layer=not args.no_far_layer, pairs=not args.no_pairs)
     views = [int(v) for v in args.views.split(",")]
     with_colmap = not args.no_colmap and colmap_available()
     say = (lambda m: None) if args.table else progress
@@ -376,7 +378,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     for key in args.scenes.split(","):
         scene = SCENE_NAMES[key]
         frames = dev_frames(args.data, scene)[: args.frames]
-        sc = scene_cases(key, frames, views)
+        sc = scene_cases(key, frames, views, args.known_only)
         scene_targets = sorted({t for c in sc for t in c.tgts})
         two_view = TwoViewCache(frames, scene_targets, args.size)
         for case in sc:

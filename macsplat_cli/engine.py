@@ -437,12 +437,12 @@ def _refine(
     rec: Reconstruction, config: RefineConfig, models: Models, clock: StageClock, on_step: RefineEvent | None
 ) -> Reconstruction:
     """Stage 7 on the pipeline's maps; the refined maps replace them."""
-    from .pipeline.refine import check_scale, refine_reconstruction
+    from .pipeline.refine_stage import check_scale, refine_stage
 
     check_scale(rec.maps, config.scale)  # a usage error, before the stage starts
-    out, section = clock("refine", lambda: refine_reconstruction(rec, config, lpips=models.lpips, on_step=on_step))
+    out, section = clock("refine", lambda: refine_stage(rec, config, lpips=models.lpips, on_step=on_step))
     rec.report.add_refine(section, count_gaussians(out.maps) + _layer_size(rec))
-    return dataclasses.replace(rec, maps=out.maps)
+    return dataclasses.replace(rec, maps=out.maps, poses=rec.poses if out.poses is None else out.poses)
 
 
 def _compact(rec: Reconstruction, settings: StageSettings, clock: StageClock) -> Reconstruction:

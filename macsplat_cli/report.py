@@ -51,6 +51,9 @@ class RefineReport:
     lpips: bool
     loss_first: dict[str, float]
     loss_last: dict[str, float]
+    joint: dict[str, Any] | None = None
+    """More than two photos: the joint refinement's steps, held-out curve and pose changes
+    (:meth:`~macsplat_cli.pipeline.multiview.joint.JointResult.report`)."""
 
 
 @dataclass

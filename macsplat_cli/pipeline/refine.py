@@ -100,13 +100,16 @@ class RefineConfig:
 
 @dataclass
 class RefineResult:
-    """The refined per-view maps (``B = 1`` each, at the refinement resolution) and the loss history."""
+    """The refined per-view maps (``B = 1`` each, at the refinement resolution) and the loss history; ``poses``: the
+    refined camera-to-world [4, 4] of each map's camera when the poses were refined too (more than two photos,
+    :mod:`.multiview.joint`), else None."""
 
     maps: list[GaussianMaps]
     steps: int
     seconds: float
     stopped_early: bool
     history: list[dict[str, float]]
+    poses: list[np.ndarray] | None = None
 
 
 @dataclass

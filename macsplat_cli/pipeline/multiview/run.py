@@ -23,6 +23,7 @@ from ..pose import PoseSearch
 from ..slots import StageTimer
 from ..types import DepthMap, MatchSet, View
 from .config import MultiViewConfig
+from .covis import CovisReport, covisibility_init
 from .depth import MIN_SHARED, DepthFn, multiview_depths, pair_geometry
 from .known import KNOWN_POSE_MAX_PX, known_pose_pairs, load_known_poses
 from .pairwise import PairOutcome, cached_search, match_all
@@ -62,6 +63,8 @@ class MultiViewResult:
     """The given poses' scale (``--poses``), else None (relative: the first pair's baseline is 1)."""
     background: BackgroundLayer | None = None
     """The far layer around every registered photo (:mod:`..background`), when built."""
+    covisibility: CovisReport | None = None
+    """What the co-visibility initialisation kept (:mod:`.covis`), when it ran."""
 
     def unregistered(self) -> list[dict[str, Any]]:
         """The photos left out: name, original size and why (the cameras file lists them)."""
@@ -109,6 +112,7 @@ class MultiViewResult:
             "reprojection_rms_px": float(np.sqrt(np.mean(r**2))) if len(r) else None,
             "depth_pairs": [[names[a], names[b]] for a, b in self.depth_pairs],
             "duplicates": {names[k]: names[f] for k, f in self.duplicates.items()},
+            **({"covisibility": self.covisibility.to_dict()} if self.covisibility is not None else {}),
         }
 
 
@@ -178,20 +182,23 @@ def reconstruct_views(
             f"no two registered photos share {MIN_SHARED} triangulated points: no depth can be estimated"
         )
 
-    def gaussian_stage() -> tuple[list[GaussianMaps], list[int], BackgroundLayer | None]:
+    def gaussian_stage() -> tuple[list[GaussianMaps], list[int], BackgroundLayer | None, CovisReport | None]:
         kept = [(k, d) for k, d in enumerate(depths) if d is not None]
         ks = [k for k, _ in kept]
         Ts = [reg.cam_to_world(k) for k in ks]
         maps = [view_gaussians(views[k], d, reg.K[k], T, gaussians) for (k, d), T in zip(kept, Ts)]
+        covis = None
+        if config.covisibility:
+            maps, covis = covisibility_init(maps, [reg.K[k] for k in ks])
         layer = None
         if background.enabled:
             layer = background_layer([views[k] for k in ks], [reg.K[k] for k in ks], Ts, [d for _, d in kept],
                                      background)  # fmt: skip
-        return maps, ks, layer
+        return maps, ks, layer, covis
 
-    maps, ks, layer = timed("gaussians", gaussian_stage)
+    maps, ks, layer, covis = timed("gaussians", gaussian_stage)
     scale: Literal["metric"] | None = "metric" if known is not None and known.scale == "metric" else None
-    return MultiViewResult(views, reg, outcomes, depths, maps, ks, dpairs, dups, scale, layer)
+    return MultiViewResult(views, reg, outcomes, depths, maps, ks, dpairs, dups, scale, layer, covis)
 
 
 def _calibrated(v: View, reg: Registration, k: int) -> View:

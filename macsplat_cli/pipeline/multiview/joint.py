@@ -1,0 +1,337 @@
+"""Joint refinement of the Gaussians and the camera poses over every registered photo (issue 41).
+
+"Gaussian bundle adjustment" (InstantSplat): the pixel Gaussians of every registered photo and each camera's pose are
+optimised together (Adam) on the photometric loss of every photo, ``L2 + w_ssim · (1 − SSIM)``, plus
+``λ_MAC · MAC`` over the verified matches of every matched pair of photos (:func:`macsplat_cli.mac.mac_loss`).
+
+Poses: each camera ``k`` gets a small update, a rotation ``ω_k`` (axis-angle, world frame) and a centre shift
+``δ_k``: ``R'_k = Exp(ω_k) R_k``, ``c'_k = c_k + δ_k``, with their own learning rates (:data:`LR_ROTATION`,
+:data:`LR_CENTRE`). A photo's Gaussians ride with its camera (they were built from its depth at its pose): map
+``k``'s world Gaussians move by the camera's motion, so a photo's own render does not depend on its pose and the
+poses are set by what the other photos see of its Gaussians (and the MAC matches). The gauge is fixed: camera 0
+(the world frame) does not move, and the scale camera (the first other one) keeps its distance to camera 0.
+
+Stopping on held-out evidence: a share of every photo's pixels (:data:`HOLDOUT_SHARE`, fixed seed) is left out of
+the loss (their target is the render itself, so neither the L2 nor the SSIM term sees them); the run stops once their
+error has not fallen by :data:`HOLDOUT_TOL` for :data:`HOLDOUT_PATIENCE` steps, and reports the curve.
+
+The renders go through the fused kernel, which takes no camera gradient: camera ``j``'s update is applied to the
+Gaussians instead (``Y = Exp(−ω_j)(X − c'_j) + c_j``, rendered by the unrefined camera), the same image. Measured:
+benchmarks/history/multiview_joint.md.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from ...gaussians import GaussianMaps, Gaussians
+from ...mac import mac_loss
+from ...metrics import ssim_map
+from ...render import render
+from ...report import RefineReport
+from ...rotations import quat_multiply, quat_to_rotmat
+from ..refine import RefineConfig, RefineResult, RefineStep, _downscale, _optimizer, _set_learning_rates
+from ..types import MatchSet, View
+
+if TYPE_CHECKING:
+    from ..run import Reconstruction
+from .sh_views import view_dependent
+
+__all__ = ["JointResult", "joint_reconstruction", "joint_refine"]
+
+logger = logging.getLogger(__name__)
+
+LR_ROTATION = 2e-3
+"""Adam's step on a camera's rotation, radians (0.11° a step at most: a registration error of a few tenths of a
+degree is gone in a few steps)."""
+LR_CENTRE = 1e-3
+"""Adam's step on a camera's centre, as a fraction of the median scene depth."""
+HOLDOUT_SHARE = 1 / 16
+"""The share of every photo's pixels held out of the loss (their error decides when to stop)."""
+HOLDOUT_TOL = 1e-3
+"""The held-out error must fall by this fraction of its best to count as falling."""
+HOLDOUT_PATIENCE = 5
+"""Steps without the held-out error falling before the refinement stops."""
+MIN_STEPS = 8
+"""Never stop before this many steps (the first steps move the Gaussians more than the error shows)."""
+SH_DEGREE = 1
+"""The SH degree of the Gaussians enough photos see from spread directions (:mod:`.sh_views`); 0 elsewhere."""
+
+
+@dataclass
+class JointResult:
+    """The refined maps (each in its camera's frame, ``cam_to_world`` the refined pose, ``1/scale`` resolution),
+    the refined poses and the run.
+
+    Attributes:
+        maps: the refined Gaussians, one map per input map (``B = 1``).
+        poses: each camera's refined camera-to-world. [4, 4] float64
+        rotation_change_deg: how far each camera turned. [C]
+        steps: steps run; stopped_early: the held-out error stopped falling before ``config.steps``.
+        history: each step's loss terms (``heldout``: the held-out pixels' mean squared error).
+    """
+
+    maps: list[GaussianMaps]
+    poses: list[np.ndarray]
+    rotation_change_deg: list[float]
+    steps: int
+    seconds: float
+    stopped_early: bool
+    history: list[dict[str, float]]
+
+    def report(self) -> dict[str, object]:
+        """The refinement report's ``joint`` section: steps, the held-out curve, the poses' changes."""
+        return {
+            "steps": self.steps,
+            "stopped_on_heldout": self.stopped_early,
+            "heldout_mse": [round(h["heldout"], 6) for h in self.history],
+            "rotation_change_deg": [round(r, 4) for r in self.rotation_change_deg],
+        }
+
+
+def _axis_quat(w: torch.Tensor) -> torch.Tensor:
+    """The unit quaternion (w, x, y, z) of axis-angle vectors (smooth at 0). [..., 3] → [..., 4]"""
+    theta = torch.sqrt((w * w).sum(-1, keepdim=True) + 1e-30)
+    return torch.cat([torch.cos(theta / 2), 0.5 * torch.sinc(theta / (2 * torch.pi)) * w], -1)
+
+
+def _conj(q: torch.Tensor) -> torch.Tensor:
+    return q * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
+
+
+class _Poses(torch.nn.Module):
+    """Every camera's small pose update and the gauge (camera ``fixed`` still, ``scale_camera``'s distance kept)."""
+
+    def __init__(self, cam_to_world: list[np.ndarray], fixed: int) -> None:
+        super().__init__()
+        T = torch.as_tensor(np.stack(cam_to_world), dtype=torch.float64)
+        self.R0, self.c0 = T[:, :3, :3], T[:, :3, 3]
+        self.omega = torch.nn.Parameter(torch.zeros(len(T), 3, dtype=torch.float64))
+        self.delta = torch.nn.Parameter(torch.zeros(len(T), 3, dtype=torch.float64))
+        self.free = torch.ones(len(T), 1, dtype=torch.float64)
+        self.free[fixed] = 0.0
+        others = [k for k in range(len(T)) if k != fixed]
+        self.fixed = fixed
+        self.scale_camera = others[0] if others else None
+        self.baseline = float((self.c0[others[0]] - self.c0[fixed]).norm()) if others else 0.0
+
+    def current(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each camera's rotation update as a quaternion [C, 4] and its refined centre [C, 3]."""
+        q = _axis_quat(self.omega * self.free)
+        c = self.c0 + self.delta * self.free
+        s = self.scale_camera
+        if s is not None and self.baseline > 0:
+            d = c[s] - c[self.fixed]
+            c = torch.cat([c[:s], (c[self.fixed] + self.baseline * d / d.norm())[None], c[s + 1 :]])
+        return q, c
+
+    def cam_to_world(self) -> torch.Tensor:
+        """The refined camera-to-world transforms. [C, 4, 4] float64"""
+        q, c = self.current()
+        T = torch.eye(4, dtype=torch.float64).repeat(len(q), 1, 1)
+        T[:, :3, :3] = quat_to_rotmat(q) @ self.R0
+        T[:, :3, 3] = c
+        return T
+
+
+def _moved(world0: list[Gaussians], q: torch.Tensor, c: torch.Tensor, c0: torch.Tensor) -> Gaussians:
+    """Every map's world Gaussians moved with its camera (``X = Exp(ω_k)(X0 − c_k) + c'_k``), concatenated."""
+    parts = []
+    for k, g in enumerate(world0):
+        qk = q[k].to(g.dtype)
+        R = quat_to_rotmat(qk)
+        means = (g.means - c0[k].to(g.dtype)) @ R.T + c[k].to(g.dtype)
+        quats = quat_multiply(qk.expand(len(g), 4), g.quats)
+        parts.append(Gaussians(means, g.log_scales, quats, g.opacity_logits, g.sh))
+    return Gaussians.cat(parts)
+
+
+def _seen_by(world: Gaussians, q: torch.Tensor, c: torch.Tensor, c0: torch.Tensor) -> Gaussians:
+    """``world`` placed so that the unrefined camera (centre ``c0``) sees it as the refined one (``q``, ``c``)."""
+    qi = _conj(q).to(world.dtype)
+    R = quat_to_rotmat(qi)
+    means = (world.means - c.to(world.dtype)) @ R.T + c0.to(world.dtype)
+    quats = quat_multiply(qi.expand(len(world), 4), world.quats)
+    return Gaussians(means, world.log_scales, quats, world.opacity_logits, world.sh)
+
+
+@dataclass
+class _Photo:
+    """One camera's photo at the refinement resolution, its held-out pixels and its unrefined camera."""
+
+    image: torch.Tensor  # [h, w, 3]
+    heldout: torch.Tensor  # [h, w] bool
+    world_to_cam: torch.Tensor  # [4, 4] float32
+    K: torch.Tensor  # [3, 3] float32
+
+
+def _photos(views: list[View], Ks: list[np.ndarray], cam_to_world: list[np.ndarray], f: int) -> list[_Photo]:
+    gen = torch.Generator().manual_seed(0)
+    out = []
+    for v, K, T in zip(views, Ks, cam_to_world):
+        img = _downscale(v.image, f)
+        K = K.copy()
+        K[:2] /= f
+        held = torch.rand(img.shape[:2], generator=gen) < HOLDOUT_SHARE
+        out.append(_Photo(img, held, torch.as_tensor(np.linalg.inv(T), dtype=torch.float32),
+                          torch.as_tensor(K, dtype=torch.float32)))  # fmt: skip
+    return out
+
+
+_MacSet = tuple[int, int, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
+"""One pair's MAC matches: maps ``a``, ``b``; pixels [M, 2] of each at the refinement resolution; weights [M]; the
+batch index [M] (zeros)."""
+
+
+def _mac_sets(sets: list[MatchSet], params: list[GaussianMaps], f: int) -> list[_MacSet]:
+    """Each pair's matches at ``1/f``, weighted 0 where either end's Gaussian is no longer valid."""
+    out: list[_MacSet] = []
+    for m in sets:
+        if not len(m.xy_a):
+            continue
+        xa = torch.as_tensor(m.xy_a / f, dtype=torch.float32)
+        xb = torch.as_tensor(m.xy_b / f, dtype=torch.float32)
+        w = torch.as_tensor(m.weights, dtype=torch.float32).clone()
+        for x, p in ((xa, params[m.a]), (xb, params[m.b])):
+            h, wd = p.size
+            col = x[:, 0].floor().long().clamp(0, wd - 1)
+            row = x[:, 1].floor().long().clamp(0, h - 1)
+            w = w * p.valid_mask()[0, row, col].float()
+        out.append((m.a, m.b, xa, xb, w, torch.zeros(len(xa), dtype=torch.long)))
+    return out
+
+
+def _loss(
+    params: list[GaussianMaps], poses: _Poses, photos: list[_Photo], mac_sets: list[_MacSet], cfg: RefineConfig
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """One step's loss over every photo (and the MAC loss over every matched pair) and its terms."""
+    q, c = poses.current()
+    world0 = [m.to_gaussians() for m in params]
+    world = _moved(world0, q, c, poses.c0)
+    photo = torch.zeros(())
+    held_err, held_n = 0.0, 0
+    for k, p in enumerate(photos):
+        seen = world if k == poses.fixed else _seen_by(world, q[k], c[k], poses.c0[k])
+        h, w = p.image.shape[:2]
+        rgb = render(seen, p.world_to_cam, p.K, w, h).rgb
+        target = torch.where(p.heldout[..., None], rgb.detach(), p.image)
+        photo = photo + ((rgb - target) ** 2).mean() + cfg.ssim_weight * (1.0 - ssim_map(rgb, target).mean())
+        held_err += float(((rgb.detach() - p.image)[p.heldout] ** 2).sum())
+        held_n += 3 * int(p.heldout.sum())
+    loss = photo
+    terms = {"photo": float(photo.detach()), "heldout": held_err / max(held_n, 1)}
+    if cfg.use_mac and mac_sets:
+        T = poses.cam_to_world().float()
+        parts = [mac_loss(params[a], params[b], xa, xb, batch, w, T[a][None], T[b][None], cfg.mac,
+                          check_inputs=False).loss for a, b, xa, xb, w, batch in mac_sets]  # fmt: skip
+        mac = torch.stack(parts).mean()
+        loss = loss + cfg.mac.weight * mac
+        terms["mac"] = float(mac.detach())
+    terms["loss"] = float(loss.detach())
+    return loss, terms
+
+
+def _with_sh(params: list[GaussianMaps], Ks: list[np.ndarray]) -> list[GaussianMaps]:
+    """The maps as leaves to optimise, their SH at :data:`SH_DEGREE` (the higher bands zero) and trainable only where
+    :func:`~.sh_views.view_dependent` allows it (a gradient hook zeroes the rest: Adam then leaves them at 0)."""
+    allowed = view_dependent(params, Ks)
+    k = (SH_DEGREE + 1) ** 2
+    out = []
+    for m, ok in zip(params, allowed):
+        sh = torch.nn.functional.pad(m.sh, (0, 0, 0, max(0, k - m.sh.shape[-2])))
+        g = GaussianMaps(m.means, m.log_scales, m.quats, m.opacity_logits, sh.contiguous(), m.valid, m.cam_to_world)
+        for t in g.tensors():
+            t.requires_grad_(True)
+        band = torch.ones(*ok.shape, k, 1)
+        band[..., 1:, :] = ok[..., None, None].float()
+        g.sh.register_hook(lambda grad, band=band: grad * band)
+        out.append(g)
+    return out
+
+
+def _stalled(heldout: list[float], step: int) -> bool:
+    """The held-out error has not fallen by :data:`HOLDOUT_TOL` of its best for :data:`HOLDOUT_PATIENCE` steps."""
+    if step < max(MIN_STEPS, HOLDOUT_PATIENCE + 1):
+        return False
+    best_before = min(heldout[:-HOLDOUT_PATIENCE])
+    return min(heldout[-HOLDOUT_PATIENCE:]) > best_before * (1 - HOLDOUT_TOL)
+
+
+def _frozen(m: GaussianMaps, cam_to_world: np.ndarray) -> GaussianMaps:
+    """A refined map out of the graph, its camera the refined pose (the Gaussians ride with it)."""
+    means, log_scales, quats, opacity_logits, sh = (x.detach() for x in m.tensors())
+    return GaussianMaps(means, log_scales, quats, opacity_logits, sh, m.valid, torch.as_tensor(cam_to_world)[None])
+
+
+def joint_refine(
+    views: list[View], cam_to_world: list[np.ndarray], maps: list[GaussianMaps], config: RefineConfig, *,
+    match_sets: list[MatchSet] | None = None, fixed: int = 0, on_step: RefineStep | None = None,
+) -> JointResult:  # fmt: skip
+    """Refine the Gaussians and the poses together (module docstring).
+
+    Args:
+        views: the cameras' photos (working resolution) and intrinsics ``K``; camera ``k`` is map ``k``'s photo.
+        cam_to_world: each camera's pose as registered. [4, 4]
+        maps: each photo's Gaussians (``B = 1``, its camera frame, ``cam_to_world`` its registered pose; not
+            modified).
+        config: the refinement's settings (``steps``: the most steps; ``scale``, losses, learning rates).
+        match_sets: the MAC loss's matches (indices into ``maps``).
+        fixed: the camera that does not move (the world frame's).
+        on_step: called after each step with the step and its loss terms.
+    """
+    f = config.scale
+    params = _with_sh([m.pooled(f).detach() for m in maps], [v.K / np.array([[f], [f], [1]]) for v in views])
+    photos = _photos(views, [v.K for v in views], cam_to_world, f)
+    poses = _Poses(cam_to_world, fixed)
+    opt = _optimizer(params, config)
+    depth = torch.cat([m.means[..., 2][m.valid_mask()] for m in params]).detach()
+    scene = float(depth.median()) if depth.numel() else 1.0
+    for lr, p in ((LR_ROTATION, poses.omega), (LR_CENTRE * scene, poses.delta)):
+        opt.add_param_group({"params": [p], "lr": lr})
+        opt.param_groups[-1]["initial_lr"] = lr
+    mac_sets = _mac_sets(list(match_sets or []), params, f)
+    history: list[dict[str, float]] = []
+    t0 = time.perf_counter()
+    step, stopped = 0, False
+    for step in range(1, config.steps + 1):
+        opt.zero_grad(set_to_none=True)
+        _set_learning_rates(opt, step, config)
+        loss, terms = _loss(params, poses, photos, mac_sets, config)
+        loss.backward()
+        opt.step()
+        history.append(terms)
+        if on_step is not None:
+            on_step(step, terms)
+        if _stalled([h["heldout"] for h in history], step):
+            stopped = step < config.steps
+            break
+    with torch.no_grad():
+        T = poses.cam_to_world()
+        turned = torch.rad2deg(poses.omega.norm(dim=1) * poses.free[:, 0])
+    T_np = [t.numpy().copy() for t in T]
+    out = [_frozen(m, T_np[k]) for k, m in enumerate(params)]
+    seconds = time.perf_counter() - t0
+    logger.debug("joint refinement: %d steps in %.1f s, held-out %.5f → %.5f", step, seconds,
+                 history[0]["heldout"], history[-1]["heldout"])  # fmt: skip
+    return JointResult(out, T_np, [float(a) for a in turned], step, seconds, stopped, history)
+
+
+def joint_reconstruction(
+    rec: Reconstruction, config: RefineConfig, sets: list[MatchSet], on_step: RefineStep | None
+) -> tuple[RefineResult, RefineReport]:
+    """:func:`joint_refine` on a finished N-photo reconstruction (its registered photos, poses, maps and the matched
+    pairs' MAC matches), camera 0 (the world frame) fixed, and the refinement's report section."""
+    assert rec.poses is not None
+    fixed = int(np.argmin([np.abs(T - np.eye(4)).max() for T in rec.poses]))
+    out = joint_refine(rec.views, rec.poses, rec.maps, config, match_sets=sets, fixed=fixed, on_step=on_step)
+    result = RefineResult(out.maps, out.steps, out.seconds, out.stopped_early, out.history, poses=out.poses)
+    report = RefineReport(steps=out.steps, max_steps=config.steps, stopped_early=out.stopped_early,
+                          seconds=out.seconds, scale=config.scale, mac=config.use_mac, lpips=False,
+                          loss_first=out.history[0], loss_last=out.history[-1], joint=out.report())  # fmt: skip
+    return result, report
