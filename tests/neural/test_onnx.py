@@ -30,7 +30,7 @@ from macsplat_cli.neural import BackboneView
 from macsplat_cli.neural.config import BackboneConfig
 from macsplat_cli.neural.loading import load_pair_predictor
 from macsplat_cli.neural.onnx_export import ExportConfig, export_onnx
-from macsplat_cli.neural.onnx_format import ALLOWED_OPS, METADATA_KEY, ParityError, check_graph
+from macsplat_cli.neural.onnx_format import ALLOWED_OPS, METADATA_KEY, OnnxPredictorInfo, ParityError, check_graph
 from macsplat_cli.neural.onnx_runtime import OnnxPairPredictor, read_predictor_info
 from macsplat_cli.neural.predictor import PairPredictor
 from macsplat_cli.ply import read_ply
@@ -357,9 +357,14 @@ def _graph(inputs: list[tuple[str, list]], outputs: list[str], metadata: str | N
 
 
 def test_reconstruct_refuses_an_onnx_file_that_is_not_a_macsplat_predictor(
-    exported: Path, pair: tuple[Path, Path], tmp_path: Path
+    pair: tuple[Path, Path], tmp_path: Path
 ) -> None:
-    meta = {p.key: p.value for p in onnx.load(str(exported), load_external_data=False).metadata_props}[METADATA_KEY]
+    """Graphs with valid metadata (a dynamic fp32 predictor with the Gaussian head, as the CLI export above writes;
+    built here, so that ``pytest -q`` runs this test without the slow export) and the wrong inputs or outputs."""
+    meta = OnnxPredictorInfo(
+        precision="fp32", dynamic=True, size=SIZE, network="refused", fusion="none", fusion_enabled=False,
+        desc_dim=24, gaussian_head=True,
+    ).to_json()  # fmt: skip
     img = [("img0", ["b", 3, "h", "w"]), ("img1", ["b", 3, "h", "w"])]
     four = ["pts3d", "conf", "desc", "desc_conf"]
     files = {
