@@ -12,12 +12,21 @@ every subfolder (and from a single test file run alone). No test module imports 
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import pytest
 
 import macsplat_cli  # noqa: F401  (first: sets OMP_WAIT_POLICY before any test imports torch)
+
+# The CLI's Rich consoles are module objects whose width is read from COLUMNS when they are made, which is when a
+# test module first imports the CLI (at collection, or inside a test): set before any of that, so the width does not
+# depend on which test ran first in a process (two tests read wrapped tables under pytest-xdist otherwise).
+# _plain_terminal sets the same values for each test.
+os.environ["COLUMNS"] = "200"
+os.environ["NO_COLOR"] = "1"
+os.environ.pop("FORCE_COLOR", None)
 
 if TYPE_CHECKING:
     from support.scenes import PairFactory
