@@ -46,6 +46,21 @@ AUTO_STEPS = 25
 """``--refine auto``: the elbow of time against held-out error (benchmarks/history/refine.md)."""
 RefineStep = Callable[[int, dict[str, float]], None]
 
+SSIM_WEIGHT = 0.2
+"""Weight of the D-SSIM term beside L2 (3DGS uses 0.2 with L1; first default, benchmarks/history/refine.md)."""
+LPIPS_WEIGHT = 0.25
+"""Weight of the LPIPS term when an LPIPS model is given (Splatt3R's training loss)."""
+DENSE_STRIDE = 4
+"""Pixel step of the dense MAC matches (``mac_matches="dense"``, the ablation of benchmarks/history/refine.md)."""
+LR_MEANS, LR_LOG_SCALES, LR_QUATS, LR_OPACITY, LR_SH = 1e-3, 5e-3, 2e-3, 3e-2, 5e-3
+"""Adam's learning rates of the means (a fraction of the median scene depth), log-scales, quaternions, opacity
+logits and SH coefficients (3DGS's, scaled to a per-pixel initialisation; benchmarks/history/refine.md)."""
+LR_SCALE = 1.5
+"""Every rate above times this: with the cosine fall to :data:`LR_FINAL`, 25 steps keep the gain of 50 at constant
+rates (benchmarks/history/refine.md)."""
+LR_FINAL = 0.3
+"""The rates fall (cosine) to this fraction of their start by the last step (benchmarks/history/refine.md)."""
+
 
 @dataclass
 class RefineConfig:
@@ -56,22 +71,11 @@ class RefineConfig:
         than full resolution).
     use_mac: add the MAC loss (False: the "w/o MAC" ablation).
     lpips_weights: the LPIPS-VGG weights folder (``--lpips-weights``); the engine loads it and passes the model
-        to :func:`refine` (its term is ``lpips_weight`` × LPIPS).
+        to :func:`refine` (its term is :data:`LPIPS_WEIGHT` × LPIPS).
     mac_matches: "filtered": the verified sparse matches (the paper's filtered matching);
-        "dense": also every ``dense_stride``-th measured pixel of view 0 paired with its
+        "dense": also every :data:`DENSE_STRIDE`-th measured pixel of view 0 paired with its
         depth-consistent pixel in view 1.
-    dense_stride: the pixel step of the dense MAC matches.
     mac: MAC loss weights; ``mac.weight`` is λ_MAC.
-    ssim_weight: weight of the D-SSIM term.
-    lpips_weight: weight of the LPIPS term, when an LPIPS model is passed to :func:`refine`
-        (0.25, as Splatt3R's training loss).
-    lr_means: learning rate of the means, as a fraction of the median scene depth.
-    lr_log_scales: learning rate of the log-scales.
-    lr_quats: learning rate of the quaternions.
-    lr_opacity: learning rate of the opacity logits.
-    lr_sh: learning rate of the SH coefficients.
-    lr_scale: every learning rate above times this.
-    lr_final: the learning rates fall (cosine) to this fraction of their start by the last step (1: constant).
     plateau_window: steps over which the improvement is measured.
     plateau_tol: stop when the running-mean loss improved by less than this fraction.
     min_steps: never stop before this many steps.
@@ -82,20 +86,10 @@ class RefineConfig:
     use_mac: bool = True
     lpips_weights: Path | None = None
     mac_matches: Literal["filtered", "dense"] = "filtered"
-    dense_stride: int = 4
     mac: MACConfig = field(default_factory=MACConfig)
-    ssim_weight: float = 0.2
-    lpips_weight: float = 0.25
-    lr_means: float = 1e-3
-    lr_log_scales: float = 5e-3
-    lr_quats: float = 2e-3
-    lr_opacity: float = 3e-2
-    lr_sh: float = 5e-3
     plateau_window: int = 25
     plateau_tol: float = 2e-3
     min_steps: int = 25
-    lr_scale: float = 1.5
-    lr_final: float = 0.3
 
 
 @dataclass
@@ -170,14 +164,14 @@ def _optimizer(params: list[GaussianMaps], cfg: RefineConfig) -> torch.optim.Ada
     """Adam over the five parameter maps; the means' rate scaled by the median scene depth."""
     depth = torch.cat([m.means[..., 2][m.valid_mask()] for m in params]).detach()
     scene = float(depth.median()) if depth.numel() else 1.0
-    s = cfg.lr_scale
+    s = LR_SCALE
     opt = torch.optim.Adam(
         [
-            {"params": [m.means for m in params], "lr": s * cfg.lr_means * scene},
-            {"params": [m.log_scales for m in params], "lr": s * cfg.lr_log_scales},
-            {"params": [m.quats for m in params], "lr": s * cfg.lr_quats},
-            {"params": [m.opacity_logits for m in params], "lr": s * cfg.lr_opacity},
-            {"params": [m.sh for m in params], "lr": s * cfg.lr_sh},
+            {"params": [m.means for m in params], "lr": s * LR_MEANS * scene},
+            {"params": [m.log_scales for m in params], "lr": s * LR_LOG_SCALES},
+            {"params": [m.quats for m in params], "lr": s * LR_QUATS},
+            {"params": [m.opacity_logits for m in params], "lr": s * LR_OPACITY},
+            {"params": [m.sh for m in params], "lr": s * LR_SH},
         ]
     )
     for group in opt.param_groups:
@@ -186,10 +180,10 @@ def _optimizer(params: list[GaussianMaps], cfg: RefineConfig) -> torch.optim.Ada
 
 
 def _set_learning_rates(opt: torch.optim.Adam, step: int, cfg: RefineConfig) -> None:
-    """Cosine from the initial rates (step 1) to ``lr_final`` of them (step ``cfg.steps``)."""
-    if cfg.lr_final == 1.0 or cfg.steps <= 1:
+    """Cosine from the initial rates (step 1) to :data:`LR_FINAL` of them (step ``cfg.steps``)."""
+    if LR_FINAL == 1.0 or cfg.steps <= 1:
         return
-    f = cfg.lr_final + (1.0 - cfg.lr_final) * 0.5 * (1.0 + math.cos(math.pi * (step - 1) / (cfg.steps - 1)))
+    f = LR_FINAL + (1.0 - LR_FINAL) * 0.5 * (1.0 + math.cos(math.pi * (step - 1) / (cfg.steps - 1)))
     for group in opt.param_groups:
         group["lr"] = group["initial_lr"] * f
 
@@ -198,7 +192,7 @@ def _pair_matches(geometry: TwoViewGeometry, depths: list[DepthMap] | None, cfg:
     """The two views' verified matches (and with ``mac_matches="dense"`` the depth-consistent pixels)."""
     m_xy0, m_xy1, m_w = geometry.inliers.xy0, geometry.inliers.xy1, geometry.inliers.conf
     if cfg.mac_matches == "dense" and depths is not None:
-        d_xy0, d_xy1, d_w = _dense_matches(geometry, depths, cfg.dense_stride)
+        d_xy0, d_xy1, d_w = _dense_matches(geometry, depths, DENSE_STRIDE)
         m_xy0, m_xy1, m_w = np.concatenate([m_xy0, d_xy0]), np.concatenate([m_xy1, d_xy1]), np.concatenate([m_w, d_w])
     return [MatchSet(0, 1, m_xy0, m_xy1, m_w)]
 
@@ -231,13 +225,13 @@ def _step_loss(
     perceptual = torch.zeros(())
     for t in targets:
         rgb = t.render(world)
-        photo = photo + ((rgb - t.image) ** 2).mean() + cfg.ssim_weight * (1.0 - ssim_map(rgb, t.image).mean())
+        photo = photo + ((rgb - t.image) ** 2).mean() + SSIM_WEIGHT * (1.0 - ssim_map(rgb, t.image).mean())
         if lpips is not None:
             perceptual = perceptual + lpips(rgb, t.image)
     terms = {"photo": float(photo.detach())}
     if lpips is not None:
         terms["lpips"] = float(perceptual.detach())
-        photo = photo + cfg.lpips_weight * perceptual
+        photo = photo + LPIPS_WEIGHT * perceptual
     loss = photo
     if cfg.use_mac and matches:
         # every pair's MAC loss, averaged over the pairs (one pair: exactly the two-view loss)

@@ -36,7 +36,7 @@ from ...metrics import ssim_map
 from ...render import render
 from ...report import RefineReport
 from ...rotations import quat_multiply, quat_to_rotmat
-from ..refine import RefineConfig, RefineResult, RefineStep, _downscale, _optimizer, _set_learning_rates
+from ..refine import SSIM_WEIGHT, RefineConfig, RefineResult, RefineStep, _downscale, _optimizer, _set_learning_rates
 from ..types import MatchSet, View
 
 if TYPE_CHECKING:
@@ -221,7 +221,7 @@ def _loss(
         h, w = p.image.shape[:2]
         rgb = render(seen, p.world_to_cam, p.K, w, h).rgb
         target = torch.where(p.heldout[..., None], rgb.detach(), p.image)
-        photo = photo + ((rgb - target) ** 2).mean() + cfg.ssim_weight * (1.0 - ssim_map(rgb, target).mean())
+        photo = photo + ((rgb - target) ** 2).mean() + SSIM_WEIGHT * (1.0 - ssim_map(rgb, target).mean())
         held_err += float(((rgb.detach() - p.image)[p.heldout] ** 2).sum())
         held_n += 3 * int(p.heldout.sum())
     loss = photo
