@@ -68,5 +68,5 @@ def test_benchmark_gives_the_commands_bench(capsys, plane: Path, tmp_path: Path,
     assert len(rows) == 2 and [r.setting.size for r in rows] == [r["setting"]["size"] for r in lib["rows"]]
     assert cli["rows"] and json.dumps(cli) == json.dumps(json.loads(stdout))  # the command prints what it wrote
     for a, b in zip(cli["rows"], lib["rows"], strict=True):
-        assert a["setting"] == b["setting"] and a["pareto"] == b["pareto"]
+        assert a["setting"] == b["setting"]  # not "pareto": it weighs the measured seconds, which differ run to run
         assert _untimed([a["summary"]]) == _untimed([b["summary"]])
