@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from .errors import InputError
-from .pipeline.refine import RefineConfig
+from .pipeline.refine_config import RefineConfig
 from .pipeline.run import (
     Pipeline,
     ReconstructConfig,
