@@ -44,7 +44,7 @@ from pathlib import Path
 from benchmarks._common import StageTimer, print_header, progress, row
 
 ROOT = Path(__file__).resolve().parents[1]
-PAIR = [ROOT / "examples" / "motorcycle" / "left.jpg", ROOT / "examples" / "motorcycle" / "right.jpg"]
+PAIR = [str(ROOT / "examples" / "motorcycle" / name) for name in ("left.jpg", "right.jpg")]
 POSE_STAGES = ("images", "descriptors", "matching", "pose")
 """Stages 1-4 (their fallback tiers and checks too: every stage whose name starts with one of these)."""
 
@@ -125,7 +125,7 @@ def pose_row(reps: int) -> Row:
     ours = statistics.median(times[1:])
     if not colmap_available():
         return Row("two-view pose (stages 1-4), example pair", ours, None, "pycolmap not installed", "s")
-    peer = run_colmap(PAIR, max_image_size=512, threads=os.cpu_count() or 2)
+    peer = run_colmap([Path(p) for p in PAIR], max_image_size=512, threads=os.cpu_count() or 2)
     name = "pycolmap SfM (SIFT 512 px, matching, mapping)"
     if "made no model" in (peer.error or ""):  # COLMAP's two-view geometry was verified; its mapper declined
         name = "pycolmap SIFT 512 px + matching + two-view verification (its mapper made no model)"

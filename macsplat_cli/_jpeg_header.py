@@ -12,6 +12,7 @@ count other than one SHORT or LONG, an offset out of the block — gives None, a
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 __all__ = ["JpegHeader", "jpeg_header"]
 
@@ -21,6 +22,7 @@ _SOS, _APP1 = 0xDA, 0xE1
 _EXIF, _XMP = b"Exif\0\0", b"http://ns.adobe.com/xap/1.0/"
 _ORIENTATION, _EXIF_IFD, _FOCAL_35MM = 0x0112, 0x8769, 0xA405
 _SHORT, _LONG = 3, 4
+_Order = Literal["little", "big"]
 _MAX_ENTRIES = 1000
 """More entries than this in one IFD: not a camera's EXIF block (left to Pillow)."""
 
@@ -71,7 +73,7 @@ def _segments(data: bytes) -> tuple[tuple[int, int], bytes | None] | None:
         i += 2 + n
 
 
-def _ifd(tiff: bytes, offset: int, order: str) -> dict[int, int] | None:
+def _ifd(tiff: bytes, offset: int, order: _Order) -> dict[int, int] | None:
     """An IFD's tags whose value is one SHORT or LONG, as ints; None if malformed, a tag repeats, or one of the
     tags read here has another type or count."""
     if offset < 8 or offset + 2 > len(tiff):
@@ -94,8 +96,12 @@ def _ifd(tiff: bytes, offset: int, order: str) -> dict[int, int] | None:
 
 def _exif_fields(tiff: bytes) -> tuple[int, float | None] | None:
     """(orientation, 35 mm focal or None) from an EXIF block's TIFF structure; None where unsure."""
-    order = {b"II*\0": "little", b"MM\0*": "big"}.get(tiff[:4])
-    if order is None:
+    order: _Order
+    if tiff[:4] == b"II*\0":
+        order = "little"
+    elif tiff[:4] == b"MM\0*":
+        order = "big"
+    else:
         return None
     ifd0 = _ifd(tiff, int.from_bytes(tiff[4:8], order), order)
     if ifd0 is None:
