@@ -17,7 +17,6 @@ import numpy as np
 import torch
 
 from ._atomic import atomic_path, atomic_write_bytes
-from ._jpeg_header import jpeg_header
 from ._limits import MAX_IMAGE_FILE_BYTES, MAX_MEGAPIXELS_ENV, check_regular_file, max_image_pixels
 from .errors import ImageReadError, InputError, OutputPathError
 
@@ -209,10 +208,10 @@ def _pil_alpha(data: bytes) -> np.ndarray | None:
         return None
 
 
-def _check_pixel_count(p: Path, data: bytes, size: tuple[int, int] | None) -> None:
+def _check_pixel_count(p: Path, data: bytes) -> None:
     """Refuse an image whose header declares more pixels than ``MACSPLAT_MAX_MEGAPIXELS``, or whose header gives
-    no size (``size``, else :func:`_header_size`): the cap holds for every format OpenCV decodes."""
-    size = size or _header_size(data)
+    no size (:func:`_header_size`): the cap holds for every format OpenCV decodes."""
+    size = _header_size(data)
     if size is None:  # OpenCV would decode it to whatever size it declares: refused before decoding
         raise ImageReadError(
             f"{p}: not an image macsplat reads (JPEG, PNG, WebP, TIFF, BMP, ...): its size cannot be read from its "
@@ -258,15 +257,14 @@ def load_image(path: str | os.PathLike[str]) -> LoadedImage:
         raise ImageReadError(f"{p}: the file is empty")
     if len(data) > MAX_IMAGE_FILE_BYTES:
         raise ImageReadError(f"{p}: too large for an image (at most {MAX_IMAGE_FILE_BYTES:,} bytes)")
-    jpeg = jpeg_header(data)  # a plain JPEG's size and EXIF without Pillow (None: Pillow reads them)
-    _check_pixel_count(p, data, (jpeg.width, jpeg.height) if jpeg else None)
+    _check_pixel_count(p, data)
     try:
         raw = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION)
     except cv2.error:  # some truncated files make OpenCV raise instead of returning None
         raw = None
     if raw is None or raw.size == 0:
         raise ImageReadError(f"{p}: not an image OpenCV can decode (JPEG, PNG, WebP, TIFF, BMP)")
-    orientation, focal = (jpeg.orientation, jpeg.focal_35mm) if jpeg else _exif(data)
+    orientation, focal = _exif(data)
     if raw.dtype == np.uint8:
         scale, depth = 255.0, 8
     elif raw.dtype == np.uint16:
@@ -283,7 +281,7 @@ def load_image(path: str | os.PathLike[str]) -> LoadedImage:
     if channels in (2, 4):
         alpha = np.clip(img[..., -1], 0.0, 1.0)
         img = img[..., :-1]
-    if alpha is None and jpeg is None:  # a JPEG has no transparency
+    if alpha is None:
         # OpenCV drops some files' transparency (a grey+alpha or palette+alpha TIFF, a grey PNG's transparent
         # colour); Pillow reads it
         alpha = _pil_alpha(data)
@@ -295,7 +293,7 @@ def load_image(path: str | os.PathLike[str]) -> LoadedImage:
         img = img[..., ::-1]  # OpenCV decodes BGR
     else:
         raise ImageReadError(f"{p}: unsupported number of channels ({channels})")
-    rgb = img if depth < 32 else np.clip(np.nan_to_num(img, nan=0.0), 0.0, 1.0)  # integers: already in [0, 1]
+    rgb = np.clip(np.nan_to_num(img, nan=0.0), 0.0, 1.0)
     rgb = _apply_orientation(rgb, orientation)
     if alpha is not None:
         alpha = _apply_orientation(alpha, orientation)

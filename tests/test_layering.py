@@ -61,7 +61,6 @@ LAYERS: dict[str, tuple[int, str]] = {
     "camera_formats": (5, "other tools' camera files"),
     "distortion": (5, "lens distortion models and their fold check"),
     "images": (5, "image reading and writing"),
-    "_jpeg_header": (5, "a JPEG's size and EXIF fields read from its header, without Pillow"),
     "gaussians": (5, "the Gaussian containers"),
     "ply": (5, "the 3DGS PLY format"),
     "report": (5, "the run report"),
