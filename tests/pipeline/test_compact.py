@@ -279,3 +279,77 @@ def test_compact_reconstruction_on_an_engine_run(pair_files: PairFactory) -> Non
     assert report.before == count_gaussians(rec.maps) and len(g) == report.after < 0.7 * report.before
     assert math.isfinite(report.ratio)
     g.check_finite()
+
+
+# ------------------------------------------------------------------------------------------ spatial index
+def _turned(pair: Pair, k: int) -> tuple[GaussianMaps, Camera]:
+    """View ``k`` turned round on the spot (180° about its y axis): its Gaussians lie behind the other cameras, and
+    theirs behind it."""
+    c2w = np.asarray(pair.cameras[k].cam_to_world) @ np.diag([-1.0, 1.0, -1.0, 1.0])
+    m = pair.maps[k]
+    turned = dataclasses.replace(m, cam_to_world=torch.as_tensor(c2w, dtype=m.dtype)[None])
+    return turned, dataclasses.replace(pair.cameras[k], cam_to_world=c2w)
+
+
+def test_view_steps_project_only_what_each_camera_can_see(pair: Pair, monkeypatch: pytest.MonkeyPatch) -> None:
+    from macsplat_cli.pipeline.compact.state import ViewState
+
+    away_map, away_cam = _turned(pair, 1)
+    projected = {True: 0, False: 0}  # into the turned camera, into the others
+    real = ViewState.project
+
+    def counting(self: ViewState, points: torch.Tensor):  # noqa: ANN202
+        projected[bool(self.c2w[2, 2] < 0)] += len(points)
+        return real(self, points)
+
+    monkeypatch.setattr(ViewState, "project", counting)
+    only_occlusion = CompactConfig(prune_floaters=False, dedup=False, subpixel_px=0.0, adaptive=False, sh="keep")
+    _, report = compact([*pair.maps, away_map], [*pair.cameras, away_cam], only_occlusion)
+    assert report.steps[-1].name == "prune_occluded" and report.before > 2.5 * W * H
+    # each camera projects its own side's Gaussians only (every view's, 3 × 3 map's worth, without the index)
+    assert projected[True] <= W * H and projected[False] <= 2 * 2 * W * H
+    projected.update({True: 0, False: 0})
+    only_subpixel = dataclasses.replace(only_occlusion, prune_occluded=False, subpixel_px=0.1)
+    compact([*pair.maps, away_map], [*pair.cameras, away_cam], only_subpixel)
+    assert projected[True] <= W * H  # the sub-pixel step: a Gaussian's own view settles it, no other is tried
+
+
+def test_the_spatial_index_changes_no_output(pair: Pair, monkeypatch: pytest.MonkeyPatch) -> None:
+    from macsplat_cli.pipeline.compact import cull
+
+    maps = [*pair.maps, _turned(pair, 1)[0], _turned(pair, 0)[0]]
+    cams = [*pair.cameras, _turned(pair, 1)[1], _turned(pair, 0)[1]]
+    g, report = compact(maps, cams, images=[*pair.images, *pair.images])
+    monkeypatch.setattr(cull, "_box_in_frustum", lambda corners, cam: torch.ones(len(corners), dtype=torch.bool))
+    g_all, report_all = compact(maps, cams, images=[*pair.images, *pair.images])  # every Gaussian into every view
+    assert [(s.name, s.after) for s in report.steps] == [(s.name, s.after) for s in report_all.steps]
+    for name in ("means", "log_scales", "quats", "opacity_logits", "sh"):
+        assert torch.equal(getattr(g, name), getattr(g_all, name))
+
+
+def test_tiles_keep_every_gaussian_a_camera_sees(pair: Pair) -> None:
+    from macsplat_cli.pipeline.compact.cull import view_tiles
+    from macsplat_cli.pipeline.compact.state import view_states
+
+    views = view_states(pair.maps, pair.cameras, None)
+    v = views[0]
+    idx = v.alive.reshape(-1).nonzero().squeeze(1)
+    X = v.world_means().reshape(-1, 3)[idx]
+    tiles = view_tiles(idx, X, v.size[1])
+    rng = np.random.default_rng(0)
+    culled = 0
+    for trial in range(40):  # the views' own cameras, turned and moved: a frustum edge through the wall
+        cam = views[trial % 2]
+        c2w = cam.c2w.clone()
+        angle = np.radians(rng.uniform(-60, 60))
+        c, s = np.cos(angle), np.sin(angle)
+        c2w[:3, :3] = c2w[:3, :3] @ torch.tensor([[c, 0, s], [0, 1, 0], [-s, 0, c]], dtype=torch.float64)
+        c2w[:3, 3] += torch.as_tensor(rng.normal(0, 0.5, 3))
+        moved = dataclasses.replace(cam, c2w=c2w)
+        inside = moved.project(X)[3]
+        sel = tiles.seen_by(moved)
+        chosen = torch.zeros(len(X), dtype=torch.bool)
+        chosen[sel] = True
+        assert not (inside & ~chosen).any()
+        culled += int((~chosen).sum())
+    assert culled > 0

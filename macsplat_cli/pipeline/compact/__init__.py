@@ -34,7 +34,8 @@ be switched off in :class:`CompactConfig`; one module per idea):
 8. **budget** (:mod:`.budget`): at most ``budget`` Gaussians, the most important ones (opacity × largest
    projected area).
 
-Everything is vectorised over pixels and blocks (no Python loop per Gaussian). The per-quality settings
+Everything is vectorised over pixels and blocks (no Python loop per Gaussian). Steps 3–5 project a view's Gaussians
+into a camera only where the view's pixel tiles can land in its image (:mod:`.cull`). The per-quality settings
 (``--quality``, ``--budget``) come from :func:`macsplat_cli.presets.compact_config`. Measured:
 benchmarks/history/compact.md.
 """

@@ -11,6 +11,7 @@ import torch
 import torch.nn.functional as F
 
 from .config import CompactConfig
+from .cull import view_tiles
 from .state import NEIGHBOURS, ViewState
 
 __all__ = ["prune_floaters", "prune_occluded", "prune_opacity", "prune_subpixel"]
@@ -43,40 +44,57 @@ def prune_floaters(views: list[ViewState], cfg: CompactConfig) -> str:
 
 
 def prune_occluded(views: list[ViewState], cfg: CompactConfig) -> str:
-    """Step 4: Gaussians behind an opaque one (z-buffer of the centres) or off-image, in every view."""
+    """Step 4: Gaussians behind an opaque one (z-buffer of the centres) or off-image, in every view. Each camera
+    projects only the tiles it can see (:mod:`.cull`)."""
     alive = [v.alive.reshape(-1).nonzero().squeeze(1) for v in views]  # only these can occlude or be kept
     worlds = [v.world_means().reshape(-1, 3)[a] for v, a in zip(views, alive)]
+    tiles = [view_tiles(a, X, v.size[1]) for v, a, X in zip(views, alive, worlds)]
     opaque = [torch.sigmoid(v.logits.reshape(-1)[a]) >= cfg.occluder_min_opacity for v, a in zip(views, alive)]
     seen = [torch.zeros(len(a), dtype=torch.bool) for a in alive]
     for c in views:
         h, w = c.size
         zbuf = torch.full((h * w,), math.inf, dtype=torch.float64)
         projected = []
-        for X, occluder in zip(worlds, opaque):
-            col, row, z, inside = c.project(X)
-            projected.append((row * w + col, z, inside))
-            occ = inside & occluder
+        for X, occluder, tl in zip(worlds, opaque, tiles):
+            sel = tl.seen_by(c)
+            col, row, z, inside = c.project(X[sel])
+            projected.append((sel, row * w + col, z, inside))
+            occ = inside & occluder[sel]
             zbuf.scatter_reduce_(0, (row * w + col)[occ], z[occ], "amin")
         # a pixel hides what lies behind only if its 3×3 neighbourhood is covered too (the farthest of the
         # nearest depths): a lone occluder centre covers part of its pixel, and leaves no hole behind
         zbuf = F.max_pool2d(zbuf.reshape(1, 1, h, w), 3, stride=1, padding=1).reshape(-1)
-        for s, (pix, z, inside) in zip(seen, projected):
-            s |= inside & (z <= zbuf[pix] * (1.0 + cfg.occlusion_depth_tol))
+        for s, (sel, pix, z, inside) in zip(seen, projected):
+            s[sel] |= inside & (z <= zbuf[pix] * (1.0 + cfg.occlusion_depth_tol))
     for v, a, s in zip(views, alive, seen):
         v.alive.view(-1)[a[~s]] = False
     return f"hidden in every view (behind a Gaussian of opacity ≥ {cfg.occluder_min_opacity:g}, or off-image)"
 
 
 def prune_subpixel(views: list[ViewState], cfg: CompactConfig) -> str:
-    """Step 5: Gaussians whose largest projected std is below ``subpixel_px`` in every view."""
-    for v in views:
+    """Step 5: Gaussians whose largest projected std is below ``subpixel_px`` in every view. A Gaussian's own view
+    is tried first: the other views are tried only on the Gaussians it alone would prune (none, mostly), each on
+    the tiles it can see (:mod:`.cull`)."""
+    for k, v in enumerate(views):
         a = v.alive.reshape(-1).nonzero().squeeze(1)
         X = v.world_means().reshape(-1, 3)[a]
         sigma = torch.exp(v.log_scales.double().amax(-1)).reshape(-1)[a]
-        best = torch.zeros_like(sigma)
-        for c in views:
-            _, _, z, inside = c.project(X)
-            px = torch.where(inside, sigma * c.focal / z.clamp_min(1e-12), torch.zeros_like(sigma))
-            best = torch.maximum(best, px)
+        best = _largest_px(X, sigma, v, torch.zeros_like(sigma))
+        low = (best < cfg.subpixel_px).nonzero().squeeze(1)
+        if low.numel():
+            X, sigma = X[low], sigma[low]
+            tl = view_tiles(a[low], X, v.size[1])
+            best_low = best[low]
+            for c in (c for i, c in enumerate(views) if i != k):
+                sel = tl.seen_by(c)
+                best_low[sel] = _largest_px(X[sel], sigma[sel], c, best_low[sel])
+            best[low] = best_low
         v.alive.view(-1)[a[best < cfg.subpixel_px]] = False
     return f"largest projected std below {cfg.subpixel_px:g} px in every view"
+
+
+def _largest_px(X: torch.Tensor, sigma: torch.Tensor, c: ViewState, best: torch.Tensor) -> torch.Tensor:
+    """``best`` [M] raised to the projected std (px) in ``c`` of the Gaussians at ``X`` [M, 3] with std ``sigma`` [M]
+    where ``c`` sees them."""
+    _, _, z, inside = c.project(X)
+    return torch.maximum(best, torch.where(inside, sigma * c.focal / z.clamp_min(1e-12), torch.zeros_like(z)))

@@ -119,16 +119,17 @@ def multiview_depths(
         logger.debug("depth pair %s–%s: baseline %.3f", views[a].name, views[b].name, base)
     out: list[DepthMap | None] = [fuse_estimates(found[k]) if k in found else None for k in range(len(views))]
     if CHECK_VIEWS > 0:
-        out = [_free_space_checked(k, out, reg) for k in range(len(out))]
+        shared = _shared(reg)
+        out = [_free_space_checked(k, out, reg, shared[k]) for k in range(len(out))]
     return out, pairs
 
 
-def _free_space_checked(k: int, depths: list[DepthMap | None], reg: Registration) -> DepthMap | None:
-    """Photo ``k``'s depth checked (:func:`free_space_check`) against its most co-visible photos with a depth."""
+def _free_space_checked(k: int, depths: list[DepthMap | None], reg: Registration, S: np.ndarray) -> DepthMap | None:
+    """Photo ``k``'s depth checked (:func:`free_space_check`) against its most co-visible photos with a depth (``S``:
+    the tracks it shares with each photo [N])."""
     d = depths[k]
     if d is None:
         return None
-    S = _shared(reg)[k]
     others = [int(j) for j in np.argsort(-S, kind="stable") if j != k and depths[j] is not None and S[j] > 0]
     return free_space_check(k, depths, reg.K, reg.R, reg.t, others[:CHECK_VIEWS])
 
@@ -163,7 +164,8 @@ def free_space_check(
             np.clip(np.nan_to_num(v), 0, h - 1).astype(np.int64),
         )
         seen = inside & dj.valid[vi, ui]
-        rel = (Xj[:, 2] - dj.depth[vi, ui]) / np.maximum(dj.depth[vi, ui], 1e-12)
+        there = dj.depth[vi, ui]
+        rel = (Xj[:, 2] - there) / np.maximum(there, 1e-12)
         support |= seen & (np.abs(rel) <= AGREE)
         through |= seen & (rel < -FREE_SPACE)
     drop = through & ~support

@@ -139,3 +139,42 @@ def test_free_space_check_drops_a_floater_and_keeps_the_surface() -> None:
     assert not out.valid[25:35, 30:40].any()
     assert out.valid[:, 20:].sum() == (h * (w - 20) - 100)  # every wall pixel view 1 sees is confirmed
     assert out.valid[:, :5].all()  # the wall's left edge: outside view 1's image (it moved right), kept
+
+
+def test_triangulation_solves_only_the_tracks_not_kept_yet(monkeypatch: pytest.MonkeyPatch) -> None:
+    from types import SimpleNamespace
+
+    from macsplat_cli.pipeline.multiview import register
+    from macsplat_cli.pipeline.multiview.tracks import Tracks
+
+    rng = np.random.default_rng(2)
+    X = rng.uniform([-1, -1, 4], [1, 1, 6], (200, 3))
+    poses = [(np.eye(3), np.zeros(3)), (_rot([0, 1, 0], 8.0), np.array([-0.6, 0.0, 0.05])),
+             (_rot([0, 1, 0], -8.0), np.array([0.6, 0.02, 0.0]))]  # fmt: skip
+    seen_by = {0: range(200), 1: range(150), 2: range(200)}  # tracks 150..199: photos 0 and 2 only
+    view, track, xy = [], [], []
+    for k, (R, t) in enumerate(poses):
+        p = (X[list(seen_by[k])] @ R.T + t) @ K.T
+        view += [k] * len(seen_by[k])
+        track += list(seen_by[k])
+        xy.append(p[:, :2] / p[:, 2:3])
+    tracks = Tracks(np.array(view), np.array(track), np.concatenate(xy), 200)
+    solved = []
+    real = register.triangulate_tracks
+
+    def counting(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        solved.append(args[6])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(register, "triangulate_tracks", counting)
+    st = register._State([SimpleNamespace(K=K)] * 3, tracks)
+    st.add(0, *poses[0])
+    st.add(1, *poses[1])
+    st.triangulate()
+    assert solved == [150] and st.point_ok.sum() == 150
+    first = st.points.copy()
+    st.add(2, *poses[2])
+    st.triangulate()
+    assert solved == [150, 50]  # the 50 tracks photo 2 completes, not the 150 kept ones again
+    assert st.point_ok.all() and np.array_equal(st.points[:150], first[:150])
+    assert np.allclose(st.points, X, atol=1e-9)

@@ -1,0 +1,97 @@
+"""The compaction's spatial index: each view's alive Gaussians grouped by pixel tile, with each tile's world bounding
+box, so that a step that projects Gaussians into a camera projects only the tiles whose box meets that camera's
+frustum (the others' Gaussians would all land outside the image).
+
+With many photos most views see little of each other: the view-against-view steps (dedup, prune_occluded,
+prune_subpixel) then cost O(Gaussians a camera can see) per camera instead of O(all Gaussians), the same outputs
+(the test is conservative: a tile it rejects holds no Gaussian that :meth:`~.state.ViewState.project` finds
+inside).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from .state import ViewState
+
+__all__ = ["TILE", "Tiles", "view_tiles"]
+
+TILE = 16
+"""Side (px) of a tile: 768 tiles in a 512 × 384 map, small enough to follow a frustum's edge, large enough that the
+box test (8 corners each) costs little beside projecting the tile's 256 Gaussians."""
+_MARGIN_PX = 1.0
+"""The frustum is widened by this many pixels on each side: the box test and the projection round differently."""
+_ALL_SHARE = 0.6
+"""When the tiles a camera sees hold this share of the Gaussians, all are projected (the others land outside): picking
+them out would cost more than projecting the rest."""
+_Z_MIN = 1e-9
+"""The projection's own near limit (``project_points``: in front means z > 1e-9)."""
+_CORNER_BITS = torch.tensor([[(c >> a) & 1 for a in range(3)] for c in range(8)], dtype=torch.bool)
+"""Which of a box's 8 corners takes the largest coordinate on each axis. [8, 3]"""
+
+
+@dataclass
+class Tiles:
+    """One view's alive Gaussians grouped by pixel tile (only tiles holding one).
+
+    Attributes:
+        order: positions in the view's alive list (the ``index`` given), grouped by tile. [M] int64
+        start: each tile's first entry in ``order``; the last entry is M. [T + 1] int64
+        corners: the 8 corners of each tile's world bounding box. [T, 8, 3] float64
+    """
+
+    order: torch.Tensor
+    start: torch.Tensor
+    corners: torch.Tensor
+
+    def seen_by(self, cam: ViewState) -> torch.Tensor | slice:
+        """Positions in the alive list of the Gaussians in tiles whose box meets ``cam``'s frustum (grouped by
+        tile, ascending within a tile) [M'] int64, or ``slice(None)`` (all of them) when that is most of them
+        (:data:`_ALL_SHARE`)."""
+        sel = _box_in_frustum(self.corners, cam).nonzero().squeeze(1)
+        if sel.numel() == 0:
+            return self.order[:0]
+        first, count = self.start[sel], self.start[sel + 1] - self.start[sel]
+        ends = count.cumsum(0)
+        if int(ends[-1]) >= _ALL_SHARE * len(self.order):
+            return slice(None)
+        pos = torch.arange(int(ends[-1]), dtype=torch.int64)
+        pos += torch.repeat_interleave(first - (ends - count), count)
+        return self.order[pos]
+
+
+def view_tiles(index: torch.Tensor, world: torch.Tensor, width: int) -> Tiles:
+    """The tiles of a view's alive Gaussians: ``index`` their pixel (``row * width + col``) [M], ``world`` their
+    world centres [M, 3] float64."""
+    ntx = -(-width // TILE)
+    tile = (index // width // TILE) * ntx + (index % width) // TILE
+    tile_sorted, order = torch.sort(tile, stable=True)
+    ids, count = torch.unique_consecutive(tile_sorted, return_counts=True)
+    start = torch.zeros(len(ids) + 1, dtype=torch.int64)
+    start[1:] = count.cumsum(0)
+    dense = torch.searchsorted(ids, tile)  # each Gaussian's tile among the non-empty ones
+    lo = torch.full((len(ids), 3), torch.inf, dtype=world.dtype)
+    hi = torch.full((len(ids), 3), -torch.inf, dtype=world.dtype)
+    d3 = dense[:, None].expand(-1, 3)
+    lo.scatter_reduce_(0, d3, world, "amin")
+    hi.scatter_reduce_(0, d3, world, "amax")
+    return Tiles(order, start, torch.where(_CORNER_BITS, hi[:, None], lo[:, None]))
+
+
+def _box_in_frustum(corners: torch.Tensor, cam: ViewState) -> torch.Tensor:
+    """Whether each world box (its corners [T, 8, 3]) may hold a point that projects inside ``cam``'s image
+    (conservative: False only when all 8 corners lie outside one of the frustum's half-spaces, so every point of the
+    box does). [T] bool"""
+    w2c = torch.linalg.inv(cam.c2w)
+    X = corners @ w2c[:3, :3].T + w2c[:3, 3]  # [T, 8, 3] camera frame
+    KX = X @ cam.K.T  # u·z, v·z, z
+    z = X[..., 2]
+    h, w = cam.size
+    m = _MARGIN_PX
+    halves = (z - _Z_MIN, KX[..., 0] + m * z, (w + m) * z - KX[..., 0], KX[..., 1] + m * z, (h + m) * z - KX[..., 1])
+    ok = torch.ones(len(corners), dtype=torch.bool)
+    for f in halves:  # an affine function is largest at a corner: the box is outside when it is ≤ 0 at all 8
+        ok &= f.amax(1) > 0
+    return ok
