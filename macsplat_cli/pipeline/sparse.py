@@ -3,8 +3,9 @@
 The points are the matches the pose verified: for two photos the pose's inliers (``geometry.inliers``)
 triangulated from the two cameras, for more the registration's tracks (``multiview.registration``), each seen by
 two or more of the exported cameras — re-triangulated from the exported cameras where the joint refinement
-(:mod:`.multiview.joint`) moved them, so that points and cameras agree. Everything is at the photos' original resolution, in the world frame of the
-reconstruction; a photo undistorted at load gets its distortion back, with its observations on the photo as it is.
+(:mod:`.multiview.joint`) moved them, so that points and cameras agree. Everything is at the photos' original
+resolution, in the world frame of the reconstruction; a photo undistorted at load gets its distortion back, with its
+observations on the photo as it is.
 """
 
 from __future__ import annotations
