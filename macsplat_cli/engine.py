@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from .errors import InputError
-from .pipeline.refine import RefineConfig
+from .pipeline.refine_config import RefineConfig
 from .pipeline.run import (
     Pipeline,
     ReconstructConfig,
@@ -373,7 +373,9 @@ _COMPILING: list[threading.Thread] = []
 def _compile_kernels_in_background() -> None:
     """Once per process: compile the CPU kernels (or load them from Numba's cache) in a daemon thread, in the order
     the stages need them, so that a first run's compilation overlaps the stages before them instead of adding to
-    them (``benchmarks/first_run.py``). A stage that gets to a kernel first compiles it itself (Numba's lock makes
+    them (``benchmarks/first_run.py``). Numba itself is first imported here: the modules the engine and the settings
+    import do not load it (``tests/test_engine.py``), so its import and registries (~1 s of a warm ``--quality fast``
+    run) overlap the images and SIFT stages. A stage that gets to a kernel first compiles it itself (Numba's lock makes
     the other wait); a failure here only costs that."""
     if _COMPILING:
         return

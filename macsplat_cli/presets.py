@@ -40,7 +40,7 @@ if TYPE_CHECKING:
     from .pipeline.compact import CompactConfig
     from .pipeline.neural import NeuralConfig
     from .pipeline.pose import PoseSearchConfig
-    from .pipeline.refine import RefineConfig
+    from .pipeline.refine_config import RefineConfig
     from .pipeline.run import ReconstructConfig
 
 __all__ = [
@@ -238,7 +238,7 @@ def refine_steps(quality: Quality) -> int:
     :data:`~.pipeline.refine.AUTO_STEPS` steps (about 6–8 s a 512-px pair on two cores for +0.1 to +1.1 dB on
     held-out views of the development pairs, ``benchmarks/history/refine.md``); ``fast`` and ``balanced`` do not
     (it would more than double their time)."""
-    from .pipeline.refine import AUTO_STEPS
+    from .pipeline.refine_config import AUTO_STEPS
 
     check_quality(quality)
     return AUTO_STEPS if quality == "best" else 0
@@ -276,7 +276,7 @@ def configure(
             out of range (:meth:`Overrides.check`).
     """
     from .pipeline.matching import MatchConfig
-    from .pipeline.refine import RefineConfig
+    from .pipeline.refine_config import RefineConfig
     from .pipeline.run import ReconstructConfig
 
     o = overrides or Overrides()

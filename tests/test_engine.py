@@ -205,6 +205,25 @@ def test_validation_imports_no_backend_to_check_the_values() -> None:
     assert out.strip() == "[]"
 
 
+def test_the_engine_and_its_settings_import_no_kernels() -> None:
+    """Importing the engine and resolving a run's settings loads neither Numba nor the renderer: the kernels are
+    imported by the background compilation thread, beside the first stages (``--quality fast``'s start-up)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "from macsplat_cli.engine import EngineConfig\n"
+        "from macsplat_cli.cli._options import parse_refine\n"
+        "EngineConfig(quality='fast', overrides=__import__('macsplat_cli.presets').presets.Overrides("
+        "refine=parse_refine('auto'))).settings()\n"
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in ('numba', 'llvmlite') or "
+        "m.startswith('macsplat_cli.render')))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+
 @pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA is available here")
 def test_cuda_is_checked_when_the_models_load_before_the_weights_stage(pair: tuple[Path, Path, Path]) -> None:
     """``--device cuda`` without CUDA: the same usage error, raised by the loading, before any stage event."""

@@ -154,7 +154,7 @@ def parse_refine(text: str | None) -> int | None:
         return None
     word = text.strip().lower()
     if word in ("auto", "off"):
-        from ..pipeline.refine import AUTO_STEPS
+        from ..pipeline.refine_config import AUTO_STEPS
 
         return AUTO_STEPS if word == "auto" else 0
     try:

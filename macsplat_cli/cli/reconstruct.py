@@ -268,7 +268,7 @@ def reconstruct_config(
     from ..pipeline.background import BackgroundConfig
     from ..pipeline.multiview import MultiViewConfig
     from ..pipeline.pose import PoseSearchConfig
-    from ..pipeline.refine import RefineConfig
+    from ..pipeline.refine_config import RefineConfig
     from ..pipeline.run import ReconstructConfig
     from ..pipeline.views import ViewConfig
     from ..presets import BACKENDS, MATCHERS, QUALITIES, Overrides

@@ -26,7 +26,6 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from . import _match_kernels
 from .types import Features, Matches
 
 __all__ = [
@@ -91,6 +90,8 @@ def reciprocal_nearest_neighbours(
     empty = np.zeros(0, np.int64)
     if m0 == 0 or m1 == 0:
         return NearestNeighbours(empty, empty, np.zeros(0, np.float32), np.zeros((m0, 2)), np.zeros((m1, 2)))
+    from . import _match_kernels  # Numba on first use (engine: the kernels load beside the first stages)
+
     a = torch.from_numpy(np.ascontiguousarray(desc0, dtype=np.float32))
     bt = torch.from_numpy(np.ascontiguousarray(desc1, dtype=np.float32)).T.contiguous()
     rows = max(1, max_block_elems // m1)
@@ -218,6 +219,8 @@ def guided_matches(
     if n0 == 0 or n1 == 0:
         e = np.zeros(0, np.int64)
         return Matches(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, np.float32), e, e, {"guided": 0})
+    from . import _match_kernels  # Numba on first use (engine: the kernels load beside the first stages)
+
     a = torch.from_numpy(np.ascontiguousarray(f0.desc, np.float32))
     bt = torch.from_numpy(np.ascontiguousarray(f1.desc, np.float32)).T.contiguous()
     p0 = np.concatenate([f0.xy, np.ones((n0, 1))], 1)
@@ -256,4 +259,6 @@ def guided_matches(
 
 def compile_kernels() -> None:
     """Compile the stage's Numba kernel now (or load it from the cache): for a background thread."""
+    from . import _match_kernels
+
     _match_kernels.compile_kernels()

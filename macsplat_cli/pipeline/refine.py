@@ -19,9 +19,8 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -29,10 +28,11 @@ import torch
 
 from ..errors import InputError
 from ..gaussians import GaussianMaps, Gaussians
-from ..mac import MACConfig, mac_loss
+from ..mac import mac_loss
 from ..metrics import ssim_map
 from ..render import render
 from ..report import RefineReport
+from .refine_config import AUTO_STEPS, RefineConfig
 from .types import DepthMap, MatchSet, TwoViewGeometry, View
 
 if TYPE_CHECKING:
@@ -42,8 +42,6 @@ __all__ = ["AUTO_STEPS", "RefineConfig", "RefineResult", "check_scale", "refine"
 
 logger = logging.getLogger(__name__)
 
-AUTO_STEPS = 25
-"""``--refine auto``: the elbow of time against held-out error (benchmarks/history/refine.md)."""
 RefineStep = Callable[[int, dict[str, float]], None]
 
 SSIM_WEIGHT = 0.2
@@ -60,36 +58,6 @@ LR_SCALE = 1.5
 rates (benchmarks/history/refine.md)."""
 LR_FINAL = 0.3
 """The rates fall (cosine) to this fraction of their start by the last step (benchmarks/history/refine.md)."""
-
-
-@dataclass
-class RefineConfig:
-    """Args:
-    steps: most optimisation steps; 0: no refinement (the engine skips the stage). ``--refine auto``:
-        :data:`AUTO_STEPS`.
-    scale: pool the maps ``scale × scale`` and render the photos at 1/scale (1 to 4; 2: about 4× faster per step
-        than full resolution).
-    use_mac: add the MAC loss (False: the "w/o MAC" ablation).
-    lpips_weights: the LPIPS-VGG weights folder (``--lpips-weights``); the engine loads it and passes the model
-        to :func:`refine` (its term is :data:`LPIPS_WEIGHT` × LPIPS).
-    mac_matches: "filtered": the verified sparse matches (the paper's filtered matching);
-        "dense": also every :data:`DENSE_STRIDE`-th measured pixel of view 0 paired with its
-        depth-consistent pixel in view 1.
-    mac: MAC loss weights; ``mac.weight`` is λ_MAC.
-    plateau_window: steps over which the improvement is measured.
-    plateau_tol: stop when the running-mean loss improved by less than this fraction.
-    min_steps: never stop before this many steps.
-    """
-
-    steps: int = 0
-    scale: int = 2
-    use_mac: bool = True
-    lpips_weights: Path | None = None
-    mac_matches: Literal["filtered", "dense"] = "filtered"
-    mac: MACConfig = field(default_factory=MACConfig)
-    plateau_window: int = 25
-    plateau_tol: float = 2e-3
-    min_steps: int = 25
 
 
 @dataclass

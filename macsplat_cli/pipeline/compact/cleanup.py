@@ -10,7 +10,6 @@ import math
 import torch
 import torch.nn.functional as F
 
-from ...render.constants import ALPHA_MIN
 from .config import CompactConfig
 from .state import NEIGHBOURS, ViewState
 
@@ -19,6 +18,8 @@ __all__ = ["prune_floaters", "prune_occluded", "prune_opacity", "prune_subpixel"
 
 def prune_opacity(views: list[ViewState]) -> str:
     """Step 1: non-finite Gaussians and opacities below the renderer's ``ALPHA_MIN`` (it culls them)."""
+    from ...render.constants import ALPHA_MIN  # here: importing render loads Numba (the settings import this module)
+
     logit_min = math.log(ALPHA_MIN / (1.0 - ALPHA_MIN))
     for v in views:
         finite = torch.isfinite(v.means).all(-1) & torch.isfinite(v.log_scales).all(-1)

@@ -24,7 +24,6 @@ Measured: benchmarks/history/depth.md.
 
 from __future__ import annotations
 
-from . import _patchmatch_kernels, _sgm_kernels
 from .checks import colour_outliers, remove_speckles
 from .config import FILL_RULES, DepthConfig, FilledDepthMap
 from .estimate import estimate_depths
@@ -52,5 +51,7 @@ __all__ = [
 
 def compile_kernels() -> None:
     """Compile the stage's Numba kernels now (or load them from the cache): for a background thread."""
+    from . import _patchmatch_kernels, _sgm_kernels
+
     _sgm_kernels.compile_kernels()
     _patchmatch_kernels.compile_kernels()

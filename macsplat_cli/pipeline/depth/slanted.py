@@ -16,7 +16,6 @@ import cv2
 import numpy as np
 
 from ..types import TwoViewGeometry
-from . import _patchmatch_kernels
 from .checks import CONSISTENCY, left_right_error, winner_depth
 from .config import DepthConfig
 from .pair import relative_pose
@@ -61,6 +60,8 @@ def refine_slanted(raw: list[VolumeDepth], geometry: TwoViewGeometry, cfg: Depth
     """PatchMatch refinement of slanted planes (:mod:`._patchmatch_kernels`) for the pixels the SGM winner
     leaves unconfirmed (fails the tests or the left-right check), seeded by the confirmed ones; in place: sets
     ``inv_depth``, ``win_cost`` and ``refined`` of both views' :class:`~.sweep.VolumeDepth`."""
+    from . import _patchmatch_kernels  # Numba on first use (engine: the kernels load beside the first stages)
+
     confident = [winner_depth(r) for r in raw]
     for ref in (0, 1):
         r = raw[ref]

@@ -26,7 +26,6 @@ from ...camera_math import rescale_intrinsics
 from ...errors import ReconstructionError
 from ..pose import triangulate
 from ..types import TwoViewGeometry, View
-from . import _sgm_kernels
 from .config import DepthConfig
 from .pair import relative_pose
 
@@ -179,6 +178,8 @@ def sweep_view(
     n = plane_count(geometry, ref, rho, cfg.scale)
     rhos = np.linspace(rho[0], rho[1], n)
     cost, has_window = plane_sweep_cost(g_ref, g_src, Kr, Ks, R, t, rhos, WINDOW)
+    from . import _sgm_kernels  # Numba on first use (engine: the kernels load beside the first stages)
+
     agg = _sgm_kernels.aggregate(cost, g_ref, P1, P2, EDGE_GAMMA, EIGHT_PATHS)
     idx, off, uniq = _sgm_kernels.winner(agg)
     step = (rho[1] - rho[0]) / max(n - 1, 1)

@@ -1,6 +1,6 @@
 """The learned matcher in the pipeline's slots: ALIKED in the ``describe`` slot (:class:`LearnedDescriptors`),
-LightGlue in the ``matcher`` slot (:class:`LightGlueMatcher`), the two as one tier of the pose search
-(:class:`LearnedTier`).
+LightGlue in the ``matcher`` slot (:class:`LightGlueMatcher`, with the guard of its matches,
+:mod:`.guard`), the two as one tier of the pose search (:class:`LearnedTier`).
 
 ALIKED runs on the photo's detail image at ``detect_size`` on the long side (never upsampled), without its dense
 descriptor map (:func:`.aliked_sparse.aliked_sparse`: kornia's forward, 0.5 GB less memory); its keypoints
@@ -110,6 +110,12 @@ class LightGlueMatcher:
         idx0, idx1 = pairs[:, 0], pairs[:, 1]
         return Matches(f0.xy[idx0], f1.xy[idx1], scores.astype(np.float32), idx0, idx1, {"lightglue": len(idx0)})
 
+    def doubts(self, features: list[Features], verified: Matches, final: Matches, log10_nfa: float | None) -> list[str]:
+        """Why a pose from these matches is refused besides the acceptance's checks (:func:`.guard.learned_doubts`).
+        The pose search asks the matcher that gave the pose, whichever tier it ran in (``--matcher auto``'s last
+        tier, ``--matcher aliked``'s only one): the guard goes wherever LightGlue's matches go."""
+        return learned_doubts(features, verified, final, log10_nfa)
+
 
 def _no_load() -> None:
     return None
@@ -128,10 +134,6 @@ class LearnedTier:
     @property
     def name(self) -> str:
         return f"{self.describe.name}+{self.match.name}"
-
-    def doubts(self, features: list[Features], verified: Matches, final: Matches, log10_nfa: float | None) -> list[str]:
-        """Why the tier's pose is refused besides the acceptance's checks (:func:`.guard.learned_doubts`)."""
-        return learned_doubts(features, verified, final, log10_nfa)
 
 
 _WARNED: set[str] = set()

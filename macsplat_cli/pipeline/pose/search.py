@@ -60,10 +60,15 @@ def _untimed(stage: str, fn: Callable[[], T]) -> T:
     return fn()
 
 
+Guard = Callable[[list[Features], Matches, Matches, float | None], list[str]]
+"""A matcher's own doubts about a pose its matches gave: ``(features, verified, final, log10_nfa) → messages``
+(:meth:`~..learned.LightGlueMatcher.doubts`)."""
+
+
 @dataclass
 class _Attempt:
-    """One tier's outcome: its pose (None: failed, ``failure`` says why), the features its matches index and its
-    filtered matches."""
+    """One tier's outcome: its pose (None: failed, ``failure`` says why), the features its matches index, its
+    filtered matches, and its matcher's guard (its ``doubts`` method, when it has one: the learned matcher's)."""
 
     geometry: TwoViewGeometry | None
     failure: ReconstructionError | None
@@ -72,6 +77,7 @@ class _Attempt:
     tier: Tier
     plane_tiebreak: list[int] | None = None
     matcher: str = ""
+    guard: Guard | None = None
 
 
 def calibrated_views(views: list[View], geometry: TwoViewGeometry) -> list[View]:
@@ -129,7 +135,7 @@ class PoseSearch:
         found = self._tiers(views, pair, timed)
         assert found.geometry is not None
         geometry, guided = self._guided(views, found.features, found.geometry, pair, timed)
-        confidence = self._accept(views, geometry, found.matches, timed, found if found.tier == "learned" else None)
+        confidence = self._accept(views, geometry, found.matches, timed, found)
         assessed = self.config.confidence
         return PoseResult(
             geometry=geometry,
@@ -171,7 +177,8 @@ class PoseSearch:
         matches = timed(f"matching{suffix}", lambda: matcher(feats[0], feats[1]))
         geometry, failure = self._try_pose(views, matches, pair, timed, f"pose{suffix}")
         names = (getattr(stage, "name", type(stage).__name__) for stage in (describe, matcher))
-        return _Attempt(geometry, failure, feats, matches, tier, matcher="+".join(names))
+        guard = getattr(matcher, "doubts", None)
+        return _Attempt(geometry, failure, feats, matches, tier, matcher="+".join(names), guard=guard)
 
     def _tiers(self, views: list[View], pair: PairPass, timed: StageTimer) -> _Attempt:
         """The tier whose pose stands (module docstring, 1): the first that gives a pose, unless the putative
@@ -290,11 +297,12 @@ class PoseSearch:
     # ------------------------------------------------------------------------------------------- acceptance
     def _accept(
         self, views: list[View], geometry: TwoViewGeometry, evidence: Matches, timed: StageTimer,
-        learned: _Attempt | None = None,
+        found: _Attempt | None = None,
     ) -> PoseConfidence:  # fmt: skip
         """The acceptance of the final pose (module docstring, 3), on the views as loaded (a view with the prior's
-        focal has an unknown focal length) and ``evidence``, the tier's filtered matches; a pose of the ``learned``
-        tier (its attempt, before guided re-matching) has the learned tier's doubts too (:mod:`..learned.guard`).
+        focal has an unknown focal length) and ``evidence``, the tier's filtered matches; when the matcher of the
+        tier that ``found`` the pose (its attempt, before guided re-matching) has a guard, its doubts too: the
+        learned matcher's (:mod:`..learned.guard`), in whichever tier it ran (``--matcher auto`` or ``aliked``).
 
         Raises:
             ReconstructionError: the pose is doubted and ``accept_low_confidence`` is off.
@@ -304,9 +312,9 @@ class PoseSearch:
             "pose confidence",
             lambda: accept_pose(views[0], views[1], geometry, self.pose_config, c.confidence, evidence=evidence),
         )
-        if learned is not None and self.learned is not None and learned.geometry is not None:
+        if found is not None and found.guard is not None and found.geometry is not None:
             nfa = conf.checks.get("log10_nfa") if c.confidence else None
-            more = self.learned.doubts(learned.features, learned.geometry.inliers, geometry.inliers, nfa)
+            more = found.guard(found.features, found.geometry.inliers, geometry.inliers, nfa)
             conf = dataclasses.replace(conf, ok=conf.ok and not more,
                                        doubts=[*conf.doubts, *(Doubt("evidence", m) for m in more)])  # fmt: skip
         doubts: list[Doubt] = conf.doubts

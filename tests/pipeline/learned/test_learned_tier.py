@@ -7,17 +7,21 @@ stands, and that a supported SIFT pose never pays for the learned tier.
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from macsplat_cli.errors import ReconstructionError
-from macsplat_cli.pipeline.learned import LearnedConfig, LearnedTier
+from macsplat_cli.pipeline import run
+from macsplat_cli.pipeline.learned import LearnedConfig, LearnedTier, LightGlueMatcher
 from macsplat_cli.pipeline.learned.guard import MAX_LOG10_NFA
 from macsplat_cli.pipeline.pose import PoseConfig, PoseSearch, PoseSearchConfig
 from macsplat_cli.pipeline.pose import confidence as acceptance
+from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig, classical_stages
 from macsplat_cli.pipeline.types import Features, Matches, TwoViewGeometry, View
+from macsplat_cli.presets import learned_search
 
 W, H = 64, 48
 K = np.array([[55.0, 0.0, 32.0], [0.0, 55.0, 24.0], [0.0, 0.0, 1.0]])
@@ -67,6 +71,15 @@ class Match:
         return Matches(f0.xy[:n], f1.xy[:n], np.ones(n, np.float32), idx, idx, {self.name: n})
 
 
+class LightGlue(LightGlueMatcher):
+    """LightGlue's guard (:meth:`LightGlueMatcher.doubts`, the real one) on :class:`Match`'s index-wise matches."""
+
+    def __init__(self) -> None:
+        self.name, self.calls = "lightglue", 0
+
+    __call__ = Match.__call__
+
+
 class Pose:
     """Fails on fewer than ``need`` matches; otherwise R = I, t along x, every match verified."""
 
@@ -88,7 +101,7 @@ def _search(need: int, *, learned_n: int = 120, consistent: bool = False, eviden
             **config: object) -> PoseSearch:  # fmt: skip
     cfg = PoseSearchConfig(confidence=evidence, guided_band_px=None, accept_low_confidence=True, **config)  # type: ignore[arg-type]
     describe = Describe("learned:stub", learned_n, consistent=consistent, noise_px=noise_px, repeated=repeated)
-    tier = LearnedTier(describe, Match("lightglue"), LearnedConfig())
+    tier = LearnedTier(describe, LightGlue(), LearnedConfig())
     return PoseSearch(
         cfg, PoseConfig(), describe=Describe("primary", sift[0]), match=Match("filtered"), pose=Pose(need),
         fallback=Describe("fallback", sift[1]), wide=Describe("wide", sift[2]), learned=tier,
@@ -172,3 +185,28 @@ def test_a_learned_pose_needs_stronger_evidence_than_a_sift_one(monkeypatch: pyt
     result = _search(25, learned_n=120, consistent=True, noise_px=0.7, evidence=True, sift=(10, 10, 10))(_views())
     assert result.tier == "learned" and result.confidence is not None and not _learned_doubts(result)
     assert result.confidence.checks["log10_nfa"] < MAX_LOG10_NFA
+
+
+def _aliked_search(monkeypatch: pytest.MonkeyPatch, *, repeated: bool) -> PoseSearch:
+    """The pose search as ``--matcher aliked`` builds it (:func:`~macsplat_cli.presets.learned_search`,
+    :func:`~macsplat_cli.pipeline.run.classical_stages`): the learned matcher as the only tier, a stub in place of
+    the installed one (consistent matches; ``repeated``: each matched keypoint of view 0 has a twin)."""
+    describe = Describe("learned:stub", 120, consistent=True, repeated=repeated)
+    stub = LearnedTier(describe, LightGlue(), LearnedConfig())
+    monkeypatch.setattr(run, "learned_tier", lambda config, *, required: stub)
+    search = learned_search(PoseSearchConfig(guided_band_px=None), "aliked")
+    config = dataclasses.replace(ReconstructConfig(), search=search)
+    stages = classical_stages(config, pose=Pose(10))
+    assert stages.describe is describe and stages.fallback is None and stages.wide is None and stages.learned is None
+    return Pipeline(config, stages).search
+
+
+def test_matcher_aliked_refuses_a_pose_on_a_repeated_texture_as_auto_does(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--matcher aliked`` runs the learned matcher as the primary (and only) tier: the guard follows the matcher,
+    not the tier, so the pose that ``auto``'s learned tier refuses (the test above) is refused there too (it was
+    accepted: the guard ran in the learned tier only); without the twins the same pose stands."""
+    monkeypatch.setattr(acceptance, "MAX_ROTATION_3SIGMA_DEG", 360.0)  # 64×48 photos: the uncertainty is not gated
+    with pytest.raises(ReconstructionError, match="lie on a texture repeated elsewhere in the photo"):
+        _aliked_search(monkeypatch, repeated=True)(_views())
+    result = _aliked_search(monkeypatch, repeated=False)(_views())
+    assert result.tier == "primary" and result.matcher == "learned:stub+lightglue" and not result.doubts
