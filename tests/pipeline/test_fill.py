@@ -112,6 +112,33 @@ def test_far_layer_stays_behind_the_scene_and_off_when_disabled(pair: Pair) -> N
     assert off.gaussians is None and off.counts == {}
 
 
+def test_far_layer_never_hides_what_another_photo_sees_behind_a_near_object() -> None:
+    """A near box before a far wall, photos 0.8 apart: the layer behind the box (at twice its depth, in front of the
+    wall) would hide the wall from the other photo, which sees past the box there; those cells are left out, so no
+    Gaussian of the layer is nearer to either camera than the surface that camera sees."""
+    wall = syn.Texture(albedo=(0.5, 0.6, 0.4), seed=3, textured=True, scale=0.7)
+    box = syn.Texture(albedo=(0.3, 0.4, 0.7), seed=5, textured=True)
+    scene = syn.Scene([syn.Quad((-8.0, -6.0, 4.0), (16.0, 0.0, 0.0), (0.0, 12.0, 0.0), wall),
+                       syn.Box((0.0, 0.0, 1.2), (0.3, 0.3, 0.3), syn.rotation_about((0, 1, 0), 10.0), box)],
+                      lighting=None)  # fmt: skip
+    cams = [syn.look_at_camera(n, (x, 0.0, 0.0), (0.0, 0.0, 4.0), width=W, height=H, fov_deg=60.0)
+            for n, x in (("a", -0.4), ("b", 0.4))]  # fmt: skip
+    rendered = [syn.render(scene, c, supersample=1) for c in cams]
+    T = np.linalg.inv(cams[1].cam_to_world) @ cams[0].cam_to_world
+    geometry = TwoViewGeometry(T[:3, :3], T[:3, 3], cams[0].K, cams[1].K, _no_matches())
+    views = [View(c.name, Path(c.name), r.image, r.mask, c.K, (W, H), "file") for c, r in zip(cams, rendered)]
+    depths = [DepthMap(r.depth, (r.depth > 0).astype(np.float32)) for r in rendered]
+    layer = background_gaussians(views, geometry, depths)
+    assert layer.gaussians is not None and layer.counts["behind_view0"] > 0
+    for k in (0, 1):
+        Tk = np.linalg.inv(geometry.cam_to_world(k))
+        X = layer.gaussians.means.double().numpy() @ Tk[:3, :3].T + Tk[:3, 3]
+        uv = (X @ views[k].K.T)[:, :2] / X[:, 2:3]
+        inside = (X[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+        seen = depths[k].depth[uv[inside, 1].astype(int), uv[inside, 0].astype(int)]
+        assert (X[inside, 2] * 1.05 >= seen).all()
+
+
 # ------------------------------------------------------------------------------------------ depth steps
 def _box_depth(blur: bool) -> np.ndarray:
     """A box (z = 2) in front of a wall (z = 3); ``blur``: the step smeared over 5 pixels, as an upsampling or
