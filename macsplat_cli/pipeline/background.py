@@ -16,9 +16,9 @@ Cells whose centre falls inside the other photo are left out (that view has real
 an extrapolated depth could hide them). With ``behind`` the interior of each photo gets the same layer pushed
 ``behind_factor`` beyond the farthest depth of the cell: a pixel that both views leave uncovered in a novel view
 (a disocclusion) then shows the far surface's blurred colour instead of the background colour (twice the farthest
-depth by default; measured: benchmarks/history/depth.md). A behind cell that another photo sees through (its depth
-there lies beyond the cell: the cell would hide a surface that photo saw, from every viewpoint near it) is left out
-too (:data:`SEEN_THROUGH`).
+depth by default; measured: benchmarks/history/depth.md). With three photos or more, a behind cell that another photo
+sees through (its depth there lies beyond the cell: the cell would hide a surface that photo saw, from every viewpoint
+near it) is left out too (:data:`SEEN_THROUGH`).
 
 The layer is returned as a flat :class:`~macsplat_cli.gaussians.Gaussians` set in the world (camera-0) frame,
 apart from the per-pixel maps; it is not refined or compacted.
@@ -58,6 +58,9 @@ SEEN_THROUGH = 1.05
 photo by this factor (that photo sees a surface behind it). Two photos 12-30° apart rarely see past an object's cells
 at twice its depth; eight photos over 45° do, and their behind discs cost the views between the middle photos 1.3 dB
 (benchmarks/history/multiview_joint.md)."""
+SEEN_THROUGH_MIN_VIEWS = 3
+"""The seen-through rule applies from this many photos: on the dev pairs it measured −0.24 … +0.22 dB (mean −0.01),
+so two-photo scenes keep their layer as it was."""
 
 
 @dataclass
@@ -143,7 +146,7 @@ def background_layer(
         if not dm.valid.any():
             continue
         others = [(Ks[o], poses[o], depths[o]) for o in range(len(views)) if o != k]
-        part = _view_layer(view, dm, Ks[k], poses[k], others, cfg)
+        part = _view_layer(view, dm, Ks[k], poses[k], others, cfg, through=len(views) >= SEEN_THROUGH_MIN_VIEWS)
         counts[f"outside_view{k}"] = part.outside
         counts[f"behind_view{k}"] = part.behind
         dropped += part.dropped
@@ -187,10 +190,12 @@ _Other = tuple[np.ndarray, np.ndarray, DepthMap]
 
 
 def _view_layer(
-    view: View, dm: DepthMap, K: np.ndarray, T: np.ndarray, others: Sequence[_Other], cfg: BackgroundConfig
-) -> _ViewLayer:
+    view: View, dm: DepthMap, K: np.ndarray, T: np.ndarray, others: Sequence[_Other], cfg: BackgroundConfig,
+    *, through: bool = False,
+) -> _ViewLayer:  # fmt: skip
     """A view's cells (intrinsics ``K``, cam_to_world ``T``): the photo and its depth extended on the padded grid,
-    placed in the world, less the exterior cells another view sees."""
+    placed in the world, less the exterior cells another view sees (and, with ``through``, the behind cells another
+    view sees past)."""
     h, w = dm.depth.shape
     valid = dm.valid
     cell = max(2, int(CELL))
@@ -215,13 +220,13 @@ def _view_layer(
     Pw = (rays * z[..., None]) @ T[:3, :3].T + T[:3, 3]
     # leave out exterior cells another photo sees: its own Gaussians are there
     seen = np.zeros(Pw.shape[:-1], bool)
-    through = np.zeros(Pw.shape[:-1], bool)  # behind cells another photo sees past
+    through_any = np.zeros(Pw.shape[:-1], bool)  # behind cells another photo sees past
     for K_o, T_o, dm_o in others:
         seen |= _seen_by(Pw, K_o, T_o, dm_o.depth.shape)
-        if cfg.behind:
-            through |= _seen_through(Pw, K_o, T_o, dm_o)
+        if cfg.behind and through:
+            through_any |= _seen_through(Pw, K_o, T_o, dm_o)
     outside_kept = keep & ~inside & ~seen
-    sel = outside_kept | (keep & inside & ~through)
+    sel = outside_kept | (keep & inside & ~through_any)
     f = 0.5 * (K[0, 0] + K[1, 1])
     s = OVERLAP * cell * z[sel] / f
     return _ViewLayer(
@@ -231,7 +236,7 @@ def _view_layer(
         # a disc facing camera k: its local axes are the camera's axes
         quats=np.repeat(rotmat_to_quat_np(T[None, :3, :3]), int(sel.sum()), 0),
         outside=int(outside_kept.sum()),
-        behind=int((keep & inside & ~through).sum()),
+        behind=int((keep & inside & ~through_any).sum()),
         dropped=int((keep & ~inside & seen).sum()),
     )
 
