@@ -16,7 +16,9 @@ already trusted (camera 0 first) lie within :data:`POSE_TRUST_PX` refinement pix
 Sampson distance) is not moved. The photometric optimum of a pose at the refinement's resolution, with Gaussians
 pooled from estimated depths, lies a few tenths of a degree from the truth (measured on exact cameras and depths:
 25 steps moved them 0.24° and 0.51°; on a 4-photo orbit 0.02° → 0.23°), so a sub-pixel registration is better left
-as it is; a camera degrees off (its matches pixels off their lines) is refined.
+as it is; a camera degrees off (its matches pixels off their lines) is refined. The matches of a reconstruction are
+the registration's own tracks, so this trusts a registration whose bundle adjustment fits them to sub-pixel (it says
+nothing of an error along the epipolar lines, nor of a wrong pose its own tracks agree with).
 
 Stopping on held-out evidence: a share of every photo's pixels (:data:`HOLDOUT_SHARE`, fixed seed) is left out of
 the loss (their target is the render itself, so neither the L2 nor the SSIM term sees them); the run stops once their
@@ -180,7 +182,9 @@ def trusted_cameras(
         Ks: each camera's intrinsics at the working resolution. [3, 3]
         cam_to_world: each camera's registered pose. [4, 4]
     """
-    err = {(m.a, m.b): _epipolar_px(m, Ks, cam_to_world) for m in sets if len(m.xy_a) >= 8}
+    centres = [T[:3, 3] for T in cam_to_world]
+    tested = [m for m in sets if len(m.xy_a) >= 8 and np.any(centres[m.a] != centres[m.b])]  # a baseline to test
+    err = {(m.a, m.b): _epipolar_px(m, Ks, cam_to_world) for m in tested}
     trusted = [k == fixed for k in range(len(cam_to_world))]
     grew = True
     while grew:
