@@ -16,7 +16,9 @@ Cells whose centre falls inside the other photo are left out (that view has real
 an extrapolated depth could hide them). With ``behind`` the interior of each photo gets the same layer pushed
 ``behind_factor`` beyond the farthest depth of the cell: a pixel that both views leave uncovered in a novel view
 (a disocclusion) then shows the far surface's blurred colour instead of the background colour (twice the farthest
-depth by default; measured: benchmarks/history/depth.md).
+depth by default; measured: benchmarks/history/depth.md). With three photos or more, a behind cell that another photo
+sees through (its depth there lies beyond the cell: the cell would hide a surface that photo saw, from every viewpoint
+near it) is left out too (:data:`SEEN_THROUGH`).
 
 The layer is returned as a flat :class:`~macsplat_cli.gaussians.Gaussians` set in the world (camera-0) frame,
 apart from the per-pixel maps; it is not refined or compacted.
@@ -51,6 +53,14 @@ OPACITY = 0.99
 """Opacity of the layer's Gaussians."""
 BEHIND_FACTOR = 2.0
 """The interior layer's depth relative to the farthest depth in its cell."""
+SEEN_THROUGH = 1.05
+"""A behind cell is dropped where another photo's depth at the cell's projection exceeds the cell's depth in that
+photo by this factor (that photo sees a surface behind it). Two photos 12-30° apart rarely see past an object's cells
+at twice its depth; eight photos over 45° do, and their behind discs cost the views between the middle photos 1.3 dB
+(benchmarks/history/multiview_joint.md)."""
+SEEN_THROUGH_MIN_VIEWS = 3
+"""The seen-through rule applies from this many photos: on the dev pairs it measured −0.24 … +0.22 dB (mean −0.01),
+so two-photo scenes keep their layer as it was."""
 
 
 @dataclass
@@ -135,8 +145,8 @@ def background_layer(
     for k, (view, dm) in enumerate(zip(views, depths)):
         if not dm.valid.any():
             continue
-        others = [(Ks[o], poses[o], depths[o].depth.shape) for o in range(len(views)) if o != k]
-        part = _view_layer(view, dm, Ks[k], poses[k], others, cfg)
+        others = [(Ks[o], poses[o], depths[o]) for o in range(len(views)) if o != k]
+        part = _view_layer(view, dm, Ks[k], poses[k], others, cfg, through=len(views) >= SEEN_THROUGH_MIN_VIEWS)
         counts[f"outside_view{k}"] = part.outside
         counts[f"behind_view{k}"] = part.behind
         dropped += part.dropped
@@ -175,15 +185,17 @@ class _ViewLayer:
     dropped: int
 
 
-_Other = tuple[np.ndarray, np.ndarray, tuple[int, ...]]
-"""Another view: its ``K`` [3, 3], cam_to_world [4, 4] and image shape (height, width)."""
+_Other = tuple[np.ndarray, np.ndarray, DepthMap]
+"""Another view: its ``K`` [3, 3], cam_to_world [4, 4] and depth map (working resolution)."""
 
 
 def _view_layer(
-    view: View, dm: DepthMap, K: np.ndarray, T: np.ndarray, others: Sequence[_Other], cfg: BackgroundConfig
-) -> _ViewLayer:
+    view: View, dm: DepthMap, K: np.ndarray, T: np.ndarray, others: Sequence[_Other], cfg: BackgroundConfig,
+    *, through: bool = False,
+) -> _ViewLayer:  # fmt: skip
     """A view's cells (intrinsics ``K``, cam_to_world ``T``): the photo and its depth extended on the padded grid,
-    placed in the world, less the exterior cells another view sees."""
+    placed in the world, less the exterior cells another view sees (and, with ``through``, the behind cells another
+    view sees past)."""
     h, w = dm.depth.shape
     valid = dm.valid
     cell = max(2, int(CELL))
@@ -208,10 +220,13 @@ def _view_layer(
     Pw = (rays * z[..., None]) @ T[:3, :3].T + T[:3, 3]
     # leave out exterior cells another photo sees: its own Gaussians are there
     seen = np.zeros(Pw.shape[:-1], bool)
-    for other in others:
-        seen |= _seen_by(Pw, *other)
+    through_any = np.zeros(Pw.shape[:-1], bool)  # behind cells another photo sees past
+    for K_o, T_o, dm_o in others:
+        seen |= _seen_by(Pw, K_o, T_o, dm_o.depth.shape)
+        if cfg.behind and through:
+            through_any |= _seen_through(Pw, K_o, T_o, dm_o)
     outside_kept = keep & ~inside & ~seen
-    sel = outside_kept | (keep & inside)
+    sel = outside_kept | (keep & inside & ~through_any)
     f = 0.5 * (K[0, 0] + K[1, 1])
     s = OVERLAP * cell * z[sel] / f
     return _ViewLayer(
@@ -221,7 +236,7 @@ def _view_layer(
         # a disc facing camera k: its local axes are the camera's axes
         quats=np.repeat(rotmat_to_quat_np(T[None, :3, :3]), int(sel.sum()), 0),
         outside=int(outside_kept.sum()),
-        behind=int((keep & inside).sum()),
+        behind=int((keep & inside & ~through_any).sum()),
         dropped=int((keep & ~inside & seen).sum()),
     )
 
@@ -250,6 +265,21 @@ def _extended_cells(
     col = _extend(img_c, np.ones((hc, wc), np.float32), pad)
     inv_ext = _extend(inv_c[..., None], vw, pad)[..., 0]
     return col, inv_ext, inv, z_med
+
+
+def _seen_through(Pw: np.ndarray, K_o: np.ndarray, T_o: np.ndarray, dm: DepthMap) -> np.ndarray:
+    """World points [..., 3] that a view (``K_o``, cam_to_world ``T_o``, depth map ``dm``) sees past: in front of it,
+    inside its image, where its depth exceeds the point's own depth there by :data:`SEEN_THROUGH`. [...] bool"""
+    To = np.linalg.inv(T_o)
+    Po = Pw @ To[:3, :3].T + To[:3, 3]
+    h, w = dm.depth.shape
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uvo = (Po @ K_o.T)[..., :2] / Po[..., 2:3]
+    ok = (Po[..., 2] > 0) & (uvo[..., 0] >= 0) & (uvo[..., 0] < w) & (uvo[..., 1] >= 0) & (uvo[..., 1] < h)
+    col = np.where(ok, uvo[..., 0], 0).astype(np.int64)
+    row = np.where(ok, uvo[..., 1], 0).astype(np.int64)
+    d = dm.depth[row, col]
+    return ok & dm.valid[row, col] & (d > SEEN_THROUGH * Po[..., 2])
 
 
 def _seen_by(Pw: np.ndarray, K_o: np.ndarray, T_o: np.ndarray, shape_o: tuple[int, ...]) -> np.ndarray:

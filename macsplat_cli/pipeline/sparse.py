@@ -2,8 +2,10 @@
 
 The points are the matches the pose verified: for two photos the pose's inliers (``geometry.inliers``)
 triangulated from the two cameras, for more the registration's tracks (``multiview.registration``), each seen by
-two or more of the exported cameras. Everything is at the photos' original resolution, in the world frame of the
-reconstruction; a photo undistorted at load gets its distortion back, with its observations on the photo as it is.
+two or more of the exported cameras — re-triangulated from the exported cameras where the joint refinement
+(:mod:`.multiview.joint`) moved them, so that points and cameras agree. Everything is at the photos' original
+resolution, in the world frame of the reconstruction; a photo undistorted at load gets its distortion back, with its
+observations on the photo as it is.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import numpy as np
 from ..camera_formats import SparsePoints
 from ..cameras import Camera, CameraSet
 from ..distortion import distort_normalised
+from .multiview.triangulate import triangulate_tracks
 from .pose.geometry import homog, triangulate
 from .run import Reconstruction
 
@@ -70,7 +73,28 @@ def _observations(rec: Reconstruction) -> tuple[np.ndarray, np.ndarray, np.ndarr
     kept = np.flatnonzero(seen >= 2)
     renumber = np.full(len(reg.points), -1, np.int64)
     renumber[kept] = np.arange(len(kept))
-    return reg.points[kept], image[tr.view[use]], renumber[tr.track[use]], tr.xy[use]
+    img, pt, xy = image[tr.view[use]], renumber[tr.track[use]], tr.xy[use]
+    points = reg.points[kept]
+    T = np.stack(rec.poses)
+    if np.array_equal(T, np.stack([reg.cam_to_world(k) for k in ks])):  # the registration's cameras
+        return points, img, pt, xy
+    return _retriangulated(rec, T, img, pt, xy, len(kept))
+
+
+def _retriangulated(
+    rec: Reconstruction, T: np.ndarray, img: np.ndarray, pt: np.ndarray, xy: np.ndarray, n_points: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The tracks re-triangulated from the cameras ``T`` (camera-to-world [C, 4, 4], refined), keeping the points
+    still in front of every observing camera within the registration's error bound; same layout as
+    :func:`_observations`."""
+    R = np.transpose(T[:, :3, :3], (0, 2, 1))
+    t = -np.einsum("cij,cj->ci", R, T[:, :3, 3])
+    K = np.stack([v.K for v in rec.views])
+    tri = triangulate_tracks(R, t, K, img, pt, xy, n_points, min_angle_deg=0.0)
+    renumber = np.full(n_points, -1, np.int64)
+    renumber[tri.ok] = np.arange(int(tri.ok.sum()))
+    use = tri.ok[pt]
+    return tri.points[tri.ok], img[use], renumber[pt[use]], xy[use]
 
 
 def sparse_points(rec: Reconstruction, cameras: CameraSet) -> SparsePoints:

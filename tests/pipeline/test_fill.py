@@ -14,7 +14,7 @@ import torch
 from macsplat_cli.cameras import Camera
 from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.gaussians import Gaussians
-from macsplat_cli.pipeline.background import BackgroundConfig, background_gaussians
+from macsplat_cli.pipeline.background import BackgroundConfig, background_gaussians, background_layer
 from macsplat_cli.pipeline.depth import FILL_RULES, FilledDepthMap, estimate_depths, fuse_views, snap_depth_edges
 from macsplat_cli.pipeline.gaussian_init import GaussianInitConfig, gaussians_from_depth
 from macsplat_cli.pipeline.types import DepthMap, Matches, TwoViewGeometry, View
@@ -110,6 +110,37 @@ def test_far_layer_stays_behind_the_scene_and_off_when_disabled(pair: Pair) -> N
         assert (X[inside, 2] >= 0.99 * scene_z).all()
     off = background_gaussians(pair.views, pair.geometry, pair.depths, BackgroundConfig(enabled=False))
     assert off.gaussians is None and off.counts == {}
+
+
+@pytest.mark.parametrize("n", [2, 3])
+def test_far_layer_never_hides_what_another_photo_sees_behind_a_near_object(n: int) -> None:
+    """A near box before a far wall, three photos 0.4 apart: the layer behind the box (at twice its depth, in front of
+    the wall) would hide the wall from the other photos, which see past the box there; those cells are left out, so
+    no Gaussian of the layer is nearer to any camera than the surface that camera sees. Two photos keep their layer
+    as it was (:data:`~macsplat_cli.pipeline.background.SEEN_THROUGH_MIN_VIEWS`)."""
+    wall = syn.Texture(albedo=(0.5, 0.6, 0.4), seed=3, textured=True, scale=0.7)
+    box = syn.Texture(albedo=(0.3, 0.4, 0.7), seed=5, textured=True)
+    scene = syn.Scene([syn.Quad((-8.0, -6.0, 4.0), (16.0, 0.0, 0.0), (0.0, 12.0, 0.0), wall),
+                       syn.Box((0.0, 0.0, 1.2), (0.3, 0.3, 0.3), syn.rotation_about((0, 1, 0), 10.0), box)],
+                      lighting=None)  # fmt: skip
+    xs = (-0.4, 0.4, 0.0)[:n]
+    cams = [syn.look_at_camera(f"c{k}", (x, 0.0, 0.0), (0.0, 0.0, 4.0), width=W, height=H, fov_deg=60.0)
+            for k, x in enumerate(xs)]  # fmt: skip
+    rendered = [syn.render(scene, c, supersample=1) for c in cams]
+    poses = [np.linalg.inv(cams[0].cam_to_world) @ c.cam_to_world for c in cams]  # camera 0's world
+    views = [View(c.name, Path(c.name), r.image, r.mask, c.K, (W, H), "file") for c, r in zip(cams, rendered)]
+    depths = [DepthMap(r.depth, (r.depth > 0).astype(np.float32)) for r in rendered]
+    layer = background_layer(views, [c.K for c in cams], poses, depths)
+    assert layer.gaussians is not None and layer.counts["behind_view0"] > 0
+    hidden = []
+    for k in range(n):
+        Tk = np.linalg.inv(poses[k])
+        X = layer.gaussians.means.double().numpy() @ Tk[:3, :3].T + Tk[:3, 3]
+        uv = (X @ views[k].K.T)[:, :2] / X[:, 2:3]
+        inside = (X[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+        seen = depths[k].depth[uv[inside, 1].astype(int), uv[inside, 0].astype(int)]
+        hidden.append(int((X[inside, 2] * 1.05 < seen).sum()))
+    assert (sum(hidden) == 0) == (n >= 3), hidden
 
 
 # ------------------------------------------------------------------------------------------ depth steps

@@ -21,9 +21,9 @@ learned tier (ALIKED + LightGlue, after the SIFT tiers)."""
 WIDE_TIERS: tuple[Tier, ...] = ("wide", "wide+plane-tiebreak")
 """The tiers the report names (``descriptors_tier``)."""
 
-DoubtCheck = Literal["pose", "support", "spread", "parallax", "refit", "focal", "evidence", "uncertainty"]
+DoubtCheck = Literal["pose", "support", "parallax", "refit", "focal", "evidence", "uncertainty"]
 """Who doubts: the pose stage itself (either backend), the support minimum (verified matches), or a check of
-:func:`~.confidence.assess_pose` (match spread, parallax over rotation, the re-fit, the focal length), or the evidence
+:func:`~.confidence.assess_pose` (parallax over rotation, the re-fit, the focal length), or the evidence
 of the putative matches (:func:`~.evidence.pose_evidence`: the a contrario test, the rotation's uncertainty)."""
 
 

@@ -253,6 +253,28 @@ def test_n_photos_export_their_tracks_as_points(room_run: Reconstruction, tmp_pa
     assert sorted(p.name for p in (tmp_path / "x" / "images").iterdir()) == [c.name for c in cams]
 
 
+def test_exported_points_follow_refined_cameras(room_run: Reconstruction) -> None:
+    """Cameras the joint refinement moved: ``--export``'s points are re-triangulated from them, so that each point
+    reprojects onto its observations in the cameras exported beside it (the registration's points would not)."""
+    import dataclasses
+
+    from macsplat_cli.pipeline.sparse import export_cameras, sparse_points
+
+    poses = [T.copy() for T in room_run.poses]
+    for k, T in enumerate(poses[1:], 1):  # turn every camera but the first by 1° about its own vertical axis
+        a = np.deg2rad(1.0) * (-1) ** k
+        turn = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+        T[:3, :3] = T[:3, :3] @ turn
+    moved = dataclasses.replace(room_run, poses=poses)
+    cams, _ = export_cameras(moved)
+    points = sparse_points(moved, cams)
+    assert len(points) >= 100
+    for k, cam in enumerate(cams):
+        sel = points.obs_image == k
+        Xc = points.xyz[points.obs_point[sel]] @ cam.R.T + cam.t
+        assert np.median(np.linalg.norm(Xc @ cam.K.T[:, :2] / Xc[:, 2:] - points.obs_xy[sel], axis=1)) <= 1.0
+
+
 def test_mixed_sizes_and_orientations_register(tmp_path: Path) -> None:
     """A landscape orbit with one photo at another size and one upright (portrait), the focal unknown: each size its
     own prior and focal group; every photo registers."""
