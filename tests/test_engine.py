@@ -188,40 +188,40 @@ def test_fast_preset_leaves_out_the_slanted_refinement_and_detects_sift_smaller(
     assert dataclasses.replace(fast.depth, slanted_iters=balanced.depth.slanted_iters) == balanced.depth
 
 
-def test_validation_imports_no_backend_to_check_the_values() -> None:
-    """The values are checked with the names of :mod:`macsplat_cli.presets`: no network module is loaded for it."""
+def _modules_after(code: str, loaded: str) -> list[str]:
+    """The modules a fresh interpreter has loaded after running ``code``, of those the expression ``loaded`` (over
+    a module name ``m``) selects."""
+    import json
     import subprocess
     import sys
 
+    script = f"import json, sys\n{code}\nprint(json.dumps(sorted(m for m in sys.modules if {loaded})))\n"
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True).stdout
+    return json.loads(out)
+
+
+def test_validation_imports_no_backend_to_check_the_values() -> None:
+    """The values are checked with the names of :mod:`macsplat_cli.presets`: no network module is loaded for it."""
     code = (
-        "import sys\n"
         "from macsplat_cli.engine import EngineConfig, NeuralOptions\n"
         "from pathlib import Path\n"
         "EngineConfig(backend='neural', quality='fast', neural=NeuralOptions(weights=Path('m.onnx'))).validate()\n"
-        "EngineConfig(backend='neural', neural=NeuralOptions(weights=Path('m.pth'), device='cuda')).validate()\n"
-        "print(sorted(m for m in sys.modules if m.startswith(('macsplat_cli.neural', 'onnxruntime'))))\n"
+        "EngineConfig(backend='neural', neural=NeuralOptions(weights=Path('m.pth'), device='cuda')).validate()"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
-    assert out.strip() == "[]"
+    assert _modules_after(code, "m.startswith(('macsplat_cli.neural', 'onnxruntime'))") == []
 
 
 def test_the_engine_and_its_settings_import_no_kernels() -> None:
     """Importing the engine and resolving a run's settings loads neither Numba nor the renderer: the kernels are
     imported by the background compilation thread, beside the first stages (``--quality fast``'s start-up)."""
-    import subprocess
-    import sys
-
     code = (
-        "import sys\n"
         "from macsplat_cli.engine import EngineConfig\n"
+        "from macsplat_cli.presets import Overrides\n"
         "from macsplat_cli.cli._options import parse_refine\n"
-        "EngineConfig(quality='fast', overrides=__import__('macsplat_cli.presets').presets.Overrides("
-        "refine=parse_refine('auto'))).settings()\n"
-        "print(sorted(m for m in sys.modules if m.split('.')[0] in ('numba', 'llvmlite') or "
-        "m.startswith('macsplat_cli.render')))\n"
+        "EngineConfig(quality='fast', overrides=Overrides(refine=parse_refine('auto'))).settings()"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
-    assert out.strip() == "[]"
+    loaded = "m.split('.')[0] in ('numba', 'llvmlite') or m.startswith('macsplat_cli.render')"
+    assert _modules_after(code, loaded) == []
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA is available here")
