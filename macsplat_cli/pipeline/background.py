@@ -222,9 +222,10 @@ def _view_layer(
     seen = np.zeros(Pw.shape[:-1], bool)
     through_any = np.zeros(Pw.shape[:-1], bool)  # behind cells another photo sees past
     for K_o, T_o, dm_o in others:
-        seen |= _seen_by(Pw, K_o, T_o, dm_o.depth.shape)
+        inside_o, uv_o, z_o = _project_into(Pw, K_o, T_o, dm_o.depth.shape)
+        seen |= inside_o
         if cfg.behind and through:
-            through_any |= _seen_through(Pw, K_o, T_o, dm_o)
+            through_any |= _sees_past(inside_o, uv_o, z_o, dm_o)
     outside_kept = keep & ~inside & ~seen
     sel = outside_kept | (keep & inside & ~through_any)
     f = 0.5 * (K[0, 0] + K[1, 1])
@@ -267,27 +268,23 @@ def _extended_cells(
     return col, inv_ext, inv, z_med
 
 
-def _seen_through(Pw: np.ndarray, K_o: np.ndarray, T_o: np.ndarray, dm: DepthMap) -> np.ndarray:
-    """World points [..., 3] that a view (``K_o``, cam_to_world ``T_o``, depth map ``dm``) sees past: in front of it,
-    inside its image, where its depth exceeds the point's own depth there by :data:`SEEN_THROUGH`. [...] bool"""
-    To = np.linalg.inv(T_o)
-    Po = Pw @ To[:3, :3].T + To[:3, 3]
-    h, w = dm.depth.shape
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uvo = (Po @ K_o.T)[..., :2] / Po[..., 2:3]
-    ok = (Po[..., 2] > 0) & (uvo[..., 0] >= 0) & (uvo[..., 0] < w) & (uvo[..., 1] >= 0) & (uvo[..., 1] < h)
-    col = np.where(ok, uvo[..., 0], 0).astype(np.int64)
-    row = np.where(ok, uvo[..., 1], 0).astype(np.int64)
-    d = dm.depth[row, col]
-    return ok & dm.valid[row, col] & (d > SEEN_THROUGH * Po[..., 2])
-
-
-def _seen_by(Pw: np.ndarray, K_o: np.ndarray, T_o: np.ndarray, shape_o: tuple[int, ...]) -> np.ndarray:
-    """World points [..., 3] that land inside a view's image (``K_o``, cam_to_world ``T_o``, ``shape_o = (height,
-    width)``), in front of it. [...] bool"""
+def _project_into(
+    Pw: np.ndarray, K_o: np.ndarray, T_o: np.ndarray, shape_o: tuple[int, ...]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World points [..., 3] in a view (``K_o``, cam_to_world ``T_o``, ``shape_o = (height, width)``): whether each
+    lands inside its image in front of it [...] bool, its pixel [..., 2] and its depth there [...]."""
     To = np.linalg.inv(T_o)
     Po = Pw @ To[:3, :3].T + To[:3, 3]
     with np.errstate(divide="ignore", invalid="ignore"):
         uvo = (Po @ K_o.T)[..., :2] / Po[..., 2:3]
     ho, wo = shape_o
-    return (Po[..., 2] > 0) & (uvo[..., 0] > 0) & (uvo[..., 0] < wo) & (uvo[..., 1] > 0) & (uvo[..., 1] < ho)
+    inside = (Po[..., 2] > 0) & (uvo[..., 0] > 0) & (uvo[..., 0] < wo) & (uvo[..., 1] > 0) & (uvo[..., 1] < ho)
+    return inside, uvo, Po[..., 2]
+
+
+def _sees_past(inside: np.ndarray, uv: np.ndarray, z: np.ndarray, dm: DepthMap) -> np.ndarray:
+    """Of points projected into a view (:func:`_project_into`), those its depth map ``dm`` sees past: a valid depth
+    more than :data:`SEEN_THROUGH` times the point's own there. [...] bool"""
+    col = np.where(inside, uv[..., 0], 0).astype(np.int64)
+    row = np.where(inside, uv[..., 1], 0).astype(np.int64)
+    return inside & dm.valid[row, col] & (dm.depth[row, col] > SEEN_THROUGH * z)
