@@ -11,7 +11,10 @@ import math
 import numpy as np
 import torch
 
-__all__ = ["principal_point_window", "project_points", "rescale_intrinsics", "scale_focal"]
+__all__ = ["NEAR_Z", "principal_point_window", "project_points", "rescale_intrinsics", "scale_focal"]
+
+NEAR_Z = 1e-9
+"""A point is in front of a camera when its camera depth exceeds this (:func:`project_points`)."""
 
 
 def rescale_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
@@ -65,14 +68,14 @@ def project_points(
 
     Returns:
         ``(col, row, z, inside)`` [N] each: the integer pixel (clamped into the image; 0 where not
-        ``inside``), the camera depth, and whether the point is in front (z > 1e-9), finite and inside.
+        ``inside``), the camera depth, and whether the point is in front (z > :data:`NEAR_Z`), finite and inside.
     """
     X = points @ world_to_cam[:3, :3].T + world_to_cam[:3, 3]
     z = X[:, 2]
-    zs = torch.where(z > 1e-9, z, torch.ones_like(z))
+    zs = torch.where(z > NEAR_Z, z, torch.ones_like(z))
     uv = (X @ K.T)[:, :2] / zs[:, None]
     h, w = size
-    inside = (z > 1e-9) & torch.isfinite(uv).all(1) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0)
+    inside = (z > NEAR_Z) & torch.isfinite(uv).all(1) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0)
     inside &= uv[:, 1] < h
     col = torch.where(inside, uv[:, 0], torch.zeros_like(z)).floor().long().clamp(0, w - 1)
     row = torch.where(inside, uv[:, 1], torch.zeros_like(z)).floor().long().clamp(0, h - 1)

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ...camera_math import NEAR_Z
 from .state import ViewState
 
 __all__ = ["TILE", "Tiles", "view_tiles"]
@@ -26,8 +27,6 @@ _MARGIN_PX = 1.0
 _ALL_SHARE = 0.6
 """When the tiles a camera sees hold this share of the Gaussians, all are projected (the others land outside): picking
 them out would cost more than projecting the rest."""
-_Z_MIN = 1e-9
-"""The projection's own near limit (``project_points``: in front means z > 1e-9)."""
 _CORNER_BITS = torch.tensor([[(c >> a) & 1 for a in range(3)] for c in range(8)], dtype=torch.bool)
 """Which of a box's 8 corners takes the largest coordinate on each axis. [8, 3]"""
 
@@ -90,7 +89,7 @@ def _box_in_frustum(corners: torch.Tensor, cam: ViewState) -> torch.Tensor:
     z = X[..., 2]
     h, w = cam.size
     m = _MARGIN_PX
-    halves = (z - _Z_MIN, KX[..., 0] + m * z, (w + m) * z - KX[..., 0], KX[..., 1] + m * z, (h + m) * z - KX[..., 1])
+    halves = (z - NEAR_Z, KX[..., 0] + m * z, (w + m) * z - KX[..., 0], KX[..., 1] + m * z, (h + m) * z - KX[..., 1])
     ok = torch.ones(len(corners), dtype=torch.bool)
     for f in halves:  # an affine function is largest at a corner: the box is outside when it is ≤ 0 at all 8
         ok &= f.amax(1) > 0
