@@ -228,6 +228,11 @@ def check_choices(quality: Quality, backend: Backend, matcher: Matcher, override
     overrides.check()
 
 
+def resolved_size(quality: Quality, overrides: Overrides) -> int:
+    """The working images' long side: ``--size`` where given, else the quality's (:func:`working_size`)."""
+    return overrides.size if overrides.size is not None else working_size(quality)
+
+
 def resolved_refine_steps(quality: Quality, overrides: Overrides) -> int:
     """The refinement's steps: ``--refine`` where given, else the quality's (:func:`refine_steps`)."""
     return overrides.refine if overrides.refine is not None else refine_steps(quality)
@@ -282,7 +287,7 @@ def configure(
     o = overrides or Overrides()
     check_choices(quality, backend, matcher, o)
     c = copy.deepcopy(pipeline) if pipeline is not None else ReconstructConfig()
-    c.views = dataclasses.replace(c.views, size=o.size if o.size is not None else working_size(quality))
+    c.views = dataclasses.replace(c.views, size=resolved_size(quality, o))
     neural = None
     if backend == "classical":
         tau = MatchConfig.conf_threshold if o.conf_threshold is None else o.conf_threshold

@@ -179,11 +179,12 @@ def parse_refine_list(text: str | None) -> list[int | None]:
 
 
 def engine_config(
-    backend: str, *, conf_threshold: float | None = None, refine: int | None = None,
+    backend: str, *, conf_threshold: float | None = None, refine: int | None = None, size: int | None = None,
     neural: NeuralOptions | None = None, quality: str = "balanced", matcher: str = DEFAULT_MATCHER,
 ) -> EngineConfig:  # fmt: skip
     """The engine settings of ``eval``/``bench`` from their options, as ``reconstruct`` makes them (``refine``: the
-    parsed ``--refine``, None: the quality's; the working size and intrinsics come per case)."""
+    parsed ``--refine``, ``size``: ``--size``, each None: the quality's; ``bench`` sweeps its sizes per setting, and
+    the intrinsics come per case)."""
     from ..engine import EngineConfig, NeuralOptions
     from ..presets import QUALITIES, Overrides
 
@@ -193,6 +194,6 @@ def engine_config(
         backend=backend.strip().lower(),  # type: ignore[arg-type]
         quality=choice("--quality", quality, QUALITIES, sep=", "),
         matcher=choice("--matcher", matcher, MATCHERS, sep=", "),
-        overrides=Overrides(conf_threshold=conf_threshold, refine=refine),
+        overrides=Overrides(conf_threshold=conf_threshold, refine=refine, size=size),
         neural=neural or NeuralOptions(),
     )

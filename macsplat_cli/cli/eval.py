@@ -293,12 +293,12 @@ def eval_command(
                       lambda: len(evaluation.select(cases_spec, progress)[1].cases))  # fmt: skip
             return
         spec = evaluation.EvalSpec(
-            cases=cases_spec, out=out, size=size, eval_size=eval_size, intrinsics=choice("--intrinsics", intrinsics,
+            cases=cases_spec, out=out, eval_size=eval_size, intrinsics=choice("--intrinsics", intrinsics,
             INTRINSICS), splatt3r_compatible=splatt3r_compatible, baselines=not no_baselines,
             lpips_weights=lpips_weights, shard=shard,
             engine=engine_config(
-                backend, conf_threshold=conf_threshold, refine=parse_refine(refine), quality=quality, matcher=matcher,
-                neural=neural_options(weights, gaussian_head, dino, fusion, device, precision),
+                backend, conf_threshold=conf_threshold, refine=parse_refine(refine), size=size, quality=quality,
+                matcher=matcher, neural=neural_options(weights, gaussian_head, dino, fusion, device, precision),
             ),
         )  # fmt: skip
         outcome = evaluation.run(spec, progress)

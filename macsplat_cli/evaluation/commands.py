@@ -133,8 +133,8 @@ class EvalSpec:
         cases: the data set and its cases.
         engine: the backend's engine settings, resolved as ``macsplat reconstruct``'s.
         out: the results folder (``results.json``, ``results.csv``, ``cases.jsonl``, ...).
-        size: the working images' long side (None: the quality's).
-        eval_size: compare views at this long side (None: ``size``).
+        eval_size: compare views at this long side (None: the working size, ``engine.overrides.size`` or the
+            quality's).
         intrinsics: ``given`` (the true intrinsics go to the backend) or ``estimated``.
         splatt3r_compatible: Splatt3R's metric convention.
         baselines: also the point-cloud and copy baselines.
@@ -145,7 +145,6 @@ class EvalSpec:
     cases: CaseSpec
     engine: EngineConfig = field(default_factory=EngineConfig)
     out: Path = Path("results")
-    size: int | None = None
     eval_size: int | None = None
     intrinsics: IntrinsicsMode = "given"
     splatt3r_compatible: bool = False
@@ -317,7 +316,7 @@ def run(spec: EvalSpec, progress: EvalProgress | None = None) -> EvalOutcome:
         InputError, DatasetError, OutputPathError: bad options, data or outputs, before any case.
     """
     from ..lpips import load_lpips
-    from ..presets import resolved_refine_steps, working_size
+    from ..presets import resolved_refine_steps, resolved_size
     from .crop import crop_frames
 
     progress = progress or Silent()
@@ -326,7 +325,7 @@ def run(spec: EvalSpec, progress: EvalProgress | None = None) -> EvalOutcome:
     engine = spec.engine
     reconstructor = make_reconstructor(engine)
     steps = resolved_refine_steps(engine.quality, engine.overrides)  # as configure resolves them (any backend)
-    size = spec.size if spec.size is not None else working_size(engine.quality)
+    size = resolved_size(engine.quality, engine.overrides)
     dataset, sel = _select(spec.cases, proto, progress)
     c = spec.cases
     with tempfile.TemporaryDirectory(prefix="macsplat-crop-") as crops:

@@ -12,6 +12,7 @@ from macsplat_cli import evaluation
 from macsplat_cli._json import to_jsonable
 from macsplat_cli.engine import EngineConfig
 from macsplat_cli.errors import InputError
+from macsplat_cli.presets import Overrides
 
 from support.cli import run_captured
 
@@ -38,6 +39,17 @@ def test_run_gives_the_commands_results(capsys, plane: Path, tmp_path: Path, ora
     assert _untimed(to_jsonable(outcome.rows)) == _untimed(json.loads(stdout)["summary"])
     cli, lib = (json.loads((tmp_path / d / "results.json").read_text()) for d in ("cli", "lib"))
     assert cli["options"] == lib["options"] and cli["cases_total"] == lib["cases_total"] == len(outcome.run.results)
+
+
+def test_run_works_at_the_engines_size(plane: Path, tmp_path: Path, oracle_backend: None) -> None:
+    """``--size`` has one owner, the engine's overrides (``reconstruct``'s): the views are compared at it."""
+    for size in (64, 96):
+        engine = EngineConfig(backend="oracle", overrides=Overrides(size=size))  # type: ignore[arg-type]
+        spec = evaluation.EvalSpec(evaluation.CaseSpec(plane, split="wide", max_pairs=1), engine, tmp_path / f"{size}")
+        outcome = evaluation.run(spec)
+        outcome.check()
+        sizes = [max(t.size) for r in outcome.run.results for t in r.targets]
+        assert sizes and set(sizes) == {size}
 
 
 def test_run_checks_everything_before_any_work(plane: Path, tmp_path: Path, oracle_backend: None) -> None:
