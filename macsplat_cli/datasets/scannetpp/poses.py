@@ -15,8 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from ...cameras import quat_to_rotmat_np
-from ...errors import DatasetError
+from ...camera_formats import read_colmap_model
+from ...cameras import Camera
+from ...errors import CameraFileError, DatasetError
 
 __all__ = [
     "Lens",
@@ -62,7 +63,7 @@ class Lens:
         width: image width in pixels.
         height: image height in pixels.
         K: ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``, pixel centres at +0.5. [3, 3]
-        model: ``"PINHOLE"``, ``"OPENCV"`` (``k1 k2 p1 p2``) or ``"OPENCV_FISHEYE"``
+        model: ``"PINHOLE"``, ``"OPENCV"`` (``k1 k2 p1 p2``, ``k3`` where it is not 0) or ``"OPENCV_FISHEYE"``
             (Kannala–Brandt ``k1 k2 k3 k4``, the model of ``cv2.fisheye``).
         dist: the distortion coefficients of ``model`` (empty for ``PINHOLE``).
     """
@@ -156,79 +157,29 @@ def poses_from_transforms(doc: Any, path: Path) -> tuple[PoseTable, list[str]]:
     return table, train
 
 
-def _colmap_lines(path: Path) -> list[str]:
-    if not path.is_file():
-        raise DatasetError(f"{path}: file not found")
-    try:
-        return path.read_text(encoding="utf-8").splitlines()
-    except (OSError, UnicodeDecodeError) as e:
-        raise DatasetError(f"{path}: cannot read ({e})") from None
-
-
-def _colmap_cameras(path: Path) -> dict[int, Lens]:
-    n_params = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "OPENCV": 8, "OPENCV_FISHEYE": 8}
-    cams: dict[int, Lens] = {}
-    for lineno, raw in enumerate(_colmap_lines(path), start=1):
-        parts = raw.split()
-        if not parts or parts[0].startswith("#"):
-            continue
-        model = parts[1] if len(parts) > 1 else ""
-        if model not in n_params:
-            raise DatasetError(
-                f"{path}: line {lineno}: camera model {model!r} is not supported (use one of {', '.join(n_params)})"
-            )
-        try:
-            cam_id, w, h = int(parts[0]), int(parts[2]), int(parts[3])
-            p = [float(v) for v in parts[4:]]
-        except (ValueError, IndexError):
-            raise DatasetError(f"{path}: line {lineno}: expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]") from None
-        if len(p) != n_params[model]:
-            raise DatasetError(f"{path}: line {lineno}: {model} needs {n_params[model]} params, got {len(p)}")
-        fx, fy, cx, cy = (p[0], p[0], p[1], p[2]) if model == "SIMPLE_PINHOLE" else p[:4]
-        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-        cams[cam_id] = Lens(w, h, K, "PINHOLE" if model == "SIMPLE_PINHOLE" else model, tuple(p[4:]))
-    return cams
+def _lens(cam: Camera) -> Lens:
+    """A camera's intrinsics as the data set's :class:`Lens` (OpenCV's ``k3`` kept only where it is not 0)."""
+    d = cam.distortion
+    if d is None:
+        return Lens(cam.width, cam.height, cam.K)
+    if d.model == "fisheye":
+        return Lens(cam.width, cam.height, cam.K, "OPENCV_FISHEYE", d.coeffs)
+    return Lens(cam.width, cam.height, cam.K, "OPENCV", d.coeffs if d.coeffs[4] != 0.0 else d.coeffs[:4])
 
 
 def read_colmap_scene(folder: Path) -> PoseTable:
-    """Poses and lenses of a COLMAP text model (``cameras.txt`` + ``images.txt``), keyed by image file name.
+    """Poses and lenses of a COLMAP model in ``folder``, keyed by image file name.
 
-    ``images.txt`` holds world-to-camera ``QW QX QY QZ TX TY TZ`` (OpenCV axes) followed by a
-    POINTS2D line (possibly empty); camera models ``SIMPLE_PINHOLE``, ``PINHOLE``, ``OPENCV``
-    and ``OPENCV_FISHEYE`` (the ScanNet++ DSLR) are read with their distortion. COLMAP has no
-    ``is_bad`` flag (always False).
+    Read by :func:`~macsplat_cli.camera_formats.read_colmap_model` (text ``cameras.txt`` + ``images.txt``, or the
+    binary files): world-to-camera ``q, t`` (OpenCV axes) become camera-to-world; the pinhole, radial, OpenCV and
+    fisheye (the ScanNet++ DSLR) models are read with their distortion. COLMAP has no ``is_bad`` flag (always
+    False).
 
     Raises:
-        DatasetError: a missing or malformed file (the message names it).
+        DatasetError: a missing or malformed file, or an invalid camera (the message names it).
     """
-    cams = _colmap_cameras(folder / "cameras.txt")
-    path = folder / "images.txt"
-    lines = _colmap_lines(path)
-    table: PoseTable = {}
-    i = 0
-    while i < len(lines):
-        line = lines[i].strip()
-        i += 1
-        if not line or line.startswith("#"):
-            continue
-        parts = line.split(maxsplit=9)
-        try:
-            cam_id = int(parts[8])
-            q = np.array([float(v) for v in parts[1:5]])
-            t = np.array([float(v) for v in parts[5:8]])
-            name = Path(parts[9].strip()).name
-        except (ValueError, IndexError):
-            raise DatasetError(f"{path}: line {i}: expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME") from None
-        if cam_id not in cams:
-            raise DatasetError(f"{path}: line {i}: CAMERA_ID {cam_id} is not in {folder / 'cameras.txt'}")
-        if not (np.isfinite(q).all() and np.isfinite(t).all() and np.linalg.norm(q) > 0):
-            raise DatasetError(f"{path}: line {i}: the pose must be finite with a non-zero quaternion")
-        i += 1  # the POINTS2D line
-        R = quat_to_rotmat_np(q / np.linalg.norm(q))
-        c2w = np.eye(4)
-        c2w[:3, :3] = R.T
-        c2w[:3, 3] = -(R.T @ t)
-        table[name] = (c2w, cams[cam_id], False)
-    if not table:
-        raise DatasetError(f"{path}: no images")
-    return table
+    try:
+        cams = read_colmap_model(folder)
+    except CameraFileError as e:
+        raise DatasetError(str(e)) from None
+    return {Path(c.name).name: (c.cam_to_world, _lens(c), False) for c in cams}
