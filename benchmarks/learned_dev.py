@@ -33,7 +33,9 @@ from macsplat_cli.errors import ReconstructionError
 from macsplat_cli.metrics import rotation_error_deg, translation_direction_error_deg
 from macsplat_cli.pipeline.learned import LearnedConfig
 from macsplat_cli.pipeline.learned.models import learned_models
-from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig
+from macsplat_cli.pipeline.matching import MatchConfig
+from macsplat_cli.pipeline.run import Pipeline, ReconstructConfig, classical_stages
+from macsplat_cli.pipeline.stages import FilteredMatcher
 from macsplat_cli.pipeline.views import ViewConfig, load_views
 
 WRONG_DEG = 5.0
@@ -41,7 +43,7 @@ WRONG_DEG = 5.0
 
 
 def run_pair(frames: list, pair: tuple[int, int], given: bool, matcher: str, learned: LearnedConfig,
-             show_refused: bool = False) -> list[str]:  # fmt: skip
+             show_refused: bool = False, filtered_tau: float | None = None) -> list[str]:  # fmt: skip
     f0, f1 = frames[pair[0]], frames[pair[1]]
     cfg = ReconstructConfig(views=ViewConfig())
     if given:
@@ -50,7 +52,10 @@ def run_pair(frames: list, pair: tuple[int, int], given: bool, matcher: str, lea
     settings = EngineConfig(pipeline=cfg, matcher=matcher).settings()  # type: ignore[arg-type]
     if show_refused:  # the refused pose kept, its doubts listed, to read its error
         settings.pipeline.search = dataclasses.replace(settings.pipeline.search, accept_low_confidence=True)
-    pipe = Pipeline(settings.pipeline)
+    stages = None
+    if filtered_tau is not None:  # ALIKED's descriptors through our filtered matcher instead of LightGlue
+        stages = classical_stages(settings.pipeline, matcher=FilteredMatcher(MatchConfig(conf_threshold=filtered_tau)))
+    pipe = Pipeline(settings.pipeline, stages)
     views = load_views([f0.image, f1.image], settings.pipeline.views)
     times: dict[str, tuple[float, float]] = {}
 
@@ -98,6 +103,9 @@ def main() -> None:
     ap.add_argument("--show-refused", action="store_true",
                     help="a refused pose's error too (the search keeps it; first doubt: the outcome)")  # fmt: skip
     ap.add_argument("--threads", type=int, default=None, help="torch's threads (default: torch's own)")
+    ap.add_argument("--filtered-tau", type=float, default=None,
+                    help="with --matchers aliked: ALIKED's descriptors through our filtered matcher (reciprocal "
+                         "nearest neighbours, ratio confidence, the gate c0·c1 > τ) instead of LightGlue")  # fmt: skip
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -121,7 +129,7 @@ def main() -> None:
         frames = cache.setdefault(scene, dev_frames(args.data, scene))
         for mode in args.modes:
             for matcher in args.matchers:
-                cells = run_pair(frames, pair, mode == "given", matcher, learned, args.show_refused)
+                cells = run_pair(frames, pair, mode == "given", matcher, learned, args.show_refused, args.filtered_tau)
                 print(row([scene, name, mode, matcher, *cells]), flush=True)
     print(f"\npeak memory (max RSS): {peak_rss_mib():.0f} MiB")
 
