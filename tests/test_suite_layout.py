@@ -86,3 +86,22 @@ def test_the_slow_tests_are_marked_and_ci_runs_them_after_its_checks() -> None:
     for check in ("ruff check .", "ruff format --check .", "mypy macsplat_cli"):
         at = [i for i, ln in enumerate(lines) if ln.startswith(check)]
         assert at and at[0] < full[0], f".ci/run does not run {check!r} before its tests"
+
+
+def test_the_slowest_modules_listed_for_ci_exist_and_ci_keeps_their_order() -> None:
+    """conftest's ``SLOWEST_MODULES`` (the order CI's workers take the modules in) names modules that exist, each once,
+    and ``.ci/run`` keeps that order (xdist would reorder the modules by their number of tests)."""
+    tree = ast.parse((TESTS / "conftest.py").read_text(encoding="utf-8"))
+    listed = next(
+        (
+            ast.literal_eval(node.value)
+            for node in tree.body
+            if isinstance(node, ast.Assign) and [getattr(t, "id", None) for t in node.targets] == ["SLOWEST_MODULES"]
+        ),
+        (),
+    )
+    assert listed and len(set(listed)) == len(listed), listed
+    missing = [m for m in listed if not (TESTS.parent / m).is_file()]
+    assert not missing, f"conftest.SLOWEST_MODULES names modules that do not exist: {missing}"
+    run = (TESTS.parent / ".ci" / "run").read_text(encoding="utf-8")
+    assert re.search(r"^XDIST=\(.*--dist loadfile --no-loadscope-reorder", run, re.M), "xdist would reorder them"

@@ -8,7 +8,7 @@
 * Bad input: one line, exit 2 (exit 3 for a failed parity check), no file left behind.
 
 Each export of the tiny MASt3R takes ~30–50 s on two cores (tracing dominates), so the module
-exports three times (fp32 with every module, fp16, int8) and shares the files.
+traces twice (fp32 with every module, shared; fp16) and the int8 test quantises the shared trace.
 """
 
 from __future__ import annotations
@@ -300,14 +300,38 @@ INT8_RANDOM_TOLERANCE = 0.5
 """The parity bound of the int8 test: random weights quantise worse than trained ones, and by how much depends on the
 quantiser's version (the tiny predictor's descriptors: 0.323 of their range with onnxruntime 1.30 and 1.32 on
 2026-11-28, within 0.25 before); the product's default for int8 is unchanged."""
+INT8_RANDOM_FUSED_DESC_TOLERANCE = 0.75
+"""The same for the descriptors after the DINO fusion (the module's export has it): 0.611 of their range with
+onnxruntime 1.32 on 2026-11-29 (its other outputs: pose maps 0.031, Gaussian rotations 0.29, the rest ≤ 0.07)."""
 
 
 @pytest.mark.slow
-def test_int8_export_is_smaller_and_reports_its_parity(ckpts: dict[str, Path], tmp_path: Path) -> None:
-    predictor = load_pair_predictor(weights=ckpts["mast3r"])
-    config = ExportConfig(size=SIZE, quantize="int8", tolerance=INT8_RANDOM_TOLERANCE)
+def test_int8_export_is_smaller_and_reports_its_parity(
+    exported: Path, ckpts: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``export_onnx``'s int8 steps (checker, quantisation, parity at the int8 tolerance, metadata, allow-list, files)
+    on the module's dynamic trace: the exporter's trace is read back from the fp32 file instead of traced a second
+    time (the trace, dynamic shapes included, is what the fixture tests; tracing again took a third of the module)."""
+    import onnx_ir as ir
+
+    from macsplat_cli.neural import onnx_export
+
+    predictor = load_pair_predictor(
+        weights=ckpts["mast3r"], gaussian_head=ckpts["splatt3r"], dino=ckpts["dino"], fusion=ckpts["fusion"]
+    )
+    traced: list[tuple[object, bool]] = []
+
+    def trace_once(module: torch.nn.Module, example: object, opset: int, names: object, dynamic: bool) -> object:
+        traced.append((module, dynamic))
+        return torch.onnx.ONNXProgram(ir.load(str(exported)), None)
+
+    monkeypatch.setattr(onnx_export, "trace_program", trace_once)
+    config = ExportConfig(size=SIZE, quantize="int8", tolerance=INT8_RANDOM_FUSED_DESC_TOLERANCE)
     result = export_onnx(predictor, tmp_path / "p8.onnx", config, sample=sample_pair(SIZE))
+    assert traced == [(predictor, True)]  # the predictor's own graph, asked for with symbolic sizes
     assert result.info.precision == "int8" and result.parity.ok and result.info.dynamic
+    assert read_predictor_info(result.path).precision == "int8"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["p8.onnx", "p8.parity.json"]
     ops = {n.op_type for n in onnx.load(str(result.path)).graph.node}
     assert ops & {"DynamicQuantizeLinear", "MatMulInteger", "DynamicQuantizeMatMul"}
     _assert_ops_allowed(result.path)
@@ -315,8 +339,9 @@ def test_int8_export_is_smaller_and_reports_its_parity(ckpts: dict[str, Path], t
     int8 = sum(np.prod(t.dims) for t in weights if t.data_type == onnx.TensorProto.INT8)
     assert int8 > 0.9 * sum(p.numel() for p in predictor.parameters())  # the matrix products' weights: 1 byte each
     assert result.path.stat().st_size < 0.4 * sum(p.numel() * 4 for p in predictor.parameters())
-    rel = max(r["max_rel"] for r in result.parity.rows)
-    assert 1e-4 < rel <= INT8_RANDOM_TOLERANCE  # quantisation changes the network: its figures are reported
+    rel = {r["output"]: r["max_rel"] for r in result.parity.rows}
+    assert set(rel) == set(predictor.output_names) and 1e-4 < max(rel.values())  # quantisation changes the network
+    assert max(v for k, v in rel.items() if k != "desc") <= INT8_RANDOM_TOLERANCE  # its figures are reported
 
 
 # ------------------------------------------------------------------------------ bad input
