@@ -90,7 +90,7 @@ RefineOpt = Annotated[
     typer.Option(
         "--refine",
         metavar=REFINE_METAVAR,
-        help="Refine the Gaussians on the photos (+ MAC loss) for STEPS steps; auto = 22; off (or 0): no refinement "
+        help="Refine the Gaussians on the photos (+ MAC loss) for STEPS steps; auto = 25; off (or 0): no refinement "
         "[default: auto with --quality best, else off].",
     ),
 ]

@@ -13,9 +13,8 @@ from ..mac import MACConfig
 
 __all__ = ["AUTO_STEPS", "RefineConfig"]
 
-AUTO_STEPS = 22
-"""``--refine auto``: the elbow of time against held-out error; 22 keep 25's held-out PSNR within ±0.05 dB on every
-dev pair (benchmarks/history/refine.md)."""
+AUTO_STEPS = 25
+"""``--refine auto``: the elbow of time against held-out error (benchmarks/history/refine.md)."""
 
 
 @dataclass

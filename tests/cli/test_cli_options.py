@@ -89,9 +89,9 @@ def test_conf_threshold_is_the_matching_tau_of_either_backend() -> None:
 def test_refine_flags_make_one_refine_config() -> None:
     """``--refine STEPS|auto|off`` is the steps override; how it refines is ``EngineConfig.refine`` (its steps the
     engine's to set)."""
-    assert _config("--refine", "auto").overrides.refine == AUTO_STEPS == 22
+    assert _config("--refine", "auto").overrides.refine == AUTO_STEPS == 25
     assert _config("--refine", "auto").refine == RefineConfig()
-    assert _config("--refine", "AUTO").overrides.refine == 22
+    assert _config("--refine", "AUTO").overrides.refine == 25
     assert _config("--refine", "off").overrides.refine == 0 == _config("--refine", " Off ").overrides.refine
     config = _config("--refine", "7", "--refine-scale", "1", "--no-mac", "--lpips-weights", "vgg")
     assert config.refine == RefineConfig(scale=1, use_mac=False, lpips_weights=Path("vgg"))
