@@ -1,8 +1,8 @@
 """The refinement's optimiser: Adam as ``torch.optim.Adam`` computes it, without ``torch.optim``.
 
-``torch.optim``'s optimisers import ``torch._dynamo`` on first use (their methods are wrapped to disable it): 1.2 s
-of one core on a quiet machine, 2-3 s loaded, paid by every ``--refine`` run before its first step, beside ~0.3 s a
-step (benchmarks/history/refine.md). :class:`Adam` does the same arithmetic as ``torch.optim.Adam`` with its default
+``torch.optim``'s optimisers import ``torch._dynamo`` on first use (their methods are wrapped to disable it): 1.7-1.9 s
+of one core (load 4), paid by every ``--refine`` run before its first step, beside ~0.3 s a step
+(benchmarks/history/refine.md). :class:`Adam` does the same arithmetic as ``torch.optim.Adam`` with its default
 settings on the CPU (its single-tensor path: the same tensor operations in the same order, so the same bits; checked
 in ``tests/pipeline/test_refine_adam.py``) and nothing else: no weight decay, AMSGrad, state dict or closures.
 """
