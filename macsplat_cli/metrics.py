@@ -8,18 +8,21 @@ is an option of the evaluation command, not of these functions).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
 __all__ = [
+    "SsimTarget",
     "angle_between_deg",
     "psnr",
     "rotation_angle_deg",
     "rotation_error_deg",
     "ssim",
     "ssim_map",
+    "ssim_target",
     "translation_direction_error_deg",
 ]
 
@@ -53,26 +56,61 @@ def _gaussian_window(size: int, sigma: float, dtype: torch.dtype) -> torch.Tenso
     return g / g.sum()
 
 
-def ssim_map(pred: torch.Tensor, target: torch.Tensor, *, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
+def _blur(x: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """Every channel of ``x`` blurred by the window ``g ⊗ g`` where it fits: two 1-D passes (``w + w`` taps a pixel
+    instead of ``w²``), all channels in one grouped call. ``[1, C, H, W]`` → ``[1, C, H − w + 1, W − w + 1]``"""
+    c, w = x.shape[1], g.shape[0]
+    rows = g.view(1, 1, w, 1).expand(c, 1, w, 1)
+    cols = g.view(1, 1, 1, w).expand(c, 1, 1, w)
+    return F.conv2d(F.conv2d(x, rows, groups=c), cols, groups=c)
+
+
+@dataclass(frozen=True)
+class SsimTarget:
+    """A target image's side of :func:`ssim_map`, blurred once for many predictions (:func:`ssim_target`).
+
+    ``image`` ``[1, C, H, W]``; ``mu``, ``var``: its windowed mean and variance ``[1, C, H − w + 1, W − w + 1]``;
+    ``g``: the 1-D window ``[w]``; ``sigma``: the window's σ. All in the target's dtype.
+    """
+
+    image: torch.Tensor
+    mu: torch.Tensor
+    var: torch.Tensor
+    g: torch.Tensor
+    sigma: float
+
+
+def ssim_target(target: torch.Tensor, *, window: int = 11, sigma: float = 1.5) -> SsimTarget:
+    """The target's statistics of :func:`ssim_map` (a constant photo compared with many renders). ``[H, W, C]``"""
+    t = target.permute(2, 0, 1)[None]
+    g = _gaussian_window(window, sigma, t.dtype).to(t.device)
+    c = t.shape[1]
+    mu, tt = _blur(torch.cat([t, t * t], 1), g).split(c, 1)
+    return SsimTarget(t, mu, tt - mu**2, g, sigma)
+
+
+def ssim_map(
+    pred: torch.Tensor, target: torch.Tensor | SsimTarget, *, window: int = 11, sigma: float = 1.5
+) -> torch.Tensor:
     """Differentiable per-pixel SSIM, averaged over channels. ``[H, W, C]`` → ``[H − w + 1, W − w + 1]``
 
     Gaussian window (11×11, σ = 1.5), ``C1 = 0.01²``, ``C2 = 0.03²`` for data range 1,
     population statistics, computed where the window fits inside the image (the
-    convention of scikit-image's ``structural_similarity``).
+    convention of scikit-image's ``structural_similarity``). ``target``: an image, or its
+    :func:`ssim_target` (computed once; then ``window`` and ``sigma`` must be its own).
     """
+    if not isinstance(target, SsimTarget):
+        target = ssim_target(target.to(pred.dtype), window=window, sigma=sigma)
+    elif (target.g.shape[0], target.sigma) != (window, sigma):
+        raise ValueError(f"ssim_map: window {window}, sigma {sigma} but the target's are {target.g.shape[0]}, "
+                         f"{target.sigma}")  # fmt: skip
+    dt = pred.dtype
+    t, mu_t, s_tt, g = (x.to(dt) for x in (target.image, target.mu, target.var, target.g))
     p = pred.permute(2, 0, 1)[None]
-    t = target.to(pred.dtype).permute(2, 0, 1)[None]
     c = p.shape[1]
-    g = _gaussian_window(window, sigma, pred.dtype).to(pred.device)
-    k = (g[:, None] * g[None, :]).expand(c, 1, window, window).contiguous()
-
-    def blur(x: torch.Tensor) -> torch.Tensor:
-        return F.conv2d(x, k, groups=c)
-
-    mu_p, mu_t = blur(p), blur(t)
-    s_pp = blur(p * p) - mu_p**2
-    s_tt = blur(t * t) - mu_t**2
-    s_pt = blur(p * t) - mu_p * mu_t
+    mu_p, pp, pt = _blur(torch.cat([p, p * p, p * t], 1), g).split(c, 1)
+    s_pp = pp - mu_p**2
+    s_pt = pt - mu_p * mu_t
     c1, c2 = 0.01**2, 0.03**2
     smap = ((2 * mu_p * mu_t + c1) * (2 * s_pt + c2)) / ((mu_p**2 + mu_t**2 + c1) * (s_pp + s_tt + c2))
     return smap[0].mean(0)

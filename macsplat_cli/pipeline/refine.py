@@ -29,9 +29,10 @@ import torch
 from ..errors import InputError
 from ..gaussians import GaussianMaps, Gaussians
 from ..mac import mac_loss
-from ..metrics import ssim_map
+from ..metrics import SsimTarget, ssim_map, ssim_target
 from ..render import render
 from ..report import RefineReport
+from .refine_adam import Adam
 from .refine_config import AUTO_STEPS, RefineConfig
 from .types import DepthMap, MatchSet, TwoViewGeometry, View
 
@@ -76,11 +77,13 @@ class RefineResult:
 
 @dataclass
 class _Target:
-    """One view as the loss sees it: its photo at the refinement resolution and the camera rendering it."""
+    """One view as the loss sees it: its photo at the refinement resolution (and its SSIM statistics, blurred once)
+    and the camera rendering it."""
 
     image: torch.Tensor  # [h, w, 3] float32
     world_to_cam: torch.Tensor  # [4, 4] float32
     K: torch.Tensor  # [3, 3] float32, intrinsics at the refinement resolution
+    ssim: SsimTarget
 
     def render(self, world: Gaussians) -> torch.Tensor:
         """``world`` seen by this view's camera. [h, w, 3]"""
@@ -124,16 +127,16 @@ def _targets(views: list[View], Ks: list[np.ndarray], params: list[GaussianMaps]
         K = K.copy()
         K[:2] /= f
         w2c = torch.linalg.inv(_cam_to_world(params[k])).float()
-        targets.append(_Target(img, w2c, torch.tensor(K, dtype=torch.float32)))
+        targets.append(_Target(img, w2c, torch.tensor(K, dtype=torch.float32), ssim_target(img)))
     return targets
 
 
-def _optimizer(params: list[GaussianMaps], cfg: RefineConfig) -> torch.optim.Adam:
-    """Adam over the five parameter maps; the means' rate scaled by the median scene depth."""
+def _optimizer(params: list[GaussianMaps], cfg: RefineConfig) -> Adam:
+    """Adam (:mod:`.refine_adam`) over the five parameter maps; the means' rate scaled by the median scene depth."""
     depth = torch.cat([m.means[..., 2][m.valid_mask()] for m in params]).detach()
     scene = float(depth.median()) if depth.numel() else 1.0
     s = LR_SCALE
-    opt = torch.optim.Adam(
+    opt = Adam(
         [
             {"params": [m.means for m in params], "lr": s * LR_MEANS * scene},
             {"params": [m.log_scales for m in params], "lr": s * LR_LOG_SCALES},
@@ -147,7 +150,7 @@ def _optimizer(params: list[GaussianMaps], cfg: RefineConfig) -> torch.optim.Ada
     return opt
 
 
-def _set_learning_rates(opt: torch.optim.Adam, step: int, cfg: RefineConfig) -> None:
+def _set_learning_rates(opt: Adam, step: int, cfg: RefineConfig) -> None:
     """Cosine from the initial rates (step 1) to :data:`LR_FINAL` of them (step ``cfg.steps``)."""
     if LR_FINAL == 1.0 or cfg.steps <= 1:
         return
@@ -193,7 +196,7 @@ def _step_loss(
     perceptual = torch.zeros(())
     for t in targets:
         rgb = t.render(world)
-        photo = photo + ((rgb - t.image) ** 2).mean() + SSIM_WEIGHT * (1.0 - ssim_map(rgb, t.image).mean())
+        photo = photo + ((rgb - t.image) ** 2).mean() + SSIM_WEIGHT * (1.0 - ssim_map(rgb, t.ssim).mean())
         if lpips is not None:
             perceptual = perceptual + lpips(rgb, t.image)
     terms = {"photo": float(photo.detach())}
