@@ -79,6 +79,7 @@ HOLDOUT_PATIENCE = 5
 MIN_STEPS = 8
 """Never stop before this many steps (the first steps move the Gaussians more than the error shows)."""
 SH_DEGREE = 1
+"""The SH degree of the Gaussians enough photos see from spread directions (:mod:`.sh_views`); 0 elsewhere."""
 PHOTOS_PER_STEP = 1
 """Photos rendered each step, in turn (:func:`_schedule`; 3DGS's one view a step). A photo's render costs the same
 whichever photo it is (every photo sees most of the Gaussians), so steps of one photo buy more updates for the
@@ -87,7 +88,6 @@ time: on the 4-photo orbits, 40 one-photo steps matched or beat 25 steps of all 
 STEPS_PER_STEP = 1.6
 """One-photo steps run per step asked (``--refine 25``, ``best``'s: 40): a step asked of the two-photo refinement
 renders two photos; 1.6 is what fits ``best``'s time on 4 photos (benchmarks/history/multiview_joint.md)."""
-"""The SH degree of the Gaussians enough photos see from spread directions (:mod:`.sh_views`); 0 elsewhere."""
 
 
 @dataclass
