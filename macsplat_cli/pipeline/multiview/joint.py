@@ -85,9 +85,10 @@ PHOTOS_PER_STEP = 1
 whichever photo it is (every photo sees most of the Gaussians), so steps of one photo buy more updates for the
 time: on the 4-photo orbits, 40 one-photo steps matched or beat 25 steps of all four at 0.5× the CPU time
 (benchmarks/history/multiview_joint.md)."""
-STEPS_PER_STEP = 1.6
-"""One-photo steps run per step asked (``--refine 25``, ``best``'s: 40): a step asked of the two-photo refinement
-renders two photos; 1.6 is what fits ``best``'s time on 4 photos (benchmarks/history/multiview_joint.md)."""
+RENDERS_PER_STEP = 0.4
+"""Renders of each photo per step asked (``--refine 25``, ``best``'s: 10 of each, 40 one-photo steps on 4 photos,
+80 on 8): 4 photos × 0.4 fits ``best``'s time there; 8 photos at 40 steps stayed 0.37 dB below their middle pair
+at its views, at 80 0.15 dB above (benchmarks/history/multiview_joint.md)."""
 
 
 @dataclass
@@ -430,7 +431,7 @@ def joint_reconstruction(
     pairs' MAC matches), camera 0 (the world frame) fixed, and the refinement's report section."""
     assert rec.poses is not None
     fixed = int(np.argmin([np.abs(T - np.eye(4)).max() for T in rec.poses]))
-    config = dataclasses.replace(config, steps=math.ceil(config.steps * STEPS_PER_STEP))
+    config = dataclasses.replace(config, steps=math.ceil(config.steps * RENDERS_PER_STEP * len(rec.maps)))
     out = joint_refine(rec.views, rec.poses, rec.maps, config, match_sets=sets, fixed=fixed, on_step=on_step)
     result = RefineResult(out.maps, out.steps, out.seconds, out.stopped_early, out.history, poses=out.poses)
     report = RefineReport(steps=out.steps, max_steps=config.steps, stopped_early=out.stopped_early,

@@ -213,10 +213,10 @@ def test_refine_over_every_registered_photo(room: Orbit, tmp_path: Path) -> None
     code, _, err = run_cli(["reconstruct", *room.photos[:3], "-o", tmp_path / "s.ply", "--intrinsics",
                             room.one_camera, "--refine", "8", "--report", tmp_path / "r.json", "-q"])  # fmt: skip
     assert code == 0, err
-    from macsplat_cli.pipeline.multiview.joint import STEPS_PER_STEP
+    from macsplat_cli.pipeline.multiview.joint import RENDERS_PER_STEP
 
     r = json.loads((tmp_path / "r.json").read_text())["refine"]
-    assert r["steps"] == math.ceil(8 * STEPS_PER_STEP)  # steps of one photo each
+    assert r["steps"] == math.ceil(8 * RENDERS_PER_STEP * 3)  # steps of one photo each, in turn
     held = r["joint"]["heldout_mse"]
     assert held[-1] < held[2]  # the three photos' held-out error falls (every photo in it from step 3)
     assert r["mac"] == any(r["joint"]["poses_refined"])  # MAC over the pairs' tracks while a camera moves
