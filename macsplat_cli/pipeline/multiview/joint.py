@@ -1,8 +1,10 @@
 """Joint refinement of the Gaussians and the camera poses over every registered photo (issue 41).
 
 "Gaussian bundle adjustment" (InstantSplat): the pixel Gaussians of every registered photo and each camera's pose are
-optimised together (Adam) on the photometric loss of every photo, ``L2 + w_ssim · (1 − SSIM)``, plus
-``λ_MAC · MAC`` over the verified matches of every matched pair of photos (:func:`macsplat_cli.mac.mac_loss`).
+optimised together (Adam) on the photometric loss of the photos, ``L2 + w_ssim · (1 − SSIM)``, one photo a step in
+turn (:data:`PHOTOS_PER_STEP`, as 3DGS trains), plus ``λ_MAC · MAC`` over the verified matches of every matched pair
+of photos (:func:`macsplat_cli.mac.mac_loss`) while a camera is free to move (with every pose held, the term only
+pulls the matched Gaussians onto their match rays: measured −0.2 dB and a third of the step's time).
 
 Poses: each camera ``k`` gets a small update, a rotation ``ω_k`` (axis-angle, world frame) and a centre shift
 ``δ_k``: ``R'_k = Exp(ω_k) R_k``, ``c'_k = c_k + δ_k``, with their own learning rates (:data:`LR_ROTATION`,
@@ -21,8 +23,9 @@ the registration's own tracks, so this trusts a registration whose bundle adjust
 nothing of an error along the epipolar lines, nor of a wrong pose its own tracks agree with).
 
 Stopping on held-out evidence: a share of every photo's pixels (:data:`HOLDOUT_SHARE`, fixed seed) is left out of
-the loss (their target is the render itself, so neither the L2 nor the SSIM term sees them); the run stops once their
-error has not fallen by :data:`HOLDOUT_TOL` for :data:`HOLDOUT_PATIENCE` steps, and reports the curve.
+the loss (their target is the render itself, so neither the L2 nor the SSIM term sees them); the curve is the mean of
+each photo's held-out error when it was last rendered, and the run stops once it has not fallen by
+:data:`HOLDOUT_TOL` for :data:`HOLDOUT_PATIENCE` steps (a round of every photo at least), and reports the curve.
 
 The renders go through the fused kernel, which takes no camera gradient: camera ``j``'s update is applied to the
 Gaussians instead (``Y = Exp(−ω_j)(X − c'_j) + c_j``, rendered by the unrefined camera), the same image. Measured:
@@ -31,7 +34,9 @@ benchmarks/history/multiview_joint.md.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import math
 import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -70,11 +75,20 @@ HOLDOUT_SHARE = 1 / 16
 HOLDOUT_TOL = 1e-3
 """The held-out error must fall by this fraction of its best to count as falling."""
 HOLDOUT_PATIENCE = 5
-"""Steps without the held-out error falling before the refinement stops."""
+"""Steps without the held-out error falling before the refinement stops (at least one per photo)."""
 MIN_STEPS = 8
 """Never stop before this many steps (the first steps move the Gaussians more than the error shows)."""
 SH_DEGREE = 1
 """The SH degree of the Gaussians enough photos see from spread directions (:mod:`.sh_views`); 0 elsewhere."""
+PHOTOS_PER_STEP = 1
+"""Photos rendered each step, in turn (:func:`_schedule`; 3DGS's one view a step). A photo's render costs the same
+whichever photo it is (every photo sees most of the Gaussians), so steps of one photo buy more updates for the
+time: on the 4-photo orbits, 40 one-photo steps matched or beat 25 steps of all four at 0.5× the CPU time
+(benchmarks/history/multiview_joint.md)."""
+RENDERS_PER_STEP = 0.4
+"""Renders of each photo per step asked (``--refine 25``, ``best``'s: 10 of each, 40 one-photo steps on 4 photos,
+80 on 8): 4 photos × 0.4 fits ``best``'s time there; 8 photos at 40 steps stayed 0.37 dB below their middle pair
+at its views, at 80 0.15 dB above (benchmarks/history/multiview_joint.md)."""
 
 
 @dataclass
@@ -88,6 +102,7 @@ class JointResult:
         rotation_change_deg: how far each camera turned. [C]
         steps: steps run; stopped_early: the held-out error stopped falling before ``config.steps``.
         poses_refined: which cameras were free to move (not fixed, not trusted: :func:`trusted_cameras`).
+        mac: whether the MAC term was in the loss (asked for, and a camera free to move).
         history: each step's loss terms (``heldout``: the held-out pixels' mean squared error).
     """
 
@@ -99,6 +114,7 @@ class JointResult:
     stopped_early: bool
     history: list[dict[str, float]]
     poses_refined: list[bool]
+    mac: bool = False
 
     def report(self) -> dict[str, object]:
         """The refinement report's ``joint`` section: steps, the held-out curve, the poses' changes."""
@@ -263,24 +279,26 @@ def _mac_sets(sets: list[MatchSet], params: list[GaussianMaps], f: int) -> list[
 
 
 def _loss(
-    params: list[GaussianMaps], poses: _Poses, photos: list[_Photo], mac_sets: list[_MacSet], cfg: RefineConfig
-) -> tuple[torch.Tensor, dict[str, float]]:
-    """One step's loss over every photo (and the MAC loss over every matched pair) and its terms."""
+    params: list[GaussianMaps], poses: _Poses, photos: list[_Photo], which: list[int], mac_sets: list[_MacSet],
+    cfg: RefineConfig,
+) -> tuple[torch.Tensor, dict[int, float], dict[str, float]]:
+    """One step's loss over the photos ``which`` (and the MAC loss over every matched pair), each rendered photo's
+    held-out error, and the terms."""
     q, c = poses.current()
     world0 = [m.to_gaussians() for m in params]
     world = _moved(world0, q, c, poses.c0)
     photo = torch.zeros(())
-    held_err, held_n = 0.0, 0
-    for k, p in enumerate(photos):
+    held: dict[int, float] = {}
+    for k in which:
+        p = photos[k]
         seen = world if k == poses.fixed else _seen_by(world, q[k], c[k], poses.c0[k])
         h, w = p.image.shape[:2]
         rgb = render(seen, p.world_to_cam, p.K, w, h).rgb
         target = torch.where(p.heldout[..., None], rgb.detach(), p.image)
         photo = photo + ((rgb - target) ** 2).mean() + SSIM_WEIGHT * (1.0 - ssim_map(rgb, target).mean())
-        held_err += float(((rgb.detach() - p.image)[p.heldout] ** 2).sum())
-        held_n += 3 * int(p.heldout.sum())
+        held[k] = float(((rgb.detach() - p.image)[p.heldout] ** 2).mean())
     loss = photo
-    terms = {"photo": float(photo.detach()), "heldout": held_err / max(held_n, 1)}
+    terms = {"photo": float(photo.detach())}
     if cfg.use_mac and mac_sets:
         T = poses.cam_to_world().float()
         parts = [mac_loss(params[a], params[b], xa, xb, batch, w, T[a][None], T[b][None], cfg.mac,
@@ -289,7 +307,25 @@ def _loss(
         loss = loss + cfg.mac.weight * mac
         terms["mac"] = float(mac.detach())
     terms["loss"] = float(loss.detach())
-    return loss, terms
+    return loss, held, terms
+
+
+def _schedule(n: int, per_step: int, steps: int) -> list[list[int]]:
+    """The photos each step renders: ``per_step`` distinct ones of the ``n``, taken in turn from rounds that each
+    visit every photo once in a fresh order (fixed seed). [steps][per_step]"""
+    gen = torch.Generator().manual_seed(0)
+    queue: list[int] = []
+    out = []
+    for _ in range(steps):
+        if len(queue) < 2 * per_step:
+            queue += torch.randperm(n, generator=gen).tolist()
+        chosen: list[int] = []
+        for k in list(queue):
+            if len(chosen) < per_step and k not in chosen:
+                chosen.append(k)
+                queue.remove(k)
+        out.append(sorted(chosen))
+    return out
 
 
 def _with_sh(params: list[GaussianMaps], Ks: list[np.ndarray]) -> list[GaussianMaps]:
@@ -310,12 +346,12 @@ def _with_sh(params: list[GaussianMaps], Ks: list[np.ndarray]) -> list[GaussianM
     return out
 
 
-def _stalled(heldout: list[float], step: int) -> bool:
-    """The held-out error has not fallen by :data:`HOLDOUT_TOL` of its best for :data:`HOLDOUT_PATIENCE` steps."""
-    if step < max(MIN_STEPS, HOLDOUT_PATIENCE + 1):
+def _stalled(heldout: list[float], step: int, patience: int) -> bool:
+    """The held-out error has not fallen by :data:`HOLDOUT_TOL` of its best for ``patience`` steps."""
+    if step < max(MIN_STEPS, patience + 1):
         return False
-    best_before = min(heldout[:-HOLDOUT_PATIENCE])
-    return min(heldout[-HOLDOUT_PATIENCE:]) > best_before * (1 - HOLDOUT_TOL)
+    best_before = min(heldout[:-patience])
+    return min(heldout[-patience:]) > best_before * (1 - HOLDOUT_TOL)
 
 
 def _frozen(m: GaussianMaps, cam_to_world: np.ndarray) -> GaussianMaps:
@@ -353,20 +389,27 @@ def joint_refine(
     for lr, p in ((LR_ROTATION, poses.omega), (LR_CENTRE * scene, poses.delta)):
         opt.add_param_group({"params": [p], "lr": lr})
         opt.param_groups[-1]["initial_lr"] = lr
-    mac_sets = _mac_sets(list(match_sets or []), params, f)
+    # with every pose held, the MAC term only pulls matched Gaussians onto the match rays: -0.2 dB, 0.2 s a step
+    use_mac = config.use_mac and bool(poses.free.any())
+    mac_sets = _mac_sets(list(match_sets or []), params, f) if use_mac else []
+    per_step = min(PHOTOS_PER_STEP, len(photos))
+    patience = max(HOLDOUT_PATIENCE, -(-len(photos) // per_step))  # a round at least: every photo's error updated
     history: list[dict[str, float]] = []
     t0 = time.perf_counter()
     step, stopped = 0, False
-    for step in range(1, config.steps + 1):
+    latest: dict[int, float] = {}  # each photo's held-out error when it was last rendered
+    for step, which in enumerate(_schedule(len(photos), per_step, config.steps), 1):
         opt.zero_grad(set_to_none=True)
         _set_learning_rates(opt, step, config)
-        loss, terms = _loss(params, poses, photos, mac_sets, config)
+        loss, held, terms = _loss(params, poses, photos, which, mac_sets, config)
         loss.backward()
         opt.step()
+        latest.update(held)
+        terms["heldout"] = float(np.mean(list(latest.values())))
         history.append(terms)
         if on_step is not None:
             on_step(step, terms)
-        if _stalled([h["heldout"] for h in history], step):
+        if _stalled([h["heldout"] for h in history], step, patience):
             stopped = step < config.steps
             break
     with torch.no_grad():
@@ -378,7 +421,7 @@ def joint_refine(
     logger.debug("joint refinement: %d steps in %.1f s, held-out %.5f → %.5f", step, seconds,
                  history[0]["heldout"], history[-1]["heldout"])  # fmt: skip
     free = [bool(x) for x in poses.free[:, 0] > 0]
-    return JointResult(out, T_np, [float(a) for a in turned], step, seconds, stopped, history, free)
+    return JointResult(out, T_np, [float(a) for a in turned], step, seconds, stopped, history, free, bool(mac_sets))
 
 
 def joint_reconstruction(
@@ -388,9 +431,10 @@ def joint_reconstruction(
     pairs' MAC matches), camera 0 (the world frame) fixed, and the refinement's report section."""
     assert rec.poses is not None
     fixed = int(np.argmin([np.abs(T - np.eye(4)).max() for T in rec.poses]))
+    config = dataclasses.replace(config, steps=math.ceil(config.steps * RENDERS_PER_STEP * len(rec.maps)))
     out = joint_refine(rec.views, rec.poses, rec.maps, config, match_sets=sets, fixed=fixed, on_step=on_step)
     result = RefineResult(out.maps, out.steps, out.seconds, out.stopped_early, out.history, poses=out.poses)
     report = RefineReport(steps=out.steps, max_steps=config.steps, stopped_early=out.stopped_early,
-                          seconds=out.seconds, scale=config.scale, mac=config.use_mac, lpips=False,
+                          seconds=out.seconds, scale=config.scale, mac=out.mac, lpips=False,
                           loss_first=out.history[0], loss_last=out.history[-1], joint=out.report())  # fmt: skip
     return result, report

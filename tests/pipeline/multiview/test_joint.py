@@ -129,6 +129,39 @@ def test_stops_on_heldout_pixels(orbit: tuple) -> None:
     assert rep["steps"] == out.steps and len(rep["heldout_mse"]) == out.steps
 
 
+def test_one_photo_a_step_in_turn(orbit: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each step renders one photo (3DGS's one view a step), in rounds that visit every photo once: 6 steps of 3
+    photos render each photo twice."""
+    from macsplat_cli.pipeline.multiview import joint
+
+    views, depths, truth = orbit
+    rendered: list[int] = []
+    real = joint.render
+
+    def counted(g, world_to_cam, K, w, h):  # noqa: ANN001, ANN202
+        rendered.append(next(k for k, T in enumerate(truth) if np.allclose(np.linalg.inv(T), world_to_cam.numpy(),
+                                                                            atol=1e-5)))  # fmt: skip
+        return real(g, world_to_cam, K, w, h)
+
+    monkeypatch.setattr(joint, "render", counted)
+    out = joint_refine(views, truth, _maps(views, depths, truth), RefineConfig(steps=6, scale=2))
+    assert out.steps == 6 and len(rendered) == 6
+    assert sorted(rendered) == [0, 0, 1, 1, 2, 2] and sorted(rendered[:3]) == [0, 1, 2]
+
+
+def test_mac_only_while_a_pose_is_free(orbit: tuple) -> None:
+    """With every camera held (exact registration, its matches on their epipolar lines) the MAC term is left out
+    (it would only pull matched Gaussians onto the match rays); with a camera free it is in the loss."""
+    views, depths, truth = orbit
+    sets = _matches(views, depths, truth)
+    held = joint_refine(views, truth, _maps(views, depths, truth), RefineConfig(steps=3, scale=2), match_sets=sets)
+    assert not held.mac and all("mac" not in h for h in held.history)
+    wrong = _turned(truth, {2: ([1.0, -0.4, 0.3], 1.0)})
+    free = joint_refine(views, wrong, _maps(views, depths, wrong), RefineConfig(steps=3, scale=2), match_sets=sets)
+    assert free.poses_refined == [False, False, True]
+    assert free.mac and all("mac" in h for h in free.history)
+
+
 def test_covisibility_keeps_one_gaussian_per_surface_point(orbit: tuple) -> None:
     """The same photo twice at one pose (every surface point seen twice at one footprint) and a third photo 6°
     away: the repeat loses every Gaussian (a tie goes to the earlier photo); of photos 0 and 2, no kept Gaussian
