@@ -91,7 +91,8 @@ RefineOpt = Annotated[
         "--refine",
         metavar=REFINE_METAVAR,
         help="Refine the Gaussians on the photos (+ MAC loss) for STEPS steps; auto = 25; off (or 0): no refinement "
-        "[default: auto with --quality best, else off].",
+        "[default: auto with --quality best, else off]. With more photos, STEPS renders 0.4 x STEPS of each photo, "
+        "one photo a step.",
     ),
 ]
 RefineGridOpt = Annotated[

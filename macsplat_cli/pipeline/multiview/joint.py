@@ -279,7 +279,11 @@ def _mac_sets(sets: list[MatchSet], params: list[GaussianMaps], f: int) -> list[
 
 
 def _loss(
-    params: list[GaussianMaps], poses: _Poses, photos: list[_Photo], which: list[int], mac_sets: list[_MacSet],
+    params: list[GaussianMaps],
+    poses: _Poses,
+    photos: list[_Photo],
+    which: list[int],
+    mac_sets: list[_MacSet],
     cfg: RefineConfig,
 ) -> tuple[torch.Tensor, dict[int, float], dict[str, float]]:
     """One step's loss over the photos ``which`` (and the MAC loss over every matched pair), each rendered photo's
