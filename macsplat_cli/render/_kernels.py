@@ -1,13 +1,17 @@
 """Numba CPU kernels: tile binning and alpha compositing, forward and backward.
 
-Layout (Gaussian-outer, pixel-inner, as measured fastest on CPUs):
+Layout (Gaussian-outer, pixel-inner):
 
 * The image is cut into ``tile × tile`` pixel tiles. Each tile owns the list of the
   Gaussians whose support rectangle touches it, in front-to-back order. The Gaussians
   arrive already sorted by depth, so a tile list holds increasing indices and the
   kernels read the per-Gaussian arrays in increasing memory order.
-* One thread handles one tile at a time (runs of tiles taken by the threads of ``_threads.parallel_for``). For
-  each Gaussian of the tile list, only the pixels of its support rectangle inside the tile are visited.
+* One thread handles one tile at a time (runs of tiles taken by the threads of ``_threads.parallel_for``). A
+  tile's pixel state lives in small arrays in a *block layout*: columns in blocks of 8, each block row-major, so
+  that the rows of a Gaussian's support rectangle within one block are one contiguous run of pixels. For each
+  Gaussian of the tile list, the kernels walk that run for each block the rectangle touches, every pixel of it a
+  lane: no branch in the loop (a skipped sample is a lane whose alpha is masked to 0, which leaves the pixel's
+  state bit-for-bit as it was), so LLVM vectorises it (8 float32 lanes with AVX2; ``_lanes.py``: the ``exp``).
 * Forward: front-to-back compositing with alpha ≤ 0.99, samples with alpha < 1/255 or a
   negative exponent skipped, and a pixel stopped before the sample that would bring its
   transmittance to ≤ 1e-4 (that sample is not added). The index of the last added sample
@@ -15,7 +19,8 @@ Layout (Gaussian-outer, pixel-inner, as measured fastest on CPUs):
 * Backward: back-to-front over the same samples, transmittance recovered by division by
   (1 − alpha) ≥ 0.01, with a per-pixel running sum of the later contributions. Gradients
   are written to one row per (tile, Gaussian) intersection, so no two threads ever write
-  the same memory; the caller reduces the rows per Gaussian.
+  the same memory; the caller reduces the rows per Gaussian. A row's sums over the lanes are reassociated
+  (8 partial sums; ``_lanes.radd``).
 
 Every constant and skip rule here is shared with the plain-PyTorch twin in
 ``reference.py``; the tests compare the two on forward values and gradients.
@@ -27,9 +32,12 @@ import numba as nb
 import numpy as np
 
 from .._threads import JitOptions, kernel_threads, parallel_for
+from ._lanes import S_MAX, exp_neg, radd
 from .constants import ALPHA_MAX, ALPHA_MIN, T_MIN
 
-GRAD_COLS = 6  # per intersection: d mean2d (2), d conic (3), d opacity (1), then d features (C)
+GRAD_COLS = 6  # per intersection: d mean2d (2), d conic (3), d opacity (1), then d features (FEATURES)
+FEATURES = 4
+"""Features a Gaussian carries (r, g, b, depth): fixed, so that the lane loops keep them in registers."""
 
 # Float32-typed literals: a float64 literal would promote every float32 expression to
 # float64; float64 inputs still promote these to float64.
@@ -39,20 +47,13 @@ _ONE = np.float32(1.0)
 _A_MIN = np.float32(ALPHA_MIN)
 _A_MAX = np.float32(ALPHA_MAX)
 _T_MIN = np.float32(T_MIN)
-_LOG_255 = np.float32(np.log(255.0))
-_LEVEL_SLACK = np.float32(1e-3)  # the exp-free rejection must never reject alpha ≥ 1/255
+_BLOCK = 8  # columns per block of the tile layout: one AVX2 register of float32 lanes
 
 _JIT: JitOptions = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy"}
 _TILE_CHUNKS = 8
 """Chunks of tiles per thread: tiles differ in work, so threads take small runs of them as they come free."""
 _BIN_RUNS = 2  # runs of Gaussians per thread in the binning (each run's counters cost a pass over the tiles)
 _BIN_MIN_RUN = 16384  # Gaussians: below this a run's own tile counters cost more than its share of the work
-
-
-@nb.njit(inline="always", **_JIT)
-def _level(op):  # noqa: ANN001, ANN202
-    """σ above which ``op·exp(−σ) < 1/255`` for sure: lets the kernels skip ``exp``."""
-    return np.log(op) + _LOG_255 + _LEVEL_SLACK
 
 
 def bin_tiles(pixel_rect: np.ndarray, width: int, height: int, tile: int) -> tuple[np.ndarray, np.ndarray]:
@@ -126,70 +127,104 @@ def _tile_rect(t, tiles_x, tile, width, height):  # noqa: ANN001, ANN202
 
 
 @nb.njit(inline="always", **_JIT)
-def _gaussian_in_tile(g, means2d, conics, opacities, pixel_rect, x0, y0, x1, y1):  # noqa: ANN001, ANN202
-    """Gaussian ``g`` as both splat passes read it: its pixel rectangle clipped to the tile ``(gx0, gx1, gy0,
-    gy1)`` (upper bounds exclusive), centre ``(mx, my)``, conic ``(a, b, c)``, opacity and its alpha level."""
+def _pix(r, c, tw, th):  # noqa: ANN001, ANN202
+    """Index of the tile's pixel at row ``r``, column ``c`` in the block layout (tile ``tw × th``)."""
+    blk = c // _BLOCK
+    return blk * _BLOCK * th + r * min(_BLOCK, tw - blk * _BLOCK) + c - blk * _BLOCK
+
+
+@nb.njit(inline="always", **_JIT)
+def _pixel_centres(x0, y0, x1, y1, xs, ys):  # noqa: ANN001, ANN202
+    """The pixel centres ``(px + ½, py + ½)`` of tile ``[x0, x1) × [y0, y1)`` into ``xs``, ``ys`` (block layout)."""
+    tw = x1 - x0
+    th = y1 - y0
+    for py in range(y0, y1):
+        for px in range(x0, x1):
+            p = _pix(py - y0, px - x0, tw, th)
+            xs[p] = np.float32(px) + _HALF
+            ys[p] = np.float32(py) + _HALF
+
+
+@nb.njit(inline="always", **_JIT)
+def _runs(g, pixel_rect, x0, y0, x1, y1):  # noqa: ANN001, ANN202
+    """Gaussian ``g``'s rectangle clipped to the tile: ``(gx0, gx1, gy0, gy1)`` (upper bounds exclusive), and the
+    blocks it touches ``[b0, b1)``."""
     gx0 = max(pixel_rect[g, 0], x0)
     gx1 = min(pixel_rect[g, 1] + 1, x1)
     gy0 = max(pixel_rect[g, 2], y0)
     gy1 = min(pixel_rect[g, 3] + 1, y1)
-    op = opacities[g]
-    return gx0, gx1, gy0, gy1, means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], op, _level(op)
+    return gx0, gx1, gy0, gy1, (gx0 - x0) // _BLOCK, (gx1 - 1 - x0) // _BLOCK + 1
 
 
 @nb.njit(inline="always", **_JIT)
-def _splat_forward(g, k, means2d, conics, opacities, features, pixel_rect, x0, y0, x1, y1, T, acc, lst, done):  # noqa: ANN001, ANN202
-    """Composite Gaussian ``g`` (position ``k`` in the tile list) onto the tile's pixels not yet done: updates the
-    tile's transmittance ``T``, accumulated features ``acc``, last-sample index ``lst`` and ``done`` in place.
-    Returns how many pixels it finished."""
+def _alpha(x, y, mx, my, ca, cb, cc, op):  # noqa: ANN001, ANN202
+    """A Gaussian (centre ``(mx, my)``, conic ``(ca, cb, cc)``, opacity ``op``) at the pixel centre ``(x, y)``:
+    ``(dx, dy, σ, exp(−σ), o·exp(−σ), alpha)``; ``exp`` of σ clamped to ``[0, S_MAX]`` (a lane whose σ is outside
+    is masked by the callers)."""
+    dx = x - mx
+    dy = y - my
+    sigma = _HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+    gauss = exp_neg(min(max(sigma, _ZERO), S_MAX))
+    raw = op * gauss
+    return dx, dy, sigma, gauss, raw, min(_A_MAX, raw)
+
+
+@nb.njit(inline="always", **_JIT)
+def _splat_forward(g, k, means2d, conics, opacities, features, pixel_rect, x0, y0, x1, y1, xs, ys, T, acc, lst,
+                   live):  # fmt: skip  # noqa: ANN001, ANN202
+    """Composite Gaussian ``g`` (position ``k`` in the tile list) onto the tile's live pixels: updates the tile's
+    transmittance ``T``, accumulated features ``acc`` [4, P], last-sample index ``lst`` and ``live`` (1, or 0 once
+    the pixel is done) in place. Returns whether it finished a pixel."""
     tw = x1 - x0
-    n_ch = features.shape[1]
-    n_done = 0
-    gx0, gx1, gy0, gy1, mx, my, ca, cb, cc, op, level = _gaussian_in_tile(
-        g, means2d, conics, opacities, pixel_rect, x0, y0, x1, y1
-    )
-    for py in range(gy0, gy1):
-        dy = np.float32(py) + _HALF - my
-        row = (py - y0) * tw - x0
-        for px in range(gx0, gx1):
-            p = row + px
-            if done[p]:
-                continue
-            dx = np.float32(px) + _HALF - mx
-            sigma = _HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-            if sigma < _ZERO or sigma > level:
-                continue
-            alpha = min(_A_MAX, op * np.exp(-sigma))
-            if alpha < _A_MIN:
-                continue
-            next_t = T[p] * (_ONE - alpha)
-            if next_t <= _T_MIN:
-                done[p] = True
-                n_done += 1
-                continue
-            w = alpha * T[p]
-            for ch in range(n_ch):
-                acc[p, ch] += w * features[g, ch]
-            T[p] = next_t
-            lst[p] = k
-    return n_done
+    th = y1 - y0
+    gx0, gx1, gy0, gy1, b0, b1 = _runs(g, pixel_rect, x0, y0, x1, y1)
+    lo = xs.dtype.type(gx0)
+    hi = xs.dtype.type(gx1)
+    mx, my, ca, cb, cc, op = means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g]
+    f0, f1, f2, f3 = features[g, 0], features[g, 1], features[g, 2], features[g, 3]
+    k32 = np.int32(k)
+    stopped = False
+    for blk in range(b0, b1):
+        bw = min(_BLOCK, tw - blk * _BLOCK)
+        base = blk * _BLOCK * th
+        # unsigned indices: Numba then emits no wrap-around of negative indices, which blocks vectorisation
+        for p in range(np.uint64(base + (gy0 - y0) * bw), np.uint64(base + (gy1 - y0) * bw)):
+            x = xs[p]
+            _, _, sigma, _, _, alpha = _alpha(x, ys[p], mx, my, ca, cb, cc, op)
+            t_p = T[p]
+            lv = live[p]
+            ok = (x > lo) & (x < hi) & (sigma >= _ZERO) & (alpha >= _A_MIN) & (lv > _ZERO)
+            a_ok = alpha if ok else _ZERO
+            stop = t_p * (_ONE - a_ok) <= _T_MIN  # only a live sample can stop: T > T_MIN always
+            a_add = _ZERO if stop else a_ok  # 0: the pixel's T, acc and lst stay exactly as they are
+            T[p] = t_p * (_ONE - a_add)
+            w = a_add * t_p
+            acc[0, p] += w * f0
+            acc[1, p] += w * f1
+            acc[2, p] += w * f2
+            acc[3, p] += w * f3
+            lst[p] = max(lst[p], k32 if a_add > _ZERO else np.int32(-1))
+            live[p] = _ZERO if stop else lv
+            stopped |= stop
+    return stopped
 
 
 def composite_forward(means2d, conics, opacities, features, pixel_rect, offsets, lists, width, height, tile):  # noqa: ANN001, ANN201
     """Front-to-back compositing of depth-sorted Gaussians.
 
     Args:
-        means2d: [M, 2]; conics: [M, 3]; opacities: [M]; features: [M, C]
+        means2d: [M, 2]; conics: [M, 3]; opacities: [M]; features: [M, 4] (:data:`FEATURES`)
         pixel_rect: [M, 4] int32; offsets, lists: from :func:`bin_tiles`.
 
     Returns:
-        ``(feat, trans, last)``: accumulated features [H, W, C] (no background),
+        ``(feat, trans, last)``: accumulated features [H, W, 4] (no background),
         final transmittance [H, W], and per pixel the position in its tile list of the
         last sample added (-1 if none) [H, W] int32.
     """
-    n_ch = features.shape[1]
+    if features.shape[1] != FEATURES:
+        raise ValueError(f"the compositing kernels take {FEATURES} features per Gaussian, not {features.shape[1]}")
     dtype = means2d.dtype
-    feat = np.zeros((height, width, n_ch), dtype)
+    feat = np.zeros((height, width, FEATURES), dtype)
     trans = np.ones((height, width), dtype)
     last = np.full((height, width), -1, np.int32)
     parallel_for(_forward_tiles, offsets.shape[0] - 1, means2d, conics, opacities, features, pixel_rect, offsets,
@@ -216,105 +251,107 @@ def _forward_tiles(
     last,
 ):  # noqa: ANN001, ANN202
     tiles_x = (width + tile - 1) // tile
-    n_ch = features.shape[1]
     dtype = means2d.dtype
+    n = tile * tile
+    T, acc, lst, live = np.empty(n, dtype), np.empty((FEATURES, n), dtype), np.empty(n, np.int32), np.empty(n, dtype)
+    xs, ys = np.empty(n, dtype), np.empty(n, dtype)
     for t in range(start_tile, stop_tile):
         x0, y0, x1, y1 = _tile_rect(t, tiles_x, tile, width, height)
         tw = x1 - x0
-        npix = tw * (y1 - y0)
-        T = np.ones(npix, dtype)
-        acc = np.zeros((npix, n_ch), dtype)
-        lst = np.full(npix, -1, np.int32)
-        done = np.zeros(npix, np.bool_)
-        n_done = 0
+        th = y1 - y0
+        npix = tw * th
+        T[:] = 1.0
+        acc[:] = 0.0
+        lst[:] = -1
+        live[:] = 1.0
+        _pixel_centres(x0, y0, x1, y1, xs, ys)
         start = offsets[t]
         for k in range(offsets[t + 1] - start):
             g = lists[start + k]
-            n_done += _splat_forward(
-                g, k, means2d, conics, opacities, features, pixel_rect, x0, y0, x1, y1, T, acc, lst, done
-            )
-            if n_done == npix:
-                break
+            if _splat_forward(
+                g, k, means2d, conics, opacities, features, pixel_rect, x0, y0, x1, y1, xs, ys, T, acc, lst, live
+            ):
+                n_live = 0
+                for p in range(npix):
+                    n_live += live[p] > _ZERO
+                if n_live == 0:
+                    break
         for py in range(y0, y1):
             for px in range(x0, x1):
-                p = (py - y0) * tw + px - x0
+                p = _pix(py - y0, px - x0, tw, th)
                 trans[py, px] = T[p]
                 last[py, px] = lst[p]
-                for ch in range(n_ch):
-                    feat[py, px, ch] = acc[p, ch]
+                for ch in range(FEATURES):
+                    feat[py, px, ch] = acc[ch, p]
 
 
 @nb.njit(inline="always", **_JIT)
 def _load_tile(trans, last, v_feat, v_trans, x0, y0, x1, y1, T, Q, V, lst):  # noqa: ANN001, ANN202
     """The forward's final transmittance and last-sample index and the cotangents of one tile into the tile arrays
-    ``T``, ``Q``, ``V``, ``lst`` (in place). Returns the largest last-sample index (-1 if none)."""
+    ``T``, ``Q``, ``V`` [4, P], ``lst`` (block layout, in place). Returns the largest last-sample index (-1 if
+    none)."""
     tw = x1 - x0
-    n_ch = V.shape[1]
+    th = y1 - y0
     kmax = -1
     for py in range(y0, y1):
         for px in range(x0, x1):
-            p = (py - y0) * tw + px - x0
+            p = _pix(py - y0, px - x0, tw, th)
             T[p] = trans[py, px]
             Q[p] = trans[py, px] * v_trans[py, px]
             lst[p] = last[py, px]
             kmax = max(kmax, lst[p])
-            for ch in range(n_ch):
-                V[p, ch] = v_feat[py, px, ch]
+            for ch in range(FEATURES):
+                V[ch, p] = v_feat[py, px, ch]
     return kmax
 
 
 @nb.njit(inline="always", **_JIT)
-def _splat_backward(g, k, means2d, conics, opacities, features, pixel_rect, x0, y0, x1, y1, T, Q, V, lst, v_f):  # noqa: ANN001, ANN202
+def _splat_backward(g, k, means2d, conics, opacities, features, pixel_rect, x0, y0, x1, y1, xs, ys, T, Q, V, lst,
+                    out_row):  # fmt: skip  # noqa: ANN001, ANN202
     """Gradient of Gaussian ``g`` (position ``k`` in the tile list) over the tile, back to front: steps the tile's
-    ``T`` and ``Q`` back past this sample and sums its feature gradient into ``v_f`` (in place).
-    Returns ``(d mean x, d mean y, d conic a, b, c, d opacity)``."""
+    ``T`` and ``Q`` back past this sample (a masked lane divides by 1 and adds 0: unchanged) and writes
+    ``(d mean x, d mean y, d conic a, b, c, d opacity, d features)`` into ``out_row`` [10]."""
     tw = x1 - x0
-    n_ch = features.shape[1]
-    gx0, gx1, gy0, gy1, mx, my, ca, cb, cc, op, level = _gaussian_in_tile(
-        g, means2d, conics, opacities, pixel_rect, x0, y0, x1, y1
-    )
-    v_mx = 0.0
-    v_my = 0.0
-    v_a = 0.0
-    v_b = 0.0
-    v_c = 0.0
-    v_op = 0.0
-    v_f[:] = 0.0
-    for py in range(gy0, gy1):
-        dy = np.float32(py) + _HALF - my
-        row = (py - y0) * tw - x0
-        for px in range(gx0, gx1):
-            p = row + px
-            if k > lst[p]:
-                continue
-            dx = np.float32(px) + _HALF - mx
-            sigma = _HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-            if sigma < _ZERO or sigma > level:
-                continue
-            gauss = np.exp(-sigma)
-            raw = op * gauss
-            alpha = min(_A_MAX, raw)
-            if alpha < _A_MIN:
-                continue
-            one_minus = _ONE - alpha
+    th = y1 - y0
+    gx0, gx1, gy0, gy1, b0, b1 = _runs(g, pixel_rect, x0, y0, x1, y1)
+    lo = xs.dtype.type(gx0)
+    hi = xs.dtype.type(gx1)
+    f0, f1, f2, f3 = features[g, 0], features[g, 1], features[g, 2], features[g, 3]
+    mx, my, ca, cb, cc, op = means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g]
+    k32 = np.int32(k)
+    z = _ZERO * f0  # a zero of the data's dtype
+    v_mx, v_my, v_a, v_b, v_c, v_op, v_f0, v_f1, v_f2, v_f3 = z, z, z, z, z, z, z, z, z, z
+    for blk in range(b0, b1):
+        bw = min(_BLOCK, tw - blk * _BLOCK)
+        base = blk * _BLOCK * th
+        for p in range(np.uint64(base + (gy0 - y0) * bw), np.uint64(base + (gy1 - y0) * bw)):
+            x = xs[p]
+            dx, dy, sigma, gauss, raw, alpha = _alpha(x, ys[p], mx, my, ca, cb, cc, op)
+            ok = (x > lo) & (x < hi) & (sigma >= _ZERO) & (alpha >= _A_MIN) & (k32 <= lst[p])
+            a_ok = alpha if ok else _ZERO
+            one_minus = _ONE - a_ok
             t_k = T[p] / one_minus
-            w = alpha * t_k
-            fv = 0.0
-            for ch in range(n_ch):
-                fv += features[g, ch] * V[p, ch]
-                v_f[ch] += w * V[p, ch]
-            v_alpha = t_k * fv - Q[p] / one_minus
-            Q[p] += w * fv
+            w = a_ok * t_k
+            v0, v1, v2, v3 = V[0, p], V[1, p], V[2, p], V[3, p]
+            fv = f0 * v0 + f1 * v1 + f2 * v2 + f3 * v3
+            v_f0 = radd(v_f0, w * v0)
+            v_f1 = radd(v_f1, w * v1)
+            v_f2 = radd(v_f2, w * v2)
+            v_f3 = radd(v_f3, w * v3)
+            q = Q[p]
+            v_alpha = t_k * fv - q / one_minus
+            Q[p] = q + w * fv
             T[p] = t_k
-            if raw < _A_MAX:  # alpha not clamped: it depends on op and sigma
-                v_op += v_alpha * gauss
-                v_sigma = -v_alpha * alpha
-                v_mx -= v_sigma * (ca * dx + cb * dy)
-                v_my -= v_sigma * (cb * dx + cc * dy)
-                v_a += _HALF * v_sigma * dx * dx
-                v_b += v_sigma * dx * dy
-                v_c += _HALF * v_sigma * dy * dy
-    return v_mx, v_my, v_a, v_b, v_c, v_op
+            v_alpha = v_alpha if ok & (raw < _A_MAX) else z  # a clamped alpha depends on neither op nor sigma
+            v_op = radd(v_op, v_alpha * gauss)
+            v_sigma = -v_alpha * alpha
+            v_mx = radd(v_mx, -(v_sigma * (ca * dx + cb * dy)))
+            v_my = radd(v_my, -(v_sigma * (cb * dx + cc * dy)))
+            v_a = radd(v_a, _HALF * v_sigma * dx * dx)
+            v_b = radd(v_b, v_sigma * dx * dy)
+            v_c = radd(v_c, _HALF * v_sigma * dy * dy)
+    out_row[0], out_row[1], out_row[2], out_row[3], out_row[4] = v_mx, v_my, v_a, v_b, v_c
+    out_row[5], out_row[6], out_row[7], out_row[8], out_row[9] = v_op, v_f0, v_f1, v_f2, v_f3
 
 
 def composite_backward(
@@ -324,13 +361,13 @@ def composite_backward(
 
     Args:
         (as the forward), plus ``trans`` and ``last`` from the forward, and the
-        cotangents ``v_feat`` [H, W, C] and ``v_trans`` [H, W].
+        cotangents ``v_feat`` [H, W, 4] and ``v_trans`` [H, W].
 
     Returns:
         One gradient row per intersection, aligned with ``lists``:
-        (d mean x, d mean y, d conic a, b, c, d opacity, d feature 0..C-1). [n_isect, 6 + C]
+        (d mean x, d mean y, d conic a, b, c, d opacity, d feature 0..3). [n_isect, 6 + 4]
     """
-    out = np.zeros((lists.shape[0], GRAD_COLS + features.shape[1]), means2d.dtype)
+    out = np.zeros((lists.shape[0], GRAD_COLS + FEATURES), means2d.dtype)
     args = (means2d, conics, opacities, features, pixel_rect, offsets, lists, width, height, tile)
     parallel_for(_backward_tiles, offsets.shape[0] - 1, *args, trans, last, v_feat, v_trans, out,
                  chunks_per_thread=_TILE_CHUNKS)  # fmt: skip
@@ -358,32 +395,24 @@ def _backward_tiles(
     out,
 ):  # noqa: ANN001, ANN202
     tiles_x = (width + tile - 1) // tile
-    n_ch = features.shape[1]
     dtype = means2d.dtype
+    n = tile * tile
+    T = np.empty(n, dtype)  # transmittance after the current sample
+    Q = np.empty(n, dtype)  # Σ_{later j} α_j T_j (f_j·v) + T_final·v_T
+    V = np.empty((FEATURES, n), dtype)
+    lst = np.empty(n, np.int32)
+    xs, ys = np.empty(n, dtype), np.empty(n, dtype)
     for t in range(start_tile, stop_tile):
         x0, y0, x1, y1 = _tile_rect(t, tiles_x, tile, width, height)
-        npix = (x1 - x0) * (y1 - y0)
-        T = np.empty(npix, dtype)  # transmittance after the current sample
-        Q = np.empty(npix, dtype)  # Σ_{later j} α_j T_j (f_j·v) + T_final·v_T
-        V = np.empty((npix, n_ch), dtype)
-        lst = np.empty(npix, np.int32)
         kmax = _load_tile(trans, last, v_feat, v_trans, x0, y0, x1, y1, T, Q, V, lst)
-        v_f = np.empty(n_ch, dtype)
+        _pixel_centres(x0, y0, x1, y1, xs, ys)
         start = offsets[t]
         for k in range(kmax, -1, -1):
             g = lists[start + k]
-            v_mx, v_my, v_a, v_b, v_c, v_op = _splat_backward(
-                g, k, means2d, conics, opacities, features, pixel_rect, x0, y0, x1, y1, T, Q, V, lst, v_f
-            )
-            r = start + k
-            out[r, 0] = v_mx
-            out[r, 1] = v_my
-            out[r, 2] = v_a
-            out[r, 3] = v_b
-            out[r, 4] = v_c
-            out[r, 5] = v_op
-            for ch in range(n_ch):
-                out[r, GRAD_COLS + ch] = v_f[ch]
+            _splat_backward(
+                g, k, means2d, conics, opacities, features, pixel_rect, x0, y0, x1, y1, xs, ys, T, Q, V, lst,
+                out[start + k],
+            )  # fmt: skip
 
 
 @nb.njit(**_JIT)

@@ -87,7 +87,7 @@ def composite(
     means2d: torch.Tensor,  # [M, 2]
     conics: torch.Tensor,  # [M, 3]
     opacities: torch.Tensor,  # [M]
-    features: torch.Tensor,  # [M, C]
+    features: torch.Tensor,  # [M, 4]
     pixel_rect: torch.Tensor,  # [M, 4] int32
     width: int,
     height: int,
@@ -100,14 +100,14 @@ def composite(
         means2d: pixel centres. [M, 2]
         conics: inverse 2D covariances (a, b, c). [M, 3]
         opacities: opacities in (0, 1). [M]
-        features: per-Gaussian values to composite (colour, depth, ...). [M, C]
+        features: per-Gaussian values to composite (colour and depth; ``_kernels.FEATURES``). [M, 4]
         pixel_rect: inclusive support rectangles, clipped to the image. [M, 4] int32
         width: image width.
         height: image height.
         tiles: precomputed :func:`bin_tiles` result for ``pixel_rect``.
 
     Returns:
-        ``(feat, trans)``: ``Σ_k f_k α_k T_k`` per pixel [H, W, C] (no background) and the
+        ``(feat, trans)``: ``Σ_k f_k α_k T_k`` per pixel [H, W, 4] (no background) and the
         final transmittance [H, W].
     """
     if tiles is None:

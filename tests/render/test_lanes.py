@@ -1,0 +1,61 @@
+"""The compositing kernels' vectorisable pieces (render/_lanes.py, the block layout of render/_kernels.py)."""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+import pytest
+import torch
+
+from macsplat_cli.render import _kernels
+from macsplat_cli.render._lanes import S_MAX, exp_neg
+from macsplat_cli.render.composite import bin_tiles
+from macsplat_cli.render.projection import project_gaussians
+
+from support.gaussians import pinhole, random_gaussians
+
+
+@nb.njit(cache=False)
+def _exp_neg_all(s, out):  # noqa: ANN001, ANN202
+    for i in range(s.shape[0]):
+        out[i] = exp_neg(s[i])
+
+
+def test_exp_neg_within_one_ulp() -> None:
+    """Every 61st float32 in [0, S_MAX] (18 M values, each binade) and the ends: within 1 ulp of exp(−s) (the bound
+    the twin comparisons in test_render.py assume; the check of all 1.1e9 values: history/render.md)."""
+    top = int(np.array(S_MAX, np.float32).view(np.int32))
+    bits = np.concatenate([np.arange(0, top, 61, dtype=np.int32), np.array([1, top - 1, top], np.int32)])
+    s = bits.view(np.float32)
+    got = np.empty_like(s)
+    _exp_neg_all(s, got)
+    want = np.exp(-s.astype(np.float64))
+    ulp = np.spacing(want.astype(np.float32)).astype(np.float64)
+    assert got[0] == 1.0 and float((np.abs(got - want) / ulp).max()) <= 1.0
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_composite_forward_does_not_depend_on_the_tile_size(dtype: torch.dtype) -> None:
+    """A pixel sees the same samples in the same order whatever the tiling, so the forward is bit-identical across
+    tile sizes: 8 (one block), 16, 24 (three) and 13 (a partial block), on an image whose edge tiles are partial."""
+    w, h = 61, 35
+    g = random_gaussians(400, seed=3, dtype=dtype)
+    proj = project_gaussians(*g.tensors(), torch.eye(4, dtype=dtype), pinhole(w, h, 0.9 * w, dtype), w, h)
+    feats = np.ascontiguousarray(torch.cat([proj.colors, proj.depths[:, None]], -1).numpy())
+    arrays = [np.ascontiguousarray(t.detach().numpy()) for t in (proj.means2d, proj.conics, proj.opacities)]
+    rect = np.ascontiguousarray(proj.pixel_rect.numpy())
+    outs = []
+    for tile in (8, 16, 24, 13):
+        tiles = bin_tiles(proj.pixel_rect, w, h, tile)
+        feat, trans, _ = _kernels.composite_forward(*arrays, feats, rect, tiles.offsets, tiles.lists, w, h, tile)
+        outs.append((feat, trans))
+    assert float(outs[0][1].min()) < 0.5, "the scene must cover the image"
+    for feat, trans in outs[1:]:
+        assert np.array_equal(feat, outs[0][0]) and np.array_equal(trans, outs[0][1])
+
+
+def test_composite_forward_refuses_other_feature_counts() -> None:
+    z = np.zeros((1, 3), np.float32)
+    with pytest.raises(ValueError, match="4 features"):
+        _kernels.composite_forward(z[:, :2], z, z[:, 0], z, np.zeros((1, 4), np.int32), np.zeros(2, np.int64),
+                                   np.zeros(0, np.int32), 4, 4, 16)  # fmt: skip
