@@ -171,10 +171,11 @@ def _alpha(x, y, mx, my, ca, cb, cc, op):  # noqa: ANN001, ANN202
 
 @nb.njit(inline="always", **_JIT)
 def _splat_forward(g, k, means2d, conics, opacities, features, pixel_rect, x0, y0, x1, y1, xs, ys, T, acc, lst,
-                   live):  # fmt: skip  # noqa: ANN001, ANN202
+                   live, blive):  # fmt: skip  # noqa: ANN001, ANN202
     """Composite Gaussian ``g`` (position ``k`` in the tile list) onto the tile's live pixels: updates the tile's
     transmittance ``T``, accumulated features ``acc`` [4, P], last-sample index ``lst`` and ``live`` (1, or 0 once
-    the pixel is done) in place. Returns whether it finished a pixel."""
+    the pixel is done) in place; skips the blocks with no live pixel left (``blive``: live pixels per block).
+    Returns whether it finished a pixel."""
     tw = x1 - x0
     th = y1 - y0
     gx0, gx1, gy0, gy1, b0, b1 = _runs(g, pixel_rect, x0, y0, x1, y1)
@@ -185,6 +186,8 @@ def _splat_forward(g, k, means2d, conics, opacities, features, pixel_rect, x0, y
     k32 = np.int32(k)
     stopped = False
     for blk in range(b0, b1):
+        if blive[blk] == 0:
+            continue
         bw = min(_BLOCK, tw - blk * _BLOCK)
         base = blk * _BLOCK * th
         # unsigned indices: Numba then emits no wrap-around of negative indices, which blocks vectorisation
@@ -207,6 +210,19 @@ def _splat_forward(g, k, means2d, conics, opacities, features, pixel_rect, x0, y
             live[p] = _ZERO if stop else lv
             stopped |= stop
     return stopped
+
+
+@nb.njit(inline="always", **_JIT)
+def _count_live(b0, b1, tw, th, live, blive):  # noqa: ANN001, ANN202
+    """Recount the live pixels of blocks ``[b0, b1)`` into ``blive``; returns the tile's total."""
+    for blk in range(b0, b1):
+        bw = min(_BLOCK, tw - blk * _BLOCK)
+        base = blk * _BLOCK * th
+        n = 0
+        for p in range(base, base + th * bw):
+            n += live[p] > _ZERO
+        blive[blk] = n
+    return blive[: (tw + _BLOCK - 1) // _BLOCK].sum()
 
 
 def composite_forward(means2d, conics, opacities, features, pixel_rect, offsets, lists, width, height, tile):  # noqa: ANN001, ANN201
@@ -255,26 +271,25 @@ def _forward_tiles(
     n = tile * tile
     T, acc, lst, live = np.empty(n, dtype), np.empty((FEATURES, n), dtype), np.empty(n, np.int32), np.empty(n, dtype)
     xs, ys = np.empty(n, dtype), np.empty(n, dtype)
+    blive = np.empty((tile + _BLOCK - 1) // _BLOCK, np.int64)
     for t in range(start_tile, stop_tile):
         x0, y0, x1, y1 = _tile_rect(t, tiles_x, tile, width, height)
         tw = x1 - x0
         th = y1 - y0
-        npix = tw * th
+        live[:] = 1.0
+        _count_live(0, (tw + _BLOCK - 1) // _BLOCK, tw, th, live, blive)
         T[:] = 1.0
         acc[:] = 0.0
         lst[:] = -1
-        live[:] = 1.0
         _pixel_centres(x0, y0, x1, y1, xs, ys)
         start = offsets[t]
         for k in range(offsets[t + 1] - start):
             g = lists[start + k]
             if _splat_forward(
-                g, k, means2d, conics, opacities, features, pixel_rect, x0, y0, x1, y1, xs, ys, T, acc, lst, live
+                g, k, means2d, conics, opacities, features, pixel_rect, x0, y0, x1, y1, xs, ys, T, acc, lst, live, blive
             ):
-                n_live = 0
-                for p in range(npix):
-                    n_live += live[p] > _ZERO
-                if n_live == 0:
+                _, _, _, _, b0, b1 = _runs(g, pixel_rect, x0, y0, x1, y1)
+                if _count_live(b0, b1, tw, th, live, blive) == 0:
                     break
         for py in range(y0, y1):
             for px in range(x0, x1):
