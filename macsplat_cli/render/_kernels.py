@@ -54,6 +54,10 @@ _TILE_CHUNKS = 8
 """Chunks of tiles per thread: tiles differ in work, so threads take small runs of them as they come free."""
 _BIN_RUNS = 2  # runs of Gaussians per thread in the binning (each run's counters cost a pass over the tiles)
 _BIN_MIN_RUN = 16384  # Gaussians: below this a run's own tile counters cost more than its share of the work
+LAZY_CAP = 1024
+"""Lazy binning (:func:`bin_tiles_lazy`) fills only the first ``LAZY_CAP`` entries of each tile list: at 1 M
+Gaussians and 1080p the forward walks ≤ 277 of a tile's 3,213 on average before its pixels are done."""
+LAZY_MEAN = 2 * LAZY_CAP  # ... when the lists are this long on average (shorter: the forward walks them whole)
 
 
 def bin_tiles(pixel_rect: np.ndarray, width: int, height: int, tile: int) -> tuple[np.ndarray, np.ndarray]:
@@ -67,6 +71,20 @@ def bin_tiles(pixel_rect: np.ndarray, width: int, height: int, tile: int) -> tup
         ``(offsets, lists)``: tile ``t`` holds ``lists[offsets[t]:offsets[t + 1]]``.
         [n_tiles + 1] int64, [n_isect] int32
     """
+    offsets, lists, _ = _bin(pixel_rect, width, height, tile, False)
+    return offsets, lists
+
+
+def bin_tiles_lazy(pixel_rect: np.ndarray, width: int, height: int, tile: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """:func:`bin_tiles`, but when the lists are long (:data:`LAZY_MEAN` on average) only the first ``cap`` =
+    :data:`LAZY_CAP` entries of each are written (the rest of ``lists`` is left unset, its pages untouched).
+
+    Returns:
+        ``(offsets, lists, cap)``; ``cap`` 0: every list in full. Walk them with ``composite_forward(…, cap)``."""
+    return _bin(pixel_rect, width, height, tile, True)
+
+
+def _bin(pixel_rect: np.ndarray, width: int, height: int, tile: int, lazy: bool) -> tuple[np.ndarray, np.ndarray, int]:
     tiles_x = (width + tile - 1) // tile
     tiles_y = (height + tile - 1) // tile
     # The Gaussians in k contiguous runs, one thread a run at a time: each run counts its own tiles' hits, then
@@ -80,8 +98,14 @@ def bin_tiles(pixel_rect: np.ndarray, width: int, height: int, tile: int) -> tup
     offsets[1:] = np.cumsum(counts.sum(0))
     cursor = offsets[None, :-1] + np.cumsum(counts, 0) - counts  # [k, n_tiles]: each run's first slot per tile
     lists = np.empty(offsets[-1], np.int32)
-    parallel_for(_fill_runs, k, pixel_rect, tile, tiles_x, cursor, lists)
-    return offsets, lists
+    cap = LAZY_CAP if lazy and offsets[-1] >= LAZY_MEAN * n_tiles else 0
+    parallel_for(_fill_runs, k, pixel_rect, tile, tiles_x, cursor, list_ends(offsets, cap), lists)
+    return offsets, lists, cap
+
+
+def list_ends(offsets: np.ndarray, cap: int) -> np.ndarray:
+    """Where each tile's written list ends: ``offsets[t] + min(length, cap)`` (``cap`` 0: the whole). [n_tiles]"""
+    return offsets[1:] if cap == 0 else offsets[:-1] + np.minimum(np.diff(offsets), cap)
 
 
 @nb.njit(inline="always", **_JIT)
@@ -102,7 +126,7 @@ def _count_runs(start, stop, pixel_rect, tile, tiles_x, counts):  # noqa: ANN001
 
 
 @nb.njit(**_JIT)
-def _fill_runs(start, stop, pixel_rect, tile, tiles_x, cursor, lists):  # noqa: ANN001, ANN202
+def _fill_runs(start, stop, pixel_rect, tile, tiles_x, cursor, ends, lists):  # noqa: ANN001, ANN202
     k = cursor.shape[0]
     for r in range(start, stop):
         g0, g1 = _run_bounds(r, k, pixel_rect.shape[0])
@@ -110,7 +134,8 @@ def _fill_runs(start, stop, pixel_rect, tile, tiles_x, cursor, lists):  # noqa: 
             for ty in range(pixel_rect[g, 2] // tile, pixel_rect[g, 3] // tile + 1):
                 for tx in range(pixel_rect[g, 0] // tile, pixel_rect[g, 1] // tile + 1):
                     t = ty * tiles_x + tx
-                    lists[cursor[r, t]] = g
+                    if cursor[r, t] < ends[t]:
+                        lists[cursor[r, t]] = g
                     cursor[r, t] += 1
 
 
@@ -225,17 +250,19 @@ def _count_live(b0, b1, tw, th, live, blive):  # noqa: ANN001, ANN202
     return blive[: (tw + _BLOCK - 1) // _BLOCK].sum()
 
 
-def composite_forward(means2d, conics, opacities, features, pixel_rect, offsets, lists, width, height, tile):  # noqa: ANN001, ANN201
+def composite_forward(means2d, conics, opacities, features, pixel_rect, offsets, lists, width, height, tile, cap=0):  # noqa: ANN001, ANN201
     """Front-to-back compositing of depth-sorted Gaussians.
 
     Args:
         means2d: [M, 2]; conics: [M, 3]; opacities: [M]; features: [M, 4] (:data:`FEATURES`)
-        pixel_rect: [M, 4] int32; offsets, lists: from :func:`bin_tiles`.
+        pixel_rect: [M, 4] int32; offsets, lists: from :func:`bin_tiles` (or :func:`bin_tiles_lazy`, with its
+        ``cap``: each tile walks at most its first ``cap`` entries).
 
     Returns:
-        ``(feat, trans, last)``: accumulated features [H, W, 4] (no background),
-        final transmittance [H, W], and per pixel the position in its tile list of the
-        last sample added (-1 if none) [H, W] int32.
+        ``(feat, trans, last, short)``: accumulated features [H, W, 4] (no background),
+        final transmittance [H, W], per pixel the position in its tile list of the
+        last sample added (-1 if none) [H, W] int32, and whether a tile reached ``cap`` with pixels not done (the
+        result is then not the full compositing: bin in full and composite again).
     """
     if features.shape[1] != FEATURES:
         raise ValueError(f"the compositing kernels take {FEATURES} features per Gaussian, not {features.shape[1]}")
@@ -243,9 +270,10 @@ def composite_forward(means2d, conics, opacities, features, pixel_rect, offsets,
     feat = np.zeros((height, width, FEATURES), dtype)
     trans = np.ones((height, width), dtype)
     last = np.full((height, width), -1, np.int32)
+    short = np.zeros(offsets.shape[0] - 1, np.bool_)
     parallel_for(_forward_tiles, offsets.shape[0] - 1, means2d, conics, opacities, features, pixel_rect, offsets,
-                 lists, width, height, tile, feat, trans, last, chunks_per_thread=_TILE_CHUNKS)  # fmt: skip
-    return feat, trans, last
+                 lists, width, height, tile, cap, feat, trans, last, short, chunks_per_thread=_TILE_CHUNKS)  # fmt: skip
+    return feat, trans, last, bool(short.any())
 
 
 @nb.njit(**_JIT)
@@ -262,9 +290,11 @@ def _forward_tiles(
     width,
     height,
     tile,
+    cap,
     feat,
     trans,
     last,
+    short,
 ):  # noqa: ANN001, ANN202
     tiles_x = (width + tile - 1) // tile
     dtype = means2d.dtype
@@ -283,14 +313,19 @@ def _forward_tiles(
         lst[:] = -1
         _pixel_centres(x0, y0, x1, y1, xs, ys)
         start = offsets[t]
-        for k in range(offsets[t + 1] - start):
+        length = offsets[t + 1] - start
+        walk = length if cap == 0 else min(length, cap)
+        done = False
+        for k in range(walk):
             g = lists[start + k]
             if _splat_forward(
                 g, k, means2d, conics, opacities, features, pixel_rect, x0, y0, x1, y1, xs, ys, T, acc, lst, live, blive
             ):
                 _, _, _, _, b0, b1 = _runs(g, pixel_rect, x0, y0, x1, y1)
                 if _count_live(b0, b1, tw, th, live, blive) == 0:
+                    done = True
                     break
+        short[t] = walk < length and not done
         for py in range(y0, y1):
             for px in range(x0, x1):
                 p = _pix(py - y0, px - x0, tw, th)
@@ -431,13 +466,14 @@ def _backward_tiles(
 
 
 @nb.njit(**_JIT)
-def sum_rows(lists, rows, out):  # noqa: ANN001, ANN201
-    """``out[lists[r]] += rows[r]`` for every intersection ``r``: :func:`composite_backward`'s rows summed per
-    Gaussian into ``out`` [M, 6 + C] (in place)."""
-    for r in range(lists.shape[0]):
-        g = lists[r]
-        for k in range(rows.shape[1]):
-            out[g, k] += rows[r, k]
+def sum_rows(offsets, ends, lists, rows, out):  # noqa: ANN001, ANN201
+    """``out[lists[r]] += rows[r]`` for every written intersection ``r`` (tile ``t``'s ``[offsets[t], ends[t])``,
+    :func:`list_ends`): :func:`composite_backward`'s rows summed per Gaussian into ``out`` [M, 6 + 4] (in place)."""
+    for t in range(ends.shape[0]):
+        for r in range(offsets[t], ends[t]):
+            g = lists[r]
+            for k in range(rows.shape[1]):
+                out[g, k] += rows[r, k]
 
 
 def compile_kernels() -> None:
@@ -451,5 +487,5 @@ def compile_kernels() -> None:
         np.zeros((1, 1), np.int32),
     )
     _count_runs(0, 0, r, 16, 1, np.zeros((1, 1), np.int64))
-    _fill_runs(0, 0, r, 16, 1, np.zeros((1, 1), np.int64), li)
-    _forward_tiles(0, 0, f2, f2, f1, f2, r, o, li, 1, 1, 16, f3, f2, last)
+    _fill_runs(0, 0, r, 16, 1, np.zeros((1, 1), np.int64), o, li)
+    _forward_tiles(0, 0, f2, f2, f1, f2, r, o, li, 1, 1, 16, 0, f3, f2, last, np.zeros(1, np.bool_))

@@ -51,7 +51,7 @@ class _Composite(torch.autograd.Function):
         tiles: Tiles,
     ):
         arrays = (_np(means2d), _np(conics), _np(opacities), _np(features), _np(pixel_rect))
-        feat, trans, last = _kernels.composite_forward(
+        feat, trans, last, _ = _kernels.composite_forward(
             *arrays, tiles.offsets, tiles.lists, tiles.width, tiles.height, tiles.tile
         )
         ctx.arrays = arrays

@@ -129,11 +129,15 @@ class _Render(torch.autograd.Function):
         w, h = size
         arrays = tuple(_np(t) for t in (means, log_scales, quats, opacity_logits, sh))
         ids, means2d, conics, opacities, features, rect = _project_kernels.project(*arrays + (cam, lim, w, h))
-        offsets, lists = _kernels.bin_tiles(rect, w, h, TILE_SIZE)
+        offsets, lists, cap = _kernels.bin_tiles_lazy(rect, w, h, TILE_SIZE)
         splats = (means2d, conics, opacities, features, rect, offsets, lists, w, h, TILE_SIZE)
-        feat, trans, last = _kernels.composite_forward(*splats)
+        feat, trans, last, short = _kernels.composite_forward(*splats, cap)
+        if short:  # a tile's first `cap` Gaussians left pixels not done: its list is needed in full
+            offsets, lists = _kernels.bin_tiles(rect, w, h, TILE_SIZE)
+            splats, cap = splats[:5] + (offsets, lists) + splats[7:], 0
+            feat, trans, last, _ = _kernels.composite_forward(*splats)
         ctx.arrays, ctx.cam, ctx.lim, ctx.ids, ctx.splats = arrays, cam, lim, ids, splats
-        ctx.trans, ctx.last, ctx.device = trans, last, means.device
+        ctx.trans, ctx.last, ctx.device, ctx.ends = trans, last, means.device, _kernels.list_ends(offsets, cap)
         outs = [torch.from_numpy(a).to(means.device) for a in (feat, trans, means2d, ids)]
         ctx.mark_non_differentiable(outs[3])
         return (*outs, lists.shape[0])
@@ -141,13 +145,13 @@ class _Render(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, v_feat, v_trans, v_means2d, _ids, _n):  # noqa: ANN001, ANN205
-        means2d, _, _, features, _, _, lists, w, h, _ = ctx.splats
+        means2d, _, _, features, _, offsets, lists, w, h, _ = ctx.splats
         dtype, m = means2d.dtype, means2d.shape[0]
         v_feat = np.zeros((h, w, 4), dtype) if v_feat is None else _np(v_feat).astype(dtype, copy=False)
         v_trans = np.zeros((h, w), dtype) if v_trans is None else _np(v_trans).astype(dtype, copy=False)
         rows = _kernels.composite_backward(*ctx.splats + (ctx.trans, ctx.last, v_feat, v_trans))
         cot = np.zeros((m, _project_kernels.COT_COLS), dtype)
-        _kernels.sum_rows(lists, rows, cot)
+        _kernels.sum_rows(offsets, ctx.ends, lists, rows, cot)
         if v_means2d is not None:
             cot[:, :2] += _np(v_means2d)
         grads = _project_kernels.project_vjp(*(ctx.ids, *ctx.arrays, ctx.cam, ctx.lim, cot))

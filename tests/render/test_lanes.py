@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from macsplat_cli.render import _kernels
+from macsplat_cli.gaussians import Gaussians
+from macsplat_cli.render import _kernels, render
 from macsplat_cli.render._lanes import S_MAX, exp_neg
 from macsplat_cli.render.composite import bin_tiles
 from macsplat_cli.render.projection import project_gaussians
@@ -47,7 +48,7 @@ def test_composite_forward_does_not_depend_on_the_tile_size(dtype: torch.dtype) 
     outs = []
     for tile in (8, 16, 24, 13):
         tiles = bin_tiles(proj.pixel_rect, w, h, tile)
-        feat, trans, _ = _kernels.composite_forward(*arrays, feats, rect, tiles.offsets, tiles.lists, w, h, tile)
+        feat, trans, _, _ = _kernels.composite_forward(*arrays, feats, rect, tiles.offsets, tiles.lists, w, h, tile)
         outs.append((feat, trans))
     assert float(outs[0][1].min()) < 0.5, "the scene must cover the image"
     for feat, trans in outs[1:]:
@@ -59,3 +60,29 @@ def test_composite_forward_refuses_other_feature_counts() -> None:
     with pytest.raises(ValueError, match="4 features"):
         _kernels.composite_forward(z[:, :2], z, z[:, 0], z, np.zeros((1, 4), np.int32), np.zeros(2, np.int64),
                                    np.zeros(0, np.int32), 4, 4, 16)  # fmt: skip
+
+
+def _render_and_grads(g: Gaussians, w: int, h: int):  # noqa: ANN202
+    params = [t.detach().clone().requires_grad_(True) for t in g.tensors()]
+    out = render(Gaussians(*params), torch.eye(4), pinhole(w, h), w, h, backend="numba")
+    loss = (out.rgb * torch.linspace(-1, 1, 3)).sum() + out.depth.mean() + out.alpha.sum()
+    return out, torch.autograd.grad(loss, params)
+
+
+@pytest.mark.parametrize(("cap", "full_again"), [(900, False), (4, True)])
+def test_lazy_binning_renders_as_the_full_lists(monkeypatch: pytest.MonkeyPatch, cap: int, full_again: bool) -> None:
+    """Lists capped at ``cap`` entries (1,500 opaque Gaussians, 470–1,200 a tile; every tile's pixels are done
+    within its first 730): the image and every gradient bit-identical to the full lists'; a cap that leaves pixels
+    not done (4) bins and composites again in full."""
+    g = random_gaussians(1500, seed=7, scale_range=(0.08, 0.3), opacity_logit_range=(3.0, 8.0))
+    want, want_grads = _render_and_grads(g, 40, 32)
+    assert float(want.alpha.detach().min()) > 0.99, "every pixel must be done"
+    monkeypatch.setattr(_kernels, "LAZY_CAP", cap)
+    monkeypatch.setattr(_kernels, "LAZY_MEAN", 8)
+    full_bins = []
+    monkeypatch.setattr(_kernels, "bin_tiles", lambda *a: full_bins.append(1) or _kernels._bin(*a, False)[:2])
+    got, grads = _render_and_grads(g, 40, 32)
+    assert bool(full_bins) == full_again
+    assert got.n_intersections == want.n_intersections
+    for a, b in zip((got.rgb, got.depth, got.alpha, *grads), (want.rgb, want.depth, want.alpha, *want_grads)):
+        assert torch.equal(a, b)
