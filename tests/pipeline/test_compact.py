@@ -353,3 +353,27 @@ def test_tiles_keep_every_gaussian_a_camera_sees(pair: Pair) -> None:
         assert not (inside & ~chosen).any()
         culled += int((~chosen).sum())
     assert culled > 0
+
+
+def test_dedup_tries_the_view_that_takes_most_first(pair: Pair, monkeypatch: pytest.MonkeyPatch) -> None:
+    from macsplat_cli.pipeline.compact import dedup as dedup_module
+    from macsplat_cli.pipeline.compact.state import ViewState, view_states
+
+    # view 0 keeps only its left fifth alive; views 1 and 2 are the same photo: view 2 belongs to view 1
+    maps, cams = [pair.maps[0], pair.maps[1], pair.maps[1]], [pair.cameras[0], pair.cameras[1], pair.cameras[1]]
+    views = view_states(maps, cams, None)
+    views[0].alive[..., W // 5 :] = False
+    projected = [0]
+    real = ViewState.project
+
+    def counting(self: ViewState, points: torch.Tensor):  # noqa: ANN202
+        projected[0] += len(points)
+        return real(self, points)
+
+    monkeypatch.setattr(ViewState, "project", counting)
+    n2 = int(views[2].alive.sum())
+    dedup_module.dedup(views, _only(dedup=True))
+    assert int(views[2].alive.sum()) < 0.05 * n2  # merged, into view 1 where it is alive
+    # view 1 into view 0 (all of it), then view 2 into view 1 (all of it) and the few left into view 0; in photo order
+    # view 2 went through view 0 first, where almost nothing merges: ~3 views' worth
+    assert projected[0] < 2.3 * W * H

@@ -68,8 +68,8 @@ class ShortlistConfig:
             SIFT (off for RootSIFT, which would get a 4th root).
     """
 
-    all_pairs_max: int = 12
-    similar: int = 5
+    all_pairs_max: int = 6
+    similar: int = 3
     sequence_neighbours: int = 2
     vocabulary: int = 32
     sample: int = 20000

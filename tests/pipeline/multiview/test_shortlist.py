@@ -21,7 +21,7 @@ from macsplat_cli.pipeline.multiview.shortlist import (
 from macsplat_cli.pipeline.types import Features
 
 D = 128
-GROUPS, PER_GROUP = 3, 6  # 18 photos > all_pairs_max (12): retrieval decides
+GROUPS, PER_GROUP = 3, 6  # 18 photos > all_pairs_max (6): retrieval decides
 U32 = 2.0**-24  # float32 unit roundoff
 
 
@@ -68,7 +68,7 @@ def _group(i: int) -> int:
     return i // PER_GROUP
 
 
-@pytest.mark.parametrize("n", [0, 1, 2, 5, 12])
+@pytest.mark.parametrize("n", [0, 1, 2, 5, 6])
 def test_up_to_all_pairs_max_every_pair_is_matched_without_features(n: int) -> None:
     assert select_pairs(n, None, ShortlistConfig()) == list(combinations(range(n), 2))
 
@@ -78,6 +78,16 @@ def test_all_pairs_max_is_the_switch() -> None:
     n = len(feats)
     assert select_pairs(n, feats, ShortlistConfig(all_pairs_max=n)) == list(combinations(range(n), 2))
     assert len(select_pairs(n, feats, ShortlistConfig(all_pairs_max=n - 1))) < n * (n - 1) // 2
+
+
+def test_the_default_pairs_stay_within_five_per_photo() -> None:
+    """At most 5 two-view searches per photo at any N (each ~0.2 s): every pair up to 12 photos was 66 pairs at 12,
+    5.5 per photo (benchmarks/history/multiview_scaling.md)."""
+    cfg = ShortlistConfig()
+    feats = _scene()
+    for n in range(2, len(feats) + 1):
+        pairs = select_pairs(n, feats[:n] if n > cfg.all_pairs_max else None, cfg)
+        assert len(pairs) <= 5 * n, n
 
 
 def test_beyond_all_pairs_max_features_are_required() -> None:
