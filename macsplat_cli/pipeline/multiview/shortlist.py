@@ -68,7 +68,7 @@ class ShortlistConfig:
             SIFT (off for RootSIFT, which would get a 4th root).
     """
 
-    all_pairs_max: int = 6
+    all_pairs_max: int = 8
     similar: int = 3
     sequence_neighbours: int = 2
     vocabulary: int = 32

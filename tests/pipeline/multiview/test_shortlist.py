@@ -21,7 +21,7 @@ from macsplat_cli.pipeline.multiview.shortlist import (
 from macsplat_cli.pipeline.types import Features
 
 D = 128
-GROUPS, PER_GROUP = 3, 6  # 18 photos > all_pairs_max (6): retrieval decides
+GROUPS, PER_GROUP = 3, 6  # 18 photos > all_pairs_max (8): retrieval decides
 U32 = 2.0**-24  # float32 unit roundoff
 
 
@@ -68,7 +68,7 @@ def _group(i: int) -> int:
     return i // PER_GROUP
 
 
-@pytest.mark.parametrize("n", [0, 1, 2, 5, 6])
+@pytest.mark.parametrize("n", [0, 1, 2, 5, 8])
 def test_up_to_all_pairs_max_every_pair_is_matched_without_features(n: int) -> None:
     assert select_pairs(n, None, ShortlistConfig()) == list(combinations(range(n), 2))
 
