@@ -91,7 +91,7 @@ def _jacobian(x, y, inv_z, cam, lim):  # noqa: ANN001, ANN202
     return fx * inv_z, skew * inv_z, -(fx * u + skew * v) * inv_z, fy * inv_z, -fy * v * inv_z, u, v, u_in, v_in
 
 
-@nb.njit(**_JIT)
+@nb.njit(inline="always", **_JIT)
 def _cov_factor(g, log_scales, quats, cam, log_cap, J, Rq, W, s, M2):  # noqa: ANN001, ANN202
     """``M2 = J R Rq diag(s)`` [2, 3] (``cov2d = M2 M2ᵀ``) into ``M2``, with ``Rq``, ``W = R Rq`` and the capped
     scales ``s`` [3] on the way (all in place); returns the quaternion's ``2 / |q|²``."""
@@ -200,7 +200,7 @@ def project_range(start, stop, means, log_scales, quats, opacity_logits, sh, cam
             colors[g, ch] = max(acc + 0.5, 0.0)
 
 
-@nb.njit(**_JIT)
+@nb.njit(inline="always", **_JIT)
 def _conic_vjp(M2, eps2d, vA, vB, vC, vM2):  # noqa: ANN001, ANN202
     """Cotangent of ``M2`` [2, 3] into ``vM2`` from the conic's ``(vA, vB, vC)`` (in place)."""
     a, b, c, det = _conic(M2, eps2d)
@@ -224,7 +224,7 @@ def _conic_vjp(M2, eps2d, vA, vB, vC, vM2):  # noqa: ANN001, ANN202
     vM2[1, 2] += vm02 * r00 + vm12 * r01
 
 
-@nb.njit(**_JIT)
+@nb.njit(inline="always", **_JIT)
 def _quat_vjp(qw, qx, qy, qz, sq, G):  # noqa: ANN001, ANN202
     """Cotangent ``(v_w, v_x, v_y, v_z)`` of a quaternion from that of its rotation ``G`` [3, 3] (zero for the
     identity fallback ``s = 0``)."""
@@ -244,7 +244,7 @@ def _quat_vjp(qw, qx, qy, qz, sq, G):  # noqa: ANN001, ANN202
     return vw + 2.0 * qw * v_n2, vx + 2.0 * qx * v_n2, vy + 2.0 * qy * v_n2, vz + 2.0 * qz * v_n2
 
 
-@nb.njit(**_JIT)
+@nb.njit(inline="always", **_JIT)
 def _color_vjp(g, i, means, sh, cam, cot, d, basis, dbasis, v_sh):  # noqa: ANN001, ANN202
     """The colour's cotangents (row ``i`` of ``cot``, columns 6–8) into ``v_sh[g]`` (in place); returns their share
     of the mean's cotangent, through the view direction (zero for degree 0, where ``d`` stays zero)."""
@@ -271,7 +271,7 @@ def _color_vjp(g, i, means, sh, cam, cot, d, basis, dbasis, v_sh):  # noqa: ANN0
     return (v_dir0 - d[0] * dot) / n, (v_dir1 - d[1] * dot) / n, (v_dir2 - d[2] * dot) / n
 
 
-@nb.njit(**_JIT)
+@nb.njit(inline="always", **_JIT)
 def _cov_vjp(g, log_scales, quats, cam, log_cap, sq, J, W, s, vM2, G, v_log_scales, v_quats):  # noqa: ANN001, ANN202
     """Through ``M2 = J W diag(s)``: the cotangents of the scales (into ``v_log_scales[g]``, none past the cap)
     and of the quaternion (into ``v_quats[g]``); returns the Jacobian's ``(vJ00, vJ01, vJ02, vJ11, vJ12)``."""
