@@ -31,6 +31,9 @@ _JIT: JitOptions = {"cache": True, "nogil": True, "fastmath": False, "error_mode
 _BBOX_MARGIN = 1e-2  # as projection._BBOX_MARGIN
 _LOG_255 = math.log(255.0)
 _CHUNKS = 4
+REC_COLS = 16
+"""Columns of :func:`project_range`'s per-Gaussian record: mean 2D (2), conic (3), opacity (1), colour (3), depth
+(1), rectangle (4), padding (2): 64 bytes in float32, one cache line for the gather that reads it in depth order."""
 COT_COLS = 10
 """Columns of the backward's cotangent rows: mean 2D (2), conic (3), opacity (1), colour (3), depth (1); the
 compositor's gradient rows (``_kernels.GRAD_COLS`` + the features r, g, b, z) as they are."""
@@ -91,7 +94,7 @@ def _jacobian(x, y, inv_z, cam, lim):  # noqa: ANN001, ANN202
     return fx * inv_z, skew * inv_z, -(fx * u + skew * v) * inv_z, fy * inv_z, -fy * v * inv_z, u, v, u_in, v_in
 
 
-@nb.njit(**_JIT)
+@nb.njit(inline="always", **_JIT)
 def _cov_factor(g, log_scales, quats, cam, log_cap, J, Rq, W, s, M2):  # noqa: ANN001, ANN202
     """``M2 = J R Rq diag(s)`` [2, 3] (``cov2d = M2 M2ᵀ``) into ``M2``, with ``Rq``, ``W = R Rq`` and the capped
     scales ``s`` [3] on the way (all in place); returns the quaternion's ``2 / |q|²``."""
@@ -123,8 +126,9 @@ def _conic(M2, eps2d):  # noqa: ANN001, ANN202
 
 
 @nb.njit(**_JIT)
-def _rect(mx, my, op, a_blur, c_blur, lim, width, height, rect, i):  # noqa: ANN001, ANN202
-    """The support rectangle (alpha ≥ 1/255) of a Gaussian into ``rect[i]``; returns whether it reaches the image."""
+def _rect(mx, my, op, a_blur, c_blur, lim, width, height, rec, i):  # noqa: ANN001, ANN202
+    """The support rectangle (alpha ≥ 1/255) of a Gaussian into ``rec[i, 10:14]`` (integers below ``big`` in
+    magnitude: exact in float32); returns whether it reaches the image."""
     level = max(2.0 * (math.log(op) + _LOG_255), 0.0)
     rx = math.sqrt(level * a_blur) + _BBOX_MARGIN
     ry = math.sqrt(level * c_blur) + _BBOX_MARGIN
@@ -133,10 +137,7 @@ def _rect(mx, my, op, a_blur, c_blur, lim, width, height, rect, i):  # noqa: ANN
     x1 = min(math.floor(min(max(mx + rx - 0.5, -big), big)), width - 1.0)
     y0 = max(math.ceil(min(max(my - ry - 0.5, -big), big)), 0.0)
     y1 = min(math.floor(min(max(my + ry - 0.5, -big), big)), height - 1.0)
-    rect[i, 0] = np.int32(x0)
-    rect[i, 1] = np.int32(x1)
-    rect[i, 2] = np.int32(y0)
-    rect[i, 3] = np.int32(y1)
+    rec[i, 10], rec[i, 11], rec[i, 12], rec[i, 13] = x0, x1, y0, y1
     return x0 <= x1 and y0 <= y1 and level > 0.0
 
 
@@ -155,12 +156,12 @@ def _view_dir(g, means, cam, d):  # noqa: ANN001, ANN202
 
 @nb.njit(**_JIT)
 def project_range(start, stop, means, log_scales, quats, opacity_logits, sh, cam, zrow, lim, width, height,  # noqa: ANN001, ANN201
-                  means2d, conics, depths, opacities, colors, rect, keep):  # fmt: skip
+                  rec, depths, keep):  # fmt: skip
     """Project Gaussians ``[start, stop)``: each kept one (finite, ``near < z < far``, opacity ≥ 1/255, support on
-    the image) gets ``keep[g] = True`` and its row of ``means2d`` [N, 2], ``conics`` [N, 3], ``depths``,
-    ``opacities`` [N], ``colors`` [N, 3] and ``rect`` [N, 4]; the others only ``keep[g] = False``. The depth is
-    ``R₂·m + t₂`` in the inputs' dtype (``zrow``: ``R₂₀, R₂₁, R₂₂, t₂`` in that dtype), summed left to right as
-    the twin's float32 matmul does; every other output comes from the float64 ``z``."""
+    the image) gets ``keep[g] = True``, its depth in ``depths`` [N] and its record ``rec[g]`` [N, 16]
+    (:data:`REC_COLS`: mean 2D, conic, opacity, colour, depth, rectangle); the others only ``keep[g] = False``.
+    The depth is ``R₂·m + t₂`` in the inputs' dtype (``zrow``: ``R₂₀, R₂₁, R₂₂, t₂`` in that dtype), summed left
+    to right as the twin's float32 matmul does; every other output comes from the float64 ``z``."""
     pc, J, s, d = np.empty(3), np.empty(5), np.empty(3), np.zeros(3)  # d: zero unless SH degree > 0
     Rq, W, M2 = np.empty((3, 3)), np.empty((3, 3)), np.empty((2, 3))
     basis = np.empty(sh.shape[1])
@@ -184,12 +185,12 @@ def project_range(start, stop, means, log_scales, quats, opacity_logits, sh, cam
         _cov_factor(g, log_scales, quats, cam, math.log(z) + lim[8], J, Rq, W, s, M2)
         a, b, c, det = _conic(M2, eps2d)
         op = 1.0 / (1.0 + math.exp(-logit))
-        if not _rect(mx, my, op, a + eps2d, c + eps2d, lim, width, height, rect, g):
+        if not _rect(mx, my, op, a + eps2d, c + eps2d, lim, width, height, rec, g):
             continue
         keep[g] = True
-        means2d[g, 0], means2d[g, 1] = mx, my
-        conics[g, 0], conics[g, 1], conics[g, 2] = (c + eps2d) / det, -b / det, (a + eps2d) / det
-        depths[g], opacities[g] = zd, op
+        rec[g, 0], rec[g, 1] = mx, my
+        rec[g, 2], rec[g, 3], rec[g, 4] = (c + eps2d) / det, -b / det, (a + eps2d) / det
+        depths[g], rec[g, 5], rec[g, 9] = zd, op, zd
         if sh.shape[1] > 1:
             _view_dir(g, means, cam, d)
         sh_basis(d[0], d[1], d[2], basis)
@@ -197,10 +198,10 @@ def project_range(start, stop, means, log_scales, quats, opacity_logits, sh, cam
             acc = 0.0
             for k in range(sh.shape[1]):
                 acc += basis[k] * np.float64(sh[g, k, ch])
-            colors[g, ch] = max(acc + 0.5, 0.0)
+            rec[g, 6 + ch] = max(acc + 0.5, 0.0)
 
 
-@nb.njit(**_JIT)
+@nb.njit(inline="always", **_JIT)
 def _conic_vjp(M2, eps2d, vA, vB, vC, vM2):  # noqa: ANN001, ANN202
     """Cotangent of ``M2`` [2, 3] into ``vM2`` from the conic's ``(vA, vB, vC)`` (in place)."""
     a, b, c, det = _conic(M2, eps2d)
@@ -224,7 +225,7 @@ def _conic_vjp(M2, eps2d, vA, vB, vC, vM2):  # noqa: ANN001, ANN202
     vM2[1, 2] += vm02 * r00 + vm12 * r01
 
 
-@nb.njit(**_JIT)
+@nb.njit(inline="always", **_JIT)
 def _quat_vjp(qw, qx, qy, qz, sq, G):  # noqa: ANN001, ANN202
     """Cotangent ``(v_w, v_x, v_y, v_z)`` of a quaternion from that of its rotation ``G`` [3, 3] (zero for the
     identity fallback ``s = 0``)."""
@@ -244,7 +245,7 @@ def _quat_vjp(qw, qx, qy, qz, sq, G):  # noqa: ANN001, ANN202
     return vw + 2.0 * qw * v_n2, vx + 2.0 * qx * v_n2, vy + 2.0 * qy * v_n2, vz + 2.0 * qz * v_n2
 
 
-@nb.njit(**_JIT)
+@nb.njit(inline="always", **_JIT)
 def _color_vjp(g, i, means, sh, cam, cot, d, basis, dbasis, v_sh):  # noqa: ANN001, ANN202
     """The colour's cotangents (row ``i`` of ``cot``, columns 6–8) into ``v_sh[g]`` (in place); returns their share
     of the mean's cotangent, through the view direction (zero for degree 0, where ``d`` stays zero)."""
@@ -271,7 +272,7 @@ def _color_vjp(g, i, means, sh, cam, cot, d, basis, dbasis, v_sh):  # noqa: ANN0
     return (v_dir0 - d[0] * dot) / n, (v_dir1 - d[1] * dot) / n, (v_dir2 - d[2] * dot) / n
 
 
-@nb.njit(**_JIT)
+@nb.njit(inline="always", **_JIT)
 def _cov_vjp(g, log_scales, quats, cam, log_cap, sq, J, W, s, vM2, G, v_log_scales, v_quats):  # noqa: ANN001, ANN202
     """Through ``M2 = J W diag(s)``: the cotangents of the scales (into ``v_log_scales[g]``, none past the cap)
     and of the quaternion (into ``v_quats[g]``); returns the Jacobian's ``(vJ00, vJ01, vJ02, vJ11, vJ12)``."""
@@ -384,19 +385,17 @@ def depth_order(keep, bits):  # noqa: ANN001, ANN201
 
 
 @nb.njit(**_JIT)
-def _gather_range(start, stop, ids, means2d, conics, depths, opacities, colors, rect,  # noqa: ANN001, ANN202
-                  o_means2d, o_conics, o_opacities, o_features, o_rect):  # fmt: skip
-    """Rows ``ids[start:stop]`` of the per-Gaussian outputs into rows ``[start, stop)`` of the sorted ones (the
-    colours and depths as ``o_features`` [M, 4])."""
+def _gather_range(start, stop, ids, rec, o_means2d, o_conics, o_opacities, o_features, o_rect):  # noqa: ANN001, ANN202
+    """Records ``ids[start:stop]`` of :func:`project_range`'s ``rec`` into rows ``[start, stop)`` of the sorted
+    outputs (the colours and depths as ``o_features`` [M, 4]): one record a Gaussian, read in one cache line."""
     for i in range(start, stop):
         g = ids[i]
-        o_means2d[i, 0], o_means2d[i, 1] = means2d[g, 0], means2d[g, 1]
-        o_conics[i, 0], o_conics[i, 1], o_conics[i, 2] = conics[g, 0], conics[g, 1], conics[g, 2]
-        o_opacities[i] = opacities[g]
-        o_features[i, 0], o_features[i, 1], o_features[i, 2] = colors[g, 0], colors[g, 1], colors[g, 2]
-        o_features[i, 3] = depths[g]
+        o_means2d[i, 0], o_means2d[i, 1] = rec[g, 0], rec[g, 1]
+        o_conics[i, 0], o_conics[i, 1], o_conics[i, 2] = rec[g, 2], rec[g, 3], rec[g, 4]
+        o_opacities[i] = rec[g, 5]
         for k in range(4):
-            o_rect[i, k] = rect[g, k]
+            o_features[i, k] = rec[g, 6 + k]
+            o_rect[i, k] = np.int32(rec[g, 10 + k])
 
 
 def compile_kernels() -> None:
@@ -404,9 +403,9 @@ def compile_kernels() -> None:
     work, only the compilation, for a background thread (the backward compiles when first needed)."""
     f1, f2, f3 = np.zeros(1, np.float32), np.zeros((1, 1), np.float32), np.zeros((1, 1, 3), np.float32)
     c, i4, keep = np.zeros(20), np.zeros((1, 4), np.int32), np.zeros(1, np.bool_)
-    project_range(0, 0, f2, f2, f2, f1, f3, c, f1, c, 1, 1, f2, f2, f1, f1, f2, i4, keep)
+    project_range(0, 0, f2, f2, f2, f1, f3, c, f1, c, 1, 1, f2, f1, keep)
     depth_order(keep, f1.view(np.uint32))
-    _gather_range(0, 0, np.zeros(1, np.int64), f2, f2, f1, f1, f2, i4, f2, f2, f1, f2, i4)
+    _gather_range(0, 0, np.zeros(1, np.int64), f2, f2, f2, f1, f2, i4)
 
 
 def project(means, log_scales, quats, opacity_logits, sh, cam, lim, width, height):  # noqa: ANN001, ANN201
@@ -419,17 +418,15 @@ def project(means, log_scales, quats, opacity_logits, sh, cam, lim, width, heigh
         ``features`` [M, 4] (r, g, b, z), the compositor's input.
     """
     n, dtype = means.shape[0], means.dtype
-    full = (np.empty((n, 2), dtype), np.empty((n, 3), dtype), np.empty(n, dtype), np.empty(n, dtype),
-            np.empty((n, 3), dtype), np.empty((n, 4), np.int32))  # fmt: skip
-    keep = np.empty(n, np.bool_)
+    rec, depths, keep = np.empty((n, REC_COLS), dtype), np.empty(n, dtype), np.empty(n, np.bool_)
     zrow = np.array([cam[6], cam[7], cam[8], cam[11]], dtype)  # exact: cam holds the dtype's values
-    parallel_for(project_range, n, means, log_scales, quats, opacity_logits, sh, cam, zrow, lim, width, height, *full,
-                 keep, chunks_per_thread=_CHUNKS)  # fmt: skip
-    ids = depth_order(keep, full[2].view(np.uint32 if dtype == np.float32 else np.uint64))
+    parallel_for(project_range, n, means, log_scales, quats, opacity_logits, sh, cam, zrow, lim, width, height, rec,
+                 depths, keep, chunks_per_thread=_CHUNKS)  # fmt: skip
+    ids = depth_order(keep, depths.view(np.uint32 if dtype == np.float32 else np.uint64))
     m = ids.shape[0]
     out = (np.empty((m, 2), dtype), np.empty((m, 3), dtype), np.empty(m, dtype), np.empty((m, 4), dtype),
            np.empty((m, 4), np.int32))  # fmt: skip
-    parallel_for(_gather_range, m, ids, *full, *out)
+    parallel_for(_gather_range, m, ids, rec, *out)
     return (ids, *out)
 
 

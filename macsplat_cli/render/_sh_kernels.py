@@ -37,7 +37,7 @@ def sh_basis(x, y, z, out):  # noqa: ANN001, ANN202
         out[15] = C3[6] * x * (xx - 3.0 * yy)
 
 
-@nb.njit(**_JIT)
+@nb.njit(inline="always", **_JIT)
 def sh_basis_vjp(x, y, z, out):  # noqa: ANN001, ANN202
     """The gradients ``d basis_k / d (x, y, z)`` of :func:`sh_basis` into ``out`` [K, 3] (row 0, a constant, is not
     written)."""
