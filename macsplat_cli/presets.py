@@ -101,9 +101,10 @@ keypoints cost pose accuracy at wide baselines)."""
 MULTIVIEW_BALANCED_STEPS = 5
 """``--quality balanced`` on three photos or more: the joint refinement's steps (``--refine`` units: 8 one-photo
 steps on 4 photos, 16 on 8, :data:`~.pipeline.multiview.joint.RENDERS_PER_STEP`), after the co-visibility init and
-before a compaction without the adaptive merge (:func:`configure`). Object 4 mid / side +0.90 / +1.12 → +1.89 / +1.98
-dB over its middle pair, room 4 +1.89 / +1.91 → +2.04 / +2.14; 10 steps were no better (+1.56 / +1.79, +2.03 / +2.22)
-for twice the refinement's ~3 CPU-s (benchmarks/history/multiview_joint.md)."""
+before a compaction without the adaptive merge and the dedup (:func:`configure`). Mid / side gain over the middle pair:
+object 4 +0.90 / +1.12 → +2.09 / +2.12 dB, room 4 +1.89 / +1.91 → +2.47 / +2.43, object 8 −0.43 → +0.28 at mid, room
+8 −1.08 → −0.02; the 4-photo run 1.14–1.18× its time. 10 steps were no better (merge on: object 4 mid 21.85 → 21.79
+dB, room 4 20.38 → 20.37) for twice the refinement's ~3 CPU-s (benchmarks/history/multiview_joint.md)."""
 NEURAL_TAU = 1.0
 """τ of the neural backend's matching on ``c0·c1`` of the descriptor confidences ``exp(x)`` (MASt3R's visloc keeps
 pixels whose confidence exceeds 1.001)."""
@@ -288,8 +289,9 @@ def configure(
         matcher: ``--matcher`` (:func:`learned_search`); the neural backend has its own matches (``auto``: none).
         photos: how many photos are reconstructed: ``balanced`` on three or more refines them jointly
             (:func:`refine_steps`) after the co-visibility init, and its compaction keeps the refined Gaussians
-            unmerged (the adaptive merge took 0.3–1.5 dB of the refined 4- and 8-photo scenes: object 8 mid 21.26 →
-            19.81 dB, benchmarks/history/multiview_joint.md).
+            unmerged and leaves the dedup to that init (the adaptive merge took 0.3–1.5 dB of the refined 4- and
+            8-photo scenes, the dedup 0.2–0.6 more: object 8 mid 21.85 → 21.26 → 19.81 dB,
+            benchmarks/history/multiview_joint.md).
 
     Raises:
         InputError: an unknown quality, backend or matcher; a learned matcher with the neural backend; an override
@@ -328,8 +330,8 @@ def configure(
     steps = resolved_refine_steps(quality, o, photos)
     r = dataclasses.replace(copy.deepcopy(refine) if refine is not None else RefineConfig(), steps=steps)
     compact = compact_config(quality, budget=o.budget)
-    if quality == "balanced" and photos >= 3 and steps > 0:  # the jointly refined Gaussians are kept unmerged
-        compact = dataclasses.replace(compact, adaptive=False)
+    if quality == "balanced" and photos >= 3 and steps > 0:  # refined jointly: kept unmerged, the covis init deduped
+        compact = dataclasses.replace(compact, adaptive=False, dedup=False)
     return StageSettings(c, r, compact, neural)
 
 
