@@ -174,11 +174,12 @@ class EngineConfig:
         _check_owned(self.pipeline, self.refine)
         _check_refine(self.refine, resolved_refine_steps(self.quality, self.overrides))
 
-    def settings(self) -> StageSettings:
-        """Every stage's settings: the quality preset, the backend and the overrides applied once."""
+    def settings(self, photos: int = 2) -> StageSettings:
+        """Every stage's settings for ``photos`` photos: the quality preset, the backend and the overrides applied
+        once."""
         return configure(
             self.quality, self.backend, self.overrides, pipeline=self.pipeline, refine=self.refine,
-            precision=self.neural.precision, matcher=self.matcher,
+            precision=self.neural.precision, matcher=self.matcher, photos=photos,
         )  # fmt: skip
 
     def replace(self, **changes: Any) -> EngineConfig:
@@ -357,7 +358,7 @@ def reconstruct(
     _check_photos(images, config)
     _compile_kernels_in_background()
     models = _models_for(config, models, clock)
-    settings = config.settings()
+    settings = config.settings(photos=len(images))
     pipeline = _build_pipeline(config, settings, models)
     rec = pipeline.run(images, on_stage=on_stage)
     if config.backend == "neural":

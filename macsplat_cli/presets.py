@@ -49,6 +49,7 @@ __all__ = [
     "FAST_SIFT",
     "DEFAULT_MATCHER",
     "MATCHERS",
+    "MULTIVIEW_BALANCED_STEPS",
     "NEURAL_TAU",
     "PRECISIONS",
     "Overrides",
@@ -97,6 +98,13 @@ PRECISIONS: tuple[Precision, ...] = get_args(Precision)
 FAST_SIFT = (640, 8000)
 """``--quality fast``, classical backend: SIFT's detection size and most keypoints (the defaults: 768, 8000; fewer
 keypoints cost pose accuracy at wide baselines)."""
+MULTIVIEW_BALANCED_STEPS = 5
+"""``--quality balanced`` on three photos or more: the joint refinement's steps (``--refine`` units: 8 one-photo
+steps on 4 photos, 16 on 8, :data:`~.pipeline.multiview.joint.RENDERS_PER_STEP`), after the co-visibility init and
+before a compaction without the adaptive merge and the dedup (:func:`configure`). Mid / side gain over the middle pair:
+object 4 +0.90 / +1.12 → +2.09 / +2.12 dB, room 4 +1.89 / +1.91 → +2.47 / +2.43, object 8 −0.43 → +0.28 at mid, room
+8 −1.08 → −0.02; the 4-photo run 1.14–1.18× its time. 10 steps were no better (merge on: object 4 mid 21.85 → 21.79
+dB, room 4 20.38 → 20.37) for twice the refinement's ~3 CPU-s (benchmarks/history/multiview_joint.md)."""
 NEURAL_TAU = 1.0
 """τ of the neural backend's matching on ``c0·c1`` of the descriptor confidences ``exp(x)`` (MASt3R's visloc keeps
 pixels whose confidence exceeds 1.001)."""
@@ -233,20 +241,23 @@ def resolved_size(quality: Quality, overrides: Overrides) -> int:
     return overrides.size if overrides.size is not None else working_size(quality)
 
 
-def resolved_refine_steps(quality: Quality, overrides: Overrides) -> int:
-    """The refinement's steps: ``--refine`` where given, else the quality's (:func:`refine_steps`)."""
-    return overrides.refine if overrides.refine is not None else refine_steps(quality)
+def resolved_refine_steps(quality: Quality, overrides: Overrides, photos: int = 2) -> int:
+    """The refinement's steps: ``--refine`` where given, else the quality's for ``photos`` (:func:`refine_steps`)."""
+    return overrides.refine if overrides.refine is not None else refine_steps(quality, photos)
 
 
-def refine_steps(quality: Quality) -> int:
+def refine_steps(quality: Quality, photos: int = 2) -> int:
     """The refinement's steps when ``--refine`` is not given: ``best`` refines for
     :data:`~.pipeline.refine.AUTO_STEPS` steps (about 6–8 s a 512-px pair on two cores for +0.1 to +1.1 dB on
-    held-out views of the development pairs, ``benchmarks/history/refine.md``); ``fast`` and ``balanced`` do not
-    (it would more than double their time)."""
+    held-out views of the development pairs, ``benchmarks/history/refine.md``); ``balanced`` on three photos or more
+    for :data:`MULTIVIEW_BALANCED_STEPS` (the joint refinement); ``fast``, and ``balanced`` on two photos, do not (it
+    would more than double their time)."""
     from .pipeline.refine_config import AUTO_STEPS
 
     check_quality(quality)
-    return AUTO_STEPS if quality == "best" else 0
+    if quality == "best":
+        return AUTO_STEPS
+    return MULTIVIEW_BALANCED_STEPS if quality == "balanced" and photos >= 3 else 0
 
 
 def configure(
@@ -258,6 +269,7 @@ def configure(
     refine: RefineConfig | None = None,
     precision: Precision = "fp32",
     matcher: Matcher = DEFAULT_MATCHER,
+    photos: int = 2,
 ) -> StageSettings:
     """Every stage's settings from a preset, a backend and the user's overrides (the inputs are not modified).
 
@@ -275,6 +287,11 @@ def configure(
             ``steps`` are replaced by ``overrides.refine`` or the preset's.
         precision: the neural backend's arithmetic.
         matcher: ``--matcher`` (:func:`learned_search`); the neural backend has its own matches (``auto``: none).
+        photos: how many photos are reconstructed: ``balanced`` on three or more refines them jointly
+            (:func:`refine_steps`) after the co-visibility init, and its compaction keeps the refined Gaussians
+            unmerged and leaves the dedup to that init (the adaptive merge took 0.3–1.5 dB of the refined 4- and
+            8-photo scenes, the dedup 0.2–0.6 more: object 8 mid 21.85 → 21.26 → 19.81 dB,
+            benchmarks/history/multiview_joint.md).
 
     Raises:
         InputError: an unknown quality, backend or matcher; a learned matcher with the neural backend; an override
@@ -299,8 +316,8 @@ def configure(
             )
             c.depth = dataclasses.replace(c.depth, slanted_iters=0)
         c.search = learned_search(c.search, matcher)
-        if quality == "best":  # one Gaussian per surface point before the joint refinement (balanced: -0.09 dB)
-            c.multiview = dataclasses.replace(c.multiview, covisibility=True)
+        if quality == "best" or (quality == "balanced" and photos >= 3):  # one Gaussian per surface point before
+            c.multiview = dataclasses.replace(c.multiview, covisibility=True)  # the joint refinement
     elif backend == "neural":
         from .pipeline.neural import NeuralConfig
 
@@ -310,9 +327,12 @@ def configure(
         neural = NeuralConfig(precision=precision, fusion=fusion_policy(quality))
     else:
         assert_never(backend)
-    steps = resolved_refine_steps(quality, o)
+    steps = resolved_refine_steps(quality, o, photos)
     r = dataclasses.replace(copy.deepcopy(refine) if refine is not None else RefineConfig(), steps=steps)
-    return StageSettings(c, r, compact_config(quality, budget=o.budget), neural)
+    compact = compact_config(quality, budget=o.budget)
+    if quality == "balanced" and photos >= 3 and steps > 0:  # refined jointly: kept unmerged, the covis init deduped
+        compact = dataclasses.replace(compact, adaptive=False, dedup=False)
+    return StageSettings(c, r, compact, neural)
 
 
 def learned_search(search: PoseSearchConfig, matcher: Matcher) -> PoseSearchConfig:

@@ -366,7 +366,7 @@ def _reconstruct(
 
     profile = StageProfile(started=profile_from) if profile_from is not None else None
     with StageProgress(disabled=quiet, also=profile.event if profile else None) as progress:
-        steps = config.settings().refine.steps
+        steps = config.settings(photos=len(images)).refine.steps
         result = reconstruct(
             images,
             config,

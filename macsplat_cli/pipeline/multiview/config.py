@@ -21,8 +21,9 @@ class MultiViewConfig:
         poses: a cameras file with every photo's pose (``--poses``): no pose is estimated, the scene is in its frame.
         covisibility: one set of Gaussians for the scene: where several photos see a surface, only the best-observed
             photo's Gaussians are kept, before the refinement and the compaction (:mod:`.covis`). On with
-            ``--quality best`` (:func:`~macsplat_cli.presets.configure`); off by default: with ``balanced``'s
-            compaction dedup after it, CO3D N = 5 lost 0.09 dB (benchmarks/history/multiview_joint.md).
+            ``--quality best`` and with ``balanced``'s joint refinement (:func:`~macsplat_cli.presets.configure`);
+            off by default: without a refinement, ``balanced``'s compaction dedup after it, CO3D N = 5 lost 0.09 dB
+            (benchmarks/history/multiview_joint.md).
     """
 
     shortlist: ShortlistConfig = field(default_factory=ShortlistConfig)

@@ -211,3 +211,22 @@ def test_best_quality_turns_the_covisibility_init_on() -> None:
 
     assert configure("best", "classical").pipeline.multiview.covisibility
     assert not configure("balanced", "classical").pipeline.multiview.covisibility
+
+
+def test_balanced_refines_three_photos_or_more_jointly_and_leaves_two_photos_as_they_were() -> None:
+    """``balanced`` on N ≥ 3 photos: the co-visibility init, a short joint refinement and a compaction without the
+    adaptive merge and the dedup (issue 41 item 6); on two photos every setting stays as it was."""
+    from macsplat_cli.engine import EngineConfig
+    from macsplat_cli.presets import MULTIVIEW_BALANCED_STEPS, Overrides, configure
+
+    two, four = configure("balanced", "classical"), configure("balanced", "classical", photos=4)
+    assert (two.refine.steps, two.pipeline.multiview.covisibility, two.compact.adaptive) == (0, False, True)
+    assert configure("balanced", "classical", photos=2) == two
+    assert (four.refine.steps, four.pipeline.multiview.covisibility, four.compact.adaptive, four.compact.dedup) == (
+        MULTIVIEW_BALANCED_STEPS, True, False, False)  # fmt: skip
+    assert MULTIVIEW_BALANCED_STEPS > 0
+    assert EngineConfig().settings(photos=3).refine.steps == MULTIVIEW_BALANCED_STEPS
+    off = configure("balanced", "classical", Overrides(refine=0), photos=4)  # --refine off: nothing to keep unmerged
+    assert (off.refine.steps, off.compact.adaptive, off.compact.dedup) == (0, True, True)
+    assert configure("fast", "classical", photos=4).refine.steps == 0
+    assert configure("best", "classical", photos=4).compact == configure("best", "classical").compact
