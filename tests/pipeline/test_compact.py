@@ -377,3 +377,28 @@ def test_dedup_tries_the_view_that_takes_most_first(pair: Pair, monkeypatch: pyt
     # view 1 into view 0 (all of it), then view 2 into view 1 (all of it) and the few left into view 0; in photo order
     # view 2 went through view 0 first, where almost nothing merges: ~3 views' worth
     assert projected[0] < 2.3 * W * H
+
+
+def test_the_sh_step_compares_colours_from_the_eyes_of_many_photos() -> None:
+    """60 photos give 1,830 eyes (cameras and midpoints); 9,300 Gaussians × 1,830 eyes is past ``torch.quantile``'s
+    2²⁴ values, which stopped a 16-photo set of the orbit with an internal error: the step compares fewer Gaussians
+    instead, and still keeps a band that changes the colour across the views."""
+    from types import SimpleNamespace
+
+    from macsplat_cli.gaussians import Gaussians
+    from macsplat_cli.pipeline.compact.sh_degree import sh_degree
+
+    n, gen = 9_300, torch.Generator().manual_seed(0)
+    sh = torch.zeros(n, 4, 3)
+    sh[:, 0] = 0.5
+    sh[:, 1:] = 0.3 * torch.randn(n, 3, 3, generator=gen)
+    g = Gaussians(torch.randn(n, 3, generator=gen), torch.zeros(n, 3), torch.tensor([1.0, 0, 0, 0]).expand(n, 4),
+                  torch.zeros(n), sh)  # fmt: skip
+    angles = torch.linspace(0, 2 * math.pi, 61, dtype=torch.float64)[:-1]
+    cams = []
+    for a in angles:
+        c2w = torch.eye(4, dtype=torch.float64)
+        c2w[:3, 3] = torch.stack([5 * torch.cos(a), torch.zeros(()), 5 * torch.sin(a)])
+        cams.append(SimpleNamespace(c2w=c2w))
+    degree, why = sh_degree(g, cams, CompactConfig())  # type: ignore[arg-type]
+    assert degree == 1, why

@@ -12,6 +12,12 @@ from .state import ViewState
 
 __all__ = ["sh_degree", "sh_photo_check"]
 
+SAMPLES = 200_000
+"""Gaussians whose colours are compared (a deterministic subsample beyond it): plenty for a 95th percentile."""
+QUANTILE_MAX = 2**24
+"""The most values ``torch.quantile`` accepts; the Gaussians compared shrink so that Gaussians × eyes stays within it
+(the eyes grow as N(N + 1)/2 with N photos: 136 at 16 photos)."""
+
 
 def sh_degree(g: Gaussians, cams: list[ViewState], cfg: CompactConfig) -> tuple[int, str]:
     """The SH degree to keep, and why, from the view dependence of ``g``'s colours."""
@@ -28,12 +34,10 @@ def sh_degree(g: Gaussians, cams: list[ViewState], cfg: CompactConfig) -> tuple[
         return deg, f"bands above {deg} are exactly zero" if deg < full else "every band is used"
     centres = [c.c2w[:3, 3].to(g.dtype) for c in cams]
     eyes = centres + [0.5 * (a + b) for i, a in enumerate(centres) for b in centres[i + 1 :]]
-    sh = g.sh
-    if len(g) > 200_000:  # a deterministic subsample is enough for a percentile
-        sh = sh[:: len(g) // 200_000 + 1]
-        means = g.means[:: len(g) // 200_000 + 1]
-    else:
-        means = g.means
+    sh, means = g.sh, g.means
+    most = min(SAMPLES, QUANTILE_MAX // len(eyes))
+    if len(g) > most:  # a deterministic subsample is enough for a percentile
+        sh, means = sh[:: len(g) // most + 1], means[:: len(g) // most + 1]
     colors: dict[int, list[torch.Tensor]] = {d: [] for d in range(full + 1)}
     for e in eyes:
         dirs = F.normalize(means - e, dim=-1)
