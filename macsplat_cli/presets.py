@@ -246,6 +246,12 @@ def resolved_refine_steps(quality: Quality, overrides: Overrides, photos: int = 
     return overrides.refine if overrides.refine is not None else refine_steps(quality, photos)
 
 
+def _balanced_set(quality: Quality, photos: int) -> bool:
+    """``balanced`` on three photos or more: the co-visibility init, :data:`MULTIVIEW_BALANCED_STEPS` joint steps and
+    a compaction without the merge and the dedup (:func:`configure`)."""
+    return quality == "balanced" and photos >= 3
+
+
 def refine_steps(quality: Quality, photos: int = 2) -> int:
     """The refinement's steps when ``--refine`` is not given: ``best`` refines for
     :data:`~.pipeline.refine.AUTO_STEPS` steps (about 6–8 s a 512-px pair on two cores for +0.1 to +1.1 dB on
@@ -257,7 +263,7 @@ def refine_steps(quality: Quality, photos: int = 2) -> int:
     check_quality(quality)
     if quality == "best":
         return AUTO_STEPS
-    return MULTIVIEW_BALANCED_STEPS if quality == "balanced" and photos >= 3 else 0
+    return MULTIVIEW_BALANCED_STEPS if _balanced_set(quality, photos) else 0
 
 
 def configure(
@@ -316,7 +322,7 @@ def configure(
             )
             c.depth = dataclasses.replace(c.depth, slanted_iters=0)
         c.search = learned_search(c.search, matcher)
-        if quality == "best" or (quality == "balanced" and photos >= 3):  # one Gaussian per surface point before
+        if quality == "best" or _balanced_set(quality, photos):  # one Gaussian per surface point before
             c.multiview = dataclasses.replace(c.multiview, covisibility=True)  # the joint refinement
     elif backend == "neural":
         from .pipeline.neural import NeuralConfig
@@ -330,7 +336,7 @@ def configure(
     steps = resolved_refine_steps(quality, o, photos)
     r = dataclasses.replace(copy.deepcopy(refine) if refine is not None else RefineConfig(), steps=steps)
     compact = compact_config(quality, budget=o.budget)
-    if quality == "balanced" and photos >= 3 and steps > 0:  # refined jointly: kept unmerged, the covis init deduped
+    if _balanced_set(quality, photos) and steps > 0:  # refined jointly: kept unmerged, the covis init deduped
         compact = dataclasses.replace(compact, adaptive=False, dedup=False)
     return StageSettings(c, r, compact, neural)
 
