@@ -146,9 +146,10 @@ class EngineConfig:
     refine: RefineConfig = field(default_factory=RefineConfig)
     matcher: Matcher = DEFAULT_MATCHER
 
-    def validate(self, *, files: bool = True) -> None:
-        """Usage errors, before any work (``files=False``: the models are given, no checkpoint is needed). Only the
-        values are checked here; whether the machine has CUDA is checked when the models load (:func:`load_models`).
+    def validate(self, *, files: bool = True, photos: int = 2) -> None:
+        """Usage errors, before any work (``files=False``: the models are given, no checkpoint is needed), for a run
+        on ``photos`` photos (whether the refinement runs depends on it). Only the values are checked here; whether
+        the machine has CUDA is checked when the models load (:func:`load_models`).
 
         Raises:
             InputError: a bad device or precision; what :func:`~macsplat_cli.presets.check_choices` refuses; neural
@@ -172,7 +173,7 @@ class EngineConfig:
         if self.backend == "neural" and files and not onnx:
             _check_neural_files(n)
         _check_owned(self.pipeline, self.refine)
-        _check_refine(self.refine, resolved_refine_steps(self.quality, self.overrides))
+        _check_refine(self.refine, resolved_refine_steps(self.quality, self.overrides, photos))
 
     def settings(self, photos: int = 2) -> StageSettings:
         """Every stage's settings for ``photos`` photos: the quality preset, the backend and the overrides applied
@@ -238,9 +239,9 @@ class Models:
     load_s: float = 0.0
 
 
-def load_models(config: EngineConfig) -> Models:
-    """Load (and check) every file the configuration names; the configuration is validated first, then the
-    machine (CUDA for ``--device cuda``).
+def load_models(config: EngineConfig, photos: int = 2) -> Models:
+    """Load (and check) every file the configuration names; the configuration is validated first (for runs on
+    ``photos`` photos), then the machine (CUDA for ``--device cuda``).
 
     Raises:
         InputError: a usage error (:meth:`EngineConfig.validate`), or ``--device cuda`` where torch (or onnxruntime,
@@ -248,7 +249,7 @@ def load_models(config: EngineConfig) -> Models:
         CheckpointNotFoundError, CheckpointError, DINOv3CheckpointError, FusionCheckpointError,
         LPIPSWeightsError: a missing file, or one that does not fit.
     """
-    config.validate()
+    config.validate(photos=photos)
     _check_device(config)
     return _load_models(config)
 
@@ -292,9 +293,9 @@ def _load_models(config: EngineConfig) -> Models:
     return models
 
 
-def build_pipeline(config: EngineConfig, models: Models) -> Pipeline:
-    """The pipeline of a (validated) configuration, its stages around the loaded models."""
-    return _build_pipeline(config, config.settings(), models)
+def build_pipeline(config: EngineConfig, models: Models, photos: int = 2) -> Pipeline:
+    """The pipeline of a (validated) configuration for ``photos`` photos, its stages around the loaded models."""
+    return _build_pipeline(config, config.settings(photos=photos), models)
 
 
 def _build_pipeline(config: EngineConfig, settings: StageSettings, models: Models) -> Pipeline:
@@ -314,13 +315,13 @@ def _build_pipeline(config: EngineConfig, settings: StageSettings, models: Model
     assert_never(backend)
 
 
-def _models_for(config: EngineConfig, models: Models | None, clock: StageClock) -> Models:
-    """The given models (the configuration checked against them), or the configuration's, loaded as the
-    ``"weights"`` stage when there is something to load."""
+def _models_for(config: EngineConfig, models: Models | None, clock: StageClock, photos: int) -> Models:
+    """The given models (the configuration for ``photos`` photos checked against them), or the configuration's,
+    loaded as the ``"weights"`` stage when there is something to load."""
     if models is not None:
-        config.validate(files=False)
+        config.validate(files=False, photos=photos)
         return models
-    config.validate()
+    config.validate(photos=photos)
     _check_device(config)  # before the weights stage starts: a usage error, not a failed stage
     if config.backend == "neural" or config.refine.lpips_weights is not None:
         return clock("weights", lambda: _load_models(config))
@@ -357,7 +358,7 @@ def reconstruct(
     clock = StageClock(on_stage)  # the stages around the pipeline's (its own clock times stages 1-6)
     _check_photos(images, config)
     _compile_kernels_in_background()
-    models = _models_for(config, models, clock)
+    models = _models_for(config, models, clock, len(images))
     settings = config.settings(photos=len(images))
     pipeline = _build_pipeline(config, settings, models)
     rec = pipeline.run(images, on_stage=on_stage)

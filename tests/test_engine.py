@@ -145,6 +145,17 @@ def test_bad_settings_fail_before_any_work(pair: tuple[Path, Path, Path], change
     assert calls == []  # not even the images were read
 
 
+def test_lpips_weights_are_a_usage_error_only_where_no_refinement_runs() -> None:
+    """``balanced`` refines three photos or more by itself (:func:`~macsplat_cli.presets.refine_steps`): there the
+    LPIPS weights have a refinement to serve, on two photos they need ``--refine``."""
+    config = EngineConfig(refine=RefineConfig(lpips_weights=Path("vgg")))
+    with pytest.raises(InputError, match="--lpips-weights is used by the refinement"):
+        config.validate(photos=2)
+    config.validate(photos=3)
+    with pytest.raises(InputError, match="--lpips-weights is used by the refinement"):
+        EngineConfig(quality="fast", refine=config.refine).validate(photos=3)
+
+
 def test_models_load_once_for_many_reconstructions(
     pair: tuple[Path, Path, Path], monkeypatch: pytest.MonkeyPatch
 ) -> None:
