@@ -147,9 +147,8 @@ class EngineConfig:
     matcher: Matcher = DEFAULT_MATCHER
 
     def validate(self, *, files: bool = True, photos: int = 2) -> None:
-        """Usage errors, before any work (``files=False``: the models are given, no checkpoint is needed), for a run
-        on ``photos`` photos (whether the refinement runs depends on it). Only the values are checked here; whether
-        the machine has CUDA is checked when the models load (:func:`load_models`).
+        """Usage errors of a run on ``photos`` photos, before any work (``files=False``: the models are given, no
+        checkpoint is needed). Only values are checked; CUDA is checked when the models load (:func:`load_models`).
 
         Raises:
             InputError: a bad device or precision; what :func:`~macsplat_cli.presets.check_choices` refuses; neural
