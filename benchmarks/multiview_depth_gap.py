@@ -1,9 +1,9 @@
 """Is the N-photo depth what the refinement cannot fix? Fused depth against the truth, and a scene built from the
 true depth (issue 41, item 4).
 
-    python -m benchmarks.multiview_depth_gap                          # object and room, 4 and 8 photos, balanced
-    python -m benchmarks.multiview_depth_gap --qualities balanced,best --modes fused,gt,gt-all
-    python -m benchmarks.multiview_depth_gap --scenes icl,nyu --views 3,5 --data /work/shared/data
+    python -m benchmarks.multiview_depth_gap            # object, room; 4, 8 photos; balanced; fused, gt, gt-covis
+    python -m benchmarks.multiview_depth_gap --qualities balanced,best --modes fused,gt-covis,gt
+    python -m benchmarks.multiview_depth_gap --scenes icl,nyu --views 5,3 --modes fused --data /work/shared/data
 
 The reconstruction runs as ``benchmarks.multiview_gain`` (ray-traced orbits: object, room) or
 ``benchmarks.multiview_dev`` (ICL, NYU: their sensor / rendered depth) run it; the N-photo depth stage
@@ -11,9 +11,11 @@ The reconstruction runs as ``benchmarks.multiview_gain`` (ray-traced orbits: obj
 compared with the true depth of that photo at the working size, in our units — on the ray-traced orbits the true
 scene ray-cast through the registered camera mapped into the true world (the similarity of
 ``multiview_dev.similarity``, registered cameras against the true ones), so that depth and poses agree; on the dev
-scenes the depth file resized (nearest) and scaled. Per photo, over the pixels with both a fused and a true depth:
-the relative error ``|d - d_true| / d_true``, median and 90th percentile, the share above 5 %; "cover" is the share
-of the true depth's pixels the fused depth has, "no surface" the share of fused pixels where the truth has none.
+scenes the depth file resized (nearest) and scaled. Per photo (the table: the mean over the photos), over the pixels
+with both a fused and a true depth: the relative error ``|d - d_true| / d_true``, median and 90th percentile, the
+median signed error ("bias"), the share above 5 % over all of them, over those another registered photo sees too
+("seen": its true surface point in that photo's image at that photo's true depth) and over the others ("alone");
+"alone %" is the others' share, "cover" the share of the true depth's pixels the fused depth has.
 
 Modes (``--modes``), every one from the same registration and poses:
 
@@ -21,10 +23,13 @@ Modes (``--modes``), every one from the same registration and poses:
 * **gt**: the true depth on the fused depth's pixels, its confidence and ``measured`` kept (accuracy alone);
 * **gt-covis**: as gt, but only on the pixels another registered photo sees too (by the true depths): the most a
   depth from the co-visible neighbours could give; the fused depth elsewhere;
-* **gt-all**: the true depth on every pixel that has one, confidence 1 (accuracy and completeness).
+* **gt-all**: the true depth on every pixel that has one, confidence 1 (accuracy and completeness);
+* **gt-scale**: the fused depth times one factor per photo, the median ratio of the true depth to it (a depth
+  bias shared by every pixel, as a registration's scale or pose error would leave it, removed).
 
 Printed per scene, N, quality and mode: the depth errors (the fused depth's, every mode), the held-out PSNR by
-target group and its difference from the ``fused`` run ("Δ"), the wall seconds. Nothing is written but the
+target group and its difference from the ``fused`` run of the same invocation ("Δ"; list fused first), the wall
+seconds. Nothing is written but the
 ray-traced photos' cache and ``--json``.
 """
 
@@ -68,6 +73,8 @@ class DepthStats:
 
     median: float
     p90: float
+    bias: float
+    """The median signed relative error (fused / true − 1)."""
     off: float
     off_seen: float
     """The share > :data:`OFF` off among the pixels another photo sees too."""
@@ -93,10 +100,11 @@ def depth_stats(d: DepthMap, gt: np.ndarray, seen: np.ndarray) -> DepthStats:
     both = d.valid & (gt > 0)
     rel = np.abs(d.depth - gt) / np.where(gt > 0, gt, 1.0)
     if not both.any():
-        return DepthStats(*[math.nan] * 6, 0.0)
+        return DepthStats(*[math.nan] * 7, 0.0)
     off = rel > OFF
     share = [float(off[both & m].mean()) if (both & m).any() else math.nan for m in (seen, ~seen)]
-    return DepthStats(float(np.median(rel[both])), float(np.percentile(rel[both], 90)), float(off[both].mean()),
+    bias = float(np.median(d.depth[both] / gt[both] - 1))
+    return DepthStats(float(np.median(rel[both])), float(np.percentile(rel[both], 90)), bias, float(off[both].mean()),
                       *share, float((both & ~seen).sum() / both.sum()), float(both.sum() / (gt > 0).sum()))  # fmt: skip
 
 
@@ -127,6 +135,10 @@ def seen_elsewhere(k: int, gts: dict[int, np.ndarray], reg: Registration) -> np.
 
 def replaced(d: DepthMap, gt: np.ndarray, mode: str, seen: np.ndarray) -> DepthMap:
     """The depth the run goes on with in ``mode`` (module docstring); ``seen``: :func:`seen_elsewhere`."""
+    if mode == "gt-scale":
+        both = d.valid & (gt > 0)
+        f = float(np.median(gt[both] / d.depth[both])) if both.any() else 1.0
+        return DepthMap((d.depth * f).astype(np.float32), d.confidence, d.measured)
     if mode in ("gt", "gt-covis"):
         keep = d.valid & (gt > 0) & (seen if mode == "gt-covis" else True)
         if mode == "gt-covis":
@@ -220,7 +232,8 @@ def _stats_cells(c: Case) -> list[str]:
     def pc(attr: str) -> float:
         return 100 * float(np.nanmean([getattr(d, attr) for d in c.depth]))
 
-    return [f"{pc('median'):.2f} / {pc('p90'):.1f}", f"{pc('off'):.1f} / {pc('off_seen'):.1f} / {pc('off_alone'):.0f}",
+    return [f"{pc('median'):.2f} / {pc('p90'):.1f} / {pc('bias'):+.2f}",
+            f"{pc('off'):.1f} / {pc('off_seen'):.1f} / {pc('off_alone'):.0f}",
             f"{pc('alone'):.1f}", f"{pc('cover'):.0f}"]  # fmt: skip
 
 
@@ -234,7 +247,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     p.add_argument("--cache", type=Path, default=gain.DEFAULT_CACHE)
     p.add_argument("--json", type=Path)
     args = p.parse_args(argv)
-    print_header(["scene", "N", "quality", "mode", "rel err % med / p90",
+    print_header(["scene", "N", "quality", "mode", "rel err % med / p90 / bias",
                   "> 5 % off: all / seen / alone", "alone %", "cover %",
                   "mid PSNR (Δ)", "side PSNR (Δ)", "s"], "lllllrrrrrr")  # fmt: skip
     records = []
