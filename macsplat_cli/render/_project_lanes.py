@@ -5,7 +5,12 @@ parameter, a column a Gaussian), runs :func:`forward_lanes` or :func:`backward_l
 rows of ``Q`` back out. Rows of one array, indexed by the loop counter alone (unsigned, so that Numba emits no
 wrap-around of negative indices), are what LLVM can vectorise: the Gaussians' own arrays, read with a stride of 3
 or 4, are not (their bounds need more run-time assumptions than LLVM makes). In the loops: no branch (a cull is a
-mask, a guard a select), no call (``exp``, ``log``: ``_lanes.exp64``, ``log64``), every temporary a scalar.
+mask, a guard a select), no call left after inlining (``exp``, ``log``: ``_lanes.exp64``, ``log64``), every
+temporary a scalar, no load from an array argument (the camera and ``lim`` come in as tuples), and the numpy error
+model in every caller (Python's adds a zero-division exit to each division, which stops the vectoriser). The two
+loops are inlined by Numba into ``_project_kernels``' drivers, the small helpers by LLVM (Numba's own inlining
+copies a helper's IR per call: seconds of compilation). Numba's cache does not notice an edit here (the drivers'
+cache entries are keyed on their own file): clear ``render/__pycache__`` after one.
 
 The arithmetic is that of the plain-PyTorch twin in ``projection.py``, term for term and in the order of the scalar
 kernels these replaced (the results were bit-identical to theirs but for ``exp64``/``log64``'s ≤ 1 ulp, float64).
@@ -101,7 +106,6 @@ def forward_lanes(n, P, Q, c, lim, width, height):  # noqa: ANN001, ANN201
         ok = _finite(P[0, i]) & _finite(P[1, i]) & _finite(P[2, i]) & _finite(P[3, i]) & _finite(P[4, i])
         ok &= _finite(P[5, i]) & _finite(P[6, i]) & _finite(P[7, i]) & _finite(P[8, i]) & _finite(P[9, i])
         ok &= _finite(P[10, i]) & _finite(P[18, i]) & _finite(P[19, i]) & _finite(P[20, i])
-        # (no loop for these: an inner loop would keep LLVM from vectorising this one)
         zd, logit = P[11, i], P[10, i]
         ok &= (zd > lim[4]) & (z > lim[4]) & (zd < lim[5]) & (logit >= lim[7])
         w0, w1, w2 = _wcol(c, r00, r10, r20)
