@@ -9,9 +9,13 @@ scalar (Numba's SVML path needs an SVML-patched LLVM, which llvmlite has not shi
   ``np.exp`` (the float64 path is for the tests, not for speed).
 * :func:`radd` is ``s + x`` compiled with the ``reassoc`` flag alone: the sums over a loop's lanes (the backward's
   per-Gaussian gradients) may then be kept as 8 partial sums. Every other operation keeps IEEE order.
+* :func:`exp64` and :func:`log64` are ``exp`` and ``log`` in float64 arithmetic only, for the projection's lane
+  loops (4 float64 lanes with AVX2): within 1 ulp of the C library's (which is within ~0.5 ulp of the exact value).
 """
 
 from __future__ import annotations
+
+import math
 
 import numba as nb
 import numpy as np
@@ -19,7 +23,7 @@ from llvmlite import ir  # type: ignore[import-untyped]
 from numba import types
 from numba.extending import intrinsic, overload
 
-__all__ = ["S_MAX", "exp_neg", "radd"]
+__all__ = ["S_MAX", "exp64", "exp_neg", "log64", "radd"]
 
 S_MAX = np.float32(64.0)
 """Arguments are clamped to ``[0, S_MAX]`` by the callers (masked lanes may hold anything): exp(−64) ≈ 1.6e-28."""
@@ -79,3 +83,79 @@ def _exp_neg_impl(s):  # noqa: ANN001, ANN202
 def radd(s, x):  # noqa: ANN001, ANN201
     """``s + x``, reassociable (see the module docstring)."""
     return s + x
+
+
+@intrinsic
+def _bits(typingctx, x):  # noqa: ANN001, ANN202, ARG001
+    """The IEEE bits of a float64, as an int64."""
+
+    def codegen(context, builder, sig, args):  # noqa: ANN001, ANN202, ARG001
+        return builder.bitcast(args[0], ir.IntType(64))
+
+    return types.int64(types.float64), codegen
+
+
+@intrinsic
+def _from_bits(typingctx, i):  # noqa: ANN001, ANN202, ARG001
+    """The float64 whose IEEE bits are the int64 ``i``."""
+
+    def codegen(context, builder, sig, args):  # noqa: ANN001, ANN202, ARG001
+        return builder.bitcast(args[0], ir.DoubleType())
+
+    return types.float64(types.int64), codegen
+
+
+_SHIFT64 = 6755399441055744.0  # 1.5·2⁵²: adding it rounds to an integer kept in the low mantissa bits
+_SHIFT64_BITS = 0x4338000000000000
+_LN2_HI64 = 6.93147180369123816490e-01  # fdlibm's split of ln 2: n·HI exact for |n| < 2¹¹
+_LN2_LO64 = 1.90821492927058770002e-10
+_EXP_MIN, _EXP_MAX = -708.0, 709.0  # the normal range of exp's results (exp64 clamps its argument to it)
+_T = tuple(1.0 / math.factorial(k) for k in range(14))  # Taylor to degree 13 on |r| ≤ ln2/2: 4e-18 relative
+_LG = (6.666666666666735130e-01, 3.999999999940941908e-01, 2.857142874366239149e-01, 2.222219843214978396e-01,
+       1.818357216161805012e-01, 1.531383769920937332e-01, 1.479819860511658591e-01)  # fdlibm's log  # fmt: skip
+
+
+@nb.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
+def exp64(x):  # noqa: ANN001, ANN201
+    """``exp(x)`` (float64), the argument clamped to [−708, 709] (no subnormal or infinite results; NaN stays
+    NaN): Cody–Waite reduction by ln 2, Taylor to degree 13, 2ⁿ from the bits in two halves (n may be −1022)."""
+    x = min(max(x, _EXP_MIN), _EXP_MAX)
+    z = x * 1.4426950408889634 + _SHIFT64
+    n = z - _SHIFT64  # round(x / ln 2)
+    r = (x - n * _LN2_HI64) - n * _LN2_LO64
+    p = _T[13] * r + _T[12]
+    p = p * r + _T[11]
+    p = p * r + _T[10]
+    p = p * r + _T[9]
+    p = p * r + _T[8]
+    p = p * r + _T[7]
+    p = p * r + _T[6]
+    p = p * r + _T[5]
+    p = p * r + _T[4]
+    p = p * r + _T[3]
+    p = p * r + _T[2]
+    p = (p * r) * r + r
+    k = _bits(z) - _SHIFT64_BITS  # type: ignore[call-arg]  # n as an integer
+    h = k >> 1
+    return ((p + 1.0) * _from_bits((h + 1023) << 52)) * _from_bits((k - h + 1023) << 52)  # type: ignore[call-arg]
+
+
+@nb.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
+def log64(x):  # noqa: ANN001, ANN201
+    """``log(x)`` (float64) for ``x > 0`` (subnormals included; other arguments: unspecified): fdlibm's
+    ``__ieee754_log`` without its branches — ``x = 2ᵏ(1 + f)``, ``1 + f`` in [√2/2, √2), a degree-14 polynomial in
+    ``s = f / (2 + f)``."""
+    tiny = x < 2.2250738585072014e-308
+    x = x * 18014398509481984.0 if tiny else x  # 2⁵⁴: normal
+    bits = _bits(x)  # type: ignore[call-arg]
+    hx = bits >> 32
+    i = ((hx & 0x000FFFFF) + 0x95F64) & 0x100000  # 1 + f ≥ √2: halve it
+    k = (hx >> 20) - (1077 if tiny else 1023) + (i >> 20)
+    f = _from_bits((((hx & 0x000FFFFF) | (i ^ 0x3FF00000)) << 32) | (bits & 0xFFFFFFFF)) - 1.0  # type: ignore[call-arg]
+    dk = _from_bits(k + _SHIFT64_BITS) - _SHIFT64  # type: ignore[call-arg]  # k as a float, no conversion
+    hfsq = 0.5 * f * f
+    s = f / (2.0 + f)
+    z = s * s
+    w = z * z
+    r = z * (_LG[0] + w * (_LG[2] + w * (_LG[4] + w * _LG[6]))) + w * (_LG[1] + w * (_LG[3] + w * _LG[5]))
+    return dk * _LN2_HI64 - ((hfsq - (s * (hfsq + r) + dk * _LN2_LO64)) - f)
