@@ -48,6 +48,7 @@ LAYERS: dict[str, tuple[int, str]] = {
     "errors": (5, "the typed errors and their exit codes"),
     "_atomic": (5, "atomic file writes"),
     "_threads": (5, "the CPU kernels' threads"),
+    "_kernel_cache": (5, "the CPU kernels' on-disk cache, stamped with their imports"),
     "_limits": (5, "input size limits, safe JSON parsing"),
     "_checks": (5, "shape and value checks"),
     "_json": (5, "JSON conversion of dataclasses and arrays"),

@@ -12,7 +12,10 @@ import numba as nb
 import numpy as np
 import torch
 
+from .._kernel_cache import install as _cache_with_imports
 from .._threads import JitOptions, parallel_for
+
+_cache_with_imports()  # before the first @njit: the cache follows the sources this module imports
 
 __all__ = ["column_top2_update", "column_top2_update_reference"]
 

@@ -31,9 +31,12 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from .._kernel_cache import install as _cache_with_imports
 from .._threads import JitOptions, kernel_threads, parallel_for
 from ._lanes import S_MAX, exp_neg, radd
 from .constants import ALPHA_MAX, ALPHA_MIN, T_MIN
+
+_cache_with_imports()  # before the first @njit: the cache follows the sources this module imports
 
 GRAD_COLS = 6  # per intersection: d mean2d (2), d conic (3), d opacity (1), then d features (FEATURES)
 FEATURES = 4

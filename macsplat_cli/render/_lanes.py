@@ -23,6 +23,10 @@ from llvmlite import ir  # type: ignore[import-untyped]
 from numba import types
 from numba.extending import intrinsic, overload
 
+from .._kernel_cache import install as _cache_with_imports
+
+_cache_with_imports()  # before the first @njit: the cache follows the sources this module imports
+
 __all__ = ["S_MAX", "exp64", "exp_neg", "log64", "radd"]
 
 S_MAX = np.float32(64.0)
@@ -137,7 +141,7 @@ def exp64(x):  # noqa: ANN001, ANN201
     p = (p * r) * r + r
     k = _bits(z) - _SHIFT64_BITS  # type: ignore[call-arg]  # n as an integer
     h = k >> 1
-    return ((p + 1.0) * _from_bits((h + 1023) << 52)) * _from_bits((k - h + 1023) << 52)  # type: ignore[call-arg]
+    return ((p + 1.0) * _from_bits((h + 1023) << 52)) * _from_bits((k - h + 1023) << 52)
 
 
 @nb.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
@@ -147,12 +151,12 @@ def log64(x):  # noqa: ANN001, ANN201
     ``s = f / (2 + f)``."""
     tiny = x < 2.2250738585072014e-308
     x = x * 18014398509481984.0 if tiny else x  # 2⁵⁴: normal
-    bits = _bits(x)  # type: ignore[call-arg]
+    bits: int = _bits(x)  # type: ignore[call-arg]
     hx = bits >> 32
     i = ((hx & 0x000FFFFF) + 0x95F64) & 0x100000  # 1 + f ≥ √2: halve it
     k = (hx >> 20) - (1077 if tiny else 1023) + (i >> 20)
-    f = _from_bits((((hx & 0x000FFFFF) | (i ^ 0x3FF00000)) << 32) | (bits & 0xFFFFFFFF)) - 1.0  # type: ignore[call-arg]
-    dk = _from_bits(k + _SHIFT64_BITS) - _SHIFT64  # type: ignore[call-arg]  # k as a float, no conversion
+    f = _from_bits((((hx & 0x000FFFFF) | (i ^ 0x3FF00000)) << 32) | (bits & 0xFFFFFFFF)) - 1.0
+    dk = _from_bits(k + _SHIFT64_BITS) - _SHIFT64  # k as a float, no conversion
     hfsq = 0.5 * f * f
     s = f / (2.0 + f)
     z = s * s

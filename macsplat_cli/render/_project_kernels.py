@@ -26,9 +26,12 @@ import math
 import numba as nb
 import numpy as np
 
+from .._kernel_cache import install as _cache_with_imports
 from .._threads import JitOptions, parallel_for
 from ._project_lanes import P_ROWS, Q_ROWS, backward_lanes, forward_lanes
 from ._sh_kernels import sh_basis, sh_basis_vjp
+
+_cache_with_imports()  # before the first @njit: the cache follows the sources this module imports
 
 _JIT: JitOptions = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy"}
 _CHUNKS = 4

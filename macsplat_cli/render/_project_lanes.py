@@ -30,9 +30,12 @@ import math
 import numba as nb
 import numpy as np
 
+from .._kernel_cache import install as _cache_with_imports
 from .._threads import JitOptions
 from ..sh import C0
 from ._lanes import exp64, log64
+
+_cache_with_imports()  # before the first @njit: the cache follows the sources this module imports
 
 _JIT: JitOptions = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy"}
 _BBOX_MARGIN = 1e-2  # as projection._BBOX_MARGIN

@@ -7,8 +7,11 @@ from __future__ import annotations
 
 import numba as nb
 
+from .._kernel_cache import install as _cache_with_imports
 from .._threads import JitOptions
 from ..sh import C0, C1, C2, C3
+
+_cache_with_imports()  # before the first @njit: the cache follows the sources this module imports
 
 _JIT: JitOptions = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy"}
 

@@ -12,7 +12,10 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from ..._kernel_cache import install as _cache_with_imports
 from ..._threads import JitOptions, parallel_for
+
+_cache_with_imports()  # before the first @njit: the cache follows the sources this module imports
 
 _JIT: JitOptions = {"cache": True, "nogil": True, "error_model": "numpy"}
 _I = np.int64
