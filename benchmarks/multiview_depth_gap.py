@@ -29,14 +29,17 @@ Modes (``--modes``), every one from the same registration and poses:
 
 Printed per scene, N, quality and mode: the depth errors (the fused depth's, every mode), the held-out PSNR by
 target group and its difference from the ``fused`` run of the same invocation ("Δ"; list fused first), the wall
-seconds. Nothing is written but the
-ray-traced photos' cache and ``--json``.
+seconds; with ``--per-photo``, each photo's depth after the table, its bias over all, the measured and the filled
+pixels apart (a photo off the registered scale is off in its measured pixels; one off only in its filled pixels
+carries the fill's guess where nothing measured it). Nothing is written but the ray-traced photos' cache and
+``--json``.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import math
 import sys
 import time
@@ -83,6 +86,14 @@ class DepthStats:
     alone: float
     """The share of the fused pixels no other photo sees."""
     cover: float
+    measured: float = math.nan
+    """The share of the fused pixels whose depth a depth pair measured (the rest: the fill's guess)."""
+    bias_measured: float = math.nan
+    """The median signed relative error over the measured pixels: the photo's depth scale against the registered
+    one (a fill's guess does not move it; the fused ``bias`` is mostly the fill's where little is measured)."""
+    bias_filled: float = math.nan
+    """… over the filled pixels."""
+    name: str = ""
 
 
 @dataclass
@@ -100,12 +111,17 @@ def depth_stats(d: DepthMap, gt: np.ndarray, seen: np.ndarray) -> DepthStats:
     both = d.valid & (gt > 0)
     rel = np.abs(d.depth - gt) / np.where(gt > 0, gt, 1.0)
     if not both.any():
-        return DepthStats(*[math.nan] * 7, 0.0)
+        nan = math.nan
+        return DepthStats(nan, nan, nan, nan, nan, nan, nan, 0.0)
     off = rel > OFF
     share = [float(off[both & m].mean()) if (both & m).any() else math.nan for m in (seen, ~seen)]
-    bias = float(np.median(d.depth[both] / gt[both] - 1))
-    return DepthStats(float(np.median(rel[both])), float(np.percentile(rel[both], 90)), bias, float(off[both].mean()),
-                      *share, float((both & ~seen).sum() / both.sum()), float(both.sum() / (gt > 0).sum()))  # fmt: skip
+    measured = d.valid if d.measured is None else d.measured
+    biases = [float(np.median(d.depth[m] / gt[m] - 1)) if m.any() else math.nan
+              for m in (both, both & measured, both & ~measured)]  # fmt: skip
+    return DepthStats(float(np.median(rel[both])), float(np.percentile(rel[both], 90)), biases[0],
+                      float(off[both].mean()), share[0], share[1], float((both & ~seen).sum() / both.sum()),
+                      float(both.sum() / (gt > 0).sum()), float((both & measured).sum() / both.sum()),
+                      biases[1], biases[2])  # fmt: skip
 
 
 def seen_elsewhere(k: int, gts: dict[int, np.ndarray], reg: Registration) -> np.ndarray:
@@ -169,7 +185,7 @@ def depth_hook(truth: Truth, poses: dict[str, np.ndarray], mode: str, case: Case
         out = list(depths)
         for k in ks:
             seen = seen_elsewhere(k, gts, reg)
-            case.depth.append(depth_stats(depths[k], gts[k], seen))
+            case.depth.append(dataclasses.replace(depth_stats(depths[k], gts[k], seen), name=views[k].name))
             if mode != "fused":
                 out[k] = replaced(depths[k], gts[k], mode, seen)
         return out, pairs
@@ -237,6 +253,15 @@ def _stats_cells(c: Case) -> list[str]:
             f"{pc('alone'):.1f}", f"{pc('cover'):.0f}"]  # fmt: skip
 
 
+def per_photo_rows(record: dict) -> list[list[str]]:  # type: ignore[type-arg]
+    """One record's photos as table cells: a photo whose depth is off in all but its measured pixels carries a
+    fill's guess (nothing measured the rest), one off in its measured pixels too is off the registered scale."""
+    head = [record["scene"], str(record["n"]), record["quality"], record["mode"]]
+    return [head + [d["name"], f"{100 * d['median']:.1f}",
+                    f"{100 * d['bias']:+.1f} / {100 * d['bias_measured']:+.1f} / {100 * d['bias_filled']:+.1f}",
+                    f"{100 * d['measured']:.0f}", f"{100 * d['alone']:.0f}"] for d in record["depth"]]  # fmt: skip
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--scenes", default="object,room", help="object, room (ray-traced orbits), icl, nyu (dev data)")
@@ -246,6 +271,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     p.add_argument("--data", type=Path, default=Path("/work/shared/data"), help="the shared data folder (icl, nyu)")
     p.add_argument("--cache", type=Path, default=gain.DEFAULT_CACHE)
     p.add_argument("--json", type=Path)
+    p.add_argument("--per-photo", action="store_true", help="after the table, each photo's depth (per_photo_rows)")
     args = p.parse_args(argv)
     print_header(["scene", "N", "quality", "mode", "rel err % med / p90 / bias",
                   "> 5 % off: all / seen / alone", "alone %", "cover %",
@@ -269,6 +295,13 @@ def main(argv: Sequence[str] | None = None) -> None:
                     records.append({"scene": kind, "n": n, "quality": q, "mode": mode, "psnr": c.psnr,
                                     "depth": [d.__dict__ for d in c.depth], "seconds": c.seconds,
                                     "error": c.error})  # fmt: skip
+    if args.per_photo:
+        print()
+        print_header(["scene", "N", "quality", "mode", "photo", "rel err % med", "bias %: all / measured / filled",
+                      "measured %", "alone %"], "lllllrrrr")  # fmt: skip
+        for r in records:
+            for line in per_photo_rows(r):
+                print(row(line))
     if args.json:
         write_json(args.json, records)
     sys.exit(0)
