@@ -39,11 +39,11 @@ class CovisReport:
         return {"before": self.before, "after": self.after, "dropped": int(sum(self.before) - sum(self.after))}
 
 
-def _world(m: GaussianMaps) -> tuple[torch.Tensor, torch.Tensor]:
-    """A one-view map's means in the world frame [H·W, 3] float64 and their camera depth [H·W]."""
+def _world(m: GaussianMaps) -> torch.Tensor:
+    """A one-view map's means in the world frame. [H·W, 3] float64"""
     T = m.cam_to_world_or_identity(torch.float64)[0]
     x = m.means[0].detach().reshape(-1, 3).double()
-    return x @ T[:3, :3].T + T[:3, 3], x[:, 2]
+    return x @ T[:3, :3].T + T[:3, 3]
 
 
 def _scores(m: GaussianMaps, K: np.ndarray) -> torch.Tensor:
@@ -53,35 +53,62 @@ def _scores(m: GaussianMaps, K: np.ndarray) -> torch.Tensor:
     return op * float(0.5 * (K[0, 0] + K[1, 1])) / z
 
 
-def _beaten(
-    k: int, j: int, maps: list[GaussianMaps], Ks: list[np.ndarray], valid: list[torch.Tensor],
-    scores: list[torch.Tensor],
-) -> torch.Tensor:  # fmt: skip
-    """Map ``k``'s pixels whose surface point map ``j`` sees (a valid Gaussian within :data:`DEPTH_TOL`) with a
-    better score. [H·W] bool"""
-    Xw, _ = _world(maps[k])
-    Tj = maps[j].cam_to_world_or_identity(torch.float64)[0]
-    Xc = (Xw - Tj[:3, 3]) @ Tj[:3, :3]  # into camera j
+@dataclass
+class _Seen:
+    """What every test needs of one photo, computed once: its world points [H·W, 3], valid pixels [H·W], scores
+    [H·W], camera depths [H·W] (float64), world-to-camera rotation [3, 3] and centre [3], K [3, 3] and size."""
+
+    world: torch.Tensor
+    valid: torch.Tensor
+    score: torch.Tensor
+    z: torch.Tensor
+    R: torch.Tensor
+    c: torch.Tensor
+    K: torch.Tensor
+    size: tuple[int, int]
+
+
+def _seen(m: GaussianMaps, K: np.ndarray) -> _Seen:
+    T = m.cam_to_world_or_identity(torch.float64)[0]
+    z = m.means[0, ..., 2].detach().double().reshape(-1)
+    return _Seen(_world(m), m.valid_mask()[0].reshape(-1), _scores(m, K), z, T[:3, :3], T[:3, 3],
+                 torch.as_tensor(K, dtype=torch.float64), m.size)  # fmt: skip
+
+
+def _beaten(k: int, j: int, seen: list[_Seen], idx: torch.Tensor) -> torch.Tensor:
+    """Which of photo ``k``'s pixels ``idx`` [n] photo ``j`` sees on the same surface point (a valid Gaussian within
+    :data:`DEPTH_TOL` in depth at the pixel it projects to) with a better score. [n] bool"""
+    a, b = seen[k], seen[j]
+    Xc = (a.world[idx] - b.c) @ b.R  # into camera j
     z = Xc[:, 2]
-    Kj = torch.as_tensor(Ks[j], dtype=torch.float64)
-    u = Kj[0, 0] * Xc[:, 0] / z + Kj[0, 2]
-    v = Kj[1, 1] * Xc[:, 1] / z + Kj[1, 2]
-    hj, wj = maps[j].size
+    u = b.K[0, 0] * Xc[:, 0] / z + b.K[0, 2]
+    v = b.K[1, 1] * Xc[:, 1] / z + b.K[1, 2]
+    hj, wj = b.size
     inside = (z > 0) & torch.isfinite(u) & torch.isfinite(v) & (u >= 0) & (u < wj) & (v >= 0) & (v < hj)
     col = torch.where(inside, u, torch.zeros_like(u)).floor().long().clamp(0, wj - 1)
     row = torch.where(inside, v, torch.zeros_like(v)).floor().long().clamp(0, hj - 1)
     pix = row * wj + col
-    zj = maps[j].means[0, ..., 2].detach().double().reshape(-1)[pix]
-    same = inside & valid[j][pix] & valid[k] & ((zj - z).abs() <= DEPTH_TOL * z.abs())
-    sk, sj = scores[k], scores[j][pix]
+    same = inside & b.valid[pix] & ((b.z[pix] - z).abs() <= DEPTH_TOL * z.abs())
+    sk, sj = a.score[idx], b.score[pix]
     better = sj > sk * (1 + TIE)
     if j < k:
         better |= sj >= sk * (1 - TIE)
     return same & better
 
 
+def _nearest_first(k: int, seen: list[_Seen]) -> list[int]:
+    """The other photos, the nearest camera centre first (the likeliest to see ``k``'s surfaces)."""
+    d = [float((s.c - seen[k].c).norm()) for s in seen]
+    return sorted((j for j in range(len(seen)) if j != k), key=lambda j: (d[j], j))
+
+
 def covisibility_init(maps: list[GaussianMaps], Ks: list[np.ndarray]) -> tuple[list[GaussianMaps], CovisReport]:
     """Drop every Gaussian another photo observes better (module docstring).
+
+    A photo's Gaussians are tested against the other photos nearest camera first, and a Gaussian already dropped is
+    not tested again: a test is made against the maps as given, so the result is the same whatever the order, and
+    what a photo costs follows the Gaussians it keeps, not the photos (on the orbit most of a photo's surface goes
+    to its nearest neighbours' tests).
 
     Args:
         maps: each registered photo's pixel Gaussians (``B = 1``, its camera frame, ``cam_to_world`` set).
@@ -92,15 +119,17 @@ def covisibility_init(maps: list[GaussianMaps], Ks: list[np.ndarray]) -> tuple[l
         Every test is made against the maps as given, so the result does not depend on the photos' order
         except through ties.
     """
-    valid = [m.valid_mask()[0].reshape(-1) for m in maps]
-    scores = [_scores(m, K) for m, K in zip(maps, Ks)]
+    seen = [_seen(m, K) for m, K in zip(maps, Ks)]
     out = []
     for k, m in enumerate(maps):
-        drop = torch.zeros_like(valid[k])
-        for j in range(len(maps)):
-            if j != k:
-                drop |= _beaten(k, j, maps, Ks, valid, scores)
-        keep = (valid[k] & ~drop).reshape(1, *m.size)
-        out.append(GaussianMaps(m.means, m.log_scales, m.quats, m.opacity_logits, m.sh, keep, m.cam_to_world))
-    report = CovisReport([int(v.sum()) for v in valid], [int(o.valid_mask().sum()) for o in out])
+        idx = seen[k].valid.nonzero().squeeze(1)  # the pixels still kept
+        for j in _nearest_first(k, seen):
+            if not len(idx):
+                break
+            idx = idx[~_beaten(k, j, seen, idx)]
+        keep = torch.zeros_like(seen[k].valid)
+        keep[idx] = True
+        out.append(GaussianMaps(m.means, m.log_scales, m.quats, m.opacity_logits, m.sh, keep.reshape(1, *m.size),
+                                m.cam_to_world))  # fmt: skip
+    report = CovisReport([int(s.valid.sum()) for s in seen], [int(o.valid_mask().sum()) for o in out])
     return out, report

@@ -27,6 +27,11 @@ the loss (their target is the render itself, so neither the L2 nor the SSIM term
 each photo's held-out error when it was last rendered, and the run stops once it has not fallen by
 :data:`HOLDOUT_TOL` for :data:`HOLDOUT_PATIENCE` steps (a round of every photo at least), and reports the curve.
 
+What is optimised is each photo's valid Gaussians, packed (:mod:`.packed`: the optimiser and the gradients follow
+the Gaussians the co-visibility init kept, not the pixels), and a photo's step renders only the Gaussians that may
+fall on it (tested once, with a margin: the same image as the whole scene's), so a step's cost follows what its
+photo sees.
+
 The renders go through the fused kernel, which takes no camera gradient: camera ``j``'s update is applied to the
 Gaussians instead (``Y = Exp(−ω_j)(X − c'_j) + c_j``, rendered by the unrefined camera), the same image. Measured:
 benchmarks/history/multiview_joint.md.
@@ -55,6 +60,7 @@ from ..types import MatchSet, View
 
 if TYPE_CHECKING:
     from ..run import Reconstruction
+from .packed import Packed, centres, in_view, maps_where
 from .sh_views import view_dependent
 
 __all__ = ["JointResult", "joint_reconstruction", "joint_refine", "trusted_cameras"]
@@ -211,10 +217,11 @@ def trusted_cameras(
     return trusted
 
 
-def _moved(world0: list[Gaussians], q: torch.Tensor, c: torch.Tensor, c0: torch.Tensor) -> Gaussians:
-    """Every map's world Gaussians moved with its camera (``X = Exp(ω_k)(X0 − c_k) + c'_k``), concatenated."""
+def _moved(world0: dict[int, Gaussians], q: torch.Tensor, c: torch.Tensor, c0: torch.Tensor) -> Gaussians:
+    """Map ``k``'s world Gaussians moved with its camera (``X = Exp(ω_k)(X0 − c_k) + c'_k``), concatenated in map
+    order. ``world0``: map index → its Gaussians."""
     parts = []
-    for k, g in enumerate(world0):
+    for k, g in sorted(world0.items()):
         qk = q[k].to(g.dtype)
         R = quat_to_rotmat(qk)
         means = (g.means - c0[k].to(g.dtype)) @ R.T + c[k].to(g.dtype)
@@ -285,16 +292,21 @@ def _loss(
     which: list[int],
     mac_sets: list[_MacSet],
     cfg: RefineConfig,
+    visible: list[list[torch.Tensor | bool | None]],
+    packs: list[Packed],
 ) -> tuple[torch.Tensor, dict[int, float], dict[str, float]]:
     """One step's loss over the photos ``which`` (and the MAC loss over every matched pair), each rendered photo's
-    held-out error, and the terms."""
+    held-out error, and the terms. Photo ``k`` renders the Gaussians ``visible[k]`` alone (per map: a mask, True
+    for all, None for none: :func:`.packed.in_view`); a map it does not see gets no gradient from it. ``params``
+    are the packed leaves (``packs``: the MAC term samples their pixel maps)."""
     q, c = poses.current()
-    world0 = [m.to_gaussians() for m in params]
-    world = _moved(world0, q, c, poses.c0)
     photo = torch.zeros(())
     held: dict[int, float] = {}
     for k in which:
         p = photos[k]
+        world0 = {j: (maps_where(m, mask) if isinstance(mask, torch.Tensor) else m).to_gaussians()
+                  for j, (m, mask) in enumerate(zip(params, visible[k])) if mask is not None}  # fmt: skip
+        world = _moved(world0, q, c, poses.c0)
         seen = world if k == poses.fixed else _seen_by(world, q[k], c[k], poses.c0[k])
         h, w = p.image.shape[:2]
         rgb = render(seen, p.world_to_cam, p.K, w, h).rgb
@@ -305,7 +317,8 @@ def _loss(
     terms = {"photo": float(photo.detach())}
     if cfg.use_mac and mac_sets:
         T = poses.cam_to_world().float()
-        parts = [mac_loss(params[a], params[b], xa, xb, batch, w, T[a][None], T[b][None], cfg.mac,
+        pix = {k: packs[k].pixel_map() for k in {s[0] for s in mac_sets} | {s[1] for s in mac_sets}}
+        parts = [mac_loss(pix[a], pix[b], xa, xb, batch, w, T[a][None], T[b][None], cfg.mac,
                           check_inputs=False).loss for a, b, xa, xb, w, batch in mac_sets]  # fmt: skip
         mac = torch.stack(parts).mean()
         loss = loss + cfg.mac.weight * mac
@@ -332,21 +345,21 @@ def _schedule(n: int, per_step: int, steps: int) -> list[list[int]]:
     return out
 
 
-def _with_sh(params: list[GaussianMaps], Ks: list[np.ndarray]) -> list[GaussianMaps]:
-    """The maps as leaves to optimise, their SH at :data:`SH_DEGREE` (the higher bands zero) and trainable only where
-    :func:`~.sh_views.view_dependent` allows it (a gradient hook zeroes the rest: Adam then leaves them at 0)."""
-    allowed = view_dependent(params, Ks)
+def _with_sh(maps: list[GaussianMaps], Ks: list[np.ndarray]) -> list[Packed]:
+    """The maps' valid Gaussians as leaves to optimise (:class:`.packed.Packed`), their SH at :data:`SH_DEGREE` (the
+    higher bands zero) and trainable only where :func:`~.sh_views.view_dependent` allows it (a gradient hook zeroes
+    the rest: Adam then leaves them at 0)."""
+    allowed = view_dependent(maps, Ks)
     k = (SH_DEGREE + 1) ** 2
     out = []
-    for m, ok in zip(params, allowed):
+    for m, ok in zip(maps, allowed):
         sh = torch.nn.functional.pad(m.sh, (0, 0, 0, max(0, k - m.sh.shape[-2])))
-        g = GaussianMaps(m.means, m.log_scales, m.quats, m.opacity_logits, sh.contiguous(), m.valid, m.cam_to_world)
-        for t in g.tensors():
-            t.requires_grad_(True)
-        band = torch.ones(*ok.shape, k, 1)
-        band[..., 1:, :] = ok[..., None, None].float()
-        g.sh.register_hook(lambda grad, band=band: grad * band)
-        out.append(g)
+        p = Packed.of(GaussianMaps(m.means, m.log_scales, m.quats, m.opacity_logits, sh.contiguous(), m.valid,
+                                   m.cam_to_world))  # fmt: skip
+        band = torch.ones(1, 1, len(p.idx), k, 1)
+        band[..., 1:, :] = ok.reshape(-1)[p.idx].float()[None, None, :, None, None]
+        p.leaves.sh.register_hook(lambda grad, band=band: grad * band)
+        out.append(p)
     return out
 
 
@@ -382,7 +395,8 @@ def joint_refine(
         on_step: called after each step with the step and its loss terms.
     """
     f = config.scale
-    params = _with_sh([m.pooled(f).detach() for m in maps], [v.K / np.array([[f], [f], [1]]) for v in views])
+    packs = _with_sh([m.pooled(f).detach() for m in maps], [v.K / np.array([[f], [f], [1]]) for v in views])
+    params = [p.leaves for p in packs]
     photos = _photos(views, [v.K for v in views], cam_to_world, f)
     poses = _Poses(cam_to_world, fixed)
     trusted = trusted_cameras(list(match_sets or []), [v.K for v in views], cam_to_world, fixed, POSE_TRUST_PX * f)
@@ -395,8 +409,12 @@ def joint_refine(
         opt.param_groups[-1]["initial_lr"] = lr
     # with every pose held, the MAC term only pulls matched Gaussians onto the match rays: -0.2 dB, 0.2 s a step
     use_mac = config.use_mac and bool(poses.free.any())
-    mac_sets = _mac_sets(list(match_sets or []), params, f) if use_mac else []
+    mac_sets = _mac_sets(list(match_sets or []), [p.full for p in packs], f) if use_mac else []
     per_step = min(PHOTOS_PER_STEP, len(photos))
+    where = centres(params)
+    visible = [[True if m is not None and bool(m.all()) else m
+                for m in in_view(params, where, p.world_to_cam, p.K, p.image.shape[1], p.image.shape[0])]
+               for p in photos]  # fmt: skip
     patience = max(HOLDOUT_PATIENCE, -(-len(photos) // per_step))  # a round at least: every photo's error updated
     history: list[dict[str, float]] = []
     t0 = time.perf_counter()
@@ -405,7 +423,7 @@ def joint_refine(
     for step, which in enumerate(_schedule(len(photos), per_step, config.steps), 1):
         opt.zero_grad(set_to_none=True)
         _set_learning_rates(opt, step, config)
-        loss, held, terms = _loss(params, poses, photos, which, mac_sets, config)
+        loss, held, terms = _loss(params, poses, photos, which, mac_sets, config, visible, packs)
         loss.backward()
         opt.step()
         latest.update(held)
@@ -420,7 +438,8 @@ def joint_refine(
         T = poses.cam_to_world()
         turned = torch.rad2deg(poses.omega.norm(dim=1) * poses.free[:, 0])
     T_np = [t.numpy().copy() for t in T]
-    out = [_frozen(m, T_np[k]) for k, m in enumerate(params)]
+    with torch.no_grad():
+        out = [_frozen(p.pixel_map(), T_np[k]) for k, p in enumerate(packs)]
     seconds = time.perf_counter() - t0
     logger.debug("joint refinement: %d steps in %.1f s, held-out %.5f → %.5f", step, seconds,
                  history[0]["heldout"], history[-1]["heldout"])  # fmt: skip

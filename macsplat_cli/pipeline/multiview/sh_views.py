@@ -40,29 +40,61 @@ def _sees(X: torch.Tensor, m: GaussianMaps, K: np.ndarray) -> torch.Tensor:
     return inside & ((zm - z).abs() <= DEPTH_TOL * z.abs())
 
 
+def _widest_within(dirs: torch.Tensor, seen: torch.Tensor, cos_spread: float) -> torch.Tensor:
+    """Whether two of the photos that see a point look at it from directions at least the spread apart.
+
+    A point's farthest direction from its first seeing photo's, ``a``, bounds the widest pair: at least ``a``, at
+    most ``2a``. So ``a`` decides most points (wide if ``a`` reaches the spread, narrow if ``2a`` stays below it,
+    with a margin for the rounding), and only the rest go through every pair as before.
+
+    Args:
+        dirs: each photo's unit direction to each point. [N, n, 3] float64
+        seen: which photos see each point. [N, n] bool
+    Returns:
+        [n] bool
+    """
+    n = seen.shape[1]
+    first = seen.to(torch.uint8).argmax(0)
+    ref = dirs[first, torch.arange(n)]  # [n, 3]
+    cos_ref = torch.where(seen, (dirs * ref).sum(-1), torch.ones((), dtype=dirs.dtype)).min(0).values
+    wide = cos_ref <= cos_spread
+    half = math.cos(0.5 * math.acos(cos_spread))
+    open_ = (~wide & (cos_ref <= half + 1e-9)).nonzero().squeeze(1)  # 2a may reach the spread: every pair
+    if len(open_):
+        d, s = dirs[:, open_], seen[:, open_]
+        widest = torch.ones(len(open_), dtype=dirs.dtype)
+        for i in range(len(d)):
+            for j in range(i + 1, len(d)):
+                both = s[i] & s[j]
+                widest = torch.where(both, torch.minimum(widest, (d[i] * d[j]).sum(1)), widest)
+        wide[open_] = widest <= cos_spread
+    return wide
+
+
 def view_dependent(maps: list[GaussianMaps], Ks: list[np.ndarray]) -> list[torch.Tensor]:
-    """Per map, the Gaussians whose colour may depend on the direction (module docstring).
+    """Per map, the Gaussians whose colour may depend on the direction (module docstring). Only a map's valid
+    Gaussians are tested (the rest are never rendered), and only those :data:`MIN_VIEWS` photos see are tested for
+    the spread (:func:`_widest_within`): per map, photos × Gaussians, not photos² × pixels.
 
     Args:
         maps: each photo's Gaussians (``B = 1``, its camera frame, ``cam_to_world`` its pose).
         Ks: each map's intrinsics at the map's resolution. [3, 3]
 
     Returns:
-        Per map, [1, H, W] bool.
+        Per map, [1, H, W] bool (False at invalid pixels).
     """
     centres = [m.cam_to_world_or_identity(torch.float64)[0, :3, 3] for m in maps]
     cos_spread = math.cos(math.radians(MIN_SPREAD_DEG))
     out = []
     for k, m in enumerate(maps):
         T = m.cam_to_world_or_identity(torch.float64)[0]
-        X = m.means[0].detach().double().reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]
-        seen = [torch.ones(len(X), dtype=torch.bool) if j == k else _sees(X, mj, Ks[j]) for j, mj in enumerate(maps)]
-        dirs = [torch.nn.functional.normalize(X - c, dim=1) for c in centres]
-        count = torch.stack(seen).sum(0)
-        widest = torch.ones(len(X), dtype=torch.float64)  # the smallest cosine between two photos that see it
-        for i in range(len(maps)):
-            for j in range(i + 1, len(maps)):
-                both = seen[i] & seen[j]
-                widest = torch.where(both, torch.minimum(widest, (dirs[i] * dirs[j]).sum(1)), widest)
-        out.append(((count >= MIN_VIEWS) & (widest <= cos_spread)).reshape(1, *m.size))
+        idx = m.valid_mask()[0].reshape(-1).nonzero().squeeze(1)
+        X = m.means[0].detach().double().reshape(-1, 3)[idx] @ T[:3, :3].T + T[:3, 3]
+        seen = torch.stack([torch.ones(len(X), dtype=torch.bool) if j == k else _sees(X, mj, Ks[j])
+                            for j, mj in enumerate(maps)])  # fmt: skip
+        many = (seen.sum(0) >= MIN_VIEWS).nonzero().squeeze(1)
+        dirs = torch.stack([torch.nn.functional.normalize(X[many] - c, dim=1) for c in centres])
+        allowed = torch.zeros(m.size[0] * m.size[1], dtype=torch.bool)
+        allowed[idx[many]] = _widest_within(dirs, seen[:, many], cos_spread)
+        out.append(allowed.reshape(1, *m.size))
     return out

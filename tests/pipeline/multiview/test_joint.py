@@ -230,3 +230,105 @@ def test_balanced_refines_three_photos_or_more_jointly_and_leaves_two_photos_as_
     assert (off.refine.steps, off.compact.adaptive, off.compact.dedup) == (0, True, True)
     assert configure("fast", "classical", photos=4).refine.steps == 0
     assert configure("best", "classical", photos=4).compact == configure("best", "classical").compact
+
+
+def test_covisibility_tests_a_gaussian_only_while_it_is_kept(orbit: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A photo's Gaussians meet the other photos nearest first and one already dropped is not tested again (issue
+    40: the init's cost follows the Gaussians kept, not photos × photos × pixels); what it keeps is what testing
+    every Gaussian against every other photo keeps."""
+    from macsplat_cli.pipeline.multiview import covis
+
+    views, depths, truth = orbit
+    order = [0, 1, 0, 2]  # photo 0 twice: its repeat loses everything to it
+    maps = _maps([views[k] for k in order], [depths[k] for k in order], [truth[k] for k in order])
+    Ks = [views[k].K for k in order]
+    tested: list[int] = []
+    real = covis._beaten
+    monkeypatch.setattr(covis, "_beaten", lambda k, j, seen, idx: (tested.append(len(idx)), real(k, j, seen, idx))[1])
+    out, rep = covis.covisibility_init(maps, Ks)
+    seen = [covis._seen(m, K) for m, K in zip(maps, Ks)]
+    for k in range(4):
+        every = seen[k].valid.nonzero().squeeze(1)
+        drop = torch.zeros(len(every), dtype=torch.bool)
+        for j in range(4):
+            if j != k:
+                drop |= real(k, j, seen, every)
+        assert torch.equal(out[k].valid_mask().reshape(-1)[every], ~drop)
+    assert sum(tested) < 0.8 * 3 * sum(rep.before)
+
+
+def _all_pairs_view_dependent(maps: list, Ks: list) -> list:
+    """The definition, every photo pair for every pixel (sh_views before issue 40)."""
+    import math
+
+    from macsplat_cli.pipeline.multiview import sh_views
+
+    centres = [m.cam_to_world_or_identity(torch.float64)[0, :3, 3] for m in maps]
+    out = []
+    for k, m in enumerate(maps):
+        T = m.cam_to_world_or_identity(torch.float64)[0]
+        X = m.means[0].detach().double().reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]
+        seen = [torch.ones(len(X), dtype=torch.bool) if j == k else sh_views._sees(X, mj, Ks[j])
+                for j, mj in enumerate(maps)]  # fmt: skip
+        dirs = [torch.nn.functional.normalize(X - c, dim=1) for c in centres]
+        widest = torch.ones(len(X), dtype=torch.float64)
+        for i in range(len(maps)):
+            for j in range(i + 1, len(maps)):
+                both = seen[i] & seen[j]
+                widest = torch.where(both, torch.minimum(widest, (dirs[i] * dirs[j]).sum(1)), widest)
+        ok = (torch.stack(seen).sum(0) >= sh_views.MIN_VIEWS) & (widest <= math.cos(math.radians(
+            sh_views.MIN_SPREAD_DEG)))  # fmt: skip
+        out.append(ok.reshape(1, *m.size))
+    return out
+
+
+def test_view_dependent_tests_valid_gaussians_against_the_pairs_it_needs(orbit: tuple) -> None:
+    """SH degree 1 where 3 photos see a Gaussian from 10° apart: the same Gaussians as the all-pairs test, on the
+    valid ones only (the co-visibility init's dropped pixels are never rendered: not allowed, not tested)."""
+    from macsplat_cli.gaussians import GaussianMaps
+    from macsplat_cli.pipeline.multiview.sh_views import view_dependent
+
+    views, depths, truth = orbit
+    half = [m.pooled(2) for m in _maps(views, depths, truth)]
+    m = half[1]
+    valid = m.valid_mask().clone()
+    valid[:, H // 8 : 3 * H // 8, W // 8 : 3 * W // 8] = False  # dropped (by the co-visibility init, say)
+    half[1] = GaussianMaps(m.means, m.log_scales, m.quats, m.opacity_logits, m.sh, valid, m.cam_to_world)
+    Ks = [np.diag([0.5, 0.5, 1.0]) @ v.K for v in views]
+    got, ref = view_dependent(half, Ks), _all_pairs_view_dependent(half, Ks)
+    for g, r, m in zip(got, ref, half):
+        assert torch.equal(g, r & m.valid_mask())
+    assert any(bool((r & ~m.valid_mask()).any()) for r, m in zip(ref, half))  # the invalid ones it no longer sets
+    assert sum(int(g.sum()) for g in got) > 0
+
+
+def test_a_step_renders_what_its_photo_sees_and_the_same_image(orbit: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A fourth photo looking the other way from camera 0's centre: its map is behind the three others and theirs
+    behind it, so no step renders the whole scene (issue 40: a step's cost follows its photo's Gaussians); the
+    culled render is the whole scene's, bit for bit."""
+    from macsplat_cli.pipeline.multiview import joint
+    from macsplat_cli.render import render
+
+    views, depths, truth = orbit
+    back = truth[0].copy()
+    back[:3, :3] = truth[0][:3, :3] @ _rot(np.array([0.0, 1.0, 0.0]), 180.0)
+    vs, ds, Ts = [*views, views[1]], [*depths, depths[1]], [*truth, back]
+    maps = [m.pooled(2) for m in _maps(vs, ds, Ts)]
+    sizes = [int(m.valid_mask().sum()) for m in maps]
+    drawn: list[int] = []
+    real = joint.render
+    monkeypatch.setattr(joint, "render", lambda g, *a: (drawn.append(len(g)), real(g, *a))[1])
+    joint_refine(vs, Ts, _maps(vs, ds, Ts), RefineConfig(steps=4, scale=2))
+    assert sorted(drawn) == sorted([sum(sizes[:3])] * 3 + [sizes[3]])
+    from macsplat_cli.pipeline.multiview.packed import centres, in_view, maps_where
+
+    where = centres(maps)
+    K = torch.as_tensor(np.diag([0.5, 0.5, 1.0]) @ views[0].K, dtype=torch.float32)
+    V = torch.as_tensor(np.linalg.inv(truth[2]), dtype=torch.float32)
+    seen = in_view(maps, where, V, K, W // 2, H // 2)
+    assert seen[3] is None and all(s is not None for s in seen[:3])
+    culled = [maps_where(m, s).to_gaussians() for m, s in zip(maps, seen) if s is not None]
+    whole = [m.to_gaussians() for m in maps]
+    a = render(joint.Gaussians.cat(culled), V, K, W // 2, H // 2).rgb
+    b = render(joint.Gaussians.cat(whole), V, K, W // 2, H // 2).rgb
+    assert torch.equal(a, b)
