@@ -366,13 +366,7 @@ def _reconstruct(
 
     profile = StageProfile(started=profile_from) if profile_from is not None else None
     with StageProgress(disabled=quiet, also=profile.event if profile else None) as progress:
-        steps = config.settings(photos=len(images)).refine.steps
-        result = reconstruct(
-            images,
-            config,
-            on_stage=progress.event,
-            on_refine_step=lambda i, terms: progress.refine_step(i, steps, terms),
-        )
+        result = reconstruct(images, config, on_stage=progress.event, on_refine_step=progress.refine_step)
         written, n_written = _write_outputs(result, output, cameras, renders, num_renders, video, progress, extras)
 
     result.report.add_outputs(written, gaussians_written=n_written)

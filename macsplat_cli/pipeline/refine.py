@@ -43,7 +43,8 @@ __all__ = ["AUTO_STEPS", "RefineConfig", "RefineResult", "check_scale", "refine"
 
 logger = logging.getLogger(__name__)
 
-RefineStep = Callable[[int, dict[str, float]], None]
+RefineStep = Callable[[int, int, dict[str, float]], None]
+"""Called after each refinement step with the step (from 1), the most steps the refinement runs, and its loss terms."""
 
 SSIM_WEIGHT = 0.2
 """Weight of the D-SSIM term beside L2 (3DGS uses 0.2 with L1; first default, benchmarks/history/refine.md)."""
@@ -282,7 +283,7 @@ def refine(
         history.append(terms)
         running.append(terms["loss"])
         if on_step is not None:
-            on_step(step, terms)
+            on_step(step, cfg.steps, terms)
         if _plateaued(running, step, cfg):
             stopped_early = step < cfg.steps
             break

@@ -430,7 +430,7 @@ def joint_refine(
         terms["heldout"] = float(np.mean(list(latest.values())))
         history.append(terms)
         if on_step is not None:
-            on_step(step, terms)
+            on_step(step, config.steps, terms)
         if _stalled([h["heldout"] for h in history], step, patience):
             stopped = step < config.steps
             break

@@ -204,14 +204,18 @@ def test_given_poses_refuse_the_neural_backend(room: Orbit, tmp_path: Path) -> N
 
 
 # ------------------------------------------------------------------------------ refinement over every view
-def test_refine_over_every_registered_photo(room: Orbit, tmp_path: Path) -> None:
+def test_refine_over_every_registered_photo(room: Orbit, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from macsplat_cli.cli._common import StageProgress
+    from macsplat_cli.pipeline.multiview.joint import RENDERS_PER_STEP
+
+    shown: list[tuple[int, int]] = []  # the progress line's "step i/N"
+    monkeypatch.setattr(StageProgress, "refine_step", lambda self, i, n, terms: shown.append((i, n)))
     code, _, err = run_cli(["reconstruct", *room.photos[:3], "-o", tmp_path / "s.ply", "--intrinsics",
                             room.one_camera, "--refine", "8", "--report", tmp_path / "r.json", "-q"])  # fmt: skip
     assert code == 0, err
-    from macsplat_cli.pipeline.multiview.joint import RENDERS_PER_STEP
-
     r = json.loads((tmp_path / "r.json").read_text())["refine"]
     assert r["steps"] == math.ceil(8 * RENDERS_PER_STEP * 3)  # steps of one photo each, in turn
+    assert shown == [(i, r["max_steps"]) for i in range(1, r["steps"] + 1)]  # counted in those steps, not --refine's
     held = r["joint"]["heldout_mse"]
     assert held[-1] < held[2]  # the three photos' held-out error falls (every photo in it from step 3)
     assert r["mac"] == any(r["joint"]["poses_refined"])  # MAC over the pairs' tracks while a camera moves
