@@ -21,6 +21,7 @@ __all__ = [
     "OutputPathError",
     "PlyFormatError",
     "ReconstructionError",
+    "SameViewError",
     "ShapeError",
 ]
 
@@ -71,6 +72,10 @@ class ReconstructionError(MacsplatError):
     """Well-formed input from which no scene can be reconstructed."""
 
     exit_code = 3
+
+
+class SameViewError(ReconstructionError):
+    """The two photos show the same view: their matches have not moved (no tier's matches can change that)."""
 
 
 class DatasetError(InputError):

@@ -92,7 +92,14 @@ def _is_real(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
+_SHOWN_ITEMS = 20
+"""A plain dict, list, tuple or set with more entries than this has a repr over 60 characters (each entry takes at
+least three): :func:`_show` names its type without building the repr (a state dict's repr took seconds)."""
+
+
 def _show(v: Any) -> str:
+    if type(v) in (dict, list, tuple, set, frozenset) and len(v) > _SHOWN_ITEMS:
+        return f"a {type(v).__name__}"
     text = repr(v) if not isinstance(v, torch.Tensor) else f"a tensor of shape {list(v.shape)}"
     return text if len(text) <= 60 else f"a {type(v).__name__}"
 

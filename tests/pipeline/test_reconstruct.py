@@ -26,7 +26,7 @@ from macsplat_cli.cameras import Camera, CameraSet, load_cameras, save_cameras
 from macsplat_cli.cli import main
 from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.engine import reconstruct
-from macsplat_cli.errors import InputError, ReconstructionError
+from macsplat_cli.errors import InputError, ReconstructionError, SameViewError
 from macsplat_cli.images import save_image
 from macsplat_cli.pipeline.pose import PoseConfig
 from macsplat_cli.pipeline.run import STAGES, Pipeline, ReconstructConfig, Reconstruction, classical_stages
@@ -510,6 +510,17 @@ def test_bad_input_one_error_line_exit_code_no_files(
     assert re.search(pattern, lines[0]), lines[0]
     assert sorted(tmp_path.rglob("*")) == []  # no output, partial or temporary file
     assert sorted(p for f in bad_files.values() for p in f.parent.iterdir()) == inputs_before
+
+
+def test_same_view_stops_the_pose_search_at_the_primary_tier(bad_files: dict[str, Path]) -> None:
+    """Two photos of one view: the primary tier's matches have not moved, which no other tier's matches can change,
+    so the fallback, wide, plane tie-break and learned tiers do not run (they took ~25 s to say the same)."""
+    events: list[tuple[str, str]] = []
+    with pytest.raises(SameViewError, match="same view"):
+        reconstruct([bad_files["a"], bad_files["a"]], on_stage=lambda s, e: events.append((s, e)))
+    stages = [s for s, e in events if e == "start"]
+    assert "pose" in stages and ("pose", "fail") in events
+    assert not [s for s in stages if "(" in s], stages  # no "descriptors (fallback)", "pose (wide)", ...
 
 
 @pytest.mark.parametrize(

@@ -6,6 +6,7 @@ DINOv3 official state dicts (``official_spec``), and the set of tiny checkpoint 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 from pathlib import Path
 
@@ -24,6 +25,12 @@ TINY_ARGS = (
     "dpt_feature_dim=16, dpt_last_dim=8, local_mlp_ratio=1.0)"
 )
 DINO_TINY = DINOv3Config.preset("tiny")  # 64-d features
+SHALLOW = TINY.replace(enc_depth=1, dec_depth=2)
+"""``TINY`` with one encoder block and two in each decoder (the fewest that keep the DPT heads' three decoder hooks
+on decoder layers: ``(0, 1, 1, 2)``), for the ONNX export tests: torch.export's tracing time grows with the number
+of blocks, and the graph carries every kind of block all the same."""
+DINO_SHALLOW = dataclasses.replace(DINO_TINY, depth=1)
+"""``DINO_TINY`` with one block, beside ``SHALLOW``."""
 
 
 # ------------------------------------------------------------------------------ MASt3R: the reference key list
@@ -197,26 +204,31 @@ def random_official_state_dict(cfg: DINOv3Config, seed: int = 0) -> dict[str, to
 
 
 # ------------------------------------------------------------------------------ checkpoint files
-def write_tiny_checkpoints(root: Path) -> dict[str, Path]:
+def write_tiny_checkpoints(
+    root: Path, backbone: BackboneConfig = TINY, dino: DINOv3Config = DINO_TINY
+) -> dict[str, Path]:
     """Tiny random-weight checkpoints in the official layouts, in ``root``: MASt3R ``.pth`` (``mast3r``),
-    DINOv3 (``dino``), fusion (``fusion``), Splatt3R ``.ckpt`` (``splatt3r``), and a mismatched MASt3R (``bad``)."""
-    files = {"mast3r": save_pth(root / "mast3r_tiny.pth", random_state_dict(TINY))}
-    torch.save(random_official_state_dict(DINO_TINY, seed=1), root / "dinov3_tiny.pth")
+    DINOv3 (``dino``), fusion (``fusion``), Splatt3R ``.ckpt`` (``splatt3r``), and a mismatched MASt3R (``bad``).
+    ``backbone`` and ``dino`` other than ``TINY`` and ``DINO_TINY`` (e.g. ``SHALLOW``, ``DINO_SHALLOW``) change the
+    networks' depths; the layouts stay the official ones."""
+    args = TINY_ARGS if backbone == TINY else backbone.to_args_string()
+    files = {"mast3r": save_pth(root / "mast3r_tiny.pth", random_state_dict(backbone), args=args)}
+    torch.save(random_official_state_dict(dino, seed=1), root / "dinov3_tiny.pth")
     files["dino"] = root / "dinov3_tiny.pth"
     torch.manual_seed(0)
-    fusion = ResidualSemanticFusion(FusionConfig(desc_dim=24, dino_dim=DINO_TINY.embed_dim, hidden_dim=16))
+    fusion = ResidualSemanticFusion(FusionConfig(desc_dim=24, dino_dim=dino.embed_dim, hidden_dim=16))
     with torch.no_grad():  # as after training: a non-zero last layer, so the fusion changes the descriptors
         fusion.layers[-1].weight.normal_(0.0, 0.5)
     files["fusion"] = save_fusion(fusion, root / "fusion.pth")
     # Splatt3R: a Lightning checkpoint holding the frozen MASt3R and the Gaussian head under "encoder."
-    cfg = TINY.replace(head_type="gaussian_head", desc_conf_mode=("exp", 1.0, math.inf))
+    cfg = backbone.replace(head_type="gaussian_head", desc_conf_mode=("exp", 1.0, math.inf))
     torch.manual_seed(1)
     head = GaussianHead(cfg).state_dict()
     state = {"encoder." + k: v for k, v in {**random_state_dict(cfg), **head}.items()}
     state["lpips_criterion.scaling_layer.shift"] = torch.zeros(1, 3, 1, 1)
     torch.save({"state_dict": state, "epoch": 19, "global_step": 1200}, root / "splatt3r_tiny.ckpt")
     files["splatt3r"] = root / "splatt3r_tiny.ckpt"
-    bad = random_state_dict(TINY)
+    bad = random_state_dict(backbone)
     bad["dec_blocks.1.mlp.fc1.weight"] = torch.zeros(16, 32)
-    files["bad"] = save_pth(root / "mismatched.pth", bad, args=TINY_ARGS)
+    files["bad"] = save_pth(root / "mismatched.pth", bad, args=args)
     return files

@@ -167,6 +167,29 @@ def test_a_damaged_last_pt_is_refused_naming_the_file(data: Path, run2: Path, tm
     assert _snapshot(out) == before  # nothing written, nothing removed, no temporary file
 
 
+class _Costly:
+    """An entry whose repr is counted (a stand-in for a tensor, whose repr takes milliseconds to format)."""
+
+    calls = 0
+
+    def __repr__(self) -> str:
+        _Costly.calls += 1
+        return "c"
+
+
+def test_the_checks_messages_do_not_format_a_whole_state_dict() -> None:
+    """The checks build each message before they know whether it is needed: a state dict's repr in every message
+    took ~2 s per ``--resume`` of the tiny model (more with the full one); a container that long is named by type."""
+    from macsplat_cli.training.resume import _show
+
+    bigs = ({str(i): _Costly() for i in range(500)}, [_Costly()] * 500, tuple([_Costly()] * 500))
+    assert all(len(repr(big)) > 60 for big in bigs)  # what the full repr would have given: the type's name
+    _Costly.calls = 0
+    assert [_show(big) for big in bigs] == ["a dict", "a list", "a tuple"]
+    assert _Costly.calls == 0
+    assert _show([1, 2]) == "[1, 2]" and _show({"lr": "fast"}) == "{'lr': 'fast'}"  # short ones as before
+
+
 # ------------------------------------------------------------------------------------------------ 2. NaN best PSNR
 def _with_best(run2: Path, out: Path, best: float) -> None:
     shutil.copytree(run2, out)

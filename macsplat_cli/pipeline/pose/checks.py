@@ -10,7 +10,7 @@ import math
 import numpy as np
 import torch
 
-from ...errors import NonFiniteError, ReconstructionError
+from ...errors import NonFiniteError, ReconstructionError, SameViewError
 from ...metrics import rotation_angle_deg
 from ..types import Matches, View
 from .config import PoseConfig
@@ -48,7 +48,7 @@ def check_matches(v0: View, v1: View, xy0: np.ndarray, xy1: np.ndarray, cfg: Pos
     a photo, or two photos of the same view (same size, the matches have not moved).
 
     Raises:
-        ReconstructionError: with the reason.
+        ReconstructionError: with the reason; :class:`~macsplat_cli.errors.SameViewError` for the same view.
     """
     n = len(xy0)
     distinct, _ = distinct_matches(xy0, xy1)
@@ -69,7 +69,7 @@ def check_matches(v0: View, v1: View, xy0: np.ndarray, xy1: np.ndarray, cfg: Pos
         shift = np.median(np.linalg.norm(xy1 - xy0, axis=1))
         still = np.linalg.norm(xy1 - xy0, axis=1) < SAME_VIEW_STILL_PX
         if shift < SAME_VIEW_SHIFT_PX and np.mean(still) > SAME_VIEW_SHARE:
-            raise ReconstructionError(
+            raise SameViewError(
                 f"the two images show the same view (median match displacement {shift:.2f} px): "
                 "move the camera between the photos"
             )

@@ -7,6 +7,8 @@
    test and the uncertainty of :func:`~.confidence.weigh_evidence`) does not stop the search: the later tiers run,
    and the first whose pose their matches support replaces it. Last, the learned tier (ALIKED + LightGlue,
    :mod:`..learned`) when the SIFT tiers' pose still fails or is not supported; it competes the same way.
+   When the primary tier's matches show the same view (:class:`~macsplat_cli.errors.SameViewError`), the search
+   stops there: two photos of one view stay one view whichever descriptors match them.
 2. Guided re-matching: with fewer than ``GUIDED_BELOW`` verified matches, every keypoint is matched again along
    the pose's epipolar lines and the pose re-estimated, kept if it verifies more and stays near. Guided matches
    refine a pose; they are never evidence for accepting it.
@@ -26,7 +28,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, TypeVar
 
-from ...errors import ReconstructionError
+from ...errors import ReconstructionError, SameViewError
 from ...metrics import rotation_error_deg, translation_direction_error_deg
 from ..matching import guided_matches
 from ..slots import DescribeStage, MatchStage, PairPass, PoseStage, StageTimer
@@ -188,9 +190,12 @@ class PoseSearch:
         Raises:
             ReconstructionError: none gives a pose: the fallback tier's failure when it ran, else the primary's (the
                 wide tier's is only logged).
+            SameViewError: the primary tier's matches show the same view; no other tier runs.
         """
         c = self.config
         best = primary = self._chain(views, pair, timed, self.describe, "primary", "")
+        if isinstance(primary.failure, SameViewError):
+            raise primary.failure
         n_verified = len(best.geometry.inliers) if best.geometry is not None else 0
         doubted = not self._credible(views, best)
         if self.fallback is not None and (n_verified < c.fallback_min_inliers or doubted):
