@@ -343,8 +343,7 @@ def reconstruct(
         models: models loaded by :func:`load_models` for this configuration (loaded here when None,
             reported as the ``"weights"`` stage).
         on_stage: called with ``(stage, "start" | "end" | "fail")`` around every stage (progress display).
-        on_refine_step: called after each refinement step with the step, the most steps it runs (the joint
-            refinement of 3+ photos counts one-photo steps) and its loss terms.
+        on_refine_step: called after each refinement step with the step, the most steps and its loss terms.
 
     Returns:
         The :class:`~macsplat_cli.pipeline.run.Reconstruction`, its typed report filled (``neural``,
