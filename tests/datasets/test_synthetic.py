@@ -440,3 +440,30 @@ def test_planar_cases_are_plain_arrays_from_below_the_pipeline() -> None:
         "sys.exit(any(m.startswith('macsplat_cli.pipeline') for m in sys.modules))"
     )
     assert subprocess.run([sys.executable, "-c", code], timeout=120).returncode == 0
+
+
+def test_a_rebuilt_scene_rasterises_its_textures_once_within_the_shared_budget(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from macsplat_cli.datasets.synthetic import textures
+
+    calls: list[int] = []
+    real = textures._texture_image
+    monkeypatch.setattr(textures, "_texture_image", lambda *a: calls.append(1) or real(*a))
+    monkeypatch.setattr(textures, "_SHARED", type(textures._SHARED)())
+    tex = S.Texture(albedo=(0.5, 0.4, 0.3), seed=123)
+
+    def wall(z: float) -> np.ndarray:  # the same surface built anew each time: its own per-primitive cache
+        return S.render(
+            S.Scene([S.Quad((-1.0, -1.0, z), (2.0, 0.0, 0.0), (0.0, 2.0, 0.0), tex)], None), _camera()
+        ).image
+
+    first, again = wall(3.0), wall(3.0)
+    assert len(calls) == 1 and np.array_equal(first, again)
+    ((img, _),) = textures._SHARED.values()
+    assert not img.flags.writeable  # shared: no caller can change another scene's texture
+    monkeypatch.setattr(textures, "SHARED_CACHE_BYTES", img.nbytes + 1)  # room for one: the older one goes
+    wall2 = S.Quad((-1.0, -1.0, 3.0), (2.0, 0.0, 0.0), (0.0, 3.0, 0.0), tex)  # another size: another texture
+    S.render(S.Scene([wall2], None), _camera())
+    assert len(calls) == 2 and len(textures._SHARED) == 1
+    assert next(iter(textures._SHARED))[2] == 3.0

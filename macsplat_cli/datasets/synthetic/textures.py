@@ -6,13 +6,15 @@ thousand random discs, rings, rectangles, triangles and lines per square metre (
 ``"bricks"``, ``"tiles"`` or ``"grid"``) is one small tile repeated exactly over the surface:
 every period looks the same, so its descriptors match consistently at the wrong place (the
 hard case of repetitive scenes). Textures are rasterised once per surface (a few millimetres
-per texel, at most :data:`MAX_TEXTURE_SIZE` texels a side), cached on the primitive, and
-sampled bilinearly.
+per texel, at most :data:`MAX_TEXTURE_SIZE` texels a side), cached on the primitive and in the process (the same
+scene built again rasterises nothing: :data:`SHARED_CACHE_BYTES`), and sampled bilinearly.
 """
 
 from __future__ import annotations
 
 import math
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Literal, get_args
 
@@ -27,6 +29,10 @@ PERIODIC_PATTERNS: tuple[TexturePattern, ...] = tuple(p for p in get_args(Textur
 
 MAX_TEXTURE_SIZE = 1024
 """Largest side of a rasterised surface texture, in texels."""
+SHARED_CACHE_BYTES = 256 << 20
+"""The process-wide cache of rasterised textures (least recently used first out): scenes are rebuilt often (every
+``make_scene``, every synthetic sample pair of ``export-onnx``, every evaluation case) and a room's textures take
+~0.5 s of CPU to rasterise; 256 MB holds a few scenes' (a 1024² texture is 12 MB)."""
 _TEXEL = 0.004
 """Texel size in metres of a ``scale = 1`` texture (larger for surfaces over 4 m)."""
 _COARSE_NOISE = ((0.64, 0.16), (0.32, 0.12), (0.16, 0.09), (0.08, 0.07))
@@ -205,6 +211,27 @@ def _sample(
     if not tex.textured:
         return np.broadcast_to(np.asarray(tex.albedo, dtype=np.float32), (len(u), 3))
     if ("tex", key) not in cache:
-        cache[("tex", key)] = _texture_image(tex, width_m, height_m, key)
+        cache[("tex", key)] = _shared_texture(tex, width_m, height_m, key)
     img, texel = cache[("tex", key)]
     return _bilinear(img, texel, u, v)
+
+
+_SHARED: OrderedDict[tuple[Texture, float, float, int], tuple[np.ndarray, float]] = OrderedDict()
+_SHARED_LOCK = threading.Lock()
+
+
+def _shared_texture(tex: Texture, width_m: float, height_m: float, key: int) -> tuple[np.ndarray, float]:
+    """:func:`_texture_image`, through the process-wide cache (the image read-only: it is shared)."""
+    k = (tex, width_m, height_m, key)
+    with _SHARED_LOCK:
+        if k in _SHARED:
+            _SHARED.move_to_end(k)
+            return _SHARED[k]
+    img, texel = _texture_image(tex, width_m, height_m, key)
+    img.flags.writeable = False
+    with _SHARED_LOCK:
+        _SHARED[k] = (img, texel)
+        total = sum(v[0].nbytes for v in _SHARED.values())
+        while total > SHARED_CACHE_BYTES and len(_SHARED) > 1:
+            total -= _SHARED.popitem(last=False)[1][0].nbytes
+    return img, texel
