@@ -19,6 +19,7 @@ __all__ = [
     "MacsplatError",
     "NonFiniteError",
     "OutputPathError",
+    "PlaneTieError",
     "PlyFormatError",
     "ReconstructionError",
     "SameViewError",
@@ -80,3 +81,8 @@ class SameViewError(ReconstructionError):
 
 class DatasetError(InputError):
     """An evaluation data set is malformed: a missing file, inconsistent cameras, an unreadable image."""
+
+
+class PlaneTieError(ReconstructionError):
+    """A plane's two relative poses explain the matches and nothing else tells them apart: another tier's matches
+    must settle the same contest (the geometry, not the descriptors, makes it)."""

@@ -4,7 +4,9 @@ When a homography explains :data:`~.essential.PLANAR_FRACTION` of the verified m
 and the poses of the homography's decomposition compete: those that explain as many verified matches contend, and
 all the matches decide — the verified ones and those below the confidence gate (``Matches.below_gate``): a pose wins
 with matches it explains (in front of both cameras) that the other refutes (behind a camera: the plane's wrong pose
-often puts part of it there; or far off its epipolar lines: points off the plane). Tied evidence is refused.
+often puts part of it there; or far off its epipolar lines: points off the plane). Tied evidence is refused
+(:class:`~macsplat_cli.errors.PlaneTieError`), and a later descriptor tier's pose must settle the same contest on
+its own matches (:func:`settles_tie`), whatever share of them the plane holds.
 """
 
 from __future__ import annotations
@@ -12,18 +14,19 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from ...camera_math import scale_focal
-from ...errors import ReconstructionError
+from ...errors import PlaneTieError
 from ...metrics import angle_between_deg, rotation_angle_deg
-from ..types import Matches
+from ..types import Matches, TwoViewGeometry
 from .config import SAME_POSE_DEG, PoseConfig
 from .diagnostics import PoseDiagnostics
 from .geometry import MIN_TRANSLATION, decompose_homography, epipolar_fit, homog, parallax_deg, same_pose, support
 from .refit import POSE_LM, refit_pose
 
-__all__ = ["PlanarVerdict", "ambiguous", "planar_pose", "resolve_planar"]
+__all__ = ["PlanarVerdict", "ambiguous", "planar_pose", "resolve_planar", "settles_tie"]
 
 DIRECTION_WEIGHT = 3
 """In ``planar_agreement_deg`` a translation-direction difference counts a third of a rotation difference (the
@@ -41,12 +44,17 @@ PLANAR_EVIDENCE_RATIO = 3.0
 PLANAR_REFUTE_FACTOR = 3.0
 """A pose refutes a match behind one of its cameras or farther than this many ``threshold_px`` from its epipolar
 geometry (the band between explained and refuted is no evidence)."""
+TIE_HOMOGRAPHY_PX = 1.5
+""":func:`settles_tie` fits the matches' homography by RANSAC with this threshold (px), as the evidence's GRIC does."""
+TIE_MIN_MATCHES = 15
+"""Fewer matches than this and :func:`settles_tie` holds no contest (a homography's four and a pose's five are a
+guess)."""
 
 
-def ambiguous(n_final: int, rival: int, evidence: tuple[int, int] | None = None) -> ReconstructionError:
+def ambiguous(n_final: int, rival: int, evidence: tuple[int, int] | None = None) -> PlaneTieError:
     """The refusal of a plane's two tied poses."""
     more = f"; no other matches tell them apart ({evidence[0]} against {evidence[1]})" if evidence is not None else ""
-    return ReconstructionError(
+    return PlaneTieError(
         f"pose is ambiguous: the {n_final} verified matches lie on one plane, and two different relative "
         f"poses explain them ({rival} and {n_final} matches){more}: photograph more of the scene's depth"
     )
@@ -139,7 +147,7 @@ def planar_pose(
         ``(R, t, changed)``: the winner, and whether it differs from the given pose.
 
     Raises:
-        ReconstructionError: the contenders are tied on all the evidence.
+        PlaneTieError: the contenders are tied on all the evidence.
     """
     s = log_focal
     K0s = scale_focal(K0, s) if unknown[0] else K0
@@ -232,3 +240,43 @@ def resolve_planar(
     assert worst is not None
     won = worst[0] >= PLANAR_MIN_EVIDENCE and worst[0] >= PLANAR_EVIDENCE_RATIO * worst[1]
     return PlanarVerdict(int(order[0]) if won else None, supports, worst)
+
+
+def _refit_on(R: np.ndarray, t: np.ndarray, g: TwoViewGeometry, xy0: np.ndarray, xy1: np.ndarray, thr: float):  # noqa: ANN202
+    """``(R, t, support)`` of the pose re-fitted on ``xy0, xy1`` [M, 2] at the geometry's intrinsics."""
+    fit = refit_pose(R, t / max(float(np.linalg.norm(t)), 1e-12), g.K0, g.K1, xy0, xy1, scale_px=thr,
+                     schedule=POSE_LM, unknown=(False, False))  # fmt: skip
+    return fit.R, fit.t, int(support(fit.R, fit.t, g.K0, g.K1, xy0, xy1, thr).sum())
+
+
+def settles_tie(geometry: TwoViewGeometry, matches: Matches, cfg: PoseConfig) -> bool:
+    """Whether ``geometry``, a later tier's pose of a pair on which an earlier tier found a plane's two poses tied,
+    wins the same contest on its own ``matches`` (its tier's filtered matches), at the geometry's intrinsics.
+
+    The poses of the matches' homography, each re-fitted on them, that differ from the pose re-fitted the same way
+    by more than ``SAME_SOLUTION_DEG``: the best supported contends when it explains :data:`PLANAR_CONTEND` of the
+    pose's support (else the pose wins by its count, as in :func:`planar_pose`); then all the matches (gated and
+    below the gate) decide (:func:`resolve_planar`), and the pose must win. No share of the matches on the plane is
+    asked (``PLANAR_FRACTION``): the earlier tier saw the plane; a tier whose matches lie mostly off it still fits
+    its second pose nearly as well (ICL (0, 2), benchmarks/history/pose.md).
+    """
+    if len(matches) < TIE_MIN_MATCHES:
+        return False
+    g, thr = geometry, cfg.threshold_px
+    xy0, xy1 = matches.xy0.astype(np.float64), matches.xy1.astype(np.float64)
+    H, _ = cv2.findHomography(xy0, xy1, cv2.RANSAC, TIE_HOMOGRAPHY_PX)
+    if H is None:
+        return True  # no plane among these matches: nothing to contest
+    R0, t0, own = _refit_on(g.R, g.t, g, xy0, xy1, thr)
+    best: tuple[int, tuple[np.ndarray, np.ndarray] | None] = (0, None)
+    for R, t in zip(*decompose_homography(np.linalg.inv(g.K1) @ H @ g.K0)):
+        t = np.ravel(t) / max(float(np.linalg.norm(t)), 1e-12)
+        if support(R, t, g.K0, g.K1, xy0, xy1, thr).sum() < PLANAR_CONTEND * own / 2:
+            continue  # most of the plane behind a camera: the decomposition's wrong sign, no rival
+        Rc, tc, n = _refit_on(R, t, g, xy0, xy1, thr)
+        if n > best[0] and not same_pose(Rc, tc, R0, t0, SAME_SOLUTION_DEG):
+            best = (n, (Rc, tc))
+    if best[1] is None or best[0] < PLANAR_CONTEND * own:
+        return True
+    all0, all1 = _all_matches(xy0, xy1, matches.below_gate)
+    return resolve_planar([(R0, t0), best[1]], g.K0, g.K1, all0, all1, cfg).winner == 0

@@ -8,7 +8,10 @@
    and the first whose pose their matches support replaces it. Last, the learned tier (ALIKED + LightGlue,
    :mod:`..learned`) when the SIFT tiers' pose still fails or is not supported; it competes the same way.
    When the primary tier's matches show the same view (:class:`~macsplat_cli.errors.SameViewError`), the search
-   stops there: two photos of one view stay one view whichever descriptors match them.
+   stops there: two photos of one view stay one view whichever descriptors match them. When a tier's pose stage
+   found a plane's two poses tied (:class:`~macsplat_cli.errors.PlaneTieError`), a later tier's pose must win the
+   same contest on its own matches (:func:`~.planar.settles_tie`), or the pair is refused with that tie (the plane
+   tie-break's pose settled it on dense consistency already).
 2. Guided re-matching: with fewer than ``GUIDED_BELOW`` verified matches, every keypoint is matched again along
    the pose's epipolar lines and the pose re-estimated, kept if it verifies more and stays near. Guided matches
    refine a pose; they are never evidence for accepting it.
@@ -28,7 +31,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, TypeVar
 
-from ...errors import ReconstructionError, SameViewError
+from ...errors import PlaneTieError, ReconstructionError, SameViewError
 from ...metrics import rotation_error_deg, translation_direction_error_deg
 from ..matching import guided_matches
 from ..slots import DescribeStage, MatchStage, PairPass, PoseStage, StageTimer
@@ -36,6 +39,7 @@ from ..types import Features, Matches, TwoViewGeometry, View
 from .confidence import accept_pose, weigh_evidence
 from .config import GUIDED_MAX_CHANGE_DEG, GUIDED_RATIO, PoseConfig, PoseSearchConfig
 from .geometry import fundamental_from_pose
+from .planar import settles_tie
 from .result import Doubt, PoseConfidence, PoseResult, Tier
 from .tiebreak import plane_tiebreak
 
@@ -191,17 +195,38 @@ class PoseSearch:
             ReconstructionError: none gives a pose: the fallback tier's failure when it ran, else the primary's (the
                 wide tier's is only logged).
             SameViewError: the primary tier's matches show the same view; no other tier runs.
+            PlaneTieError: a tier found a plane's two poses tied and the later tier's pose that stands does not
+                settle that contest on its own matches.
         """
-        c = self.config
         best = primary = self._chain(views, pair, timed, self.describe, "primary", "")
         if isinstance(primary.failure, SameViewError):
             raise primary.failure
+        tried = [primary]
+        best = self._later_tiers(views, pair, timed, primary, tried)
+        if best.geometry is None:
+            assert best.failure is not None
+            raise best.failure
+        tie = next((a.failure for a in tried if isinstance(a.failure, PlaneTieError)), None)
+        settled = best.plane_tiebreak is not None  # the plane tie-break's pose: settled on dense consistency
+        if tie is not None and not settled and not settles_tie(best.geometry, best.matches, self.pose_config):
+            logger.debug("%s tier's pose does not settle the plane's tie of an earlier tier", best.tier)
+            raise tie
+        return best
+
+    def _later_tiers(
+        self, views: list[View], pair: PairPass, timed: StageTimer, primary: _Attempt, tried: list[_Attempt]
+    ) -> _Attempt:
+        """The fallback, wide and learned tiers after ``primary`` (:meth:`_tiers`), each attempt appended to
+        ``tried``; the attempt that stands (its failure when none gives a pose)."""
+        c = self.config
+        best = primary
         n_verified = len(best.geometry.inliers) if best.geometry is not None else 0
         doubted = not self._credible(views, best)
         if self.fallback is not None and (n_verified < c.fallback_min_inliers or doubted):
             logger.debug("%d verified matches (< %d) or a pose its matches do not support: retrying with %s",
                          n_verified, c.fallback_min_inliers, self.fallback.name)  # fmt: skip
             alt = self._chain(views, pair, timed, self.fallback, "fallback", " (fallback)")
+            tried.append(alt)
             if alt.geometry is not None:
                 alt_ok = self._credible(views, alt)
                 more = len(alt.geometry.inliers) > n_verified
@@ -211,6 +236,7 @@ class PoseSearch:
                 best = dataclasses.replace(best, failure=alt.failure or best.failure)
         if self.wide is not None and (best.geometry is None or doubted):
             wide = self._wide(views, primary.features, pair, timed)
+            tried.append(wide)
             if wide.geometry is not None and (best.geometry is None or self._credible(views, wide)):
                 best = wide
                 doubted = best.geometry is not None and not self._credible(views, best)
@@ -218,9 +244,6 @@ class PoseSearch:
                 logger.debug("wide-baseline tier: %s", wide.failure or "its pose is not supported either")
         if self.learned is not None and (best.geometry is None or doubted):
             best = self._learned(views, pair, timed, best)
-        if best.geometry is None:
-            assert best.failure is not None
-            raise best.failure
         return best
 
     def _credible(self, views: list[View], attempt: _Attempt) -> bool:

@@ -18,10 +18,11 @@ import numpy as np
 import pytest
 
 from macsplat_cli.datasets.synthetic.planar import PlanarMatches, planar_case
-from macsplat_cli.errors import ReconstructionError
+from macsplat_cli.errors import PlaneTieError, ReconstructionError
 from macsplat_cli.metrics import rotation_error_deg, translation_direction_error_deg
-from macsplat_cli.pipeline.pose import PoseConfig, PoseDiagnostics, estimate_pose
-from macsplat_cli.pipeline.types import IntrinsicsSource, Matches, View
+from macsplat_cli.pipeline.pose import PoseConfig, PoseDiagnostics, PoseSearch, PoseSearchConfig, estimate_pose
+from macsplat_cli.pipeline.pose.planar import ambiguous
+from macsplat_cli.pipeline.types import IntrinsicsSource, Matches, TwoViewGeometry, View
 from macsplat_cli.pipeline.views import prior_focal
 
 W, H = 320, 240
@@ -140,6 +141,39 @@ def test_random_planes_are_never_wrong() -> None:
             accepted += 1
             assert _right(g, R, t), f"seed {seed}, off {off}"
     assert accepted >= 15
+
+
+def _tied_then(case: tuple[Matches, np.ndarray, np.ndarray]) -> PoseSearch:
+    """A search whose primary tier's pose stage finds a plane's two poses tied, and whose fallback tier's pose stage
+    gives ``case``'s true pose on ``case``'s matches (stub descriptors, matcher and pose: no images)."""
+    m, R, t = case
+
+    def describe(views: list[View], pair: object = None) -> list[str]:
+        return [describe.name] * 2  # type: ignore[attr-defined]
+
+    def fallback(views: list[View], pair: object = None) -> list[str]:
+        return ["fallback"] * 2
+
+    def pose(v0: View, v1: View, matches: Matches, pair: object = None) -> TwoViewGeometry:
+        if matches is not m:
+            raise ambiguous(161, 143, (14, 6))
+        return TwoViewGeometry(R, t / np.linalg.norm(t), K.copy(), K.copy(), m, median_parallax_deg=5.0)
+
+    describe.name, fallback.name = "primary", "fallback"  # type: ignore[attr-defined]
+    cfg = PoseSearchConfig(confidence=False, guided_band_px=None)
+    return PoseSearch(cfg, PoseConfig(), describe=describe, match=lambda f0, f1: m if f0 == "fallback" else
+                      _matches(np.zeros((20, 2)), np.ones((20, 2))), pose=pose, fallback=fallback)  # type: ignore[arg-type]  # fmt: skip
+
+
+def test_a_plane_tied_in_one_tier_must_be_settled_by_the_next() -> None:
+    """ICL (0, 2) (benchmarks/history/pose.md, 2026-11-29): the primary tier found a plane's two poses tied; the
+    fallback tier's pose, one of the same plane's two poses whose matches do not tell them apart (fewer of them on
+    the plane than the pose stage's own contest asks), is refused with the tie; a fallback pose whose matches off
+    the plane (above and below the gate) win that contest stands."""
+    with pytest.raises(PlaneTieError, match="pose is ambiguous: the 161 verified matches lie on one plane"):
+        _tied_then(_random_plane_case(0, None))([_view(), _view()])
+    result = _tied_then(_random_plane_case(8, 0.05))([_view(), _view()])
+    assert result.tier == "fallback"
 
 
 # ------------------------------------------------------------------------------------------------ focal length
