@@ -85,8 +85,15 @@ def sources_digest(path: Path) -> bytes:
                 queue.append(p)
     digest = hashlib.sha256()
     for p in sorted(seen - {path}):
-        digest.update(str(p).encode() + b"\0" + p.read_bytes() + b"\0")
+        st = p.stat()
+        digest.update(str(p).encode() + b"\0" + _file_digest(p, st.st_mtime_ns, st.st_size))
     return digest.digest()
+
+
+@functools.cache
+def _file_digest(path: Path, mtime_ns: int, size: int) -> bytes:
+    """SHA-256 of the file at ``path``, read once per version (every kernel of a module asks for the same files)."""
+    return hashlib.sha256(path.read_bytes()).digest()
 
 
 class _ImportsStamped(caching._CacheLocator):

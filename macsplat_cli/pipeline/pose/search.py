@@ -198,7 +198,7 @@ class PoseSearch:
             PlaneTieError: a tier found a plane's two poses tied and the later tier's pose that stands does not
                 settle that contest on its own matches.
         """
-        best = primary = self._chain(views, pair, timed, self.describe, "primary", "")
+        primary = self._chain(views, pair, timed, self.describe, "primary", "")
         if isinstance(primary.failure, SameViewError):
             raise primary.failure
         tried = [primary]
