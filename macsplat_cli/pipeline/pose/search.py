@@ -192,8 +192,8 @@ class PoseSearch:
         first of them whose pose they support replaces it.
 
         Raises:
-            ReconstructionError: none gives a pose: the fallback tier's failure when it ran, else the primary's (the
-                wide tier's is only logged).
+            ReconstructionError: none gives a pose: a tier's plane tie when one found it, else the fallback tier's
+                failure when it ran, else the primary's (the wide tier's is only logged).
             SameViewError: the primary tier's matches show the same view; no other tier runs.
             PlaneTieError: a tier found a plane's two poses tied and the later tier's pose that stands does not
                 settle that contest on its own matches.
@@ -203,10 +203,10 @@ class PoseSearch:
             raise primary.failure
         tried = [primary]
         best = self._later_tiers(views, pair, timed, primary, tried)
+        tie = next((a.failure for a in tried if isinstance(a.failure, PlaneTieError)), None)
         if best.geometry is None:
             assert best.failure is not None
-            raise best.failure
-        tie = next((a.failure for a in tried if isinstance(a.failure, PlaneTieError)), None)
+            raise tie or best.failure  # a tie says more than a later tier's too few matches
         settled = best.plane_tiebreak is not None  # the plane tie-break's pose: settled on dense consistency
         if tie is not None and not settled and not settles_tie(best.geometry, best.matches, self.pose_config):
             logger.debug("%s tier's pose does not settle the plane's tie of an earlier tier", best.tier)

@@ -176,6 +176,23 @@ def test_a_plane_tied_in_one_tier_must_be_settled_by_the_next() -> None:
     assert result.tier == "fallback"
 
 
+def test_a_tie_is_the_reason_given_when_no_later_tier_gives_a_pose() -> None:
+    """The primary tier found a plane's two poses tied and the fallback tier found no pose at all: the refusal
+    names the tie (what the photos show), not the fallback's own failure."""
+    m, _, _ = _random_plane_case(0, None)
+    search = _tied_then((m, np.eye(3), np.array([1.0, 0.0, 0.0])))
+    tie_then_nothing = search.pose
+
+    def pose(v0: View, v1: View, matches: Matches, pair: object = None) -> TwoViewGeometry:
+        if matches is m:
+            raise ReconstructionError("only 9 matches were verified (15 needed)")
+        return tie_then_nothing(v0, v1, matches, pair)
+
+    search.pose = pose  # type: ignore[method-assign]
+    with pytest.raises(PlaneTieError, match="pose is ambiguous"):
+        search([_view(), _view()])
+
+
 # ------------------------------------------------------------------------------------------------ focal length
 def _orbit_case(angle_deg: float, fov_deg: float, seed: int = 0) -> tuple[Matches, np.ndarray, np.ndarray, float]:
     """Two cameras 5 units from an object (points within 1 unit of the target), both aimed at it, ``angle_deg``
