@@ -15,7 +15,8 @@ wrote), :func:`zeros` and :func:`full` for the others.
 
 Memory: the pool keeps a buffer only while renders keep taking it — one not taken during the last
 :data:`IDLE_RENDERS` renders (:func:`next_render`) is dropped — and never more than :data:`KEEP_BYTES` in all (a
-request that would go over it gets a plain allocation); :func:`release` forgets every buffer now.
+request that would go over it gets a plain allocation), none over :data:`MAX_BYTES`; :func:`release` forgets every
+buffer now.
 """
 
 from __future__ import annotations
@@ -26,11 +27,14 @@ import threading
 
 import numpy as np
 
-__all__ = ["IDLE_RENDERS", "KEEP_BYTES", "empty", "full", "next_render", "pooled_bytes", "release", "zeros"]
+__all__ = ["empty", "full", "next_render", "pooled_bytes", "release", "zeros"]
 
-KEEP_BYTES = 512 << 20
+KEEP_BYTES = 256 << 20
 """Most bytes the pool holds in all (in use and free): a 256² step at 100 k Gaussians takes ~40 MB, a 1080p forward
-at 1 M ~300 MB; beyond it a render's arrays are plain allocations, as without the pool."""
+at 1 M ~120 MB (its arrays under :data:`MAX_BYTES`); beyond it a render's arrays are plain allocations."""
+MAX_BYTES = 32 << 20
+"""Larger arrays are plain allocations: numpy asks the OS for huge pages for them (few faults), and pooled they would
+pin hundreds of MB after one large render (at 1 M Gaussians and 1080p: the records, 61 MB; the tile lists, 100 MB)."""
 IDLE_RENDERS = 4
 """A free buffer not taken during this many renders is dropped (a larger render's buffers do not outlive it long)."""
 MIN_BYTES = 64 << 10
@@ -104,7 +108,7 @@ def empty(shape: int | tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:
     dtype = np.dtype(dtype)
     shape = (shape,) if isinstance(shape, int) else tuple(shape)
     nbytes = math.prod(shape) * dtype.itemsize
-    buf = _POOL.take(nbytes) if nbytes >= MIN_BYTES else None
+    buf = _POOL.take(nbytes) if MIN_BYTES <= nbytes <= MAX_BYTES else None
     if buf is None:
         return np.empty(shape, dtype)
     return buf.view(dtype).reshape(shape)

@@ -154,3 +154,19 @@ def test_steady_steps_take_no_new_buffers(pool: None) -> None:
     for _ in range(3):
         _step(g, 64, 64)
     assert _workspace.pooled_bytes() == size
+
+
+def test_the_kernel_threads_hold_no_array_after_their_job(monkeypatch: pytest.MonkeyPatch) -> None:
+    """After ``parallel_for`` returns, no worker thread still references its arguments (an idle worker holding the
+    last job's arrays would keep their buffers out of the pool until its next job)."""
+    import weakref
+
+    from macsplat_cli._threads import parallel_for
+
+    monkeypatch.setenv("NUMBA_NUM_THREADS", "3")
+    a = np.zeros(8)
+    gone = weakref.ref(a)  # an ndarray takes weak references
+    parallel_for(lambda start, stop, x: x[start:stop].fill(1.0), 8, a)
+    assert a.sum() == 8.0
+    del a
+    assert gone() is None
