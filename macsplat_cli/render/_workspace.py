@@ -29,9 +29,10 @@ import numpy as np
 
 __all__ = ["empty", "full", "next_render", "pooled_bytes", "release", "zeros"]
 
-KEEP_BYTES = 256 << 20
-"""Most bytes the pool holds in all (in use and free): a 256² step at 100 k Gaussians takes ~40 MB, a 1080p forward
-at 1 M ~120 MB (its arrays under :data:`MAX_BYTES`); beyond it a render's arrays are plain allocations."""
+KEEP_BYTES = 64 << 20
+"""Most bytes the pool holds in all (in use and free): a 256² step at 100 k Gaussians takes 35 MiB, the refinement's
+step on the example (two views of 45 k at 256 × 176) 30 MiB; beyond it a render's arrays are plain allocations (a
+1080p render at 1 M would pool 121 MiB, and its peak memory grow by as much, for a few % of its time)."""
 MAX_BYTES = 32 << 20
 """Larger arrays are plain allocations: numpy asks the OS for huge pages for them (few faults), and pooled they would
 pin hundreds of MB after one large render (at 1 M Gaussians and 1080p: the records, 61 MB; the tile lists, 100 MB)."""
