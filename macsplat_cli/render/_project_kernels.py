@@ -303,7 +303,6 @@ def project(means, log_scales, quats, opacity_logits, sh, cam, lim, width, heigh
         (stable: ties in index order), and their rows of :func:`project_range`'s outputs, the colours and depths as
         ``features`` [M, 4] (r, g, b, z), the compositor's input.
     """
-    _workspace.next_render()
     n, dtype = means.shape[0], means.dtype
     rec, depths, keep = _workspace.empty((n, REC_COLS), dtype), _workspace.empty(n, dtype), _workspace.empty(n, bool)
     zrow = np.array([cam[6], cam[7], cam[8], cam[11]], dtype)  # exact: cam holds the dtype's values

@@ -170,3 +170,17 @@ def test_the_kernel_threads_hold_no_array_after_their_job(monkeypatch: pytest.Mo
     assert a.sum() == 8.0
     del a
     assert gone() is None
+
+
+@pytest.mark.parametrize("camera_grad", [False, True])
+def test_each_render_counts_for_the_idle_drop(pool: None, camera_grad: bool) -> None:
+    """Renders at 32² after one at 128² drop the larger render's framebuffers ``IDLE_RENDERS`` renders later (every
+    CPU path of ``render`` counts itself)."""
+    g = _scene(300, 7, 0)
+    _step(g, 128, 128, camera_grad)
+    big = _workspace.pooled_bytes()
+    _step(g, 32, 32, camera_grad)
+    both = _workspace.pooled_bytes()
+    for _ in range(_workspace.IDLE_RENDERS):
+        _step(g, 32, 32, camera_grad)
+    assert _workspace.pooled_bytes() <= both - big // 2
