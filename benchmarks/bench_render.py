@@ -1,4 +1,4 @@
-"""Rasterizer speed and memory: forward ms, forward+backward ms, peak RSS.
+"""Rasterizer speed and memory: forward ms, forward+backward ms, peak RSS, minor page faults and CPU a step.
 
 Scene (as in the reference design notes): N Gaussians uniform in [-1, 1]² × [2, 4] in
 front of an identity OpenCV camera with focal length = image width, scales 0.005–0.03,
@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import subprocess
 import sys
 import time
@@ -52,15 +53,19 @@ def _one(n: int, w: int, h: int, reps: int, backend: str, backward: bool = True)
     step() if backward else fwd()
     first = time.perf_counter() - t0
     t_fwd, t_tot = [], []
+    use = [0, 0.0, 0.0]  # minor page faults, user and system CPU seconds of the timed steps (forwards if no backward)
     for _ in range(reps):
+        u0 = _usage()
         t0 = time.perf_counter()
         with torch.no_grad():
             fwd()
         t_fwd.append(time.perf_counter() - t0)
         if backward:
+            u0 = _usage()
             t0 = time.perf_counter()
             step()
             t_tot.append(time.perf_counter() - t0)
+        use = [a + b - c for a, b, c in zip(use, _usage(), u0)]
     out = render(gs, V, K, w, h, backend=backend)
     peak = peak_rss_mib()
     t_fwd.sort()
@@ -78,7 +83,16 @@ def _one(n: int, w: int, h: int, reps: int, backend: str, backward: bool = True)
         "peak_rss_mb": peak,
         "baseline_rss_mb": base_rss,
         "threads": torch.get_num_threads(),
+        "faults_per_step": use[0] / reps,
+        "user_ms": 1e3 * use[1] / reps,
+        "sys_ms": 1e3 * use[2] / reps,
     }
+
+
+def _usage() -> tuple[int, float, float]:
+    """This process's minor page faults, user and system CPU seconds so far."""
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_minflt, r.ru_utime, r.ru_stime
 
 
 def main() -> None:
@@ -107,11 +121,12 @@ def main() -> None:
         return
     print(f"backend={args.backend}, threads={rows[0]['threads']}, median (min) of {args.reps} repetitions\n")
     print_header(["Gaussians", "image", "visible", "intersections", "forward ms", "forward+backward ms",
-                  "peak RSS MB (baseline)"], "rrrrrrr")  # fmt: skip
+                  "peak RSS MB (baseline)", "faults a step (user / sys ms)"], "rrrrrrrr")  # fmt: skip
     for r in rows:
         print(row([f"{r['n']:,}", r["size"], f"{r['visible']:,}", f"{r['intersections']:,}",
                    f"{r['fwd_ms']:.0f} ({r['fwd_min_ms']:.0f})", f"{r['fwd_bwd_ms']:.0f} ({r['fwd_bwd_min_ms']:.0f})",
-                   f"{r['peak_rss_mb']:.0f} ({r['baseline_rss_mb']:.0f})"]))  # fmt: skip
+                   f"{r['peak_rss_mb']:.0f} ({r['baseline_rss_mb']:.0f})",
+                   f"{r['faults_per_step']:,.0f} ({r['user_ms']:.0f} / {r['sys_ms']:.0f})"]))  # fmt: skip
 
 
 if __name__ == "__main__":

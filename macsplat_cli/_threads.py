@@ -64,6 +64,7 @@ class _Pool:
             except BaseException as e:  # noqa: BLE001 - handed to the caller, which re-raises it
                 done.error = e
             finally:
+                del fn, args  # the job's arrays are not held while this worker waits (render/_workspace.py)
                 done.event.set()
 
     def submit(self, fn: Callable[..., Any], args: tuple[Any, ...]) -> _Done:

@@ -33,6 +33,7 @@ import numpy as np
 
 from .._kernel_cache import install as _cache_with_imports
 from .._threads import JitOptions, kernel_threads, parallel_for
+from . import _workspace
 from ._lanes import S_MAX, exp_neg, radd
 from .constants import ALPHA_MAX, ALPHA_MIN, T_MIN
 
@@ -100,7 +101,7 @@ def _bin(pixel_rect: np.ndarray, width: int, height: int, tile: int, lazy: bool)
     offsets = np.zeros(n_tiles + 1, np.int64)
     offsets[1:] = np.cumsum(counts.sum(0))
     cursor = offsets[None, :-1] + np.cumsum(counts, 0) - counts  # [k, n_tiles]: each run's first slot per tile
-    lists = np.empty(offsets[-1], np.int32)
+    lists = _workspace.empty(int(offsets[-1]), np.int32)
     cap = LAZY_CAP if lazy and offsets[-1] >= LAZY_MEAN * n_tiles else 0
     parallel_for(_fill_runs, k, pixel_rect, tile, tiles_x, cursor, list_ends(offsets, cap), lists)
     return offsets, lists, cap
@@ -270,9 +271,9 @@ def composite_forward(means2d, conics, opacities, features, pixel_rect, offsets,
     if features.shape[1] != FEATURES:
         raise ValueError(f"the compositing kernels take {FEATURES} features per Gaussian, not {features.shape[1]}")
     dtype = means2d.dtype
-    feat = np.zeros((height, width, FEATURES), dtype)
-    trans = np.ones((height, width), dtype)
-    last = np.full((height, width), -1, np.int32)
+    feat = _workspace.empty((height, width, FEATURES), dtype)  # every tile writes all its pixels
+    trans = _workspace.empty((height, width), dtype)
+    last = _workspace.empty((height, width), np.int32)
     short = np.zeros(offsets.shape[0] - 1, np.bool_)
     parallel_for(_forward_tiles, offsets.shape[0] - 1, means2d, conics, opacities, features, pixel_rect, offsets,
                  lists, width, height, tile, cap, feat, trans, last, short, chunks_per_thread=_TILE_CHUNKS)  # fmt: skip
@@ -407,22 +408,24 @@ def _splat_backward(g, k, means2d, conics, opacities, features, pixel_rect, x0, 
     out_row[5], out_row[6], out_row[7], out_row[8], out_row[9] = v_op, v_f0, v_f1, v_f2, v_f3
 
 
-def composite_backward(
-    means2d, conics, opacities, features, pixel_rect, offsets, lists, width, height, tile, trans, last, v_feat, v_trans
-):  # noqa: ANN001, ANN201
+def composite_backward(means2d, conics, opacities, features, pixel_rect, offsets, lists, width, height, tile, trans,  # noqa: ANN001, ANN201
+                       last, v_feat, v_trans, walked=None):  # fmt: skip
     """Vector-Jacobian product of :func:`composite_forward`.
 
     Args:
-        (as the forward), plus ``trans`` and ``last`` from the forward, and the
-        cotangents ``v_feat`` [H, W, 4] and ``v_trans`` [H, W].
+        (as the forward), plus ``trans`` and ``last`` from the forward, and the cotangents ``v_feat`` [H, W, 4] and
+        ``v_trans`` [H, W]. ``walked``: None, or [n_tiles] int64 that receives each tile's count of rows written
+        (its first ones); the rows after them are then left unset, not zeroed: read up to ``offsets[t] + walked[t]``.
 
     Returns:
         One gradient row per intersection, aligned with ``lists``:
         (d mean x, d mean y, d conic a, b, c, d opacity, d feature 0..3). [n_isect, 6 + 4]
     """
-    out = np.zeros((lists.shape[0], GRAD_COLS + FEATURES), means2d.dtype)
+    shape, dtype, n_tiles = (lists.shape[0], GRAD_COLS + FEATURES), means2d.dtype, offsets.shape[0] - 1
+    out = _workspace.zeros(shape, dtype) if walked is None else _workspace.empty(shape, dtype)
+    walked = np.empty(n_tiles, np.int64) if walked is None else walked
     args = (means2d, conics, opacities, features, pixel_rect, offsets, lists, width, height, tile)
-    parallel_for(_backward_tiles, offsets.shape[0] - 1, *args, trans, last, v_feat, v_trans, out,
+    parallel_for(_backward_tiles, n_tiles, *args, trans, last, v_feat, v_trans, out, walked,
                  chunks_per_thread=_TILE_CHUNKS)  # fmt: skip
     return out
 
@@ -446,6 +449,7 @@ def _backward_tiles(
     v_feat,
     v_trans,
     out,
+    walked,
 ):  # noqa: ANN001, ANN202
     tiles_x = (width + tile - 1) // tile
     dtype = means2d.dtype
@@ -460,6 +464,7 @@ def _backward_tiles(
         kmax = _load_tile(trans, last, v_feat, v_trans, x0, y0, x1, y1, T, Q, V, lst)
         _pixel_centres(x0, y0, x1, y1, xs, ys)
         start = offsets[t]
+        walked[t] = kmax + 1  # rows [start, start + kmax] written below
         for k in range(kmax, -1, -1):
             g = lists[start + k]
             _splat_backward(
@@ -470,8 +475,9 @@ def _backward_tiles(
 
 @nb.njit(**_JIT)
 def sum_rows(offsets, ends, lists, rows, out):  # noqa: ANN001, ANN201
-    """``out[lists[r]] += rows[r]`` for every written intersection ``r`` (tile ``t``'s ``[offsets[t], ends[t])``,
-    :func:`list_ends`): :func:`composite_backward`'s rows summed per Gaussian into ``out`` [M, 6 + 4] (in place)."""
+    """``out[lists[r]] += rows[r]`` for every intersection ``r`` of tile ``t``'s ``[offsets[t], ends[t])`` (those
+    :func:`composite_backward` wrote: ``offsets[:-1] + walked``): its rows summed per Gaussian into ``out`` [M, 6 + 4]
+    (in place)."""
     for t in range(ends.shape[0]):
         for r in range(offsets[t], ends[t]):
             g = lists[r]

@@ -28,6 +28,7 @@ import numpy as np
 
 from .._kernel_cache import install as _cache_with_imports
 from .._threads import JitOptions, parallel_for
+from . import _workspace
 from ._project_lanes import P_ROWS, Q_ROWS, backward_lanes, forward_lanes
 from ._sh_kernels import sh_basis, sh_basis_vjp
 
@@ -136,7 +137,7 @@ def project_range(start, stop, means, log_scales, quats, opacity_logits, sh, cam
 
 @nb.njit(inline="always", **_JIT)
 def _color_vjp(g, i, means, sh, cam, cot, d, basis, dbasis, v_sh):  # noqa: ANN001, ANN202
-    """The colour's cotangents (row ``i`` of ``cot``, columns 6–8) into ``v_sh[g]`` (in place); returns their share
+    """The colour's cotangents (row ``i`` of ``cot``, columns 6–8) into ``v_sh[g]`` (all of it); returns their share
     of the mean's cotangent, through the view direction (SH degree > 0; degree 0: the lanes')."""
     n = _view_dir(g, means, cam, d) if sh.shape[1] > 1 else 1.0
     sh_basis(d[0], d[1], d[2], basis)
@@ -148,6 +149,8 @@ def _color_vjp(g, i, means, sh, cam, cot, d, basis, dbasis, v_sh):  # noqa: ANN0
         for k in range(sh.shape[1]):
             acc += basis[k] * np.float64(sh[g, k, ch])
         if acc + 0.5 < 0.0:  # clamped at 0: no gradient
+            for k in range(sh.shape[1]):
+                v_sh[g, k, ch] = 0.0
             continue
         vc = np.float64(cot[i, 6 + ch])
         for k in range(sh.shape[1]):
@@ -161,12 +164,26 @@ def _color_vjp(g, i, means, sh, cam, cot, d, basis, dbasis, v_sh):  # noqa: ANN0
     return (v_dir0 - d[0] * dot) / n, (v_dir1 - d[1] * dot) / n, (v_dir2 - d[2] * dot) / n
 
 
+@nb.njit(inline="always", **_JIT)
+def _zero_row(g, v_means, v_log_scales, v_quats, v_opacity_logits, v_sh):  # noqa: ANN001, ANN202
+    """Gaussian ``g``'s rows of the parameters' cotangents set to zero (a culled Gaussian)."""
+    for k in range(3):
+        v_means[g, k] = 0.0
+        v_log_scales[g, k] = 0.0
+    for k in range(4):
+        v_quats[g, k] = 0.0
+    v_opacity_logits[g] = 0.0
+    for k in range(v_sh.shape[1]):
+        for ch in range(3):
+            v_sh[g, k, ch] = 0.0
+
+
 @nb.njit(**_JIT)
 def project_backward_range(start, stop, rows, means, log_scales, quats, opacity_logits, sh, cam, lim, cot,  # noqa: ANN001, ANN201
                            v_means, v_log_scales, v_quats, v_opacity_logits, v_sh):  # fmt: skip
     """Vector-Jacobian product of :func:`project_range` for Gaussians ``[start, stop)``: a kept Gaussian ``g`` has
     its outputs' cotangents in row ``rows[g]`` of ``cot`` [M, 10] (:data:`COT_COLS`), a culled one ``rows[g] < 0``;
-    writes the kept ones' rows of the parameters' cotangents (the others stay as they are, zero). In blocks of
+    writes every Gaussian's rows of the parameters' cotangents (a culled one's: zeros). In blocks of
     :data:`_BLOCK` through ``_project_lanes.backward_lanes``; the colour's share per kept Gaussian."""
     c = _camera_tuple(cam)
     P, Q = np.empty((P_ROWS, _BLOCK)), np.empty((Q_ROWS, _BLOCK))
@@ -189,6 +206,7 @@ def project_backward_range(start, stop, rows, means, log_scales, quats, opacity_
             g = b0 + i
             r = rows[g]
             if r < 0:
+                _zero_row(g, v_means, v_log_scales, v_quats, v_opacity_logits, v_sh)
                 continue
             for k in range(3):
                 v_log_scales[g, k] = Q[3 + k, i]
@@ -208,15 +226,16 @@ def project_backward_range(start, stop, rows, means, log_scales, quats, opacity_
 
 
 @nb.njit(**_JIT)
-def depth_order(keep, bits):  # noqa: ANN001, ANN201
-    """The indices [M] int64 of the kept Gaussians (``keep`` [N] bool) sorted by depth, stable (ties in index
-    order), as ``np.argsort(depth[kept], kind="stable")`` would give: an LSD radix sort, one byte a pass, of the
-    depths' IEEE bits ``bits`` [N] (uint32 or uint64) mapped to unsigned integers of the same order."""
+def depth_order(keep, bits, idx, keys, idx2, keys2):  # noqa: ANN001, ANN201
+    """The indices of the kept Gaussians (``keep`` [N] bool) sorted by depth, stable (ties in index order), as
+    ``np.argsort(depth[kept], kind="stable")`` would give, into ``idx[:M]``; returns ``M``. An LSD radix sort, one
+    byte a pass, of the depths' IEEE bits ``bits`` [N] (uint32 or uint64) mapped to unsigned integers of the same
+    order; ``idx``, ``idx2`` [≥ N] int64 and ``keys``, ``keys2`` [≥ N] uint64 are its scratch (any values)."""
     n, nbits = keep.shape[0], 8 * bits.itemsize
     m = 0
     for g in range(n):
         m += keep[g]
-    idx, keys = np.empty(m, np.int64), np.empty(m, np.uint64)
+    out, idx, keys, idx2, keys2 = idx, idx[:m], keys[:m], idx2[:m], keys2[:m]
     sign = np.uint64(1) << np.uint64(nbits - 1)
     ones = sign | (sign - np.uint64(1))
     j = 0
@@ -226,11 +245,12 @@ def depth_order(keep, bits):  # noqa: ANN001, ANN201
             keys[j] = (~b & ones) if (b & sign) else (b | sign)  # negative floats: reversed
             idx[j] = g
             j += 1
-    idx2, keys2 = np.empty(m, np.int64), np.empty(m, np.uint64)
     byte = np.uint64(255)
+    start = np.empty(257, np.int64)
+    swapped = False
     for shift in range(0, nbits, 8):
         sh_ = np.uint64(shift)
-        start = np.zeros(257, np.int64)
+        start[:] = 0
         for j in range(m):
             start[np.int64((keys[j] >> sh_) & byte) + 1] += 1
         if start.max() == m:  # one value of this byte: the pass would not move anything
@@ -242,7 +262,10 @@ def depth_order(keep, bits):  # noqa: ANN001, ANN201
             keys2[start[d]], idx2[start[d]] = keys[j], idx[j]
             start[d] += 1
         keys, keys2, idx, idx2 = keys2, keys, idx2, idx
-    return idx
+        swapped = not swapped
+    if swapped:  # the last pass wrote the second buffer
+        out[:m] = idx
+    return m
 
 
 @nb.njit(**_JIT)
@@ -265,13 +288,15 @@ def compile_kernels() -> None:
     f1, f2, f3 = np.zeros(1, np.float32), np.zeros((1, 1), np.float32), np.zeros((1, 1, 3), np.float32)
     c, i4, keep = np.zeros(20), np.zeros((1, 4), np.int32), np.zeros(1, np.bool_)
     project_range(0, 0, f2, f2, f2, f1, f3, c, f1, c, 1, 1, f2, f1, keep)
-    depth_order(keep, f1.view(np.uint32))
+    i8, u8 = np.zeros(1, np.int64), np.zeros(1, np.uint64)
+    depth_order(keep, f1.view(np.uint32), i8, u8, i8, u8)
     _gather_range(0, 0, np.zeros(1, np.int64), f2, f2, f2, f1, f2, i4)
 
 
 def project(means, log_scales, quats, opacity_logits, sh, cam, lim, width, height):  # noqa: ANN001, ANN201
     """Project N Gaussians (arrays of one float dtype: ``means`` [N, 3], ``log_scales`` [N, 3], ``quats`` [N, 4],
-    ``opacity_logits`` [N], ``sh`` [N, K, 3]) and keep the visible ones, front to back.
+    ``opacity_logits`` [N], ``sh`` [N, K, 3]) and keep the visible ones, front to back. Every array, scratch and
+    result, is on the workspace's buffers (``_workspace``).
 
     Returns:
         ``(ids, means2d, conics, opacities, features, rect)``: the kept Gaussians' indices [M] int64 sorted by depth
@@ -279,26 +304,36 @@ def project(means, log_scales, quats, opacity_logits, sh, cam, lim, width, heigh
         ``features`` [M, 4] (r, g, b, z), the compositor's input.
     """
     n, dtype = means.shape[0], means.dtype
-    rec, depths, keep = np.empty((n, REC_COLS), dtype), np.empty(n, dtype), np.empty(n, np.bool_)
+    rec, depths, keep = _workspace.empty((n, REC_COLS), dtype), _workspace.empty(n, dtype), _workspace.empty(n, bool)
     zrow = np.array([cam[6], cam[7], cam[8], cam[11]], dtype)  # exact: cam holds the dtype's values
     parallel_for(project_range, n, means, log_scales, quats, opacity_logits, sh, cam, zrow, lim, width, height, rec,
                  depths, keep, chunks_per_thread=_CHUNKS)  # fmt: skip
-    ids = depth_order(keep, depths.view(np.uint32 if dtype == np.float32 else np.uint64))
-    m = ids.shape[0]
-    out = (np.empty((m, 2), dtype), np.empty((m, 3), dtype), np.empty(m, dtype), np.empty((m, 4), dtype),
-           np.empty((m, 4), np.int32))  # fmt: skip
+    idx, scratch = _workspace.empty(n, np.int64), _workspace.empty(n, np.int64)
+    keys, keys2 = _workspace.empty(n, np.uint64), _workspace.empty(n, np.uint64)
+    m = depth_order(keep, depths.view(np.uint32 if dtype == np.float32 else np.uint64), idx, keys, scratch, keys2)
+    ids = idx[:m]
+    out = (_workspace.empty((m, 2), dtype), _workspace.empty((m, 3), dtype), _workspace.empty(m, dtype),
+           _workspace.empty((m, 4), dtype), _workspace.empty((m, 4), np.int32))  # fmt: skip
     parallel_for(_gather_range, m, ids, rec, *out)
     return (ids, *out)
 
 
+@nb.njit(**_JIT)
+def _rows_of(ids, rows):  # noqa: ANN001, ANN202
+    """``rows[g]``: the position of Gaussian ``g`` in ``ids`` [M], -1 where it is not there (``rows`` [N])."""
+    rows[:] = -1
+    for i in range(ids.shape[0]):
+        rows[ids[i]] = i
+
+
 def project_vjp(ids, means, log_scales, quats, opacity_logits, sh, cam, lim, cot):  # noqa: ANN001, ANN201
     """The parameters' cotangents ``(v_means, v_log_scales, v_quats, v_opacity_logits, v_sh)`` (shaped as the
-    parameters, zero for the Gaussians not in ``ids``) from those of :func:`project`'s outputs, row ``i`` of ``cot``
-    [M, 10] (:data:`COT_COLS`) for Gaussian ``ids[i]``."""
+    parameters, zero for the Gaussians not in ``ids``; on the workspace's buffers) from those of :func:`project`'s
+    outputs, row ``i`` of ``cot`` [M, 10] (:data:`COT_COLS`) for Gaussian ``ids[i]``."""
     dtype = means.dtype
-    rows = np.full(means.shape[0], -1, np.int64)
-    rows[ids] = np.arange(ids.shape[0])
-    outs = tuple(np.zeros(a.shape, dtype) for a in (means, log_scales, quats, opacity_logits, sh))
+    rows = _workspace.empty(means.shape[0], np.int64)
+    _rows_of(ids, rows)
+    outs = tuple(_workspace.empty(a.shape, dtype) for a in (means, log_scales, quats, opacity_logits, sh))
     parallel_for(project_backward_range, means.shape[0], rows, means, log_scales, quats, opacity_logits, sh, cam, lim,
                  cot, *outs, chunks_per_thread=_CHUNKS)  # fmt: skip
     return outs

@@ -15,7 +15,7 @@ import torch
 from torch.autograd.function import once_differentiable
 
 from ..gaussians import Gaussians
-from . import _kernels, _project_kernels
+from . import _kernels, _project_kernels, _workspace
 from .composite import TILE_SIZE
 from .constants import ALPHA_MIN
 from .projection import MAX_SCREEN_STD, Projection
@@ -69,7 +69,7 @@ def _camera(viewmat: torch.Tensor, K: torch.Tensor, dtype: torch.dtype, width: i
 def _cotangents(m: int, dtype: np.dtype, *vs: torch.Tensor | None) -> np.ndarray:
     """The projection backward's cotangent rows [M, 10] (``_project_kernels.COT_COLS``) from those of the mean 2D
     [M, 2], conic [M, 3], opacity [M] and features [M, 4] (None: zero)."""
-    cot = np.zeros((m, _project_kernels.COT_COLS), dtype)
+    cot = _workspace.zeros((m, _project_kernels.COT_COLS), dtype)
     col = 0
     for v, width in zip(vs, (2, 3, 1, 4)):
         if v is not None:
@@ -137,7 +137,7 @@ class _Render(torch.autograd.Function):
             splats, cap = splats[:5] + (offsets, lists) + splats[7:], 0
             feat, trans, last, _ = _kernels.composite_forward(*splats)
         ctx.arrays, ctx.cam, ctx.lim, ctx.ids, ctx.splats = arrays, cam, lim, ids, splats
-        ctx.trans, ctx.last, ctx.device, ctx.ends = trans, last, means.device, _kernels.list_ends(offsets, cap)
+        ctx.trans, ctx.last, ctx.device = trans, last, means.device
         outs = [torch.from_numpy(a).to(means.device) for a in (feat, trans, means2d, ids)]
         ctx.mark_non_differentiable(outs[3])
         return (*outs, lists.shape[0])
@@ -149,9 +149,10 @@ class _Render(torch.autograd.Function):
         dtype, m = means2d.dtype, means2d.shape[0]
         v_feat = np.zeros((h, w, 4), dtype) if v_feat is None else _np(v_feat).astype(dtype, copy=False)
         v_trans = np.zeros((h, w), dtype) if v_trans is None else _np(v_trans).astype(dtype, copy=False)
-        rows = _kernels.composite_backward(*ctx.splats + (ctx.trans, ctx.last, v_feat, v_trans))
-        cot = np.zeros((m, _project_kernels.COT_COLS), dtype)
-        _kernels.sum_rows(offsets, ctx.ends, lists, rows, cot)
+        walked = np.empty(offsets.shape[0] - 1, np.int64)
+        rows = _kernels.composite_backward(*ctx.splats + (ctx.trans, ctx.last, v_feat, v_trans, walked))
+        cot = _workspace.zeros((m, _project_kernels.COT_COLS), dtype)
+        _kernels.sum_rows(offsets, offsets[:-1] + walked, lists, rows, cot)  # the rows written, no more
         if v_means2d is not None:
             cot[:, :2] += _np(v_means2d)
         grads = _project_kernels.project_vjp(*(ctx.ids, *ctx.arrays, ctx.cam, ctx.lim, cot))

@@ -11,7 +11,7 @@ from .._checks import check_finite, check_shape
 from .._limits import check_render_size
 from ..cameras import Camera
 from ..gaussians import Gaussians
-from . import _gsplat
+from . import _gsplat, _workspace
 from ._output import RenderOutput, normalise_depth
 from .composite import bin_tiles, composite
 from .fused import camera_needs_grad, render_fused
@@ -67,6 +67,7 @@ def render(
     if backend == "gsplat" or (backend == "auto" and gaussians.device.type == "cuda"):
         if backend == "gsplat" or _gsplat.available():
             return _gsplat.render_gsplat(gaussians, viewmat, K, width, height, bg, near=near, far=far, eps2d=eps2d)
+    _workspace.next_render()  # the CPU kernels' buffers: one more render (drops those idle for a few)
     if backend in ("numba", "auto") and not camera_needs_grad(viewmat, K):
         feat, trans, means2d, ids, n_isect = render_fused(
             gaussians, viewmat, K, width, height, near=near, far=far, eps2d=eps2d

@@ -122,20 +122,31 @@ def test_gradcheck_fused_projection_float64(sh_degree: int) -> None:
     assert torch.autograd.gradcheck(fn, params, eps=GC_EPS, atol=GC_ATOL, rtol=GC_RTOL)
 
 
+def _depth_order(keep: np.ndarray, bits: np.ndarray) -> np.ndarray:
+    """``depth_order`` on scratch buffers longer than needed and full of another sort's values."""
+    n = keep.shape[0] + 5
+    idx, idx2 = np.arange(n, 0, -1, dtype=np.int64), np.full(n, 7, np.int64)
+    keys, keys2 = np.full(n, 2**63 + 5, np.uint64), np.arange(n, dtype=np.uint64)
+    m = depth_order(keep, bits, idx, keys, idx2, keys2)
+    return idx[:m]
+
+
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_depth_order_is_a_stable_argsort(dtype: type) -> None:
     """The radix sort against numpy's stable argsort: ties (in index order), negative and signed-zero-free values,
-    culled entries, one repeated value, nothing kept."""
+    culled entries, one repeated value, nothing kept; its scratch holding stale values."""
     rng = np.random.default_rng(0)
     z = rng.choice(np.array([-2.5, -1e-3, 1e-30, 0.5, 2.0, 2.0000002, 3.75, 1e20], dtype), size=3000)
     z[::7] = rng.uniform(-5, 5, size=z[::7].shape).astype(dtype)
     keep = rng.random(3000) < 0.8
     bits = z.view(np.uint32 if dtype == np.float32 else np.uint64)
     sel = np.flatnonzero(keep)
-    assert np.array_equal(depth_order(keep, bits), sel[np.argsort(z[sel], kind="stable")])
+    assert np.array_equal(_depth_order(keep, bits), sel[np.argsort(z[sel], kind="stable")])
     same = np.full(50, 2.0, dtype)
-    assert np.array_equal(depth_order(np.ones(50, np.bool_), same.view(bits.dtype)), np.arange(50))
-    assert depth_order(np.zeros(50, np.bool_), same.view(bits.dtype)).shape == (0,)
+    assert np.array_equal(_depth_order(np.ones(50, np.bool_), same.view(bits.dtype)), np.arange(50))
+    assert _depth_order(np.zeros(50, np.bool_), same.view(bits.dtype)).shape == (0,)
+    low = np.arange(300, dtype=dtype)[::-1].copy()  # keys differ in their low byte only: one pass, the result swapped
+    assert np.array_equal(_depth_order(np.ones(300, np.bool_), low.view(bits.dtype)), np.arange(300)[::-1])
 
 
 def test_camera_gradient_goes_through_the_twin() -> None:
