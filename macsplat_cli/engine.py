@@ -128,13 +128,13 @@ class EngineConfig:
         quality: ``"fast"``, ``"balanced"`` or ``"best"``: the working size, how light the stages are, whether the
             Gaussians are refined and how much of the scene's redundancy the compaction removes
             (:mod:`macsplat_cli.presets`).
-        overrides: ``--size``, ``--conf-threshold``, ``--budget``, ``--refine`` (each None: the preset's).
+        overrides: ``--size``, ``--conf-threshold``, ``--budget``, ``--refine``, ``--refine-scale`` (None: preset's).
         pipeline: the stages' settings to start from: the inputs (intrinsics, poses, far layer, low-confidence
             acceptance) and research settings; ``views.size`` and ``matching.conf_threshold`` stay at their
             defaults (``overrides`` sets them).
         neural: the neural backend's files and device.
-        refine: how the refinement runs (scale, MAC, LPIPS); ``steps`` stays 0 (``overrides.refine`` or the
-            quality's, :func:`~macsplat_cli.presets.refine_steps`).
+        refine: how the refinement runs (MAC, LPIPS); ``steps`` and ``scale`` stay at their defaults (``overrides``
+            or the quality's, :func:`~macsplat_cli.presets.refine_steps` and ``refine_scale``).
         matcher: ``--matcher``, ``"sift"``, ``"auto"`` or ``"aliked"`` (:func:`~macsplat_cli.presets.learned_search`)
     """
 
@@ -207,7 +207,8 @@ def _check_owned(pipeline: ReconstructConfig, refine: RefineConfig) -> None:
     owned = [("pipeline.views.size", pipeline.views.size, ViewConfig.size, "size", "--size"),
              ("pipeline.matching.conf_threshold", pipeline.matching.conf_threshold, MatchConfig.conf_threshold,
               "conf_threshold", "--conf-threshold"),
-             ("refine.steps", refine.steps, RefineConfig.steps, "refine", "--refine")]  # fmt: skip
+             ("refine.steps", refine.steps, RefineConfig.steps, "refine", "--refine"),
+             ("refine.scale", refine.scale, RefineConfig.scale, "refine_scale", "--refine-scale")]  # fmt: skip
     for name, value, default, override, flag in owned:
         if value != default:
             raise InputError(f"{name} {value}: set it with EngineConfig.overrides.{override} ({flag})")
@@ -215,8 +216,6 @@ def _check_owned(pipeline: ReconstructConfig, refine: RefineConfig) -> None:
 
 def _check_refine(r: RefineConfig, steps: int) -> None:
     """How the refinement runs, given the ``steps`` it will run."""
-    if not 1 <= r.scale <= 4:
-        raise InputError(f"--refine-scale {r.scale}: use 1 to 4")
     if r.lpips_weights is not None and steps == 0:
         raise InputError("--lpips-weights is used by the refinement: add --refine STEPS or --refine auto")
 

@@ -50,6 +50,8 @@ __all__ = [
     "DEFAULT_MATCHER",
     "MATCHERS",
     "MULTIVIEW_BALANCED_STEPS",
+    "MULTIVIEW_BEST_SCALE",
+    "MULTIVIEW_BEST_STEPS",
     "NEURAL_TAU",
     "PRECISIONS",
     "Overrides",
@@ -67,6 +69,7 @@ __all__ = [
     "compact_config",
     "configure",
     "fusion_policy",
+    "refine_scale",
     "refine_steps",
     "resolved_refine_steps",
     "working_size",
@@ -105,6 +108,15 @@ before a compaction without the adaptive merge and the dedup (:func:`configure`)
 object 4 +0.90 / +1.12 → +2.09 / +2.12 dB, room 4 +1.89 / +1.91 → +2.47 / +2.43, object 8 −0.43 → +0.28 at mid, room
 8 −1.08 → −0.02; the 4-photo run 1.14–1.18× its time. 10 steps were no better (merge on: object 4 mid 21.85 → 21.79
 dB, room 4 20.38 → 20.37) for twice the refinement's ~3 CPU-s (benchmarks/history/multiview_joint.md)."""
+MULTIVIEW_BEST_SCALE = 1
+"""``--quality best`` on three photos or more: the joint refinement renders the photos at full resolution (its
+``--refine-scale``; pairs and ``balanced`` at 1/2). The refined Gaussians are what is written: refined pooled 2 × 2,
+object 4 rendered its held-out views blurred (mid / side 23.49 / 22.38 dB; at full resolution, 10 steps for the time of
+40: 25.28 / 23.20; room 4 21.91 / 20.79 → 22.05 / 20.54) (benchmarks/history/multiview_joint.md)."""
+MULTIVIEW_BEST_STEPS = 6
+"""``--quality best`` on three photos or more: the joint refinement's steps (``--refine`` units: 10 one-photo steps
+on 4 photos, 20 on 8, at :data:`MULTIVIEW_BEST_SCALE`; a full-resolution step costs ~4 pooled ones, so the
+refinement's time is that of ``best``'s 25 at 1/2: object 4 8.9 → 10.0 CPU-s, object 8 28.9 → 23.7)."""
 NEURAL_TAU = 1.0
 """τ of the neural backend's matching on ``c0·c1`` of the descriptor confidences ``exp(x)`` (MASt3R's visloc keeps
 pixels whose confidence exceeds 1.001)."""
@@ -200,12 +212,14 @@ class Overrides:
             :data:`NEURAL_TAU` for the neural backend).
         budget: ``--budget``, at most this many Gaussians in the scene, the far layer included (None: no limit).
         refine: ``--refine``, the refinement's steps (0: off; None: :func:`refine_steps` of the quality).
+        refine_scale: ``--refine-scale``, the refinement's resolution 1/N (1 to 4; None: :func:`refine_scale`).
     """
 
     size: int | None = None
     conf_threshold: float | None = None
     budget: int | None = None
     refine: int | None = None
+    refine_scale: int | None = None
 
     def check(self) -> None:
         """Raise :class:`~macsplat_cli.errors.InputError` for a value no preset could take the place of."""
@@ -218,6 +232,9 @@ class Overrides:
             low = 0 if option == "--refine" else 1
             if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < low):
                 raise InputError(f"{option} {value!r}: give {what}")
+        scale = self.refine_scale
+        if scale is not None and (isinstance(scale, bool) or not isinstance(scale, int) or not 1 <= scale <= 4):
+            raise InputError(f"--refine-scale {scale!r}: use 1 to 4")
 
 
 def check_choices(quality: Quality, backend: Backend, matcher: Matcher, overrides: Overrides) -> None:
@@ -246,6 +263,14 @@ def resolved_refine_steps(quality: Quality, overrides: Overrides, photos: int = 
     return overrides.refine if overrides.refine is not None else refine_steps(quality, photos)
 
 
+def refine_scale(quality: Quality, photos: int = 2) -> int:
+    """The refinement's resolution 1/N when ``--refine-scale`` is not given: :data:`MULTIVIEW_BEST_SCALE` for
+    ``best`` on three photos or more, else :class:`~.pipeline.refine_config.RefineConfig`'s (1/2)."""
+    from .pipeline.refine_config import RefineConfig
+
+    return MULTIVIEW_BEST_SCALE if quality == "best" and photos >= 3 else RefineConfig.scale
+
+
 def _balanced_set(quality: Quality, photos: int) -> bool:
     """``balanced`` on three photos or more: the co-visibility init, :data:`MULTIVIEW_BALANCED_STEPS` joint steps and
     a compaction without the merge and the dedup (:func:`configure`)."""
@@ -255,14 +280,15 @@ def _balanced_set(quality: Quality, photos: int) -> bool:
 def refine_steps(quality: Quality, photos: int = 2) -> int:
     """The refinement's steps when ``--refine`` is not given: ``best`` refines for
     :data:`~.pipeline.refine.AUTO_STEPS` steps (about 6–8 s a 512-px pair on two cores for +0.1 to +1.1 dB on
-    held-out views of the development pairs, ``benchmarks/history/refine.md``); ``balanced`` on three photos or more
-    for :data:`MULTIVIEW_BALANCED_STEPS` (the joint refinement); ``fast``, and ``balanced`` on two photos, do not (it
+    held-out views of the development pairs, ``benchmarks/history/refine.md``), on three photos or more for
+    :data:`MULTIVIEW_BEST_STEPS` at full resolution; ``balanced`` on three photos or more for
+    :data:`MULTIVIEW_BALANCED_STEPS` (the joint refinement); ``fast``, and ``balanced`` on two photos, do not (it
     would more than double their time)."""
     from .pipeline.refine_config import AUTO_STEPS
 
     check_quality(quality)
     if quality == "best":
-        return AUTO_STEPS
+        return MULTIVIEW_BEST_STEPS if photos >= 3 else AUTO_STEPS
     return MULTIVIEW_BALANCED_STEPS if _balanced_set(quality, photos) else 0
 
 
@@ -334,7 +360,8 @@ def configure(
     else:
         assert_never(backend)
     steps = resolved_refine_steps(quality, o, photos)
-    r = dataclasses.replace(copy.deepcopy(refine) if refine is not None else RefineConfig(), steps=steps)
+    scale = o.refine_scale if o.refine_scale is not None else refine_scale(quality, photos)
+    r = dataclasses.replace(copy.deepcopy(refine) if refine is not None else RefineConfig(), steps=steps, scale=scale)
     compact = compact_config(quality, budget=o.budget)
     if _balanced_set(quality, photos) and steps > 0:  # refined jointly: kept unmerged, the covis init deduped
         compact = dataclasses.replace(compact, adaptive=False, dedup=False)

@@ -49,9 +49,8 @@ def pair(pair_files: PairFactory) -> tuple[Path, Path, Path]:
 
 def _config(cams: Path, steps: int = 0) -> EngineConfig:
     return EngineConfig(
-        overrides=Overrides(size=SIZE[0], refine=steps),
+        overrides=Overrides(size=SIZE[0], refine=steps, refine_scale=4),
         pipeline=ReconstructConfig(views=ViewConfig(intrinsics=cams)),
-        refine=RefineConfig(scale=4),
     )
 
 
@@ -102,7 +101,7 @@ def test_cli_and_evaluation_build_the_same_refined_scene(pair: tuple[Path, Path,
         frames=[SimpleNamespace(image=p, camera=c) for p, c in zip(pair[:2], load_cameras(pair[2]))]
     )
     case = SimpleNamespace(context=(0, 1))
-    recon = EngineReconstructor(EngineConfig(overrides=Overrides(refine=3), refine=RefineConfig(scale=4)))
+    recon = EngineReconstructor(EngineConfig(overrides=Overrides(refine=3, refine_scale=4)))
     rec = recon(scene, case, ReconstructSettings(size=SIZE[0], intrinsics="given"))  # type: ignore[arg-type]
     assert rec.report.refine is not None and rec.report.refine.steps == cli_report["refine"]["steps"]
     assert rec.report.refine.scale == cli_report["refine"]["scale"] == 4
@@ -124,7 +123,8 @@ def test_cli_and_evaluation_build_the_same_refined_scene(pair: tuple[Path, Path,
         ({"backend": "neural", "neural": NeuralOptions(weights=Path("m.pth"), dino=Path("d.pth"))}, "--dino needs"),
         ({"refine": RefineConfig(lpips_weights=Path("vgg"))}, "--lpips-weights is used by the refinement"),
         ({"overrides": Overrides(refine=-1)}, "--refine -1"),
-        ({"overrides": Overrides(refine=2), "refine": RefineConfig(scale=5)}, "--refine-scale 5"),
+        ({"overrides": Overrides(refine=2, refine_scale=5)}, "--refine-scale 5: use 1 to 4"),
+        ({"refine": RefineConfig(scale=1)}, "refine.scale 1: set it with EngineConfig.overrides.refine_scale"),
         ({"neural": NeuralOptions(device="tpu")}, "--device 'tpu': use cpu or cuda"),
         ({"backend": "neural", "neural": NeuralOptions(weights=Path("m.onnx"), dino=Path("d"))}, "drop --dino"),
         ({"pipeline": ReconstructConfig(views=ViewConfig(size=256))}, "set it with EngineConfig.overrides.size"),

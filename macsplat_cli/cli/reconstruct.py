@@ -107,7 +107,15 @@ FarLayerOpt = Annotated[
     ),
 ]
 RefineScaleOpt = Annotated[
-    int, typer.Option("--refine-scale", min=1, max=4, help="Refine at 1/N resolution (2: ~4x faster per step).")
+    int | None,
+    typer.Option(
+        "--refine-scale",
+        min=1,
+        max=4,
+        show_default=False,
+        help="Refine at 1/N resolution (default 2: ~4x faster per step than 1; 1 for --quality best on three photos "
+        "or more).",
+    ),
 ]
 NoMacOpt = Annotated[bool, typer.Option("--no-mac", help="Refine without the MAC loss (ablation).")]
 LpipsWeightsOpt = Annotated[
@@ -178,7 +186,7 @@ def reconstruct_command(
     accept_low_confidence: AcceptLowConfidenceOpt = False,
     far_layer: FarLayerOpt = True,
     refine: RefineOpt = None,
-    refine_scale: RefineScaleOpt = 2,
+    refine_scale: RefineScaleOpt = None,
     no_mac: NoMacOpt = False,
     lpips_weights: LpipsWeightsOpt = None,
     backend: BackendOpt = "classical",
@@ -252,7 +260,7 @@ def reconstruct_config(
     *, size: int | None = None, quality: str = "balanced", budget: int | None = None, intrinsics: Path | None = None,
     poses: Path | None = None, focal: float | None = None, conf_threshold: float | None = None,
     accept_low_confidence: bool = False,
-    far_layer: bool = True, refine: str | None = None, refine_scale: int = 2, no_mac: bool = False,
+    far_layer: bool = True, refine: str | None = None, refine_scale: int | None = None, no_mac: bool = False,
     lpips_weights: Path | None = None, backend: str = "classical", weights: Path | None = None,
     dino: Path | None = None, fusion: Path | None = None, gaussian_head: Path | None = None, device: str = "cpu",
     precision: str = "fp32", matcher: str = DEFAULT_MATCHER,
@@ -277,7 +285,13 @@ def reconstruct_config(
         quality=choice("--quality", quality, QUALITIES, sep=", "),  # in check_choices' order
         backend=choice("--backend", backend, BACKENDS),
         matcher=choice("--matcher", matcher, MATCHERS, sep=", "),
-        overrides=Overrides(size=size, conf_threshold=conf_threshold, budget=budget, refine=parse_refine(refine)),
+        overrides=Overrides(
+            size=size,
+            conf_threshold=conf_threshold,
+            budget=budget,
+            refine=parse_refine(refine),
+            refine_scale=refine_scale,
+        ),
         pipeline=ReconstructConfig(
             views=ViewConfig(
                 intrinsics=intrinsics if intrinsics is not None or focal is not None else poses, focal=focal
@@ -287,7 +301,7 @@ def reconstruct_config(
             multiview=MultiViewConfig(poses=poses),
         ),
         neural=neural_options(weights, gaussian_head, dino, fusion, device, precision),
-        refine=RefineConfig(scale=refine_scale, use_mac=not no_mac, lpips_weights=lpips_weights),
+        refine=RefineConfig(use_mac=not no_mac, lpips_weights=lpips_weights),
     )
 
 

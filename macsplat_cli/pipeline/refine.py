@@ -39,7 +39,9 @@ from .types import DepthMap, MatchSet, TwoViewGeometry, View
 if TYPE_CHECKING:
     from .run import Reconstruction
 
-__all__ = ["AUTO_STEPS", "RefineConfig", "RefineResult", "check_scale", "refine", "refine_reconstruction"]
+__all__ = [
+    "AUTO_STEPS", "RefineConfig", "RefineResult", "check_scale", "refine", "refine_reconstruction", "run_steps",
+]  # fmt: skip
 
 logger = logging.getLogger(__name__)
 
@@ -160,6 +162,30 @@ def _set_learning_rates(opt: Adam, step: int, cfg: RefineConfig) -> None:
         group["lr"] = group["initial_lr"] * f
 
 
+def run_steps(
+    opt: Adam, cfg: RefineConfig, step_loss: Callable[[int], tuple[torch.Tensor, dict[str, float]]],
+    stop: Callable[[list[dict[str, float]], int], bool], on_step: RefineStep | None,
+) -> tuple[list[dict[str, float]], int, bool]:  # fmt: skip
+    """The refinement's loop (this module's and :mod:`.multiview.joint`'s): up to ``cfg.steps`` Adam steps on
+    ``step_loss(step)`` (the loss and its terms) at the cosine rates (:func:`_set_learning_rates`), each step's
+    terms reported to ``on_step``, until ``stop(history, step)``. Returns the terms of every step, the steps run
+    and whether it stopped before ``cfg.steps``."""
+    history: list[dict[str, float]] = []
+    step = 0
+    for step in range(1, cfg.steps + 1):
+        opt.zero_grad(set_to_none=True)
+        _set_learning_rates(opt, step, cfg)
+        loss, terms = step_loss(step)
+        loss.backward()
+        opt.step()
+        history.append(terms)
+        if on_step is not None:
+            on_step(step, cfg.steps, terms)
+        if stop(history, step):
+            return history, step, step < cfg.steps
+    return history, step, False
+
+
 def _pair_matches(geometry: TwoViewGeometry, depths: list[DepthMap] | None, cfg: RefineConfig) -> list[MatchSet]:
     """The two views' verified matches (and with ``mac_matches="dense"`` the depth-consistent pixels)."""
     m_xy0, m_xy1, m_w = geometry.inliers.xy0, geometry.inliers.xy1, geometry.inliers.conf
@@ -269,24 +295,11 @@ def refine(
     sets = _pair_matches(geometry, depths, cfg) if geometry is not None else list(match_sets or [])
     matches = _mac_matches(sets, params, cfg)
 
-    history: list[dict[str, float]] = []
-    running: list[float] = []
-    stopped_early = False
     t0 = time.perf_counter()
-    step = 0
-    for step in range(1, cfg.steps + 1):
-        opt.zero_grad(set_to_none=True)
-        _set_learning_rates(opt, step, cfg)
-        loss, terms = _step_loss(params, targets, matches, cfg, lpips)
-        loss.backward()
-        opt.step()
-        history.append(terms)
-        running.append(terms["loss"])
-        if on_step is not None:
-            on_step(step, cfg.steps, terms)
-        if _plateaued(running, step, cfg):
-            stopped_early = step < cfg.steps
-            break
+    history, step, stopped_early = run_steps(
+        opt, cfg, lambda step: _step_loss(params, targets, matches, cfg, lpips),
+        lambda history, step: _plateaued([h["loss"] for h in history], step, cfg), on_step,
+    )  # fmt: skip
     seconds = time.perf_counter() - t0
     logger.debug(
         "refinement: %d steps in %.1f s, loss %.4f → %.4f", step, seconds, history[0]["loss"], history[-1]["loss"]

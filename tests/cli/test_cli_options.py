@@ -94,7 +94,8 @@ def test_refine_flags_make_one_refine_config() -> None:
     assert _config("--refine", "AUTO").overrides.refine == 25
     assert _config("--refine", "off").overrides.refine == 0 == _config("--refine", " Off ").overrides.refine
     config = _config("--refine", "7", "--refine-scale", "1", "--no-mac", "--lpips-weights", "vgg")
-    assert config.refine == RefineConfig(scale=1, use_mac=False, lpips_weights=Path("vgg"))
+    assert config.refine == RefineConfig(use_mac=False, lpips_weights=Path("vgg"))
+    assert config.overrides.refine_scale == 1
     assert config.settings().refine == RefineConfig(steps=7, scale=1, use_mac=False, lpips_weights=Path("vgg"))
     assert _settings("--refine", "7").refine.steps == 7
     for bad in ("abc", "-2", "1.5", "", "auto,3"):

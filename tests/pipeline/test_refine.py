@@ -143,3 +143,22 @@ def test_cli_refine_with_lpips_weights(pair: tuple[Path, Path, Path], tmp_path: 
     assert code == 0, err
     r = json.loads((tmp_path / "r.json").read_text())["refine"]
     assert r["lpips"] is True and r["loss_last"]["lpips"] > 0
+
+
+def test_run_steps_is_the_loop_both_refinements_share() -> None:
+    """:func:`~macsplat_cli.pipeline.refine.run_steps` (the two-view and the joint refinement's loop): Adam at the
+    cosine rates on the loss it is given, every step reported, stopped when ``stop`` says so."""
+    from macsplat_cli.pipeline.refine import run_steps
+    from macsplat_cli.pipeline.refine_adam import Adam
+
+    x = torch.tensor([3.0], requires_grad=True)
+    opt = Adam([{"params": [x], "lr": 0.5, "initial_lr": 0.5}])
+    seen: list[int] = []
+    history, steps, stopped = run_steps(
+        opt, RefineConfig(steps=50), lambda step: ((x**2).sum(), {"loss": float(x.detach() ** 2)}),
+        lambda history, step: history[-1]["loss"] < 0.01, lambda step, most, terms: seen.append(step),
+    )  # fmt: skip
+    assert stopped and steps == len(history) == len(seen) < 50 and seen == list(range(1, steps + 1))
+    assert history[-1]["loss"] < 0.01 < history[0]["loss"]
+    _, steps, stopped = run_steps(opt, RefineConfig(steps=3), lambda step: ((x**2).sum(), {}), lambda h, s: False, None)
+    assert (steps, stopped) == (3, False)

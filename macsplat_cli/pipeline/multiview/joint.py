@@ -55,7 +55,7 @@ from ...metrics import ssim_map
 from ...render import render
 from ...report import RefineReport
 from ...rotations import quat_multiply, quat_to_rotmat
-from ..refine import SSIM_WEIGHT, RefineConfig, RefineResult, RefineStep, _downscale, _optimizer, _set_learning_rates
+from ..refine import SSIM_WEIGHT, RefineConfig, RefineResult, RefineStep, _downscale, _optimizer, run_steps
 from ..types import MatchSet, View
 
 if TYPE_CHECKING:
@@ -84,6 +84,11 @@ HOLDOUT_PATIENCE = 5
 """Steps without the held-out error falling before the refinement stops (at least one per photo)."""
 MIN_STEPS = 8
 """Never stop before this many steps (the first steps move the Gaussians more than the error shows)."""
+FULL_RESOLUTION_MEANS_RATE = 0.5
+"""At full resolution (``scale`` 1: ``best`` on three photos or more) the means' learning rate is the pooled
+refinement's times this (a step of the same pixels: a pixel is half as wide). Room 4, 10 steps, mid / side: 21.52 /
+20.22 dB at the pooled rates, 22.05 / 20.54 with the means' halved, 21.98 / 20.50 with every Gaussian rate halved,
+21.45 / 20.17 with every one but the means' (benchmarks/history/multiview_joint.md)."""
 SH_DEGREE = 1
 """The SH degree of the Gaussians enough photos see from spread directions (:mod:`.sh_views`); 0 elsewhere."""
 PHOTOS_PER_STEP = 1
@@ -363,12 +368,16 @@ def _with_sh(maps: list[GaussianMaps], Ks: list[np.ndarray]) -> list[Packed]:
     return out
 
 
-def _stalled(heldout: list[float], step: int, patience: int) -> bool:
-    """The held-out error has not fallen by :data:`HOLDOUT_TOL` of its best for ``patience`` steps."""
-    if step < max(MIN_STEPS, patience + 1):
+def _stalled(heldout: list[float], step: int, patience: int, start: int) -> bool:
+    """The held-out error has not fallen by :data:`HOLDOUT_TOL` of its best for ``patience`` steps, counted from step
+    ``start``, the first whose curve holds every photo's error (before it the mean is over the photos rendered so
+    far, another mean: on room 4 at full resolution and the pooled rates it rose by a quarter as the third photo
+    came in, and the run stopped at :data:`MIN_STEPS`: mid / side 21.32 / 20.08 dB, 21.52 / 20.22 run to its end)."""
+    curve = heldout[start - 1 :]
+    if step < MIN_STEPS or len(curve) < patience + 1:
         return False
-    best_before = min(heldout[:-patience])
-    return min(heldout[-patience:]) > best_before * (1 - HOLDOUT_TOL)
+    best_before = min(curve[:-patience])
+    return min(curve[-patience:]) > best_before * (1 - HOLDOUT_TOL)
 
 
 def _frozen(m: GaussianMaps, cam_to_world: np.ndarray) -> GaussianMaps:
@@ -402,6 +411,9 @@ def joint_refine(
     trusted = trusted_cameras(list(match_sets or []), [v.K for v in views], cam_to_world, fixed, POSE_TRUST_PX * f)
     poses.free[torch.as_tensor(trusted)] = 0.0
     opt = _optimizer(params, config)
+    means = opt.param_groups[0]  # refine._optimizer's first group
+    if f == 1:
+        means["lr"] = means["initial_lr"] = means["lr"] * FULL_RESOLUTION_MEANS_RATE
     depth = torch.cat([m.means[..., 2][m.valid_mask()] for m in params]).detach()
     scene = float(depth.median()) if depth.numel() else 1.0
     for lr, p in ((LR_ROTATION, poses.omega), (LR_CENTRE * scene, poses.delta)):
@@ -415,25 +427,22 @@ def joint_refine(
     visible = [[True if m is not None and bool(m.all()) else m
                 for m in in_view(params, where, p.world_to_cam, p.K, p.image.shape[1], p.image.shape[0])]
                for p in photos]  # fmt: skip
-    patience = max(HOLDOUT_PATIENCE, -(-len(photos) // per_step))  # a round at least: every photo's error updated
-    history: list[dict[str, float]] = []
-    t0 = time.perf_counter()
-    step, stopped = 0, False
+    rounds = -(-len(photos) // per_step)  # the steps of a round: after the first, every photo's error is in
+    patience = max(HOLDOUT_PATIENCE, rounds)  # a round at least: every photo's error updated
+    schedule = _schedule(len(photos), per_step, config.steps)
     latest: dict[int, float] = {}  # each photo's held-out error when it was last rendered
-    for step, which in enumerate(_schedule(len(photos), per_step, config.steps), 1):
-        opt.zero_grad(set_to_none=True)
-        _set_learning_rates(opt, step, config)
-        loss, held, terms = _loss(params, poses, photos, which, mac_sets, config, visible, packs)
-        loss.backward()
-        opt.step()
+
+    def step_loss(step: int) -> tuple[torch.Tensor, dict[str, float]]:
+        loss, held, terms = _loss(params, poses, photos, schedule[step - 1], mac_sets, config, visible, packs)
         latest.update(held)
         terms["heldout"] = float(np.mean(list(latest.values())))
-        history.append(terms)
-        if on_step is not None:
-            on_step(step, config.steps, terms)
-        if _stalled([h["heldout"] for h in history], step, patience):
-            stopped = step < config.steps
-            break
+        return loss, terms
+
+    t0 = time.perf_counter()
+    history, step, stopped = run_steps(
+        opt, config, step_loss,
+        lambda history, step: _stalled([h["heldout"] for h in history], step, patience, rounds), on_step,
+    )  # fmt: skip
     with torch.no_grad():
         T = poses.cam_to_world()
         turned = torch.rad2deg(poses.omega.norm(dim=1) * poses.free[:, 0])

@@ -72,11 +72,15 @@ def _turned(truth: list[np.ndarray], turns: dict[int, tuple[list[float], float]]
     return wrong
 
 
-def test_joint_refinement_recovers_perturbed_poses(orbit: tuple) -> None:
+def test_joint_refinement_recovers_perturbed_poses(orbit: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
     """Cameras 1 and 2 turned 1.5° and 1.2° off (their Gaussians built at the wrong poses, as a registration error
     would place them; camera 1's distance to camera 0 kept, the gauge): the joint refinement brings both back to
     within 0.2°, and the Gaussians ride with their cameras. The matches (given, not in the loss) are pixels off
-    their epipolar lines at these poses, so neither camera is trusted as registered."""
+    their epipolar lines at these poses, so neither camera is trusted as registered. The means at the pooled
+    refinement's rate (with ``best``'s halved full-resolution rate camera 2 ends 0.206° off: 0.177° here)."""
+    from macsplat_cli.pipeline.multiview import joint
+
+    monkeypatch.setattr(joint, "FULL_RESOLUTION_MEANS_RATE", 1.0)
     views, depths, truth = orbit
     wrong = _turned(truth, {1: ([0.3, 1.0, 0.2], 1.5), 2: ([1.0, -0.4, 0.3], 1.2)})
     maps = _maps(views, depths, wrong)
@@ -230,6 +234,35 @@ def test_balanced_refines_three_photos_or_more_jointly_and_leaves_two_photos_as_
     assert (off.refine.steps, off.compact.adaptive, off.compact.dedup) == (0, True, True)
     assert configure("fast", "classical", photos=4).refine.steps == 0
     assert configure("best", "classical", photos=4).compact == configure("best", "classical").compact
+
+
+def test_best_refines_three_photos_or_more_at_full_resolution_and_two_photos_as_they_were() -> None:
+    """``best`` on N ≥ 3 photos: :data:`~macsplat_cli.presets.MULTIVIEW_BEST_STEPS` joint steps at full resolution
+    (the pooled scene rendered its held-out views blurred); on two photos :data:`AUTO_STEPS` at 1/2, as before;
+    ``--refine-scale`` overrides either."""
+    from macsplat_cli.engine import EngineConfig
+    from macsplat_cli.pipeline.refine_config import AUTO_STEPS
+    from macsplat_cli.presets import MULTIVIEW_BEST_STEPS, Overrides, configure
+
+    two, four = configure("best", "classical"), configure("best", "classical", photos=4)
+    assert (two.refine.steps, two.refine.scale) == (AUTO_STEPS, 2)
+    assert (four.refine.steps, four.refine.scale) == (MULTIVIEW_BEST_STEPS, 1)
+    assert configure("best", "classical", Overrides(refine_scale=2), photos=4).refine.scale == 2
+    assert configure("best", "classical", Overrides(refine_scale=4)).refine.scale == 4
+    assert configure("balanced", "classical", photos=4).refine.scale == 2
+    assert EngineConfig(quality="best").settings(photos=3).refine.scale == 1
+
+
+def test_the_heldout_curve_is_judged_from_the_first_round_on() -> None:
+    """Before every photo has been rendered the curve is the mean over fewer photos: a harder photo coming in must
+    not read as the error rising (room 4 at full resolution stopped at 8 steps, 0.2 dB short)."""
+    from macsplat_cli.pipeline.multiview.joint import _stalled
+
+    rising_in = [0.5, 0.6, 0.9, 0.8, 0.8, 0.8, 0.79, 0.79]  # 4 photos: the third and fourth are harder
+    assert not _stalled(rising_in, len(rising_in), patience=5, start=4)
+    flat = [0.9, 0.9, 0.9, 0.8, 0.8, 0.8, 0.8, 0.8, 0.8, 0.8]
+    assert _stalled(flat, len(flat), patience=5, start=4)
+    assert not _stalled(flat[:8], 8, patience=5, start=4)  # a round and the patience are not over yet
 
 
 def test_covisibility_tests_a_gaussian_only_while_it_is_kept(orbit: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
