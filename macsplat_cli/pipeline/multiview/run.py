@@ -152,7 +152,8 @@ def reconstruct_views(
     known = load_known_poses(config.poses, views) if config.poses is not None else None
 
     def pairs_stage() -> list[PairOutcome]:
-        feats = cached.describe(sub, None) if len(sub) > config.shortlist.all_pairs_max else None
+        # every photo's descriptors at once, side by side (per pair, most pairs would describe one new photo alone)
+        feats = cached.describe(sub, None)
         chosen = select_pairs(len(sub), feats, config.shortlist)
         if known is not None:
             full = [(live[i], live[j]) for i, j in chosen]
