@@ -24,6 +24,10 @@ __all__ = ["depth_pairs", "free_space_check", "fuse_estimates", "multiview_depth
 
 logger = logging.getLogger(__name__)
 
+SIDE_BY_SIDE_MAX = 4
+"""At most this many items of :func:`photo_map` at once, whatever the cores: each depth pair holds its cost volumes
+while it runs, and on 2 cores (what the targets are measured on) two already fill them."""
+
 A = TypeVar("A")
 B = TypeVar("B")
 
@@ -115,7 +119,7 @@ def photo_map(fn: Callable[[A], B], items: Iterable[A]) -> list[B]:
     the same results): the per-pair and per-photo steps are independent, and much of each is NumPy, OpenCV or a
     ``nogil`` kernel that release the GIL, so a second core runs what one pair's own threads leave idle."""
     items = list(items)
-    workers = min(len(items), kernel_threads())
+    workers = min(len(items), kernel_threads(), SIDE_BY_SIDE_MAX)
     if workers < 2:
         return [fn(x) for x in items]
     with ThreadPoolExecutor(workers, thread_name_prefix="multiview") as pool:

@@ -196,6 +196,10 @@ def test_photo_map_keeps_the_order_and_runs_side_by_side(monkeypatch: pytest.Mon
     out = mv_depth.photo_map(slow_first, iter(range(6)))
     assert [v for v, _ in out] == [k * k for k in range(6)]
     assert len({name for _, name in out}) == 2
+    monkeypatch.setattr(mv_depth, "kernel_threads", lambda: 64)  # many cores: at most SIDE_BY_SIDE_MAX at once
+    out = mv_depth.photo_map(slow_first, range(12))
+    assert [v for v, _ in out] == [k * k for k in range(12)]
+    assert 2 <= len({name for _, name in out}) <= mv_depth.SIDE_BY_SIDE_MAX
     monkeypatch.setattr(mv_depth, "kernel_threads", lambda: 1)
     out = mv_depth.photo_map(slow_first, range(3))
     assert [v for v, _ in out] == [0, 1, 4] and {name for _, name in out} == {threading.current_thread().name}
