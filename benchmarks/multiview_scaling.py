@@ -3,6 +3,7 @@
     python -m benchmarks.multiview_scaling                       # N = 2, 4, 8, 16, 32 (a few minutes on 2 cores)
     python -m benchmarks.multiview_scaling --sizes 2,4,8         # fewer sizes
     python -m benchmarks.multiview_scaling --table               # reprint the last run's table, run nothing
+    python -m benchmarks.multiview_scaling --real co3d --data ../shared/data   # real photos: N = 2, 4, 8, 16, 20
 
 The photos: one synthetic room (``make_scene("room", 0)``) seen from an orbit of ``--step`` degree steps (4°: every
 photo overlaps its neighbours), 512 x 384, 60° horizontal field of view, rendered once into ``--cache`` (kept
@@ -18,6 +19,12 @@ steadier figure than the wall time; with two cores busy it is up to twice the wa
 times, peak RSS in GB of 10^9 bytes (target at N = 32: <= 4 GB) and, when pycolmap is installed, its incremental
 SfM on the same photos with the true K held fixed (``benchmarks._colmap_peer``: SIFT at 512 px, exhaustive
 matching, mapping; no dense stage) — seconds and photos registered.
+
+``--real co3d`` runs the same table on real photos instead (issue 40: the per-photo figure on real photos too):
+CO3D apple's 20 frames from the shared data folder (``--data``; read as :mod:`benchmarks._dev` reads them), N of
+them evenly spaced over the 20 (frame order: the cameras file's; N = 2 takes the first and the last, as
+``benchmarks.multiview_dev`` spaces them), 1066 x 1896 photos (at the CLI's working size, as any photo), each
+photo's true intrinsics given (a cameras file written into ``--cache``); the pycolmap peer gets the same K.
 
 A warm-up run (N = 3, untimed) compiles the Numba kernels into the default cache first, so that N = 2 does not pay
 for them. The results go to ``<cache>/results.json``; ``--table`` reprints them. The load average before each run
@@ -53,14 +60,31 @@ ORBIT = 32
 GB = 1e9
 
 
+REAL_SCENES = ("co3d",)
+"""``--real`` scenes (:mod:`benchmarks._dev`'s names)."""
+REAL_SIZES = [2, 4, 8, 16, 20]
+"""``--real co3d``'s default N: up to every one of CO3D apple's 20 frames."""
+
+
 @dataclass
 class Photos:
-    """The cached orbit: photos in orbit order, the intrinsics file, and K at the photos' resolution."""
+    """The photos to draw from: in order, the intrinsics file, K of each photo at its own resolution, and how N are
+    chosen (the first N of the orbit, or N evenly spaced)."""
 
     paths: list[Path]
     intrinsics: Path
-    K: list[list[float]]
-    """[3, 3] at the photos' own resolution, pixel centres at +0.5."""
+    K: list[list[list[float]]]
+    """[3, 3] per photo at the photo's own resolution, pixel centres at +0.5."""
+    spread: bool = False
+    """N photos are N evenly spaced over all of them (first and last included), not the first N."""
+
+    def chosen(self, n: int) -> list[int]:
+        """The indices of the ``n`` photos a run of size ``n`` takes."""
+        if not self.spread:
+            return list(range(n))
+        import numpy as np
+
+        return sorted({int(round(x)) for x in np.linspace(0, len(self.paths) - 1, n)})
 
 
 @dataclass
@@ -107,7 +131,23 @@ def render_photos(cache: Path, n: int, step_deg: float) -> Photos:
                 save_image(p, render(scene, cam, supersample=1).image)
         save_cameras(intr, CameraSet([cams[0]]))
         print(f"rendered {n} photos into {folder} in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
-    return Photos(paths, intr, np.asarray(cams[0].K, dtype=np.float64).tolist())
+    return Photos(paths, intr, [np.asarray(c.K, dtype=np.float64).tolist() for c in cams])
+
+
+def real_photos(cache: Path, data: Path, scene: str) -> Photos:
+    """A real scene's frames (:func:`benchmarks._dev.dev_frames`) with their true intrinsics written into ``cache`` as
+    a cameras file (one camera per photo, named after its file); N of them evenly spaced."""
+    import numpy as np
+
+    from benchmarks._dev import dev_frames, photo_size
+    from macsplat_cli.cameras import Camera, CameraSet, save_cameras
+
+    frames = dev_frames(data, scene)
+    cache.mkdir(parents=True, exist_ok=True)
+    intr = cache / f"{scene}_intrinsics.json"
+    save_cameras(intr, CameraSet([Camera(f.image.name, *photo_size(f), f.camera.K, np.eye(4)) for f in frames]))
+    Ks = [np.asarray(f.camera.K, dtype=np.float64).tolist() for f in frames]
+    return Photos([Path(f.image) for f in frames], intr, Ks, spread=True)
 
 
 def _cli_command(photos: list[Path], intr: Path, work: Path) -> list[str]:
@@ -163,7 +203,8 @@ def _cli_error(stderr: str) -> str:
 
 def measure(photos: Photos, n: int, work: Path, colmap: bool) -> SizeResult:
     """The CLI (and the peer) on the first ``n`` photos."""
-    paths = photos.paths[:n]
+    chosen = photos.chosen(n)
+    paths = [photos.paths[i] for i in chosen]
     if work.exists():
         shutil.rmtree(work)
     work.mkdir(parents=True)
@@ -198,8 +239,8 @@ def measure(photos: Photos, n: int, work: Path, colmap: bool) -> SizeResult:
 
         from benchmarks._colmap_peer import run_colmap
 
-        K = np.asarray(photos.K, dtype=np.float64)
-        peer = run_colmap(paths, K=[K] * n, max_image_size=512, threads=2)
+        Ks = [np.asarray(photos.K[i], dtype=np.float64) for i in chosen]
+        peer = run_colmap(paths, K=Ks, max_image_size=512, threads=2)
         res.colmap_s, res.colmap_registered, res.colmap_error = peer.seconds, peer.n_registered, peer.error
     return res
 
@@ -284,14 +325,17 @@ def _sizes(text: str) -> list[int]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--sizes", type=_sizes, default=[2, 4, 8, 16, 32], help="comma-separated N (default 2,4,8,16,32)")
+    ap.add_argument("--sizes", type=_sizes, help="comma-separated N (default 2,4,8,16,32; --real: 2,4,8,16,20)")
     ap.add_argument("--step", type=float, default=4.0, help="degrees between neighbouring photos on the orbit")
     ap.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help="where the photos and results are kept")
     ap.add_argument("--no-colmap", action="store_true", help="skip the pycolmap peer")
     ap.add_argument("--no-warmup", action="store_true", help="skip the untimed N = 3 run that compiles the kernels")
     ap.add_argument("--table", action="store_true", help="reprint the last run's table (<cache>/results.json)")
+    ap.add_argument("--real", choices=REAL_SCENES, help="real photos instead of the orbit (N evenly spaced)")
+    ap.add_argument("--data", type=Path, default=Path("../shared/data"), help="the shared data folder (--real)")
     args = ap.parse_args()
-    results_path = args.cache / "results.json"
+    sizes = args.sizes or (REAL_SIZES if args.real else [2, 4, 8, 16, 32])
+    results_path = args.cache / ("results.json" if args.real is None else f"results_{args.real}.json")
     if args.table:
         saved = json.loads(results_path.read_text())
         print_table([SizeResult(**r) for r in saved["results"]], saved["peer"])
@@ -299,16 +343,22 @@ def main() -> None:
     from benchmarks._colmap_peer import colmap_available
 
     peer = not args.no_colmap and colmap_available()
-    photos = render_photos(args.cache, max(max(args.sizes), 3), args.step)
+    if args.real is None:
+        photos = render_photos(args.cache, max(max(sizes), 3), args.step)
+    else:
+        photos = real_photos(args.cache, args.data, args.real)
+        if max(sizes) > len(photos.paths):
+            raise SystemExit(f"--sizes: {args.real} has {len(photos.paths)} photos")
     work = args.cache / "work"
     if not args.no_warmup:
         (args.cache / "warmup").mkdir(parents=True, exist_ok=True)
-        rc, wall, _, _, stderr = run_cli(photos.paths[:3], photos.intrinsics, args.cache / "warmup")
+        warm = [photos.paths[i] for i in photos.chosen(3)]
+        rc, wall, _, _, stderr = run_cli(warm, photos.intrinsics, args.cache / "warmup")
         print(
             f"warm-up (N = 3): {wall:.1f} s" + ("" if rc == 0 else f", failed: {_cli_error(stderr)}"), file=sys.stderr
         )
     results = []
-    for n in args.sizes:
+    for n in sizes:
         r = measure(photos, n, work / f"n{n}", peer)
         results.append(r)
         peer_line = f", COLMAP {r.colmap_s:.1f} s {r.colmap_registered}/{n}" if peer and r.colmap_s is not None else ""

@@ -10,16 +10,26 @@ Last, each photo's depth loses the pixels another photo sees through and none co
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from typing import TypeVar
 
 import numpy as np
 
+from ..._threads import kernel_threads
 from ..types import DepthMap, Matches, TwoViewGeometry, View
 from .register import Registration
 
-__all__ = ["depth_pairs", "free_space_check", "fuse_estimates", "multiview_depths", "pair_geometry"]
+__all__ = ["depth_pairs", "free_space_check", "fuse_estimates", "multiview_depths", "pair_geometry", "photo_map"]
 
 logger = logging.getLogger(__name__)
+
+SIDE_BY_SIDE_MAX = 4
+"""At most this many items of :func:`photo_map` at once, whatever the cores: each depth pair holds its cost volumes
+while it runs, and on 2 cores (what the targets are measured on) two already fill them."""
+
+A = TypeVar("A")
+B = TypeVar("B")
 
 
 NEIGHBOURS = 2
@@ -104,24 +114,41 @@ DepthFn = Callable[[list[View], TwoViewGeometry], list[DepthMap]]
 """The two-view depth stage: ``(views, geometry) → [DepthMap] ×2`` (baseline-1 units)."""
 
 
+def photo_map(fn: Callable[[A], B], items: Iterable[A]) -> list[B]:
+    """``[fn(x) for x in items]``, the items side by side in :func:`~..._threads.kernel_threads` threads (in order,
+    the same results): the per-pair and per-photo steps are independent, and much of each is NumPy, OpenCV or a
+    ``nogil`` kernel that release the GIL, so a second core runs what one pair's own threads leave idle."""
+    items = list(items)
+    workers = min(len(items), kernel_threads(), SIDE_BY_SIDE_MAX)
+    if workers < 2:
+        return [fn(x) for x in items]
+    with ThreadPoolExecutor(workers, thread_name_prefix="multiview") as pool:
+        return list(pool.map(fn, items))
+
+
 def multiview_depths(
     views: Sequence[View], reg: Registration, two_view: DepthFn
 ) -> tuple[list[DepthMap | None], list[tuple[int, int]]]:
     """Every registered photo's fused depth (None for the others, and for a photo no depth pair reached), and the
     depth pairs that ran."""
     pairs = depth_pairs(reg)
-    found: dict[int, list[DepthMap]] = {}
-    for a, b in pairs:
+
+    def pair_depths(ab: tuple[int, int]) -> list[DepthMap]:
+        a, b = ab
         g, base = pair_geometry(reg, a, b)
-        da, db = two_view([views[a], views[b]], g)
-        for k, d in ((a, da), (b, db)):
-            found.setdefault(k, []).append(DepthMap(d.depth * np.float32(base), d.confidence, d.measured))
         logger.debug("depth pair %s–%s: baseline %.3f", views[a].name, views[b].name, base)
-    out: list[DepthMap | None] = [fuse_estimates(found[k]) if k in found else None for k in range(len(views))]
-    if CHECK_VIEWS > 0:
-        shared = _shared(reg)
-        out = [_free_space_checked(k, out, reg, shared[k]) for k in range(len(out))]
-    return out, pairs
+        estimates = two_view([views[a], views[b]], g)
+        return [DepthMap(d.depth * np.float32(base), d.confidence, d.measured) for d in estimates]
+
+    found: dict[int, list[DepthMap]] = {}
+    for (a, b), (da, db) in zip(pairs, photo_map(pair_depths, pairs)):
+        found.setdefault(a, []).append(da)
+        found.setdefault(b, []).append(db)
+    fused: list[DepthMap | None] = [fuse_estimates(found[k]) if k in found else None for k in range(len(views))]
+    if CHECK_VIEWS <= 0:
+        return fused, pairs
+    shared = _shared(reg)
+    return photo_map(lambda k: _free_space_checked(k, fused, reg, shared[k]), range(len(fused))), pairs
 
 
 def _free_space_checked(k: int, depths: list[DepthMap | None], reg: Registration, S: np.ndarray) -> DepthMap | None:

@@ -24,7 +24,7 @@ from ..slots import StageTimer
 from ..types import DepthMap, MatchSet, View
 from .config import MultiViewConfig
 from .covis import CovisReport, covisibility_init
-from .depth import MIN_SHARED, DepthFn, multiview_depths, pair_geometry
+from .depth import MIN_SHARED, DepthFn, multiview_depths, pair_geometry, photo_map
 from .known import KNOWN_POSE_MAX_PX, known_pose_pairs, load_known_poses
 from .pairwise import PairOutcome, cached_search, match_all
 from .register import Registration, register_known, register_views
@@ -152,7 +152,8 @@ def reconstruct_views(
     known = load_known_poses(config.poses, views) if config.poses is not None else None
 
     def pairs_stage() -> list[PairOutcome]:
-        feats = cached.describe(sub, None) if len(sub) > config.shortlist.all_pairs_max else None
+        # every photo's descriptors at once, side by side (per pair, most pairs would describe one new photo alone)
+        feats = cached.describe(sub, None)
         chosen = select_pairs(len(sub), feats, config.shortlist)
         if known is not None:
             full = [(live[i], live[j]) for i, j in chosen]
@@ -186,7 +187,12 @@ def reconstruct_views(
         kept = [(k, d) for k, d in enumerate(depths) if d is not None]
         ks = [k for k, _ in kept]
         Ts = [reg.cam_to_world(k) for k in ks]
-        maps = [view_gaussians(views[k], d, reg.K[k], T, gaussians) for (k, d), T in zip(kept, Ts)]
+
+        def one(job: tuple[tuple[int, DepthMap], np.ndarray]) -> GaussianMaps:
+            (k, d), T = job
+            return view_gaussians(views[k], d, reg.K[k], T, gaussians)
+
+        maps = photo_map(one, zip(kept, Ts))  # NumPy releases the GIL: the photos side by side
         covis = None
         if config.covisibility:
             maps, covis = covisibility_init(maps, [reg.K[k] for k in ks])

@@ -59,11 +59,26 @@ def room(tmp_path_factory: pytest.TempPathFactory) -> Orbit:
     return _orbit(tmp_path_factory.mktemp("room"), "room", 4, 8.0, 60.0)
 
 
+ROOM_DESCRIBED: list[int] = []
+"""How many photos each call of the primary descriptors got in ``room_run``."""
+
+
 @pytest.fixture(scope="module")
 def room_run(room: Orbit) -> Reconstruction:
+    from macsplat_cli.pipeline.stages import PerViewDescriptors
+    from macsplat_cli.pipeline.types import Features, View
+
     cfg = ReconstructConfig()
     cfg.views.intrinsics = room.cameras
-    return Pipeline(cfg).run(room.photos)
+    describe = PerViewDescriptors.__call__
+
+    def counted(self: PerViewDescriptors, views: list[View], pair: None = None) -> list[Features]:
+        ROOM_DESCRIBED.append(len(views))
+        return describe(self, views, pair)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(PerViewDescriptors, "__call__", counted)
+        return Pipeline(cfg).run(room.photos)
 
 
 def _rotation_errors(rec: Reconstruction, truth: dict[str, np.ndarray]) -> list[float]:
@@ -80,6 +95,12 @@ def test_every_photo_registers_with_known_intrinsics(room_run: Reconstruction, r
     assert mv["reprojection_rms_px"] < 1.0  # SIFT localisation noise, after the bundle adjustment
     # world = the first photo's camera
     assert np.allclose(room_run.cameras()[0].cam_to_world, np.eye(4), atol=1e-9)
+
+
+def test_every_photo_is_described_once_all_side_by_side(room_run: Reconstruction, room: Orbit) -> None:
+    """The pairs stage describes every photo in one call (the describe stage's threads take them side by side),
+    not pair by pair (one new photo alone for most pairs); the pairs reuse those descriptors."""
+    assert ROOM_DESCRIBED == [len(room.photos)]
 
 
 def test_every_registered_photo_gives_gaussians_and_a_depth(room_run: Reconstruction) -> None:

@@ -178,3 +178,28 @@ def test_triangulation_solves_only_the_tracks_not_kept_yet(monkeypatch: pytest.M
     assert solved == [150, 50]  # the 50 tracks photo 2 completes, not the 150 kept ones again
     assert st.point_ok.all() and np.array_equal(st.points[:150], first[:150])
     assert np.allclose(st.points, X, atol=1e-9)
+
+
+def test_photo_map_keeps_the_order_and_runs_side_by_side(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The depth pairs and the photos' Gaussians go through :func:`photo_map`: the results in the items' order
+    whatever finishes first, on more than one thread when the kernels have more, on the caller's alone with one."""
+    import threading
+    import time
+
+    from macsplat_cli.pipeline.multiview import depth as mv_depth
+
+    def slow_first(k: int) -> tuple[int, str]:
+        time.sleep(0.02 if k == 0 else 0.0)
+        return k * k, threading.current_thread().name
+
+    monkeypatch.setattr(mv_depth, "kernel_threads", lambda: 2)
+    out = mv_depth.photo_map(slow_first, iter(range(6)))
+    assert [v for v, _ in out] == [k * k for k in range(6)]
+    assert len({name for _, name in out}) == 2
+    monkeypatch.setattr(mv_depth, "kernel_threads", lambda: 64)  # many cores: at most SIDE_BY_SIDE_MAX at once
+    out = mv_depth.photo_map(slow_first, range(12))
+    assert [v for v, _ in out] == [k * k for k in range(12)]
+    assert 2 <= len({name for _, name in out}) <= mv_depth.SIDE_BY_SIDE_MAX
+    monkeypatch.setattr(mv_depth, "kernel_threads", lambda: 1)
+    out = mv_depth.photo_map(slow_first, range(3))
+    assert [v for v, _ in out] == [0, 1, 4] and {name for _, name in out} == {threading.current_thread().name}
