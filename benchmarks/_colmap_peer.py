@@ -353,7 +353,8 @@ def _check_run(run: ColmapRun, with_K: bool, gt_K: list[np.ndarray], sizes: list
         c2w = run.cam_to_world[i]
         assert c2w is not None and np.allclose(c2w[:3, :3] @ c2w[:3, :3].T, np.eye(3), atol=1e-9)
         if with_K:
-            assert np.allclose(run.K[i], gt_K[i], rtol=1e-9), (run.K[i], gt_K[i])
+            K = run.K[i]
+            assert K is not None and np.allclose(K, gt_K[i], rtol=1e-9), (K, gt_K[i])
 
 
 def main(argv: Sequence[str] | None = None) -> None:

@@ -74,7 +74,10 @@ def between(frames: list[Frame], pair: tuple[int, int]) -> list[int]:
 
 def load_rgb(path: Path, size: tuple[int, int]) -> np.ndarray:
     """A photo as RGB float32 in [0, 1], resized (area) to ``size`` = (W, H). [H, W, 3]"""
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)[..., ::-1].astype(np.float32) / 255.0
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise FileNotFoundError(f"{path}: not a readable image")
+    img = bgr[..., ::-1].astype(np.float32) / 255.0
     return cv2.resize(img, size, interpolation=cv2.INTER_AREA)
 
 

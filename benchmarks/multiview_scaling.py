@@ -285,7 +285,7 @@ def print_table(results: list[SizeResult], peer: bool) -> None:
     for r in sorted(results, key=lambda r: r.n):
         per = (r.wall_s - base.wall_s) / (r.n - 2) if base and r.ok and r.n > 2 else None
         cpu_per = None
-        if per is not None and r.cpu_s is not None and base.cpu_s is not None:
+        if per is not None and base is not None and r.cpu_s is not None and base.cpu_s is not None:
             cpu_per = (r.cpu_s - base.cpu_s) / (r.n - 2)
         matched = r.extra.get("pairs_matched", 1 if r.n == 2 and r.ok else None)
         accepted = r.extra.get("pairs_accepted", matched)
