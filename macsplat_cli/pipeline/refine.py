@@ -134,14 +134,19 @@ def _targets(views: list[View], Ks: list[np.ndarray], params: list[GaussianMaps]
     return targets
 
 
-def _optimizer(params: list[GaussianMaps], cfg: RefineConfig) -> Adam:
-    """Adam (:mod:`.refine_adam`) over the five parameter maps; the means' rate scaled by the median scene depth."""
+def _scene_depth(params: list[GaussianMaps]) -> float:
+    """The median depth of the valid Gaussians in their cameras' frames (1 with none): the scene's scale."""
     depth = torch.cat([m.means[..., 2][m.valid_mask()] for m in params]).detach()
-    scene = float(depth.median()) if depth.numel() else 1.0
+    return float(depth.median()) if depth.numel() else 1.0
+
+
+def _optimizer(params: list[GaussianMaps], cfg: RefineConfig, scene: float, means_rate: float = 1.0) -> Adam:
+    """Adam (:mod:`.refine_adam`) over the five parameter maps; the means' rate scaled by the scene's depth
+    (:func:`_scene_depth`) and ``means_rate``."""
     s = LR_SCALE
     opt = Adam(
         [
-            {"params": [m.means for m in params], "lr": s * LR_MEANS * scene},
+            {"params": [m.means for m in params], "lr": s * LR_MEANS * scene * means_rate},
             {"params": [m.log_scales for m in params], "lr": s * LR_LOG_SCALES},
             {"params": [m.quats for m in params], "lr": s * LR_QUATS},
             {"params": [m.opacity_logits for m in params], "lr": s * LR_OPACITY},
@@ -291,7 +296,7 @@ def refine(
             t.requires_grad_(True)
     Ks = [geometry.K0, geometry.K1] if geometry is not None else [v.K for v in views]
     targets = _targets(views, Ks, params, cfg.scale)
-    opt = _optimizer(params, cfg)
+    opt = _optimizer(params, cfg, _scene_depth(params))
     sets = _pair_matches(geometry, depths, cfg) if geometry is not None else list(match_sets or [])
     matches = _mac_matches(sets, params, cfg)
 

@@ -55,7 +55,16 @@ from ...metrics import ssim_map
 from ...render import render
 from ...report import RefineReport
 from ...rotations import quat_multiply, quat_to_rotmat
-from ..refine import SSIM_WEIGHT, RefineConfig, RefineResult, RefineStep, _downscale, _optimizer, run_steps
+from ..refine import (
+    SSIM_WEIGHT,
+    RefineConfig,
+    RefineResult,
+    RefineStep,
+    _downscale,
+    _optimizer,
+    _scene_depth,
+    run_steps,
+)
 from ..types import MatchSet, View
 
 if TYPE_CHECKING:
@@ -410,12 +419,8 @@ def joint_refine(
     poses = _Poses(cam_to_world, fixed)
     trusted = trusted_cameras(list(match_sets or []), [v.K for v in views], cam_to_world, fixed, POSE_TRUST_PX * f)
     poses.free[torch.as_tensor(trusted)] = 0.0
-    opt = _optimizer(params, config)
-    means = opt.param_groups[0]  # refine._optimizer's first group
-    if f == 1:
-        means["lr"] = means["initial_lr"] = means["lr"] * FULL_RESOLUTION_MEANS_RATE
-    depth = torch.cat([m.means[..., 2][m.valid_mask()] for m in params]).detach()
-    scene = float(depth.median()) if depth.numel() else 1.0
+    scene = _scene_depth(params)
+    opt = _optimizer(params, config, scene, FULL_RESOLUTION_MEANS_RATE if f == 1 else 1.0)
     for lr, p in ((LR_ROTATION, poses.omega), (LR_CENTRE * scene, poses.delta)):
         opt.add_param_group({"params": [p], "lr": lr})
         opt.param_groups[-1]["initial_lr"] = lr
@@ -446,8 +451,7 @@ def joint_refine(
     with torch.no_grad():
         T = poses.cam_to_world()
         turned = torch.rad2deg(poses.omega.norm(dim=1) * poses.free[:, 0])
-    T_np = [t.numpy().copy() for t in T]
-    with torch.no_grad():
+        T_np = [t.numpy().copy() for t in T]
         out = [_frozen(p.pixel_map(), T_np[k]) for k, p in enumerate(packs)]
     seconds = time.perf_counter() - t0
     logger.debug("joint refinement: %d steps in %.1f s, held-out %.5f → %.5f", step, seconds,
