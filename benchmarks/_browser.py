@@ -114,6 +114,8 @@ class Browser:
 
         data = base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"])
         bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise RuntimeError("the browser's screenshot is not a PNG OpenCV can decode")
         return np.ascontiguousarray(bgr[..., ::-1])
 
     def evaluate(self, expression: str) -> Any:

@@ -15,7 +15,11 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from macsplat_cli.pipeline.pose import PoseResult
+    from macsplat_cli.pipeline.run import Reconstruction
 
 
 def row(cells: Sequence[str]) -> str:
@@ -73,6 +77,14 @@ class StageTimer:
 def write_json(path: Path, obj: Any, *, indent: int = 2, default: Callable[[Any], Any] | None = None) -> None:
     """Write ``obj`` as JSON (``default`` converts what ``json`` cannot)."""
     path.write_text(json.dumps(obj, indent=indent, default=default))
+
+
+def pair_pose(rec: Reconstruction) -> PoseResult:
+    """The pose search's result of a two-photo reconstruction (``rec.pose``, set whenever the pipeline estimated a
+    pose)."""
+    if rec.pose is None:
+        raise RuntimeError("this reconstruction has no estimated pose (given poses?)")
+    return rec.pose
 
 
 def progress(message: str) -> None:

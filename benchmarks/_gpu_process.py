@@ -71,6 +71,8 @@ class GpuMemoryPoll:
         self._thread: threading.Thread | None = None
 
     def _read_one(self) -> float | None:
+        if self.exe is None:
+            return None
         try:
             out = subprocess.run([self.exe, *self.args], capture_output=True, text=True, timeout=30)
             return float(out.stdout.split()[0]) if out.returncode == 0 else None

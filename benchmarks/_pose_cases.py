@@ -64,7 +64,9 @@ def pose_case(paths: list[Path], cfg: ReconstructConfig, R_gt: np.ndarray, t_gt:
     """
     _allow_low_confidence(cfg)
     stop = _StopAtDepth()
-    pipe = Pipeline(cfg, classical_stages(cfg, depth=stop)) if classical_stages else Pipeline(cfg, depth=stop)
+    pipe = (
+        Pipeline(cfg, classical_stages(cfg, depth=stop)) if classical_stages is not None else Pipeline(cfg, depth=stop)
+    )
     t0 = time.perf_counter()
     tier = None
     try:

@@ -23,16 +23,16 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 import torch
 
-from benchmarks._common import print_header, row, write_json
+from benchmarks._common import pair_pose, print_header, row, write_json
 from benchmarks._dev import between, c2w, dev_frames, load_rgb, photo_size, save_intrinsics, target_intrinsics
 from macsplat_cli.cameras import Camera
 from macsplat_cli.datasets import Frame
@@ -114,9 +114,9 @@ def run_case(
     dt = time.perf_counter() - t0
     T_gt = np.linalg.inv(c2w(f1)) @ c2w(f0)  # camera 0 → camera 1
     R_gt, t_gt = T_gt[:3, :3], T_gt[:3, 3]
-    g = rec.pose.geometry
+    g = pair_pose(rec).geometry
     layer = rec.background
-    out = {
+    out: dict[str, Any] = {
         "rotation_error_deg": rotation_error_deg(g.R, R_gt),
         "translation_error_deg": translation_direction_error_deg(g.t, t_gt),
         "intrinsics": rec.report.images[0].intrinsics_source,
@@ -233,4 +233,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()

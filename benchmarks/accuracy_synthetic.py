@@ -23,10 +23,12 @@ import argparse
 import math
 import tempfile
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
+from benchmarks._common import pair_pose
 from macsplat_cli.cameras import CameraSet, save_cameras
 from macsplat_cli.datasets import synthetic as S
 from macsplat_cli.engine import EngineConfig, reconstruct
@@ -36,10 +38,13 @@ from macsplat_cli.pipeline.depth import DepthConfig
 from macsplat_cli.pipeline.run import ReconstructConfig
 from macsplat_cli.pipeline.views import ViewConfig
 
+if TYPE_CHECKING:
+    from macsplat_cli.datasets.synthetic.scenes import SceneKind
+
 
 def run(
-    kind: str, angle: float, seed: int, fov: float, known: bool, tmp: Path, slanted: bool = True, colour: bool = True,
-    speckle: bool = True,
+    kind: SceneKind, angle: float, seed: int, fov: float, known: bool, tmp: Path, slanted: bool = True,
+    colour: bool = True, speckle: bool = True,
 ) -> dict:  # fmt: skip
     scene = S.make_scene(kind, seed=0)
     c0, c1 = S.orbit_pair(scene, angle, seed=seed, fov_deg=fov)
@@ -66,7 +71,7 @@ def run(
         rec = reconstruct(paths, EngineConfig(pipeline=cfg))
     except MacsplatError as e:
         return {"failed": str(e)}
-    rot, tdir = S.pose_errors(rec.pose.geometry.R, rec.pose.geometry.t, R_gt, t_gt)
+    rot, tdir = S.pose_errors(pair_pose(rec).geometry.R, pair_pose(rec).geometry.t, R_gt, t_gt)
     v0 = rec.views[0]
     f_gt = c0.K[0, 0] * v0.width / c0.width
     gt = cv2.resize(views[0].depth, (v0.width, v0.height), interpolation=cv2.INTER_NEAREST) / np.linalg.norm(t_gt)
@@ -75,12 +80,14 @@ def run(
     depth_err = float(np.median(np.abs(est[m] - gt[m]) / gt[m])) if m.any() else math.nan
     a = (est > 0) & (gt > 0)
     rel_all = np.abs(est[a] - gt[a]) / gt[a]
+    measured = rec.depths[0].measured
+    assert measured is not None  # the classical depth stage marks its measured pixels
     return {
         "rot": rot,
         "tdir": tdir,
-        "focal": 100 * (rec.pose.geometry.K0[0, 0] / f_gt - 1),
+        "focal": 100 * (pair_pose(rec).geometry.K0[0, 0] / f_gt - 1),
         "depth": 100 * depth_err,
-        "measured": 100 * float(rec.depths[0].measured.mean()),
+        "measured": 100 * float(measured.mean()),
         "depth_all": 100 * float(np.median(rel_all)) if a.any() else math.nan,
         "bad10": 100 * float(np.mean(rel_all > 0.1)) if a.any() else math.nan,
         "fallback": rec.report.fallback_used,

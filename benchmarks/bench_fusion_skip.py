@@ -61,8 +61,8 @@ def main() -> None:
         return Features(xy=xy, desc=d, conf=rng.uniform(0, 3, n).astype(np.float32))
 
     f0, f1 = feats(), feats()
-    cfg = MatchConfig(conf_threshold=1.0, ratio_confidence=False)
-    s = median_seconds(lambda: match_features(f0, f1, cfg), args.reps)
+    match_cfg = MatchConfig(conf_threshold=1.0, ratio_confidence=False)
+    s = median_seconds(lambda: match_features(f0, f1, match_cfg), args.reps)
     print(f"\nextra matching pass on a hard pair ({n:,} descriptors per view): {s:.2f} s (+ the PnP, tens of ms)")
 
 

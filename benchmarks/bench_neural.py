@@ -28,7 +28,7 @@ import statistics
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, TypeVar
 
 import torch
 from torch import nn
@@ -41,7 +41,10 @@ from macsplat_cli.neural.fusion import FusionConfig, ResidualSemanticFusion
 DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}
 
 
-def _random(module: nn.Module, device: torch.device, dtype: torch.dtype) -> nn.Module:
+M = TypeVar("M", bound=nn.Module)
+
+
+def _random(module: M, device: torch.device, dtype: torch.dtype) -> M:
     """``module`` (built on ``meta``) materialised on ``device`` with N(0, 0.02) weights, LayerNorm gains 1."""
     module = module.to_empty(device=device)
     g = torch.Generator(device=device).manual_seed(0)
@@ -59,8 +62,9 @@ def _random(module: nn.Module, device: torch.device, dtype: torch.dtype) -> nn.M
                 n = b.numel()
                 b.copy_(torch.tensor([100.0 ** (2 * i / (2 * n)) for i in range(n)]))
     module = module.to(dtype)
-    if hasattr(module, "rope_embed"):
-        module.rope_embed.periods = module.rope_embed.periods.float()  # as load_dinov3: RoPE tables in fp32
+    rope: Any = getattr(module, "rope_embed", None)
+    if rope is not None:
+        rope.periods = rope.periods.float()  # as load_dinov3: RoPE tables in fp32
     return module.eval()
 
 
@@ -149,7 +153,8 @@ def _models(device: torch.device, dtype: torch.dtype) -> tuple[nn.Module, nn.Mod
         head = GaussianHead(bcfg.replace(head_type="gaussian_head"))
         dino = DINOv3Encoder(dcfg)
         fusion = ResidualSemanticFusion(FusionConfig(dino_dim=dcfg.embed_dim))
-    backbone, head, dino, fusion = (_random(m, device, dtype) for m in (backbone, head, dino, fusion))
+    backbone, head = _random(backbone, device, dtype), _random(head, device, dtype)
+    dino, fusion = _random(dino, device, dtype), _random(fusion, device, dtype)
     return backbone, head, dino, fusion
 
 
@@ -176,7 +181,7 @@ def _time_modules(run: Callable[[str, nn.Module | None, Callable[[], Any]], Any]
     desc = torch.cat([v1.desc, v2.desc])
     run("Residual Semantic Fusion (both views)", fusion, lambda: fusion(desc, feats))
     run("Splatt3R Gaussian head (2 × DPT)", head, lambda: head(v1, v2, rgb[:1], rgb[1:]))
-    enc1 = enc2 = tok1 = tok2 = v1 = v2 = feats = desc = None
+    enc1 = enc2 = tok1 = tok2 = v1 = v2 = feats = desc = None  # type: ignore[assignment]  # freed before the whole pass
 
     def whole() -> Any:
         a, b = backbone(img[:1], img[1:])

@@ -19,13 +19,17 @@ import resource
 import subprocess
 import sys
 import time
+from typing import TYPE_CHECKING
 
 from benchmarks._common import peak_rss_mib, print_header, render_scene_params, row
+
+if TYPE_CHECKING:
+    from macsplat_cli.render.rasterize import Backend
 
 DEFAULT = ["50000:256x256", "100000:256x256", "250000:256x256", "50000:512x384", "100000:512x384", "250000:512x384"]
 
 
-def _one(n: int, w: int, h: int, reps: int, backend: str, backward: bool = True) -> dict:
+def _one(n: int, w: int, h: int, reps: int, backend: Backend, backward: bool = True) -> dict:
     import torch
 
     from macsplat_cli.gaussians import Gaussians

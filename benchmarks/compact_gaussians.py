@@ -24,11 +24,13 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
-import sys
 import tempfile
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import torch
@@ -46,7 +48,7 @@ from macsplat_cli.pipeline.compact import compact_reconstruction
 from macsplat_cli.pipeline.run import ReconstructConfig, Reconstruction
 from macsplat_cli.pipeline.views import ViewConfig, working_size
 from macsplat_cli.ply import write_ply
-from macsplat_cli.presets import QUALITIES, Overrides, compact_config
+from macsplat_cli.presets import QUALITIES, Overrides, Quality, compact_config
 from macsplat_cli.render import render_camera
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -65,7 +67,7 @@ class Case:
     name: str
     rec: Reconstruction
     targets: list[Camera]
-    photos: list[np.ndarray | None]  # None: no photo (fidelity only)
+    photos: Sequence[np.ndarray | None]  # None: no photo (fidelity only)
 
 
 def _config(intrinsics: Path | None) -> EngineConfig:
@@ -126,7 +128,7 @@ def _render(g: Gaussians, cam: Camera) -> tuple[np.ndarray, float, int, float]:
     return np.clip(out.rgb.numpy(), 0.0, 1.0), wall, out.n_intersections, cpu
 
 
-def measure(case: Case, presets: list[str], repeats: int, budget: int | None, tmp: Path) -> list[dict]:
+def measure(case: Case, presets: list[Quality], repeats: int, budget: int | None, tmp: Path) -> list[dict]:
     with torch.no_grad():  # every pixel Gaussian (not ``rec.gaussians``, which may be compacted already)
         full = Gaussians.cat([m.to_gaussians() for m in case.rec.maps])
     scenes: dict[str, Gaussians] = {"full": full}
@@ -205,13 +207,16 @@ def main() -> None:
     ap.add_argument("--json", type=Path, help="also write all results as JSON")
     args = ap.parse_args()
     presets = [p for p in args.presets.split(",") if p]
+    if any(p not in QUALITIES for p in presets):
+        ap.error(f"--presets: each of {', '.join(QUALITIES)}")
+    presets = cast("list[Quality]", presets)
     tmp = Path(tempfile.mkdtemp())
-    builders = []
+    builders: list[tuple[str, Callable[[], Case]]] = []
     if args.data is not None:
-        builders += [(f"{s} {n}", lambda s=s, n=n, p=p: dev_case(args.data, s, n, p, tmp)) for s, n, p in DEV_CASES]
+        builders += [(f"{s} {n}", partial(dev_case, args.data, s, n, p, tmp)) for s, n, p in DEV_CASES]
     for k, seed, a in SYNTHETIC_CASES:
-        builders.append((f"synthetic {k} {a:g}°", lambda k=k, seed=seed, a=a: synthetic_case(k, seed, a, tmp)))
-    builders += [("example motorcycle", lambda: example_case(ROOT))]
+        builders.append((f"synthetic {k} {a:g}°", partial(synthetic_case, k, seed, a, tmp)))
+    builders += [("example motorcycle", partial(example_case, ROOT))]
     print_header(HEADER, "lrl" + "r" * (len(HEADER) - 3))
     results = []
     for name, build in builders:
@@ -226,4 +231,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()

@@ -146,7 +146,9 @@ def write_checkpoints(folder: Path, *, tiny: bool) -> dict[str, Path]:
     torch.save(DINOv3Encoder(dcfg).state_dict(), files["dino"])
     fusion = ResidualSemanticFusion(FusionConfig(desc_dim=cfg.local_feat_dim, dino_dim=dcfg.embed_dim))
     with torch.no_grad():  # as after training: a non-zero last layer, so the fusion changes the descriptors
-        fusion.layers[-1].weight.normal_(0.0, 0.02)
+        last = fusion.layers[-1]
+        assert isinstance(last, torch.nn.Linear)
+        last.weight.normal_(0.0, 0.02)
     save_fusion(fusion, files["fusion"])
     return files
 

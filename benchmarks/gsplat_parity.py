@@ -19,8 +19,12 @@ import importlib.util
 import sys
 import time
 from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 from benchmarks._common import print_header, render_scene_params, row
+
+if TYPE_CHECKING:
+    from macsplat_cli.render.rasterize import Backend
 
 PARAMS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 
@@ -50,7 +54,7 @@ def _timed(fn: Callable[[], object], sync: Callable[[], None], reps: int) -> flo
     return sorted(times)[len(times) // 2]
 
 
-def _run(backend: str, device: str, n: int, w: int, h: int, reps: int) -> dict:
+def _run(backend: Backend, device: str, n: int, w: int, h: int, reps: int) -> dict:
     import torch
 
     from macsplat_cli.render import render
@@ -66,7 +70,7 @@ def _run(backend: str, device: str, n: int, w: int, h: int, reps: int) -> dict:
             p.grad = None
         (forward() - target).abs().mean().backward()
 
-    out = {"fwd_ms": 1e3 * _timed(forward, sync, reps), "fwd_bwd_ms": 1e3 * _timed(step, sync, reps)}
+    out: dict[str, Any] = {"fwd_ms": 1e3 * _timed(forward, sync, reps), "fwd_bwd_ms": 1e3 * _timed(step, sync, reps)}
     out["rgb"] = forward().detach().float().cpu()
     out["grads"] = {name: p.grad.detach().double().cpu() for name, p in zip(PARAMS, params)}
     return out

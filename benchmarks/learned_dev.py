@@ -87,6 +87,12 @@ def run_pair(frames: list, pair: tuple[int, int], given: bool, matcher: str, lea
             f"{tr:.2f}", outcome, learned_s, split, f"{total:.1f}"]  # fmt: skip
 
 
+def _pair_arg(text: str) -> tuple[int, int]:
+    """``--extra``'s frame pair ``i,j``."""
+    i, j = map(int, text.split(","))
+    return i, j
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, required=True, help="the shared dev data folder")
@@ -121,7 +127,7 @@ def main() -> None:
                "learned s (wall / CPU)", "ALIKED / LightGlue CPU s", "search s"]))  # fmt: skip
     print(rule("lllllrrrlrrr"))
     cache: dict[str, list] = {}
-    extra = [(sc, f"({e.split(',')[0]},{e.split(',')[1]})#", tuple(map(int, e.split(","))))
+    extra = [(sc, f"({e.split(',')[0]},{e.split(',')[1]})#", _pair_arg(e))
              for sc, e in (x.split(":") for x in args.extra)]  # fmt: skip
     for scene, name, pair in [*CASES, *extra]:
         if scene not in args.scenes or (args.pairs and name not in args.pairs and not name.endswith("#")):

@@ -171,7 +171,7 @@ def depth_hook(truth: Truth, poses: dict[str, np.ndarray], mode: str, case: Case
     is fused, goes on with the true depth. ``poses``: photo name → true cam-to-world [4, 4]."""
     original = mv_run.multiview_depths
 
-    def wrapped(views, reg, two_view):  # type: ignore[no-untyped-def]
+    def wrapped(views, reg, two_view):  # noqa: ANN001, ANN202
         depths, pairs = original(views, reg, two_view)
         ks = [k for k, d in enumerate(depths) if d is not None]
         s, R, t = dev.similarity([reg.cam_to_world(k) for k in ks], [poses[views[k].name] for k in ks])
@@ -184,17 +184,19 @@ def depth_hook(truth: Truth, poses: dict[str, np.ndarray], mode: str, case: Case
             gts[k] = truth(views[k].name, reg.K[k], w, h, Tg) * s
         out = list(depths)
         for k in ks:
+            d = depths[k]
+            assert d is not None  # ks: the photos with a depth
             seen = seen_elsewhere(k, gts, reg)
-            case.depth.append(dataclasses.replace(depth_stats(depths[k], gts[k], seen), name=views[k].name))
+            case.depth.append(dataclasses.replace(depth_stats(d, gts[k], seen), name=views[k].name))
             if mode != "fused":
-                out[k] = replaced(depths[k], gts[k], mode, seen)
+                out[k] = replaced(d, gts[k], mode, seen)
         return out, pairs
 
-    mv_run.multiview_depths = wrapped  # type: ignore[assignment]
+    mv_run.multiview_depths = wrapped
     try:
         yield
     finally:
-        mv_run.multiview_depths = original  # type: ignore[assignment]
+        mv_run.multiview_depths = original
 
 
 def orbit_case(kind: str, n: int, quality: str, mode: str, cache: Path) -> Case:
@@ -253,7 +255,7 @@ def _stats_cells(c: Case) -> list[str]:
             f"{pc('alone'):.1f}", f"{pc('cover'):.0f}"]  # fmt: skip
 
 
-def per_photo_rows(record: dict) -> list[list[str]]:  # type: ignore[type-arg]
+def per_photo_rows(record: dict) -> list[list[str]]:
     """One record's photos as table cells: a photo whose depth is off in all but its measured pixels carries a
     fill's guess (nothing measured the rest), one off in its measured pixels too is off the registered scale."""
     head = [record["scene"], str(record["n"]), record["quality"], record["mode"]]

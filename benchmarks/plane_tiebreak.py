@@ -121,8 +121,8 @@ def main() -> None:
     print()
     print("| set | tiers with a plane | through the guards | leader the nearer candidate | leader within 5° |")
     print("|---|---:|---:|---:|---:|")
-    for k, (n, t, near, right) in summary.items():
-        print(f"| {k} | {n} | {t} | {near} | {right} |")
+    for k, (n, n_through, n_near, n_right) in summary.items():
+        print(f"| {k} | {n} | {n_through} | {n_near} | {n_right} |")
     for w in wrong:
         print(f"- through the guards but {w}")
 

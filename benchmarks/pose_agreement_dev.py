@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks._common import pair_pose
 from benchmarks._dev import c2w, dev_frames, save_intrinsics
 from macsplat_cli.engine import EngineConfig, reconstruct
 from macsplat_cli.metrics import rotation_error_deg, translation_direction_error_deg
@@ -37,9 +38,10 @@ def main() -> None:
     for pair in [(0, 2), (1, 4), (0, 4)]:
         f0, f1 = frames[pair[0]], frames[pair[1]]
         tmp = save_intrinsics(Path(tempfile.mkdtemp()) / "k.json", (f0, f1))
-        g = reconstruct(
+        rec = reconstruct(
             [f0.image, f1.image], EngineConfig(pipeline=ReconstructConfig(views=ViewConfig(intrinsics=tmp)))
-        ).pose.geometry
+        )
+        g = pair_pose(rec).geometry
         T = np.linalg.inv(c2w(f1)) @ c2w(f0)
         R_gt, t_gt = T[:3, :3], T[:3, 3] / np.linalg.norm(T[:3, 3])
         m = g.inliers

@@ -98,7 +98,7 @@ def measure(frames: list, pair: tuple[int, int]) -> list[str]:
     Ro, to, own = _refit(g.R, g.t, g, xy0, xy1)
     Rg, _, n_gt = _refit(R_gt, t_gt, g, xy0, xy1)
     H, _ = cv2.findHomography(xy0, xy1, cv2.RANSAC, 1.5)
-    rival = (0, None)
+    rival: tuple[int, tuple[np.ndarray, np.ndarray] | None] = (0, None)
     for R, t in zip(*decompose_homography(np.linalg.inv(g.K1) @ H @ g.K0)):
         for sign in (1.0, -1.0):
             Rc, tc, n = _refit(R, sign * t.ravel(), g, xy0, xy1)

@@ -19,9 +19,11 @@ import argparse
 import dataclasses
 import tempfile
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from benchmarks._common import pair_pose
 from benchmarks._dev import dev_frames
 from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.engine import EngineConfig, reconstruct
@@ -29,12 +31,17 @@ from macsplat_cli.errors import ReconstructionError
 from macsplat_cli.images import save_image
 from macsplat_cli.presets import Overrides
 
+if TYPE_CHECKING:
+    from macsplat_cli.cameras import Camera
+    from macsplat_cli.datasets.synthetic.scenes import SceneKind
+    from macsplat_cli.presets import Quality
+
 NO_REFINE = Overrides(refine=0)  # poses only: the refinement of --quality best moves no camera
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _pair(tmp: Path, kind: str, angle: float, fov: float, seed: int = 1) -> tuple[list[Path], tuple, object]:
+def _pair(tmp: Path, kind: SceneKind, angle: float, fov: float, seed: int = 1) -> tuple[list[Path], tuple, Camera]:
     scene = syn.make_scene(kind, seed)
     c0, c1 = syn.orbit_pair(kind, angle, width=640, height=480, fov_deg=fov, seed=seed)
     paths = [tmp / f"{kind}{angle}_{fov}_{k}.png" for k in (0, 1)]
@@ -48,17 +55,23 @@ def _errors(paths: list[Path], truth: tuple, config: EngineConfig) -> str:
         rec = reconstruct(paths, config)
     except ReconstructionError:
         return "refused"
-    rot, tdir = syn.pose_errors(rec.pose.geometry.R, rec.pose.geometry.t, *truth)
+    rot, tdir = syn.pose_errors(pair_pose(rec).geometry.R, pair_pose(rec).geometry.t, *truth)
     return f"{rot:.2f} / {tdir:.2f}"
 
 
 def fast_sift(tmp: Path) -> None:
     print("| pair | balanced | fast | fast, SIFT 512 px / 4,000 kp |\n|---|---:|---:|---:|")
-    for kind in ("room", "object"):
+    kinds: tuple[SceneKind, ...] = ("room", "object")
+    for kind in kinds:
         for angle in (10, 25, 45):
             paths, truth, _ = _pair(tmp, kind, angle, 60.0)
             cells = []
-            for quality, sift in (("balanced", None), ("fast", None), ("fast", (512, 4000))):
+            qualities: tuple[tuple[Quality, tuple[int, int] | None], ...] = (
+                ("balanced", None),
+                ("fast", None),
+                ("fast", (512, 4000)),
+            )
+            for quality, sift in qualities:
                 config = EngineConfig(quality=quality)  # the preset's working size
                 if sift is not None:  # below the preset's own SIFT caps, which it applies as minima
                     d = config.pipeline.descriptors
@@ -90,7 +103,7 @@ def flipped(data: Path, tmp: Path) -> None:
     for name, paths in cases:
         try:
             rec = reconstruct(paths, EngineConfig(quality="best", overrides=NO_REFINE))
-            print(f"| {name} | {rec.pose.geometry.diagnostics['flipped_triangles']:.3f} | accepted |")
+            print(f"| {name} | {pair_pose(rec).geometry.diagnostics['flipped_triangles']:.3f} | accepted |")
         except ReconstructionError as e:
             print(f"| {name} | – | refused: {str(e)[:70]} |")
 
@@ -103,9 +116,9 @@ def wrong_focal(tmp: Path) -> None:
         print(f"\nobject 45°, 40° field of view: refused ({e})")
         return
     f_true = cam0.K[0, 0] * rec.views[0].width / cam0.width
-    rot, tdir = syn.pose_errors(rec.pose.geometry.R, rec.pose.geometry.t, *truth)
+    rot, tdir = syn.pose_errors(pair_pose(rec).geometry.R, pair_pose(rec).geometry.t, *truth)
     print(f"\nobject 45°, 40° field of view, no intrinsics: accepted with rotation error {rot:.1f}°, direction "
-          f"{tdir:.1f}°; focal {rec.pose.geometry.K0[0, 0]:.0f} px estimated, {f_true:.0f} px true")  # fmt: skip
+          f"{tdir:.1f}°; focal {pair_pose(rec).geometry.K0[0, 0]:.0f} px estimated, {f_true:.0f} px true")  # fmt: skip
 
 
 def main() -> None:

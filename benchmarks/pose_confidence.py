@@ -128,7 +128,7 @@ def table(before: list[dict[str, Any]], after: list[dict[str, Any]]) -> None:
           "after: right / wrong / refused | to the pose, s: before → after (median) | "
           "confidence s (median, max) |")  # fmt: skip
     print("|---|---|---|---|---:|---|---|---|---|")
-    tot = defaultdict(int)
+    tot: defaultdict[tuple[str, str, str], int] = defaultdict(int)
     for g in sorted(groups, key=lambda g: (g[0], g[1], _sort_band(g[2]), g[3])):
         rows = groups[g]
         cb = [outcome(b["result"], refusals=True) for b, _ in rows]
@@ -201,7 +201,7 @@ def main() -> None:
         if case["angle"] < args.min_angle:
             continue
         if args.no_wide:
-            search = getattr(cfg, "search", cfg)  # a checkout before issue 24 has the fields on the config
+            search: Any = getattr(cfg, "search", cfg)  # a checkout before issue 24 has the fields on the config
             search.wide = False
             search.plane_tiebreak_margin = None
         res = run_case(paths, cfg, R, t)

@@ -51,6 +51,8 @@ HEADER = [
 def given_distortion_error(cfg: ReconstructConfig, paths: list[Path], R_gt: np.ndarray, size: int) -> str:
     """The pose search's rotation error (°) with ``NYU_DISTORTION`` in the intrinsics file: the photos undistorted
     at load, as ``reconstruct --intrinsics`` does."""
+    if cfg.views.intrinsics is None:
+        raise ValueError("given_distortion_error needs the intrinsics file of the run")
     cams = load_cameras(cfg.views.intrinsics)
     cams.cameras = [dataclasses.replace(c, distortion=Distortion("opencv", tuple(NYU_DISTORTION))) for c in cams]
     path = Path(tempfile.mkdtemp()) / "k_distortion.json"

@@ -84,7 +84,7 @@ def planar(
     essential = getattr(module, "essential", None)
     before = getattr(essential, "PLANAR_FRACTION", None)
     cfg = module.PoseConfig(planar_fraction=math.inf) if planar_off and before is None else module.PoseConfig()
-    if planar_off and before is not None:
+    if planar_off and essential is not None and before is not None:
         essential.PLANAR_FRACTION = math.inf
     right = wrong = refused = 0
     try:
@@ -100,7 +100,7 @@ def planar(
             r, te = _errors(g.R, g.t, R, t)
             right, wrong = (right + 1, wrong) if r < 2 and te < 10 else (right, wrong + 1)
     finally:
-        if before is not None:
+        if essential is not None and before is not None:
             essential.PLANAR_FRACTION = before
     return right, wrong, refused
 

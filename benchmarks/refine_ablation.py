@@ -18,6 +18,7 @@ import argparse
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -35,7 +36,7 @@ from macsplat_cli.pipeline.run import ReconstructConfig
 from macsplat_cli.pipeline.views import ViewConfig, working_size
 from macsplat_cli.render import render_camera
 
-MODES = {
+MODES: dict[str, dict[str, Any]] = {
     "refine w/o MAC": dict(use_mac=False),
     "refine + MAC": dict(use_mac=True),
     "refine + dense MAC": dict(use_mac=True, mac_matches="dense"),  # only with --dense-mac
@@ -90,13 +91,13 @@ def synthetic_rows(steps: int, scale: int) -> list[list[str]]:
             depth_gt = gt[c0.name].depth / base
             cam0 = Camera("c0", c0.width, c0.height, c0.K, np.eye(4))
             for mode, (g, secs) in _scenes(rec, steps, scale).items():
-                p, s_, pm = _image_metrics(g, target_cam, gt[cm.name].image)
+                ps, s_, pm = _image_metrics(g, target_cam, gt[cm.name].image)
                 with torch.no_grad():
                     o = render_camera(g, cam0)
                 d, a = o.depth.numpy(), o.alpha.numpy()
                 m = (a > 0.5) & (depth_gt > 0)
                 derr = float(np.median(np.abs(d[m] - depth_gt[m]) / depth_gt[m])) * 100
-                rows.append([f"synthetic {kind}", f"{angle:g}°", mode, f"{p:.2f}", f"{s_:.3f}", f"{pm:.2f}",
+                rows.append([f"synthetic {kind}", f"{angle:g}°", mode, f"{ps:.2f}", f"{s_:.3f}", f"{pm:.2f}",
                              f"{derr:.1f}", f"{secs:.1f}"])  # fmt: skip
                 print(row(rows[-1]), flush=True)
     return rows

@@ -31,6 +31,8 @@ def _photos(work: Path, megapixels: float) -> tuple[Path, Path]:
     out = []
     for p in PAIR:
         img = cv2.imread(str(p), cv2.IMREAD_COLOR)
+        if img is None:
+            raise SystemExit(f"cannot read {p}")
         h, w = img.shape[:2]
         f = (megapixels * 1e6 / (w * h)) ** 0.5
         big = cv2.resize(img, (round(w * f), round(h * f)), interpolation=cv2.INTER_CUBIC)

@@ -61,11 +61,13 @@ def disagreement(trainer: Trainer) -> dict[str, float]:
     of the default grid matcher whatever the run trained with (so that the runs compare on one rule)."""
     pos, shape, n = [], [], 0
     unit = MACConfig(lambda_pos=1.0, lambda_shape=1.0, lambda_app=1.0, delta_pos=1e-12, delta_shape=1e-12)  # L1
+    if trainer.val_data is None:
+        raise ValueError("disagreement needs the trainer's validation pairs")
     for batch in make_loader(trainer.val_data, batch_size=1, shuffle=False):
         ctx = batch["context"]
         pred = prediction_from_outputs(trainer.predictor(ctx[:, 0], ctx[:, 1]))
         xy0, xy1, _ = sample_matches(pred.desc[0], pred.desc_conf[0], LossConfig())  # one matcher for every run
-        if not len(xy0):
+        if not len(xy0) or pred.gaussians is None:
             continue
         out = mac_loss(pred.gaussians[0], pred.gaussians[1], xy0, xy1, torch.zeros(len(xy0), dtype=torch.long),
                        torch.ones(len(xy0)), config=unit, check_inputs=False)  # fmt: skip
