@@ -315,7 +315,8 @@ def refine_steps(quality: Quality, photos: int = 2) -> int:
     """The refinement's steps when ``--refine`` is not given: ``best`` refines for
     :data:`~.pipeline.refine.AUTO_STEPS` steps (about 6–8 s a 512-px pair on two cores for +0.1 to +1.1 dB on
     held-out views of the development pairs, ``benchmarks/history/refine.md``), on three photos or more for
-    :data:`MULTIVIEW_BEST_STEPS` at full resolution; ``balanced`` on three photos or more for
+    :data:`MULTIVIEW_BEST_STEPS` at full resolution (the refine stage takes :func:`coarse_refinement`'s where the
+    photos do not agree at it); ``balanced`` on three photos or more for
     :data:`MULTIVIEW_BALANCED_STEPS` (the joint refinement); ``fast``, and ``balanced`` on two photos, do not (it
     would more than double their time)."""
     from .pipeline.refine_config import AUTO_STEPS

@@ -80,17 +80,17 @@ def refine_stage(
     poses were refined.
 
     Raises:
-        InputError: the working size is not divisible by ``config.scale`` (:func:`check_scale`).
+        InputError: the working size is not divisible by ``config.scale`` (:func:`check_scale`); a size the
+            ``coarse`` scale does not divide keeps ``config.scale`` unmeasured.
     """
     if rec.multiview is None or rec.poses is None or lpips is not None:
         return refine_reconstruction(rec, config, lpips=lpips, on_step=on_step)
     from ..presets import refine_for_agreement
     from .multiview.joint import joint_reconstruction
 
-    gain = None
-    if config.coarse is not None and len(rec.maps) > 1:
-        check_scale(rec.maps, config.coarse[0])
-        gain = sharp_gain_db(rec.maps, rec.views, rec.poses, config.coarse[0])
+    gain, f = None, config.coarse[0] if config.coarse is not None else 0
+    if f and len(rec.maps) > 1 and not any(m.size[0] % f or m.size[1] % f for m in rec.maps):  # else: not pooled
+        gain = sharp_gain_db(rec.maps, rec.views, rec.poses, f)
         config = refine_for_agreement(config, gain)
     check_scale(rec.maps, config.scale)
     result, report = joint_reconstruction(rec, config, rec.multiview.match_sets(), on_step)

@@ -104,13 +104,19 @@ def test_the_refine_stage_measures_first_and_reports_what_it_chose(monkeypatch: 
     measured: list[int] = []
     gain = [-0.4]
     monkeypatch.setattr(refine_stage, "sharp_gain_db", lambda maps, views, poses, f: measured.append(f) or gain[0])
-    rec = SimpleNamespace(maps=[0, 1, 2], views=[0, 1, 2], poses=[0, 1, 2],
-                          multiview=SimpleNamespace(match_sets=lambda: []))  # fmt: skip
+
+    def rec(size: tuple[int, int]) -> SimpleNamespace:
+        maps = [SimpleNamespace(size=size) for _ in range(3)]
+        return SimpleNamespace(maps=maps, views=[0, 1, 2], poses=[0, 1, 2],
+                               multiview=SimpleNamespace(match_sets=lambda: []))  # fmt: skip
+
     best = configure("best", "classical", photos=3).refine
-    _, report = refine_stage.refine_stage(rec, best)  # type: ignore[arg-type]
+    _, report = refine_stage.refine_stage(rec((384, 512)), best)  # type: ignore[arg-type]
     gain[0] = 0.6
-    _, sharp = refine_stage.refine_stage(rec, best)  # type: ignore[arg-type]
-    refine_stage.refine_stage(rec, RefineConfig(steps=5, scale=1))  # type: ignore[arg-type]
-    assert ran == [(2, AUTO_STEPS), (1, MULTIVIEW_BEST_STEPS), (1, 5)]
-    assert measured == [2, 2]
+    _, sharp = refine_stage.refine_stage(rec((384, 512)), best)  # type: ignore[arg-type]
+    refine_stage.refine_stage(rec((384, 512)), RefineConfig(steps=5, scale=1))  # type: ignore[arg-type]
+    gain[0] = -0.4
+    _, odd = refine_stage.refine_stage(rec((383, 512)), best)  # type: ignore[arg-type]  # cannot be pooled
+    assert ran == [(2, AUTO_STEPS), (1, MULTIVIEW_BEST_STEPS), (1, 5), (1, MULTIVIEW_BEST_STEPS)]
+    assert measured == [2, 2] and odd.joint == {}
     assert report.joint == {"sharp_gain_db": -0.4} and report.scale == 2 and sharp.joint == {"sharp_gain_db": 0.6}
