@@ -125,9 +125,9 @@ MULTIVIEW_SHARP_MIN_GAIN_DB = 0.0
 """``best`` on three photos or more refines at :data:`MULTIVIEW_BEST_SCALE` only where the other photos' Gaussians
 predict each registered photo better sharp than pooled 2 × 2, by more than this (mean over the photos, dB:
 :func:`~.pipeline.refine_stage.sharp_gain_db`); else it refines as it did at 1/2 (:func:`coarse_refinement`).
-Measured, before any refinement: object 4 +0.59 dB (full resolution then gains 1.4–1.8 dB over 1/2 at held-out
-views), room 4 −0.35 (mid +0.14, side −0.25), the development sets −0.47 (ICL 3) to −0.84 (NYU 3), where full
-resolution lost 0.07–0.32 dB (benchmarks/history/multiview_joint.md)."""
+Measured: object 4 +0.59, object 8 +1.06, room 8 +0.38 dB (full resolution gains up to 2.1 dB over 1/2 at held-out
+views), room 4 −0.28 (mid +0.14, side −0.25), the development sets −0.15 (NYU 3) to −0.31 (CO3D 3), where full
+resolution lost 0.07–0.56 dB (benchmarks/history/multiview_joint.md)."""
 NEURAL_TAU = 1.0
 """τ of the neural backend's matching on ``c0·c1`` of the descriptor confidences ``exp(x)`` (MASt3R's visloc keeps
 pixels whose confidence exceeds 1.001)."""
