@@ -24,6 +24,8 @@ Per scene and N (context views evenly spaced over the first ``--frames`` frames 
 * **COLMAP**: ``benchmarks._colmap_peer.run_colmap`` with the true K (held fixed) on the same contexts, known-K
   rows only: registered/N, relative-rotation error, seconds.
 * **s**: wall seconds of our ``reconstruct`` (loading to compaction; not the scoring).
+* **note**: the refinement's resolution where one ran (``--quality best``: with the photos' sharp-minus-pooled gain
+  that chose it, issue 41), the photos left out.
 
 Frame indices are 0-based positions in the loader's list (ICL/NYU frame ``i`` is ``color/{i + 1}.png``). ICL and
 NYU hold 5 frames each: N = 8 is skipped there and N = 5 leaves no target. A ReconstructionError is caught per run
@@ -94,6 +96,8 @@ class Outcome:
     """Target frame index → PSNR of our render."""
     unregistered: dict[int, str] = field(default_factory=dict)
     """Frame index → the photo's name and why it was left out."""
+    refine: str = ""
+    """The refinement's resolution, with the photos' sharp-minus-pooled gain where they chose it (the note)."""
 
 
 # ------------------------------------------------------------------------------------------ case layout
@@ -183,7 +187,17 @@ def run_ours(frames: Sequence[Frame], ctx: Sequence[int], tgts: Sequence[int], k
             return Outcome(time.perf_counter() - t0, error=str(e))
         out = Outcome(time.perf_counter() - t0)
     score(rec, frames, ctx, tgts, known, out)
+    out.refine = refine_note(rec) if rec.report.refine is not None else ""
     return out
+
+
+def refine_note(rec: Reconstruction) -> str:
+    """``1/scale`` of the refinement, with the photos' sharp-minus-pooled gain where they chose it; "–": none ran."""
+    r = rec.report.refine
+    if r is None:
+        return "–"
+    gain = (r.joint or {}).get("sharp_gain_db")
+    return f"1/{r.scale}" + (f" ({gain:+.2f})" if gain is not None else "")
 
 
 def score(
@@ -329,7 +343,8 @@ def table_row(case: Case) -> str:
                            "failed: " + o.error])  # fmt: skip
     psnr_ = float(np.mean([o.target_psnr[t] for t in case.tgts])) if case.tgts else None
     left = ",".join(map(str, sorted(o.unregistered)))
-    note = "; ".join(x for x in (f"left out: {left}" if left else "", case.two_view_note) if x)
+    refined = f"refined at {o.refine}" if o.refine else ""
+    note = "; ".join(x for x in (refined, f"left out: {left}" if left else "", case.two_view_note) if x)
     focal = "–" if case.known else _num(o.focal_error_pct, "+.1f")
     return row(head + [
         f"{sum(o.registered)}/{case.n}", _med_max(o.rot_errors), focal, _num(o.align_deg), _num(psnr_), _num(copy),

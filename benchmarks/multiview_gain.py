@@ -36,7 +36,7 @@ import torch
 from benchmarks._colmap_peer import align_rotation_errors
 from benchmarks._common import print_header, row, write_json
 from benchmarks._dev import load_rgb
-from benchmarks.multiview_dev import similarity
+from benchmarks.multiview_dev import refine_note, similarity
 from macsplat_cli.cameras import Camera, CameraSet, save_cameras
 from macsplat_cli.datasets.synthetic import make_scene, orbit_cameras, render
 from macsplat_cli.engine import EngineConfig, reconstruct
@@ -70,6 +70,8 @@ class Run:
     rot_max_deg: float = float("nan")
     seconds: float = 0.0
     error: str = ""
+    refine: str = ""
+    """The refinement's resolution and, where the photos chose it, their sharp-minus-pooled gain (dB)."""
 
 
 def orbit(kind: str, n: int, span: float, cache: Path) -> Orbit:
@@ -114,6 +116,7 @@ def run(o: Orbit, idx: Sequence[int], quality: str) -> Run:
         out.error, out.seconds = str(e).splitlines()[0][:80], time.perf_counter() - t0
         return out
     out.seconds = time.perf_counter() - t0
+    out.refine = refine_note(rec)
     score(rec, o, idx, out)
     return out
 
@@ -162,7 +165,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     p.add_argument("--json", type=Path)
     args = p.parse_args(argv)
     print_header(["scene", "N", "quality", "registered", "rot max °", "mid PSNR (pair)", "mid gain",
-                  "side PSNR (pair)", "side gain", "copy mid / side", "s (pair s)"], "lllrrrrrrrr")  # fmt: skip
+                  "side PSNR (pair)", "side gain", "copy mid / side", "s (pair s)", "refine (sharp dB)"],
+                 "lllrrrrrrrrl")  # fmt: skip
     records = []
     for kind in args.scenes.split(","):
         for n in (int(v) for v in args.views.split(",")):
@@ -176,7 +180,8 @@ def main(argv: Sequence[str] | None = None) -> None:
                          f"{full.rot_max_deg:.2f}"]  # fmt: skip
                 for g in ("mid", "side"):
                     cells += [f"{full.psnr.get(g, math.nan):.2f} ({pair.psnr.get(g, math.nan):.2f})", f"{gain[g]:+.2f}"]
-                cells += [f"{copy['mid']:.2f} / {copy['side']:.2f}", f"{full.seconds:.1f} ({pair.seconds:.1f})"]
+                cells += [f"{copy['mid']:.2f} / {copy['side']:.2f}", f"{full.seconds:.1f} ({pair.seconds:.1f})",
+                          full.refine]  # fmt: skip
                 print(row(cells), flush=True)
                 records.append({"scene": kind, "n": n, "quality": q, "full": full.__dict__, "pair": pair.__dict__,
                                 "gain": gain, "copy": copy})  # fmt: skip

@@ -52,6 +52,7 @@ __all__ = [
     "MULTIVIEW_BALANCED_STEPS",
     "MULTIVIEW_BEST_SCALE",
     "MULTIVIEW_BEST_STEPS",
+    "MULTIVIEW_SHARP_MIN_GAIN_DB",
     "NEURAL_TAU",
     "PRECISIONS",
     "Overrides",
@@ -69,6 +70,8 @@ __all__ = [
     "compact_config",
     "configure",
     "fusion_policy",
+    "coarse_refinement",
+    "refine_for_agreement",
     "refine_scale",
     "refine_steps",
     "resolved_refine_steps",
@@ -110,13 +113,21 @@ object 4 +0.90 / +1.12 → +2.09 / +2.12 dB, room 4 +1.89 / +1.91 → +2.47 / +2
 dB, room 4 20.38 → 20.37) for twice the refinement's ~3 CPU-s (benchmarks/history/multiview_joint.md)."""
 MULTIVIEW_BEST_SCALE = 1
 """``--quality best`` on three photos or more: the joint refinement renders the photos at full resolution (its
-``--refine-scale``; pairs and ``balanced`` at 1/2). The refined Gaussians are what is written: refined pooled 2 × 2,
+``--refine-scale``; pairs and ``balanced`` at 1/2) where the photos agree at it (:data:`MULTIVIEW_SHARP_MIN_GAIN_DB`;
+else 1/2, :func:`coarse_refinement`). The refined Gaussians are what is written: refined pooled 2 × 2,
 object 4 rendered its held-out views blurred (mid / side 23.49 / 22.38 dB; at full resolution, 10 steps for the time of
 40: 25.28 / 23.20; room 4 21.91 / 20.79 → 22.05 / 20.54) (benchmarks/history/multiview_joint.md)."""
 MULTIVIEW_BEST_STEPS = 6
 """``--quality best`` on three photos or more: the joint refinement's steps (``--refine`` units: 10 one-photo steps
 on 4 photos, 20 on 8, at :data:`MULTIVIEW_BEST_SCALE`; a full-resolution step costs ~4 pooled ones, so the
 refinement's time is that of ``best``'s 25 at 1/2: object 4 8.9 → 10.0 CPU-s, object 8 28.9 → 23.7)."""
+MULTIVIEW_SHARP_MIN_GAIN_DB = 0.0
+"""``best`` on three photos or more refines at :data:`MULTIVIEW_BEST_SCALE` only where the other photos' Gaussians
+predict each registered photo better sharp than pooled 2 × 2, by more than this (mean over the photos, dB:
+:func:`~.pipeline.refine_stage.sharp_gain_db`); else it refines as it did at 1/2 (:func:`coarse_refinement`).
+Measured: object 4 +0.59, object 8 +1.06, room 8 +0.38 dB (full resolution gains up to 2.1 dB over 1/2 at held-out
+views), room 4 −0.28 (mid +0.14, side −0.25), the development sets −0.15 (NYU 3) to −0.31 (CO3D 3), where full
+resolution lost 0.07–0.56 dB (benchmarks/history/multiview_joint.md)."""
 NEURAL_TAU = 1.0
 """τ of the neural backend's matching on ``c0·c1`` of the descriptor confidences ``exp(x)`` (MASt3R's visloc keeps
 pixels whose confidence exceeds 1.001)."""
@@ -271,6 +282,29 @@ def refine_scale(quality: Quality, photos: int = 2) -> int:
     return MULTIVIEW_BEST_SCALE if quality == "best" and photos >= 3 else RefineConfig.scale
 
 
+def coarse_refinement(quality: Quality, overrides: Overrides, photos: int = 2) -> tuple[int, int] | None:
+    """The refinement's ``(scale, steps)`` where the photos do not agree at the preset's full resolution
+    (:attr:`~.pipeline.refine_config.RefineConfig.coarse`): ``best`` on three photos or more without
+    ``--refine-scale`` falls back to 1/2 and ``--refine`` or :data:`~.pipeline.refine_config.AUTO_STEPS` (``best``
+    before it refined at full resolution); None where the scale is not the photos' to choose."""
+    from .pipeline.refine_config import AUTO_STEPS, RefineConfig
+
+    if overrides.refine_scale is not None or refine_scale(quality, photos) == RefineConfig.scale:
+        return None
+    return RefineConfig.scale, overrides.refine if overrides.refine is not None else AUTO_STEPS
+
+
+def refine_for_agreement(config: RefineConfig, sharp_gain_db: float) -> RefineConfig:
+    """The refinement ``config`` once the photos have been measured: its ``coarse`` scale and steps where the other
+    photos' Gaussians predict a photo no better sharp than pooled (``sharp_gain_db`` not above
+    :data:`MULTIVIEW_SHARP_MIN_GAIN_DB`, or NaN: no photo to measure), else ``config`` as it is (``coarse`` None:
+    nothing to choose)."""
+    if config.coarse is None or sharp_gain_db > MULTIVIEW_SHARP_MIN_GAIN_DB:
+        return config
+    scale, steps = config.coarse
+    return dataclasses.replace(config, scale=scale, steps=steps, coarse=None)
+
+
 def _balanced_set(quality: Quality, photos: int) -> bool:
     """``balanced`` on three photos or more: the co-visibility init, :data:`MULTIVIEW_BALANCED_STEPS` joint steps and
     a compaction without the merge and the dedup (:func:`configure`)."""
@@ -281,7 +315,8 @@ def refine_steps(quality: Quality, photos: int = 2) -> int:
     """The refinement's steps when ``--refine`` is not given: ``best`` refines for
     :data:`~.pipeline.refine.AUTO_STEPS` steps (about 6–8 s a 512-px pair on two cores for +0.1 to +1.1 dB on
     held-out views of the development pairs, ``benchmarks/history/refine.md``), on three photos or more for
-    :data:`MULTIVIEW_BEST_STEPS` at full resolution; ``balanced`` on three photos or more for
+    :data:`MULTIVIEW_BEST_STEPS` at full resolution (the refine stage takes :func:`coarse_refinement`'s where the
+    photos do not agree at it); ``balanced`` on three photos or more for
     :data:`MULTIVIEW_BALANCED_STEPS` (the joint refinement); ``fast``, and ``balanced`` on two photos, do not (it
     would more than double their time)."""
     from .pipeline.refine_config import AUTO_STEPS
@@ -361,7 +396,8 @@ def configure(
         assert_never(backend)
     steps = resolved_refine_steps(quality, o, photos)
     scale = o.refine_scale if o.refine_scale is not None else refine_scale(quality, photos)
-    r = dataclasses.replace(copy.deepcopy(refine) if refine is not None else RefineConfig(), steps=steps, scale=scale)
+    r = dataclasses.replace(copy.deepcopy(refine) if refine is not None else RefineConfig(), steps=steps, scale=scale,
+                            coarse=coarse_refinement(quality, o, photos) if steps > 0 else None)  # fmt: skip
     compact = compact_config(quality, budget=o.budget)
     if _balanced_set(quality, photos) and steps > 0:  # refined jointly: kept unmerged, the covis init deduped
         compact = dataclasses.replace(compact, adaptive=False, dedup=False)

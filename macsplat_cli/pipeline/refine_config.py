@@ -34,6 +34,10 @@ class RefineConfig:
     plateau_window: steps over which the improvement is measured.
     plateau_tol: stop when the running-mean loss improved by less than this fraction.
     min_steps: never stop before this many steps.
+    coarse: ``(scale, steps)`` the refinement takes instead of ``scale`` and ``steps`` where the photos' Gaussians
+        agree with each other less at ``scale`` than pooled (``best`` on three photos or more: full resolution or
+        1/2, :func:`~macsplat_cli.presets.refine_for_agreement`); None: ``scale`` and ``steps`` as they are. Set by
+        :func:`~macsplat_cli.presets.configure`.
     """
 
     steps: int = 0
@@ -45,3 +49,4 @@ class RefineConfig:
     plateau_window: int = 25
     plateau_tol: float = 2e-3
     min_steps: int = 25
+    coarse: tuple[int, int] | None = None
