@@ -39,12 +39,12 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 import tempfile
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -167,7 +167,7 @@ def nearest_context(frames: Sequence[Frame], ctx: Sequence[int], ti: int) -> int
 
 
 # ------------------------------------------------------------------------------------------ our runs
-SETTINGS = {"quality": "balanced", "far_layer": True, "pairs": True}
+SETTINGS: dict[str, Any] = {"quality": "balanced", "far_layer": True, "pairs": True}
 """``--quality``, ``--no-far-layer`` (for every run of ours, the N-view and the two-view ones alike), ``--no-pairs``."""
 
 
@@ -315,7 +315,7 @@ def run_case(case: Case, frames: list[Frame], two_view: TwoViewCache, size: int,
 
 
 # ------------------------------------------------------------------------------------------ table
-def _med_max(errs: Sequence[float]) -> str:
+def _med_max(errs: Sequence[float] | np.ndarray) -> str:
     return f"{np.median(errs):.2f} / {np.max(errs):.2f}" if len(errs) else "–"
 
 
@@ -409,4 +409,4 @@ def main(argv: Sequence[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()
