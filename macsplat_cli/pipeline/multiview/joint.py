@@ -54,7 +54,7 @@ from ...mac import mac_loss
 from ...metrics import ssim_map
 from ...render import render
 from ...report import RefineReport
-from ...rotations import quat_multiply, quat_to_rotmat
+from ...rotations import quat_multiply, quat_to_rotmat, rotmat_to_quat
 from ..refine import (
     SSIM_WEIGHT,
     RefineConfig,
@@ -69,7 +69,7 @@ from ..types import MatchSet, View
 
 if TYPE_CHECKING:
     from ..run import Reconstruction
-from .packed import Packed, centres, in_view, maps_where
+from .packed import Packed, centres, in_view
 from .sh_views import view_dependent
 
 __all__ = ["JointResult", "joint_reconstruction", "joint_refine", "trusted_cameras"]
@@ -231,26 +231,69 @@ def trusted_cameras(
     return trusted
 
 
-def _moved(world0: dict[int, Gaussians], q: torch.Tensor, c: torch.Tensor, c0: torch.Tensor) -> Gaussians:
-    """Map ``k``'s world Gaussians moved with its camera (``X = Exp(ω_k)(X0 − c_k) + c'_k``), concatenated in map
-    order. ``world0``: map index → its Gaussians."""
+def _left(q: torch.Tensor) -> torch.Tensor:
+    """The matrices of ``x ↦ q ⊗ x`` for (w, x, y, z) quaternions (:func:`~macsplat_cli.rotations.quat_multiply`'s
+    product as one linear map). [C, 4] → [C, 4, 4]"""
+    w, x, y, z = q.unbind(-1)
+    rows = [[w, -x, -y, -z], [x, w, -z, y], [y, z, w, -x], [z, -y, x, w]]
+    return torch.stack([torch.stack(r, -1) for r in rows], -2)
+
+
+_Frames = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
+"""Each map's registered camera-to-world as :meth:`GaussianMaps.to_gaussians` applies it: rotation [C, 3, 3],
+translation [C, 3] and the rotation's quaternion [C, 4], float64."""
+
+
+def _frames(params: list[GaussianMaps]) -> _Frames:
+    """The maps' :data:`_Frames` (once: they do not change)."""
+    T = torch.cat([m.cam_to_world_or_identity(torch.float64) for m in params])
+    return T[:, :3, :3], T[:, :3, 3], rotmat_to_quat(T[:, :3, :3])
+
+
+def _placements(
+    frames: _Frames, q: torch.Tensor, c: torch.Tensor, poses: _Poses, k: int, dtype: torch.dtype
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Each map's one rigid motion from its camera frame to where photo ``k``'s unrefined camera sees it: its
+    registered pose (``frames``, as :meth:`GaussianMaps.to_gaussians` places it), then its camera's update (``X =
+    Exp(ω_j)(X − c_j) + c'_j``, the Gaussians ride with the camera), then for a camera ``k`` other than the fixed one
+    the world placed so that the unrefined camera sees it as the refined one (``Exp(−ω_k)(X − c'_k) + c_k``).
+    Composed in float64 (the poses' dtype; the three motions applied one after another in float32 differ at the
+    rounding), then rounded to ``dtype``. ``(A [C, 3, 3], b [C, 3], Q [C, 4, 4])``: map ``j``'s ``means ↦ means @
+    A_jᵀ + b_j``, ``quats ↦ quats @ Q_jᵀ``."""
+    Rm, tm, qm = frames
+    R = quat_to_rotmat(q)
+    A = R @ Rm
+    b = ((tm - poses.c0)[:, None] @ R.transpose(1, 2))[:, 0] + c
+    Q = quat_multiply(q, qm)
+    if k != poses.fixed:
+        inv = _conj(q[k])
+        Rk = quat_to_rotmat(inv)
+        A, b, Q = Rk @ A, (b - c[k]) @ Rk.T + poses.c0[k], quat_multiply(inv.expand_as(Q), Q)
+    return A.to(dtype), b.to(dtype), _left(Q).to(dtype)
+
+
+def _seen(
+    params: list[GaussianMaps], chosen: list[torch.Tensor | bool | None], frames: _Frames, q: torch.Tensor,
+    c: torch.Tensor, poses: _Poses, k: int,
+) -> Gaussians:  # fmt: skip
+    """The Gaussians photo ``k`` renders, placed for its unrefined camera (:func:`_placements`), in map order.
+    ``chosen``: per map the indices of its leaves to render [n'] (:func:`_chosen`), True for all, None for none."""
+    A, b, Q = _placements(frames, q, c, poses, k, params[0].dtype)
     parts = []
-    for k, g in sorted(world0.items()):
-        qk = q[k].to(g.dtype)
-        R = quat_to_rotmat(qk)
-        means = (g.means - c0[k].to(g.dtype)) @ R.T + c[k].to(g.dtype)
-        quats = quat_multiply(qk.expand(len(g), 4), g.quats)
-        parts.append(Gaussians(means, g.log_scales, quats, g.opacity_logits, g.sh))
+    for j, (m, sel) in enumerate(zip(params, chosen)):
+        if sel is None:
+            continue
+        flat = [t.reshape(-1, *t.shape[3:]) for t in m.tensors()]
+        if isinstance(sel, torch.Tensor):
+            flat = [t.index_select(0, sel) for t in flat]
+        means, log_scales, quats, opacity_logits, sh = flat
+        parts.append(Gaussians(torch.addmm(b[j], means, A[j].T), log_scales, quats @ Q[j].T, opacity_logits, sh))
     return Gaussians.cat(parts)
 
 
-def _seen_by(world: Gaussians, q: torch.Tensor, c: torch.Tensor, c0: torch.Tensor) -> Gaussians:
-    """``world`` placed so that the unrefined camera (centre ``c0``) sees it as the refined one (``q``, ``c``)."""
-    qi = _conj(q).to(world.dtype)
-    R = quat_to_rotmat(qi)
-    means = (world.means - c.to(world.dtype)) @ R.T + c0.to(world.dtype)
-    quats = quat_multiply(qi.expand(len(world), 4), world.quats)
-    return Gaussians(means, world.log_scales, quats, world.opacity_logits, world.sh)
+def _chosen(visible: list[torch.Tensor | bool | None]) -> list[torch.Tensor | bool | None]:
+    """A photo's per-map masks (:func:`.packed.in_view`) as the indices :func:`_seen` gathers, once."""
+    return [m.reshape(-1).nonzero().squeeze(1) if isinstance(m, torch.Tensor) else m for m in visible]
 
 
 @dataclass
@@ -308,20 +351,19 @@ def _loss(
     cfg: RefineConfig,
     visible: list[list[torch.Tensor | bool | None]],
     packs: list[Packed],
+    frames: _Frames,
 ) -> tuple[torch.Tensor, dict[int, float], dict[str, float]]:
     """One step's loss over the photos ``which`` (and the MAC loss over every matched pair), each rendered photo's
-    held-out error, and the terms. Photo ``k`` renders the Gaussians ``visible[k]`` alone (per map: a mask, True
-    for all, None for none: :func:`.packed.in_view`); a map it does not see gets no gradient from it. ``params``
-    are the packed leaves (``packs``: the MAC term samples their pixel maps)."""
+    held-out error, and the terms. Photo ``k`` renders the Gaussians ``visible[k]`` alone (per map: the indices of
+    the leaves :func:`.packed.in_view` kept (:func:`_chosen`), True for all, None for none); a map it does not see
+    gets no gradient from it. ``params`` are the packed leaves (``packs``: the MAC term samples their pixel maps),
+    ``frames`` their registered poses (:func:`_frames`)."""
     q, c = poses.current()
     photo = torch.zeros(())
     held: dict[int, float] = {}
     for k in which:
         p = photos[k]
-        world0 = {j: (maps_where(m, mask) if isinstance(mask, torch.Tensor) else m).to_gaussians()
-                  for j, (m, mask) in enumerate(zip(params, visible[k])) if mask is not None}  # fmt: skip
-        world = _moved(world0, q, c, poses.c0)
-        seen = world if k == poses.fixed else _seen_by(world, q[k], c[k], poses.c0[k])
+        seen = _seen(params, visible[k], frames, q, c, poses, k)
         h, w = p.image.shape[:2]
         rgb = render(seen, p.world_to_cam, p.K, w, h).rgb
         target = torch.where(p.heldout[..., None], rgb.detach(), p.image)
@@ -429,16 +471,18 @@ def joint_refine(
     mac_sets = _mac_sets(list(match_sets or []), [p.full for p in packs], f) if use_mac else []
     per_step = min(PHOTOS_PER_STEP, len(photos))
     where = centres(params)
-    visible = [[True if m is not None and bool(m.all()) else m
-                for m in in_view(params, where, p.world_to_cam, p.K, p.image.shape[1], p.image.shape[0])]
+    visible = [_chosen([True if m is not None and bool(m.all()) else m
+                        for m in in_view(params, where, p.world_to_cam, p.K, p.image.shape[1], p.image.shape[0])])
                for p in photos]  # fmt: skip
     rounds = -(-len(photos) // per_step)  # the steps of a round: after the first, every photo's error is in
     patience = max(HOLDOUT_PATIENCE, rounds)  # a round at least: every photo's error updated
     schedule = _schedule(len(photos), per_step, config.steps)
+    frames = _frames(params)
     latest: dict[int, float] = {}  # each photo's held-out error when it was last rendered
 
     def step_loss(step: int) -> tuple[torch.Tensor, dict[str, float]]:
-        loss, held, terms = _loss(params, poses, photos, schedule[step - 1], mac_sets, config, visible, packs)
+        loss, held, terms = _loss(params, poses, photos, schedule[step - 1], mac_sets, config, visible, packs,
+                                  frames)
         latest.update(held)
         terms["heldout"] = float(np.mean(list(latest.values())))
         return loss, terms
