@@ -10,6 +10,7 @@ in ``tests/pipeline/test_refine_adam.py``) and nothing else: no weight decay, AM
 from __future__ import annotations
 
 from collections.abc import Iterable
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -22,6 +23,16 @@ EPS = 1e-8
 """Added to the second moment's root (``torch.optim.Adam``'s default)."""
 
 
+@dataclass
+class _State:
+    """One parameter's moments (``exp_avg``, ``exp_avg_sq``), the buffer its denominator is written into, its steps."""
+
+    exp_avg: torch.Tensor
+    exp_avg_sq: torch.Tensor
+    denom: torch.Tensor
+    steps: int = 0
+
+
 class Adam:
     """Adam over parameter groups: ``param_groups`` is a list of dicts, each with ``"params"`` (leaf tensors) and
     ``"lr"`` (read at every :meth:`step`, so a schedule sets it in place), and whatever else the caller keeps there
@@ -29,8 +40,7 @@ class Adam:
 
     def __init__(self, groups: Iterable[dict[str, Any]]) -> None:
         self.param_groups: list[dict[str, Any]] = []
-        self._state: dict[torch.Tensor, tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[int]]] = {}
-        """Per parameter: the first and second moments, the denominator's buffer, the step count."""
+        self._state: dict[torch.Tensor, _State] = {}
         for group in groups:
             self.add_param_group(group)
 
@@ -60,18 +70,20 @@ class Adam:
                     continue
                 if p not in self._state:
                     m, v, d = (torch.zeros_like(p, memory_format=torch.preserve_format) for _ in range(3))
-                    self._state[p] = (m, v, d, [0])
-                count = self._state[p][3]
-                count[0] += 1
-                by_count.setdefault(count[0], []).append(p)
+                    self._state[p] = _State(m, v, d)
+                state = self._state[p]
+                state.steps += 1
+                by_count.setdefault(state.steps, []).append(p)
             for count, ps in by_count.items():
                 self._update(ps, float(count), group["lr"])
 
     def _update(self, ps: list[torch.Tensor], step: float, lr: float) -> None:
         """Adam's update of parameters ``ps`` at their ``step``-th step with rate ``lr``."""
         beta1, beta2 = BETAS
-        grads = [p.grad for p in ps]
-        exp_avg, exp_avg_sq, denom = ([self._state[p][i] for p in ps] for i in range(3))
+        grads = [p.grad for p in ps if p.grad is not None]
+        states = [self._state[p] for p in ps]
+        exp_avg, exp_avg_sq, denom = ([s.exp_avg for s in states], [s.exp_avg_sq for s in states],
+                                      [s.denom for s in states])  # fmt: skip
         torch._foreach_lerp_(exp_avg, grads, 1 - beta1)
         torch._foreach_mul_(exp_avg_sq, beta2)
         torch._foreach_addcmul_(exp_avg_sq, grads, grads, value=1 - beta2)

@@ -33,8 +33,10 @@ fall on it (tested once, with a margin: the same image as the whole scene's), so
 photo sees.
 
 The renders go through the fused kernel, which takes no camera gradient: camera ``j``'s update is applied to the
-Gaussians instead (``Y = Exp(−ω_j)(X − c'_j) + c_j``, rendered by the unrefined camera), the same image. Measured:
-benchmarks/history/multiview_joint.md.
+Gaussians instead (``Y = Exp(−ω_j)(X − c'_j) + c_j``, rendered by the unrefined camera), the same image. A map's
+registered pose, its camera's update and the rendering camera's inverse update are composed into one rigid motion
+per map and step (:func:`.packed.placements`, float64), applied to its Gaussians once. Measured:
+benchmarks/history/multiview_joint.md and (speed) benchmarks/history/refine.md.
 """
 
 from __future__ import annotations
@@ -49,12 +51,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from ...gaussians import GaussianMaps, Gaussians
+from ...gaussians import GaussianMaps
 from ...mac import mac_loss
 from ...metrics import ssim_map
 from ...render import render
 from ...report import RefineReport
-from ...rotations import quat_multiply, quat_to_rotmat, rotmat_to_quat
+from ...rotations import quat_to_rotmat
 from ..refine import (
     SSIM_WEIGHT,
     RefineConfig,
@@ -69,7 +71,7 @@ from ..types import MatchSet, View
 
 if TYPE_CHECKING:
     from ..run import Reconstruction
-from .packed import Packed, centres, in_view
+from .packed import Frames, Packed, centres, frames_of, in_view, indices, placed, placements
 from .sh_views import view_dependent
 
 __all__ = ["JointResult", "joint_reconstruction", "joint_refine", "trusted_cameras"]
@@ -153,10 +155,6 @@ def _axis_quat(w: torch.Tensor) -> torch.Tensor:
     return torch.cat([torch.cos(theta / 2), 0.5 * torch.sinc(theta / (2 * torch.pi)) * w], -1)
 
 
-def _conj(q: torch.Tensor) -> torch.Tensor:
-    return q * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
-
-
 class _Poses(torch.nn.Module):
     """Every camera's small pose update and the gauge (camera ``fixed`` still, ``scale_camera``'s distance kept)."""
 
@@ -231,71 +229,6 @@ def trusted_cameras(
     return trusted
 
 
-def _left(q: torch.Tensor) -> torch.Tensor:
-    """The matrices of ``x ↦ q ⊗ x`` for (w, x, y, z) quaternions (:func:`~macsplat_cli.rotations.quat_multiply`'s
-    product as one linear map). [C, 4] → [C, 4, 4]"""
-    w, x, y, z = q.unbind(-1)
-    rows = [[w, -x, -y, -z], [x, w, -z, y], [y, z, w, -x], [z, -y, x, w]]
-    return torch.stack([torch.stack(r, -1) for r in rows], -2)
-
-
-_Frames = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
-"""Each map's registered camera-to-world as :meth:`GaussianMaps.to_gaussians` applies it: rotation [C, 3, 3],
-translation [C, 3] and the rotation's quaternion [C, 4], float64."""
-
-
-def _frames(params: list[GaussianMaps]) -> _Frames:
-    """The maps' :data:`_Frames` (once: they do not change)."""
-    T = torch.cat([m.cam_to_world_or_identity(torch.float64) for m in params])
-    return T[:, :3, :3], T[:, :3, 3], rotmat_to_quat(T[:, :3, :3])
-
-
-def _placements(
-    frames: _Frames, q: torch.Tensor, c: torch.Tensor, poses: _Poses, k: int, dtype: torch.dtype
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Each map's one rigid motion from its camera frame to where photo ``k``'s unrefined camera sees it: its
-    registered pose (``frames``, as :meth:`GaussianMaps.to_gaussians` places it), then its camera's update (``X =
-    Exp(ω_j)(X − c_j) + c'_j``, the Gaussians ride with the camera), then for a camera ``k`` other than the fixed one
-    the world placed so that the unrefined camera sees it as the refined one (``Exp(−ω_k)(X − c'_k) + c_k``).
-    Composed in float64 (the poses' dtype; the three motions applied one after another in float32 differ at the
-    rounding), then rounded to ``dtype``. ``(A [C, 3, 3], b [C, 3], Q [C, 4, 4])``: map ``j``'s ``means ↦ means @
-    A_jᵀ + b_j``, ``quats ↦ quats @ Q_jᵀ``."""
-    Rm, tm, qm = frames
-    R = quat_to_rotmat(q)
-    A = R @ Rm
-    b = ((tm - poses.c0)[:, None] @ R.transpose(1, 2))[:, 0] + c
-    Q = quat_multiply(q, qm)
-    if k != poses.fixed:
-        inv = _conj(q[k])
-        Rk = quat_to_rotmat(inv)
-        A, b, Q = Rk @ A, (b - c[k]) @ Rk.T + poses.c0[k], quat_multiply(inv.expand_as(Q), Q)
-    return A.to(dtype), b.to(dtype), _left(Q).to(dtype)
-
-
-def _seen(
-    params: list[GaussianMaps], chosen: list[torch.Tensor | bool | None], frames: _Frames, q: torch.Tensor,
-    c: torch.Tensor, poses: _Poses, k: int,
-) -> Gaussians:  # fmt: skip
-    """The Gaussians photo ``k`` renders, placed for its unrefined camera (:func:`_placements`), in map order.
-    ``chosen``: per map the indices of its leaves to render [n'] (:func:`_chosen`), True for all, None for none."""
-    A, b, Q = _placements(frames, q, c, poses, k, params[0].dtype)
-    parts = []
-    for j, (m, sel) in enumerate(zip(params, chosen)):
-        if sel is None:
-            continue
-        flat = [t.reshape(-1, *t.shape[3:]) for t in m.tensors()]
-        if isinstance(sel, torch.Tensor):
-            flat = [t.index_select(0, sel) for t in flat]
-        means, log_scales, quats, opacity_logits, sh = flat
-        parts.append(Gaussians(torch.addmm(b[j], means, A[j].T), log_scales, quats @ Q[j].T, opacity_logits, sh))
-    return Gaussians.cat(parts)
-
-
-def _chosen(visible: list[torch.Tensor | bool | None]) -> list[torch.Tensor | bool | None]:
-    """A photo's per-map masks (:func:`.packed.in_view`) as the indices :func:`_seen` gathers, once."""
-    return [m.reshape(-1).nonzero().squeeze(1) if isinstance(m, torch.Tensor) else m for m in visible]
-
-
 @dataclass
 class _Photo:
     """One camera's photo at the refinement resolution, its held-out pixels and its unrefined camera."""
@@ -351,19 +284,20 @@ def _loss(
     cfg: RefineConfig,
     visible: list[list[torch.Tensor | bool | None]],
     packs: list[Packed],
-    frames: _Frames,
+    frames: Frames,
 ) -> tuple[torch.Tensor, dict[int, float], dict[str, float]]:
     """One step's loss over the photos ``which`` (and the MAC loss over every matched pair), each rendered photo's
     held-out error, and the terms. Photo ``k`` renders the Gaussians ``visible[k]`` alone (per map: the indices of
-    the leaves :func:`.packed.in_view` kept (:func:`_chosen`), True for all, None for none); a map it does not see
-    gets no gradient from it. ``params`` are the packed leaves (``packs``: the MAC term samples their pixel maps),
-    ``frames`` their registered poses (:func:`_frames`)."""
+    the leaves :func:`.packed.in_view` kept (:func:`.packed.indices`), True for all, None for none); a map it does
+    not see gets no gradient from it. ``params`` are the packed leaves (``packs``: the MAC term samples their pixel
+    maps), ``frames`` their registered poses (:func:`.packed.frames_of`)."""
     q, c = poses.current()
     photo = torch.zeros(())
     held: dict[int, float] = {}
     for k in which:
         p = photos[k]
-        seen = _seen(params, visible[k], frames, q, c, poses, k)
+        motion = placements(frames, q, c, poses.c0, poses.fixed, k, params[0].dtype)
+        seen = placed(params, visible[k], motion)
         h, w = p.image.shape[:2]
         rgb = render(seen, p.world_to_cam, p.K, w, h).rgb
         target = torch.where(p.heldout[..., None], rgb.detach(), p.image)
@@ -471,18 +405,17 @@ def joint_refine(
     mac_sets = _mac_sets(list(match_sets or []), [p.full for p in packs], f) if use_mac else []
     per_step = min(PHOTOS_PER_STEP, len(photos))
     where = centres(params)
-    visible = [_chosen([True if m is not None and bool(m.all()) else m
+    visible = [indices([True if m is not None and bool(m.all()) else m
                         for m in in_view(params, where, p.world_to_cam, p.K, p.image.shape[1], p.image.shape[0])])
                for p in photos]  # fmt: skip
     rounds = -(-len(photos) // per_step)  # the steps of a round: after the first, every photo's error is in
     patience = max(HOLDOUT_PATIENCE, rounds)  # a round at least: every photo's error updated
     schedule = _schedule(len(photos), per_step, config.steps)
-    frames = _frames(params)
+    frames = frames_of(params)
     latest: dict[int, float] = {}  # each photo's held-out error when it was last rendered
 
     def step_loss(step: int) -> tuple[torch.Tensor, dict[str, float]]:
-        loss, held, terms = _loss(params, poses, photos, schedule[step - 1], mac_sets, config, visible, packs,
-                                  frames)
+        loss, held, terms = _loss(params, poses, photos, schedule[step - 1], mac_sets, config, visible, packs, frames)
         latest.update(held)
         terms["heldout"] = float(np.mean(list(latest.values())))
         return loss, terms

@@ -1,6 +1,6 @@
 """Issue 40: the joint refinement places each map's Gaussians for a photo by one composed rigid motion
-(:func:`joint._placements`), the same Gaussians as the three motions one after another (the registered pose, the
-camera's update, the photo camera's inverse update) up to the rounding, and the same gradients."""
+(:func:`packed.placements`, :func:`packed.placed`), the same Gaussians as the three motions one after another (the
+registered pose, the camera's update, the photo camera's inverse update) up to the rounding, the same gradients."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from macsplat_cli.gaussians import GaussianMaps, Gaussians
-from macsplat_cli.pipeline.multiview import joint
+from macsplat_cli.pipeline.multiview import joint, packed
 from macsplat_cli.rotations import quat_multiply, quat_to_rotmat
 
 
@@ -49,7 +49,7 @@ def _three_motions(params: list[GaussianMaps], chosen: list, poses: joint._Poses
     world = Gaussians.cat(parts)
     if k == poses.fixed:
         return world
-    qi = joint._conj(q[k]).to(world.dtype)
+    qi = packed.conj(q[k]).to(world.dtype)
     means = (world.means - c[k].to(world.dtype)) @ quat_to_rotmat(qi).T + poses.c0[k].to(world.dtype)
     quats = quat_multiply(qi.expand(len(world), 4), world.quats)
     return Gaussians(means, world.log_scales, quats, world.opacity_logits, world.sh)
@@ -67,7 +67,8 @@ def test_one_composed_motion_places_the_gaussians_as_three(dtype: torch.dtype, k
         poses.delta.copy_(0.1 * torch.randn(3, 3, generator=g, dtype=torch.float64))
     chosen = [torch.tensor([0, 2, 3]), None, True]  # a subset, a map the photo does not see, all
     q, c = poses.current()
-    ours = joint._seen(params, chosen, joint._frames(params), q, c, poses, k)
+    motion = packed.placements(packed.frames_of(params), q, c, poses.c0, poses.fixed, k, dtype)
+    ours = packed.placed(params, chosen, motion)
     ref = _three_motions(params, chosen, poses, k)
     tol = 1e-12 if dtype == torch.float64 else 2e-5  # float32: each of the three motions rounds
     for a, b in zip(ours.tensors(), ref.tensors()):
