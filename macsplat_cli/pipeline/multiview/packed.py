@@ -164,9 +164,10 @@ def placements(
 def placed(params: list[GaussianMaps], chosen: list[torch.Tensor | bool | None], motion: Motion) -> Gaussians:
     """The leaves ``chosen`` (per map the indices :func:`indices` gives, True for all, None for none) moved by
     their map's ``motion`` (:func:`placements`), concatenated in map order (differentiable w.r.t. the leaves and
-    the motion)."""
+    the motion): :meth:`Gaussians.cat` of the maps' parts, without its SH padding copies where every map has the
+    same SH degree."""
     A, b, Q = motion
-    parts = []
+    parts: list[list[torch.Tensor]] = []
     for j, (m, sel) in enumerate(zip(params, chosen)):
         if sel is None:
             continue
@@ -174,5 +175,7 @@ def placed(params: list[GaussianMaps], chosen: list[torch.Tensor | bool | None],
         if isinstance(sel, torch.Tensor):
             flat = [t.index_select(0, sel) for t in flat]
         means, log_scales, quats, opacity_logits, sh = flat
-        parts.append(Gaussians(torch.addmm(b[j], means, A[j].T), log_scales, quats @ Q[j].T, opacity_logits, sh))
-    return Gaussians.cat(parts)
+        parts.append([torch.addmm(b[j], means, A[j].T), log_scales, quats @ Q[j].T, opacity_logits, sh])
+    if len({p[4].shape[1] for p in parts}) != 1:
+        return Gaussians.cat([Gaussians(*p) for p in parts])
+    return Gaussians(*(torch.cat(field) for field in zip(*parts)))
