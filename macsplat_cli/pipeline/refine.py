@@ -32,6 +32,7 @@ from ..mac import mac_loss
 from ..metrics import SsimTarget, ssim_map, ssim_target
 from ..render import render
 from ..report import RefineReport
+from ..rotations import quat_multiply, rotmat_to_quat_np
 from .refine_adam import Adam
 from .refine_config import AUTO_STEPS, RefineConfig
 from .types import DepthMap, MatchSet, TwoViewGeometry, View
@@ -105,6 +106,41 @@ class _MacMatches:
     weights: torch.Tensor  # [M] float32
     batch: torch.Tensor  # [M] int64, zeros (one pair)
     cam_to_world: tuple[torch.Tensor, torch.Tensor]  # [1, 4, 4] float32 each
+
+
+@dataclass
+class _World:
+    """How a step turns one view's map into world Gaussians: :meth:`GaussianMaps.to_gaussians`'s values and
+    arithmetic, with what does not change between steps found once (the valid pixels' indices, the pose's rotation,
+    translation and quaternion) and the pose skipped where it is exactly the identity (moving by it changes no
+    value)."""
+
+    sel: torch.Tensor | None  # [n] int64, the valid pixels (row-major); None: every pixel
+    R: torch.Tensor | None  # [3, 3] in the maps' dtype; None: the identity
+    t: torch.Tensor | None  # [3]
+    q: torch.Tensor | None  # [4], the quaternion of R
+
+    @staticmethod
+    def of(m: GaussianMaps) -> _World:
+        """``m``'s (``B = 1``) indices and pose."""
+        sel = None if m.valid is None else m.valid[0].reshape(-1).nonzero().squeeze(1)
+        c2w = m.cam_to_world
+        if c2w is None or torch.equal(c2w[0], torch.eye(4, dtype=c2w.dtype, device=c2w.device)):
+            return _World(sel, None, None, None)
+        T = c2w[0].to(device=m.device, dtype=m.dtype)
+        q = rotmat_to_quat_np(T[:3, :3].detach().cpu().double().numpy())
+        return _World(sel, T[:3, :3], T[:3, 3], torch.as_tensor(q, dtype=m.dtype, device=m.device))
+
+    def gaussians(self, m: GaussianMaps) -> Gaussians:
+        """``m.to_gaussians()`` (differentiable w.r.t. the five maps)."""
+        flat = [t[0].reshape(-1, *t.shape[3:]) for t in m.tensors()]
+        if self.sel is not None:
+            flat = [t.index_select(0, self.sel) for t in flat]
+        means, log_scales, quats, opacity_logits, sh = flat
+        if self.R is not None and self.t is not None and self.q is not None:
+            means = means @ self.R.T + self.t
+            quats = quat_multiply(self.q.expand(quats.shape[0], 4), quats)
+        return Gaussians(means, log_scales, quats, opacity_logits, sh)
 
 
 def _downscale(image: np.ndarray, factor: int) -> torch.Tensor:
@@ -220,10 +256,11 @@ def _mac_matches(sets: list[MatchSet], params: list[GaussianMaps], cfg: RefineCo
 
 def _step_loss(
     params: list[GaussianMaps], targets: list[_Target], matches: list[_MacMatches], cfg: RefineConfig,
-    lpips: torch.nn.Module | None,
+    lpips: torch.nn.Module | None, worlds: list[_World],
 ) -> tuple[torch.Tensor, dict[str, float]]:  # fmt: skip
-    """One step's loss (photometric over every view, + LPIPS, + λ_MAC · MAC over every pair) and its terms."""
-    world = Gaussians.cat([m.to_gaussians() for m in params])
+    """One step's loss (photometric over every view, + LPIPS, + λ_MAC · MAC over every pair) and its terms;
+    ``worlds``: each map's :class:`_World`."""
+    world = Gaussians.cat([w.gaussians(m) for w, m in zip(worlds, params)])
     photo = torch.zeros(())
     perceptual = torch.zeros(())
     for t in targets:
@@ -299,10 +336,11 @@ def refine(
     opt = _optimizer(params, cfg, _scene_depth(params))
     sets = _pair_matches(geometry, depths, cfg) if geometry is not None else list(match_sets or [])
     matches = _mac_matches(sets, params, cfg)
+    worlds = [_World.of(m) for m in params]
 
     t0 = time.perf_counter()
     history, step, stopped_early = run_steps(
-        opt, cfg, lambda step: _step_loss(params, targets, matches, cfg, lpips),
+        opt, cfg, lambda step: _step_loss(params, targets, matches, cfg, lpips, worlds),
         lambda history, step: _plateaued([h["loss"] for h in history], step, cfg), on_step,
     )  # fmt: skip
     seconds = time.perf_counter() - t0

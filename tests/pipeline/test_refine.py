@@ -162,3 +162,39 @@ def test_run_steps_is_the_loop_both_refinements_share() -> None:
     assert history[-1]["loss"] < 0.01 < history[0]["loss"]
     _, steps, stopped = run_steps(opt, RefineConfig(steps=3), lambda step: ((x**2).sum(), {}), lambda h, s: False, None)
     assert (steps, stopped) == (3, False)
+
+
+def _random_map(seed: int, valid: bool, pose: str, dtype: torch.dtype = torch.float32) -> GaussianMaps:
+    """A one-view 5 × 7 map of random Gaussians (SH degree 1), some pixels invalid, with an identity or a turned
+    pose (or none)."""
+    g = torch.Generator().manual_seed(seed)
+    h, w = 5, 7
+    t = [torch.randn(1, h, w, *s, generator=g, dtype=dtype) for s in ((3,), (3,), (4,), (), (4, 3))]
+    mask = torch.rand(1, h, w, generator=g) > 0.3 if valid else None
+    c2w = None if pose == "none" else torch.eye(4, dtype=torch.float64)[None].clone()
+    if pose == "turned" and c2w is not None:
+        a = 0.3
+        c2w[0, :3, :3] = torch.tensor([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+        c2w[0, :3, 3] = torch.tensor([0.2, -1.0, 0.5])
+    return GaussianMaps(*t, valid=mask, cam_to_world=c2w)
+
+
+@pytest.mark.parametrize("valid", [True, False])
+@pytest.mark.parametrize("pose", ["none", "identity", "turned"])
+def test_a_steps_world_is_to_gaussians_bit_for_bit(valid: bool, pose: str) -> None:
+    """Issue 40: the step's world Gaussians (:class:`refine._World`: indices and pose found once, the identity pose
+    skipped) are :meth:`GaussianMaps.to_gaussians`' values and gradients, bit for bit."""
+    from macsplat_cli.pipeline.refine import _World
+
+    m = _random_map(4, valid, pose)
+    for t in m.tensors():
+        t.requires_grad_(True)
+    world = _World.of(m)
+    assert (world.R is None) == (pose != "turned") and (world.sel is None) == (not valid)
+    ours, ref = world.gaussians(m), m.to_gaussians()
+    cot = [torch.randn(t.shape, generator=torch.Generator().manual_seed(k)) for k, t in enumerate(ref.tensors())]
+    for a, b in zip(ours.tensors(), ref.tensors()):
+        assert torch.equal(a, b)
+    grads = [torch.autograd.grad(g.tensors(), m.tensors(), cot) for g in (ours, ref)]
+    for a, b in zip(*grads):
+        assert torch.equal(a, b)

@@ -33,8 +33,10 @@ fall on it (tested once, with a margin: the same image as the whole scene's), so
 photo sees.
 
 The renders go through the fused kernel, which takes no camera gradient: camera ``j``'s update is applied to the
-Gaussians instead (``Y = Exp(−ω_j)(X − c'_j) + c_j``, rendered by the unrefined camera), the same image. Measured:
-benchmarks/history/multiview_joint.md.
+Gaussians instead (``Y = Exp(−ω_j)(X − c'_j) + c_j``, rendered by the unrefined camera), the same image. A map's
+registered pose, its camera's update and the rendering camera's inverse update are composed into one rigid motion
+per map and step (:func:`.packed.placements`, float64), applied to its Gaussians once. Measured:
+benchmarks/history/multiview_joint.md and (speed) benchmarks/history/refine.md.
 """
 
 from __future__ import annotations
@@ -49,12 +51,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from ...gaussians import GaussianMaps, Gaussians
+from ...gaussians import GaussianMaps
 from ...mac import mac_loss
 from ...metrics import ssim_map
 from ...render import render
 from ...report import RefineReport
-from ...rotations import quat_multiply, quat_to_rotmat
+from ...rotations import quat_to_rotmat
 from ..refine import (
     SSIM_WEIGHT,
     RefineConfig,
@@ -69,7 +71,7 @@ from ..types import MatchSet, View
 
 if TYPE_CHECKING:
     from ..run import Reconstruction
-from .packed import Packed, centres, in_view, maps_where
+from .packed import Frames, Packed, centres, frames_of, in_view, indices, placed, placements
 from .sh_views import view_dependent
 
 __all__ = ["JointResult", "joint_reconstruction", "joint_refine", "trusted_cameras"]
@@ -153,10 +155,6 @@ def _axis_quat(w: torch.Tensor) -> torch.Tensor:
     return torch.cat([torch.cos(theta / 2), 0.5 * torch.sinc(theta / (2 * torch.pi)) * w], -1)
 
 
-def _conj(q: torch.Tensor) -> torch.Tensor:
-    return q * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
-
-
 class _Poses(torch.nn.Module):
     """Every camera's small pose update and the gauge (camera ``fixed`` still, ``scale_camera``'s distance kept)."""
 
@@ -231,28 +229,6 @@ def trusted_cameras(
     return trusted
 
 
-def _moved(world0: dict[int, Gaussians], q: torch.Tensor, c: torch.Tensor, c0: torch.Tensor) -> Gaussians:
-    """Map ``k``'s world Gaussians moved with its camera (``X = Exp(ω_k)(X0 − c_k) + c'_k``), concatenated in map
-    order. ``world0``: map index → its Gaussians."""
-    parts = []
-    for k, g in sorted(world0.items()):
-        qk = q[k].to(g.dtype)
-        R = quat_to_rotmat(qk)
-        means = (g.means - c0[k].to(g.dtype)) @ R.T + c[k].to(g.dtype)
-        quats = quat_multiply(qk.expand(len(g), 4), g.quats)
-        parts.append(Gaussians(means, g.log_scales, quats, g.opacity_logits, g.sh))
-    return Gaussians.cat(parts)
-
-
-def _seen_by(world: Gaussians, q: torch.Tensor, c: torch.Tensor, c0: torch.Tensor) -> Gaussians:
-    """``world`` placed so that the unrefined camera (centre ``c0``) sees it as the refined one (``q``, ``c``)."""
-    qi = _conj(q).to(world.dtype)
-    R = quat_to_rotmat(qi)
-    means = (world.means - c.to(world.dtype)) @ R.T + c0.to(world.dtype)
-    quats = quat_multiply(qi.expand(len(world), 4), world.quats)
-    return Gaussians(means, world.log_scales, quats, world.opacity_logits, world.sh)
-
-
 @dataclass
 class _Photo:
     """One camera's photo at the refinement resolution, its held-out pixels and its unrefined camera."""
@@ -308,20 +284,20 @@ def _loss(
     cfg: RefineConfig,
     visible: list[list[torch.Tensor | bool | None]],
     packs: list[Packed],
+    frames: Frames,
 ) -> tuple[torch.Tensor, dict[int, float], dict[str, float]]:
     """One step's loss over the photos ``which`` (and the MAC loss over every matched pair), each rendered photo's
-    held-out error, and the terms. Photo ``k`` renders the Gaussians ``visible[k]`` alone (per map: a mask, True
-    for all, None for none: :func:`.packed.in_view`); a map it does not see gets no gradient from it. ``params``
-    are the packed leaves (``packs``: the MAC term samples their pixel maps)."""
+    held-out error, and the terms. Photo ``k`` renders the Gaussians ``visible[k]`` alone (per map: the indices of
+    the leaves :func:`.packed.in_view` kept (:func:`.packed.indices`), True for all, None for none); a map it does
+    not see gets no gradient from it. ``params`` are the packed leaves (``packs``: the MAC term samples their pixel
+    maps), ``frames`` their registered poses (:func:`.packed.frames_of`)."""
     q, c = poses.current()
     photo = torch.zeros(())
     held: dict[int, float] = {}
     for k in which:
         p = photos[k]
-        world0 = {j: (maps_where(m, mask) if isinstance(mask, torch.Tensor) else m).to_gaussians()
-                  for j, (m, mask) in enumerate(zip(params, visible[k])) if mask is not None}  # fmt: skip
-        world = _moved(world0, q, c, poses.c0)
-        seen = world if k == poses.fixed else _seen_by(world, q[k], c[k], poses.c0[k])
+        motion = placements(frames, q, c, poses.c0, poses.fixed, k, params[0].dtype)
+        seen = placed(params, visible[k], motion)
         h, w = p.image.shape[:2]
         rgb = render(seen, p.world_to_cam, p.K, w, h).rgb
         target = torch.where(p.heldout[..., None], rgb.detach(), p.image)
@@ -429,16 +405,17 @@ def joint_refine(
     mac_sets = _mac_sets(list(match_sets or []), [p.full for p in packs], f) if use_mac else []
     per_step = min(PHOTOS_PER_STEP, len(photos))
     where = centres(params)
-    visible = [[True if m is not None and bool(m.all()) else m
-                for m in in_view(params, where, p.world_to_cam, p.K, p.image.shape[1], p.image.shape[0])]
+    visible = [indices([True if m is not None and bool(m.all()) else m
+                        for m in in_view(params, where, p.world_to_cam, p.K, p.image.shape[1], p.image.shape[0])])
                for p in photos]  # fmt: skip
     rounds = -(-len(photos) // per_step)  # the steps of a round: after the first, every photo's error is in
     patience = max(HOLDOUT_PATIENCE, rounds)  # a round at least: every photo's error updated
     schedule = _schedule(len(photos), per_step, config.steps)
+    frames = frames_of(params)
     latest: dict[int, float] = {}  # each photo's held-out error when it was last rendered
 
     def step_loss(step: int) -> tuple[torch.Tensor, dict[str, float]]:
-        loss, held, terms = _loss(params, poses, photos, schedule[step - 1], mac_sets, config, visible, packs)
+        loss, held, terms = _loss(params, poses, photos, schedule[step - 1], mac_sets, config, visible, packs, frames)
         latest.update(held)
         terms["heldout"] = float(np.mean(list(latest.values())))
         return loss, terms

@@ -8,7 +8,8 @@ pixel map, so the refinement computes the same numbers. The MAC loss samples map
 pixel map with the packed values put back (differentiably; the invalid pixels keep their values).
 
 A photo's step renders only the Gaussians that may fall on it (:func:`in_view`): tested once, on the registered
-poses, with a margin for what the refinement moves.
+poses, with a margin for what the refinement moves; and each map's Gaussians are placed for it by one rigid motion
+(:func:`placements`, :func:`placed`).
 """
 
 from __future__ import annotations
@@ -17,9 +18,13 @@ from dataclasses import dataclass
 
 import torch
 
-from ...gaussians import GaussianMaps
+from ...gaussians import GaussianMaps, Gaussians
+from ...rotations import quat_multiply, quat_to_rotmat, rotmat_to_quat
 
-__all__ = ["CULL_MARGIN", "Packed", "centres", "in_view", "maps_where"]
+__all__ = [
+    "CULL_MARGIN", "Frames", "Motion", "Packed", "centres", "conj", "frames_of", "in_view", "indices", "maps_where",
+    "placed", "placements",
+]  # fmt: skip
 
 CULL_MARGIN = 0.1
 """A photo's step renders the Gaussians whose 3.5σ disc (the projection's own extent is 3σ) reaches its image widened
@@ -94,3 +99,83 @@ def in_view(
 def maps_where(m: GaussianMaps, mask: torch.Tensor) -> GaussianMaps:
     """A one-view map with ``valid`` replaced by ``mask`` [1, H, W] (its world Gaussians: ``.to_gaussians()``)."""
     return GaussianMaps(m.means, m.log_scales, m.quats, m.opacity_logits, m.sh, mask, m.cam_to_world)
+
+
+def indices(visible: list[torch.Tensor | bool | None]) -> list[torch.Tensor | bool | None]:
+    """A photo's per-map masks (:func:`in_view` [1, 1, n], True for all, None for none) as the indices
+    :func:`placed` gathers [n'] (once: they do not change)."""
+    return [m.reshape(-1).nonzero().squeeze(1) if isinstance(m, torch.Tensor) else m for m in visible]
+
+
+def conj(q: torch.Tensor) -> torch.Tensor:
+    """The conjugate (inverse rotation) of (w, x, y, z) quaternions. [..., 4]"""
+    return q * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
+
+
+def _left(q: torch.Tensor) -> torch.Tensor:
+    """The matrices of ``x ↦ q ⊗ x`` for (w, x, y, z) quaternions (:func:`~macsplat_cli.rotations.quat_multiply`'s
+    product as one linear map). [C, 4] → [C, 4, 4]"""
+    w, x, y, z = q.unbind(-1)
+    rows = [[w, -x, -y, -z], [x, w, -z, y], [y, z, w, -x], [z, -y, x, w]]
+    return torch.stack([torch.stack(r, -1) for r in rows], -2)
+
+
+Frames = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
+"""Each map's registered camera-to-world as :meth:`GaussianMaps.to_gaussians` applies it: rotation [C, 3, 3],
+translation [C, 3] and the rotation's quaternion [C, 4], float64."""
+Motion = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
+"""One rigid motion per map: ``(A [C, 3, 3], b [C, 3], Q [C, 4, 4])``, map ``j``'s ``means ↦ means @ A_jᵀ + b_j``,
+``quats ↦ quats @ Q_jᵀ``."""
+
+
+def frames_of(maps: list[GaussianMaps]) -> Frames:
+    """The (one-view) maps' :data:`Frames`."""
+    T = torch.cat([m.cam_to_world_or_identity(torch.float64) for m in maps])
+    return T[:, :3, :3], T[:, :3, 3], rotmat_to_quat(T[:, :3, :3])
+
+
+def placements(
+    frames: Frames, q: torch.Tensor, c: torch.Tensor, c0: torch.Tensor, fixed: int, k: int, dtype: torch.dtype
+) -> Motion:
+    """Each map's one rigid motion from its camera frame to where photo ``k``'s unrefined camera sees it (the joint
+    refinement, :mod:`.joint`): its registered pose (``frames``, as :meth:`GaussianMaps.to_gaussians` places it),
+    then its camera's update ``X ↦ Exp(ω_j)(X − c_j) + c'_j`` (the Gaussians ride with the camera), then for a camera
+    ``k`` other than ``fixed`` the world placed so that the unrefined camera sees it as the refined one (``X ↦
+    Exp(−ω_k)(X − c'_k) + c_k``). Composed in float64 (the three motions applied one after another in float32 differ
+    at the rounding), then rounded to ``dtype``.
+
+    Args:
+        q: each camera's rotation update ``Exp(ω)`` as a quaternion. [C, 4] float64
+        c: each camera's refined centre ``c'``. [C, 3] float64
+        c0: each camera's registered centre. [C, 3] float64
+    """
+    Rm, tm, qm = frames
+    R = quat_to_rotmat(q)
+    A = R @ Rm
+    b = ((tm - c0)[:, None] @ R.transpose(1, 2))[:, 0] + c
+    Q = quat_multiply(q, qm)
+    if k != fixed:
+        inv = conj(q[k])
+        Rk = quat_to_rotmat(inv)
+        A, b, Q = Rk @ A, (b - c[k]) @ Rk.T + c0[k], quat_multiply(inv.expand_as(Q), Q)
+    return A.to(dtype), b.to(dtype), _left(Q).to(dtype)
+
+
+def placed(params: list[GaussianMaps], chosen: list[torch.Tensor | bool | None], motion: Motion) -> Gaussians:
+    """The leaves ``chosen`` (per map the indices :func:`indices` gives, True for all, None for none) moved by
+    their map's ``motion`` (:func:`placements`), concatenated in map order (differentiable w.r.t. the leaves and
+    the motion): :meth:`Gaussians.cat` of the maps' parts, without its SH padding copies where every map has the
+    same SH degree."""
+    A, b, Q = motion
+    parts: list[list[torch.Tensor]] = []
+    for j, (m, sel) in enumerate(zip(params, chosen)):
+        if sel is None:
+            continue
+        flat = [t.reshape(-1, *t.shape[3:]) for t in m.tensors()]
+        if isinstance(sel, torch.Tensor):
+            flat = [t.index_select(0, sel) for t in flat]
+        means, log_scales, quats, opacity_logits, sh = flat
+        parts.append([torch.addmm(b[j], means, A[j].T), log_scales, quats @ Q[j].T, opacity_logits, sh])
+    if len({p[4].shape[1] for p in parts}) != 1:
+        return Gaussians.cat([Gaussians(*p) for p in parts])
+    return Gaussians(*(torch.cat(field) for field in zip(*parts)))

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from macsplat_cli.datasets import synthetic as syn
+from macsplat_cli.gaussians import Gaussians
 from macsplat_cli.metrics import rotation_error_deg
 from macsplat_cli.pipeline.gaussian_init import GaussianInitConfig, view_gaussians
 from macsplat_cli.pipeline.multiview.covis import covisibility_init
@@ -362,6 +363,6 @@ def test_a_step_renders_what_its_photo_sees_and_the_same_image(orbit: tuple, mon
     assert seen[3] is None and all(s is not None for s in seen[:3])
     culled = [maps_where(m, s).to_gaussians() for m, s in zip(maps, seen) if s is not None]
     whole = [m.to_gaussians() for m in maps]
-    a = render(joint.Gaussians.cat(culled), V, K, W // 2, H // 2).rgb
-    b = render(joint.Gaussians.cat(whole), V, K, W // 2, H // 2).rgb
+    a = render(Gaussians.cat(culled), V, K, W // 2, H // 2).rgb
+    b = render(Gaussians.cat(whole), V, K, W // 2, H // 2).rgb
     assert torch.equal(a, b)
