@@ -238,8 +238,9 @@ def guided_matches(
     col_arg = torch.zeros(n1, dtype=torch.int64)
     for start in range(0, n0, rows):
         sim = a[start : start + rows] @ bt
-        dist = (lines1[start : start + rows] @ p1t).abs_()  # point-to-line distance in view 1
-        sim = torch.where(dist <= band_px, sim, torch.full_like(sim, neg))
+        dist = lines1[start : start + rows] @ p1t  # signed point-to-line distance in view 1
+        # in place, no second block: outside the band (or NaN) gets ``neg``
+        sim.masked_fill_(~((dist <= band_px) & (dist >= -band_px)), neg)
         k = min(2, n1)
         v, j = sim.topk(k, dim=1)
         row_top[start : start + rows, :k] = v

@@ -202,7 +202,7 @@ class _State:
         fixed = np.zeros(len(cams), bool)
         fixed[0] = True
         groups = self.focal_group[cams] if len(cams) >= 3 else np.full(len(cams), -1)
-        with threadpool_limits(1, user_api="blas"):  # LSMR's many small products: one BLAS thread is fastest
+        with threadpool_limits(1, user_api="blas"):  # small products (3 × 3 per point): one BLAS thread is fastest
             res = bundle_adjust(self.R[cams], self.t[cams], self.K[cams], self.points[pts], index[tr.view[sel]],
                                 pindex[tr.track[sel]], tr.xy[sel], fixed_pose=fixed, focal_group=groups,
                                 config=BUNDLE)  # fmt: skip

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from ...camera_math import scale_focal
-from .geometry import fundamental_from_pose, sampson_distance
+from .geometry import fundamental_from_pose, sampson_distance, skew
 
 __all__ = [
     "CHECK_GN", "MAD_TO_STD", "POSE_LM", "SENSITIVITY_LM", "FocalFit", "Refit", "RefitSchedule", "apply_step",
@@ -170,12 +170,20 @@ def _intrinsics(K0: np.ndarray, K1: np.ndarray, s: float, unknown: tuple[bool, b
     return (scale_focal(K0, s) if unknown[0] else K0), (scale_focal(K1, s) if unknown[1] else K1)
 
 
-def apply_step(theta: np.ndarray, R: np.ndarray, t: np.ndarray, s: float) -> tuple[np.ndarray, np.ndarray, float]:
-    """The pose after the parameter step ``theta`` [5] or [6] (module docstring): ``(R, t, log focal scale)``."""
+def apply_step(
+    theta: np.ndarray, R: np.ndarray, t: np.ndarray, s: float, basis: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """The pose after the parameter step ``theta`` [5] or [6] (module docstring): ``(R, t, log focal scale)``.
+    ``basis``: :func:`_perpendicular` of ``t`` when the caller has it (the same value)."""
     dR, _ = cv2.Rodrigues(theta[:3].reshape(3, 1))
-    basis = np.linalg.svd(t.reshape(1, 3))[2][1:]  # two unit vectors ⟂ t
+    basis = _perpendicular(t) if basis is None else basis
     t_new = t + theta[3:5] @ basis
     return dR @ R, t_new / np.linalg.norm(t_new), s + (theta[5] if len(theta) > 5 else 0.0)
+
+
+def _perpendicular(t: np.ndarray) -> np.ndarray:
+    """Two unit vectors ⟂ ``t`` [3] (the translation direction's step basis). [2, 3]"""
+    return np.linalg.svd(t.reshape(1, 3))[2][1:]
 
 
 def pose_jacobian(
@@ -186,10 +194,17 @@ def pose_jacobian(
     translation direction 2, and with ``n_par = 6`` the log focal scale of the ``unknown`` views), by central
     differences with ``step``, all ``2 · n_par`` poses in one stacked call. [M, n_par]"""
     steps = np.concatenate([np.eye(n_par), -np.eye(n_par)]) * step
-    Fs = [
-        fundamental_from_pose(a, b, *_intrinsics(K0, K1, c, unknown))
-        for a, b, c in (apply_step(d, R, t, log_focal) for d in steps)
-    ]
+    basis = _perpendicular(t)  # the same for every step: computed once
+    inverses: dict[float, tuple[np.ndarray, np.ndarray]] = {}  # per focal scale: K1⁻ᵀ, K0⁻¹
+
+    def fundamental(a: np.ndarray, b: np.ndarray, c: float) -> np.ndarray:
+        if c not in inverses:
+            k0, k1 = _intrinsics(K0, K1, c, unknown)
+            inverses[c] = np.linalg.inv(k1).T, np.linalg.inv(k0)
+        k1_inv_t, k0_inv = inverses[c]
+        return k1_inv_t @ skew(b) @ a @ k0_inv  # :func:`fundamental_from_pose`'s products, in its order
+
+    Fs = [fundamental(*apply_step(d, R, t, log_focal, basis)) for d in steps]
     r_ = sampson_distance(np.stack(Fs), xy0, xy1)  # [2·n_par, M], central differences
     return ((r_[:n_par] - r_[n_par:]) / (2 * step)).T
 

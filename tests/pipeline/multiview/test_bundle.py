@@ -291,3 +291,68 @@ def test_points_under_the_observation_minimum_stay_and_inputs_are_checked() -> N
         _run(s, R, t, X[:, :2])
     with pytest.raises(ValueError, match="point_idx"):
         bundle_adjust(R, t, s["K"], X[:5], s["cam_idx"], s["point_idx"], s["xy"])
+
+
+def test_the_schur_step_is_the_damped_gauss_newton_step() -> None:
+    """The points eliminated, the cameras solved, the points back: the step solves the full damped normal equations
+    (a shared focal group included), as a dense solve does."""
+    from macsplat_cli.pipeline.multiview.schur import _huber, _Layout, _Normal
+
+    rng = np.random.default_rng(7)
+    s = _scene(rng, n_cams=4, n_points=40)
+    R, t, X = _perturbed(rng, s)
+    group = np.array([-1, 0, 0, 0])
+    prob = _Problem(R, t, s["K"], X, s["cam_idx"], s["point_idx"], s["xy"], np.array([False, True, True, True]),
+                    group, np.ones(len(X), bool))  # fmt: skip
+    x = prob.x0()
+    r = prob.residuals(x) + rng.normal(scale=2.0, size=2 * len(s["xy"]))  # some beyond the Huber scale
+    _, w = _huber(r, 1.0)
+    J = prob.jacobian(x)
+    normal = _Normal(_Layout(prob), prob.blocks(x), r, w)
+    H = J.T @ (w[:, None] * J.toarray())
+    lam = 1e-3
+    dense = np.linalg.solve(H + lam * np.diag(np.diag(H)), -(J.T @ (w * r)))
+    np.testing.assert_allclose(normal.step(lam), dense, rtol=1e-6, atol=1e-9 * np.abs(dense).max())
+
+
+def test_the_schur_solver_reaches_the_lsmr_solution() -> None:
+    """The two solvers minimise the same robust cost: from the same start (noise, outliers, a shared focal 5 % off)
+    they stop at the same poses, focal and errors, up to their tolerance (1e-6 of the cost)."""
+    rng = np.random.default_rng(8)
+    s = _scene(rng, n_cams=6, n_points=200)
+    R, t, X = _perturbed(rng, s)
+    K = s["K"].copy()
+    K[:, :2, :2] *= 1.05
+    xy = s["xy"] + 0.5 * rng.normal(size=s["xy"].shape)
+    bad = rng.random(len(xy)) < 0.05
+    xy[bad] += 20.0
+    ours, scipy_ = (bundle_adjust(R, t, K, X, s["cam_idx"], s["point_idx"], xy, focal_group=np.zeros(6, int),
+                                  config=BundleConfig(solver=solver))
+                    for solver in ("schur", "lsmr"))  # fmt: skip
+    assert ours.success and scipy_.success
+    assert abs(ours.K[1, 0, 0] / FOCAL - 1) < 0.002  # the focal found, not left at its 5 % start
+    assert max(rotation_error_deg(a, b) for a, b in zip(ours.R, scipy_.R)) < 2e-3
+    np.testing.assert_allclose(ours.K, scipy_.K, rtol=1e-4)
+    np.testing.assert_allclose(ours.residual_px, scipy_.residual_px, atol=0.1)
+    assert abs(ours.rms_after_px / scipy_.rms_after_px - 1) < 1e-4
+    with pytest.raises(ValueError, match="solver"):
+        bundle_adjust(R, t, K, X, s["cam_idx"], s["point_idx"], xy, config=BundleConfig(solver="cg"))
+
+
+def test_the_schur_kernel_equals_its_numpy_twin() -> None:
+    """The Numba sum of the points' terms and the NumPy one (every pair gathered at once) agree, on tracks of 1 to 6
+    observations, a fixed camera (its columns the dummy one) and a focal group."""
+    from macsplat_cli.pipeline.multiview.schur import _Layout, schur_term_reference
+
+    rng = np.random.default_rng(9)
+    s = _scene(rng, n_cams=6, n_points=60)
+    keep = rng.random(len(s["cam_idx"])) < 0.6
+    ci, pi, xy = s["cam_idx"][keep], s["point_idx"][keep], s["xy"][keep]
+    free_point = np.bincount(pi, minlength=60) >= 1
+    prob = _Problem(s["R"], s["t"], s["K"], s["X"], ci, pi, xy, np.arange(6) > 0, np.array([-1, 0, 0, 0, 1, 1]),
+                    free_point)  # fmt: skip
+    lay = _Layout(prob)
+    Y, W = rng.normal(size=(2, len(lay.pt), 7, 3))
+    ours = lay.schur_term(Y, W)
+    np.testing.assert_allclose(ours, schur_term_reference(lay, Y, W), rtol=1e-12, atol=1e-12)
+    assert ours.shape == (prob.off_point, prob.off_point) and np.abs(ours).max() > 0
