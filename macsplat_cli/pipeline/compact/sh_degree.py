@@ -38,14 +38,16 @@ def sh_degree(g: Gaussians, cams: list[ViewState], cfg: CompactConfig) -> tuple[
     most = min(SAMPLES, QUANTILE_MAX // len(eyes))
     if len(g) > most:  # a deterministic subsample is enough for a percentile
         sh, means = sh[:: len(g) // most + 1], means[:: len(g) // most + 1]
-    colors: dict[int, list[torch.Tensor]] = {d: [] for d in range(full + 1)}
+    # per eye, each lower degree's largest channel difference from the full degree's colour (kept per eye, not the
+    # colours: the values are the same, held in a third of the memory and one eye's colours at a time)
+    diffs: dict[int, list[torch.Tensor]] = {d: [] for d in range(full)}
     for e in eyes:
         dirs = F.normalize(means - e, dim=-1)
-        for d in range(full + 1):
-            colors[d].append(eval_sh(sh[:, : num_sh_bases(d)], dirs).clamp_min(0))
-    ref = torch.cat(colors[full])
+        ref = eval_sh(sh[:, : num_sh_bases(full)], dirs).clamp_min(0)
+        for d in range(full):
+            diffs[d].append((eval_sh(sh[:, : num_sh_bases(d)], dirs).clamp_min(0) - ref).abs().amax(-1))
     for d in range(full):
-        diff = (torch.cat(colors[d]) - ref).abs().amax(-1)
+        diff = torch.cat(diffs[d])
         p95 = float(torch.quantile(diff.float(), 0.95)) if diff.numel() else 0.0
         if p95 <= cfg.sh_tol:
             return d, f"degree {d} differs by ≤ {p95:.4f} (95th pct) from degree {full} across the views"
