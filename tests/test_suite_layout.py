@@ -83,7 +83,7 @@ def test_the_slow_tests_are_marked_and_ci_runs_them_after_its_checks() -> None:
     lines = [ln.strip() for ln in (TESTS.parent / ".ci" / "run").read_text(encoding="utf-8").splitlines()]
     full = [i for i, ln in enumerate(lines) if ln.startswith("pytest_rc python -m pytest -q") and "--runslow" in ln]
     assert full, f".ci/run never runs the slow tests of {marked} (its full pytest run lacks --runslow)"
-    for check in ("ruff check .", "ruff format --check .", "mypy macsplat_cli"):
+    for check in ("ruff check .", "ruff format --check .", "mypy"):  # mypy: the files pyproject.toml names
         at = [i for i, ln in enumerate(lines) if ln.startswith(check)]
         assert at and at[0] < full[0], f".ci/run does not run {check!r} before its tests"
 

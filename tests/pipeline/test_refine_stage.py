@@ -3,13 +3,11 @@
 from __future__ import annotations
 
 import math
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.pipeline.gaussian_init import GaussianInitConfig, view_gaussians
 from macsplat_cli.pipeline.refine_config import AUTO_STEPS, RefineConfig
 from macsplat_cli.pipeline.refine_stage import sharp_gain_db
@@ -22,24 +20,15 @@ from macsplat_cli.presets import (
     refine_for_agreement,
 )
 
+from support.scenes import room_photos
+
 W, H = 128, 96
 
 
 @pytest.fixture(scope="module")
 def photos() -> tuple[list[View], list[np.ndarray], list[np.ndarray]]:
     """Three photos of a textured room 6° apart, their exact depths and cameras (camera 0 the world frame)."""
-    scene = syn.make_scene("room", 1)
-    cams = syn.orbit_cameras(scene, [-6.0, 0.0, 6.0], width=W, height=H, fov_deg=60.0,
-                             names=[f"v{k}.png" for k in range(3)])  # fmt: skip
-    ref = np.linalg.inv(cams[0].cam_to_world)
-    views, depths, poses = [], [], []
-    for c in cams:
-        r = syn.render(scene, c, supersample=2)
-        views.append(View(c.name, Path(c.name), r.image.astype(np.float32), np.ones((H, W), bool), c.K.copy(),
-                          (W, H), "file"))  # fmt: skip
-        depths.append(r.depth.astype(np.float32))
-        poses.append(ref @ c.cam_to_world)
-    return views, depths, poses
+    return room_photos(W, H)
 
 
 def _maps(views: list[View], depths: list[np.ndarray], poses: list[np.ndarray]) -> list:

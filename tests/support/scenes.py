@@ -6,7 +6,8 @@ image-plane helpers of the depth tests.
 * The session fixture ``pair_files`` (a :class:`PairFactory`, in ``tests/conftest.py``) writes a pair's photos and
   its true cameras into a session folder, once per (spec, file names); the folder is shared, so a test writes its
   outputs elsewhere (its own ``tmp_path``).
-* :func:`orbit_views` gives a pair as the pipeline's :class:`View` objects with the true geometry.
+* :func:`orbit_views` gives a pair as the pipeline's :class:`View` objects with the true geometry;
+  :func:`room_photos` three photos of a room with their exact depths and cameras (the joint refinement's tests).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ __all__ = [
     "orbit_views",
     "pixel_centres",
     "rendered_pair",
+    "room_photos",
     "smooth_texture",
     "write_pair",
 ]
@@ -156,6 +158,25 @@ def orbit_views(kind: str, angle: float, w: int = 320, h: int = 240, seed: int =
         for i, (r, c) in enumerate(zip(rendered.views, (cam0, cam1)))
     ]
     return views, geometry, [r.depth / baseline for r in rendered.views]
+
+
+def room_photos(w: int = 128, h: int = 96):  # noqa: ANN201
+    """Three photos of a textured room 6° apart: ``(views, depths, poses)``, the exact depths [h, w] float32 and
+    the cameras' camera-to-world [4, 4] (camera 0 the world frame)."""
+    from macsplat_cli.pipeline.types import View
+
+    scene = syn.make_scene("room", 1)
+    cams = syn.orbit_cameras(scene, [-6.0, 0.0, 6.0], width=w, height=h, fov_deg=60.0,
+                             names=[f"v{k}.png" for k in range(3)])  # fmt: skip
+    ref = np.linalg.inv(cams[0].cam_to_world)
+    views, depths, poses = [], [], []
+    for c in cams:
+        r = syn.render(scene, c, supersample=2)
+        views.append(View(c.name, Path(c.name), r.image.astype(np.float32), np.ones((h, w), bool), c.K.copy(),
+                          (w, h), "file"))  # fmt: skip
+        depths.append(r.depth.astype(np.float32))
+        poses.append(ref @ c.cam_to_world)
+    return views, depths, poses
 
 
 # ------------------------------------------------------------------------------ image-plane helpers

@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 import torch
 
-from macsplat_cli.datasets import synthetic as syn
 from macsplat_cli.gaussians import Gaussians
 from macsplat_cli.metrics import rotation_error_deg
 from macsplat_cli.pipeline.gaussian_init import GaussianInitConfig, view_gaussians
@@ -17,6 +16,8 @@ from macsplat_cli.pipeline.multiview.covis import covisibility_init
 from macsplat_cli.pipeline.multiview.joint import POSE_TRUST_PX, joint_refine, trusted_cameras
 from macsplat_cli.pipeline.refine import RefineConfig
 from macsplat_cli.pipeline.types import DepthMap, MatchSet, View
+
+from support.scenes import room_photos
 
 W, H = 128, 96
 
@@ -31,19 +32,8 @@ def _rot(axis: np.ndarray, deg: float) -> np.ndarray:
 @pytest.fixture(scope="module")
 def orbit() -> tuple[list[View], list[DepthMap], list[np.ndarray]]:
     """Three photos of a textured room 6° apart, their exact depths and cameras (camera 0 the world frame)."""
-    scene = syn.make_scene("room", 1)
-    cams = syn.orbit_cameras(scene, [-6.0, 0.0, 6.0], width=W, height=H, fov_deg=60.0,
-                             names=[f"v{k}.png" for k in range(3)])  # fmt: skip
-    ref = np.linalg.inv(cams[0].cam_to_world)
-    views, depths, poses = [], [], []
-    for c in cams:
-        r = syn.render(scene, c, supersample=2)
-        views.append(View(c.name, Path(c.name), r.image.astype(np.float32), np.ones((H, W), bool), c.K.copy(),
-                          (W, H), "file"))  # fmt: skip
-        d = r.depth.astype(np.float32)
-        depths.append(DepthMap(d, (d > 0).astype(np.float32)))
-        poses.append(ref @ c.cam_to_world)
-    return views, depths, poses
+    views, depths, poses = room_photos(W, H)
+    return views, [DepthMap(d, (d > 0).astype(np.float32)) for d in depths], poses
 
 
 def _maps(views: list[View], depths: list[DepthMap], poses: list[np.ndarray]) -> list:
