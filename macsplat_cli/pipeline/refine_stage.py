@@ -52,7 +52,8 @@ def sharp_gain_db(maps: list[GaussianMaps], views: list[View], cam_to_world: lis
     from ..gaussians import Gaussians
     from ..render import render
 
-    pooled = [m.pooled(factor) for m in maps]
+    with torch.no_grad():  # each map's world Gaussians once, sharp and pooled
+        scenes = [[m.to_gaussians() for m in maps], [m.pooled(factor).to_gaussians() for m in maps]]
     gains = []
     for k, (v, T) in enumerate(zip(views, cam_to_world)):
         h, w = v.image.shape[:2]
@@ -60,8 +61,8 @@ def sharp_gain_db(maps: list[GaussianMaps], views: list[View], cam_to_world: lis
         K = torch.as_tensor(v.K, dtype=torch.float32)
         image = torch.as_tensor(v.image, dtype=torch.float32)
         errors, covered = [], torch.ones(h, w, dtype=torch.bool)
-        for ms in (maps, pooled):
-            others = Gaussians.cat([m.to_gaussians() for j, m in enumerate(ms) if j != k])
+        for parts in scenes:
+            others = Gaussians.cat([g for j, g in enumerate(parts) if j != k])
             with torch.no_grad():
                 out = render(others, viewmat, K, w, h)
             errors.append(((out.rgb.clamp(0, 1) - image) ** 2).mean(-1))
@@ -88,7 +89,8 @@ def refine_stage(
     from ..presets import refine_for_agreement
     from .multiview.joint import joint_reconstruction
 
-    gain, f = None, config.coarse[0] if config.coarse is not None else 0
+    gain = None
+    f = config.coarse[0] if config.coarse is not None else 0
     if f and len(rec.maps) > 1 and not any(m.size[0] % f or m.size[1] % f for m in rec.maps):  # else: not pooled
         gain = sharp_gain_db(rec.maps, rec.views, rec.poses, f)
         config = refine_for_agreement(config, gain)

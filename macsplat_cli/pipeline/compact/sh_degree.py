@@ -10,7 +10,7 @@ from ...sh import eval_sh, num_sh_bases
 from .config import CompactConfig
 from .state import ViewState
 
-__all__ = ["sh_degree", "sh_photo_check"]
+__all__ = ["quantile", "sh_degree", "sh_photo_check"]
 
 SAMPLES = 200_000
 """Gaussians whose colours are compared (a deterministic subsample beyond it): plenty for a 95th percentile."""

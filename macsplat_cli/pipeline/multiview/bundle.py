@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
@@ -84,7 +84,7 @@ class BundleConfig:
     min_observations: int = 2
     jacobian: str = "analytic"
     lsmr_max_iterations: int = 100
-    solver: str = "schur"
+    solver: Literal["schur", "lsmr"] = "schur"
 
 
 @dataclass

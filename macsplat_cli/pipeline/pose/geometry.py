@@ -20,6 +20,7 @@ __all__ = [
     "cheirality",
     "decompose_homography",
     "epipolar_fit",
+    "fundamental_from_inverses",
     "fundamental_from_pose",
     "homog",
     "hull_share",
@@ -48,7 +49,12 @@ def homog(xy: np.ndarray) -> np.ndarray:
 
 def fundamental_from_pose(R: np.ndarray, t: np.ndarray, K0: np.ndarray, K1: np.ndarray) -> np.ndarray:
     """``F = K1⁻ᵀ [t]× R K0⁻¹`` (x1ᵀ F x0 = 0 for pixels). [3, 3]"""
-    return np.linalg.inv(K1).T @ skew(t) @ R @ np.linalg.inv(K0)
+    return fundamental_from_inverses(R, t, np.linalg.inv(K0), np.linalg.inv(K1).T)
+
+
+def fundamental_from_inverses(R: np.ndarray, t: np.ndarray, K0_inv: np.ndarray, K1_inv_t: np.ndarray) -> np.ndarray:
+    """:func:`fundamental_from_pose` from ``K0⁻¹`` and ``K1⁻ᵀ``, for callers reusing them across poses. [3, 3]"""
+    return K1_inv_t @ skew(t) @ R @ K0_inv
 
 
 def sampson_distance(F: np.ndarray, xy0: np.ndarray, xy1: np.ndarray) -> np.ndarray:

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from ...camera_math import scale_focal
-from .geometry import fundamental_from_pose, sampson_distance, skew
+from .geometry import fundamental_from_inverses, fundamental_from_pose, sampson_distance
 
 __all__ = [
     "CHECK_GN", "MAD_TO_STD", "POSE_LM", "SENSITIVITY_LM", "FocalFit", "Refit", "RefitSchedule", "apply_step",
@@ -195,14 +195,13 @@ def pose_jacobian(
     differences with ``step``, all ``2 · n_par`` poses in one stacked call. [M, n_par]"""
     steps = np.concatenate([np.eye(n_par), -np.eye(n_par)]) * step
     basis = _perpendicular(t)  # the same for every step: computed once
-    inverses: dict[float, tuple[np.ndarray, np.ndarray]] = {}  # per focal scale: K1⁻ᵀ, K0⁻¹
+    inverses: dict[float, tuple[np.ndarray, np.ndarray]] = {}  # per focal scale: K0⁻¹, K1⁻ᵀ
 
     def fundamental(a: np.ndarray, b: np.ndarray, c: float) -> np.ndarray:
         if c not in inverses:
             k0, k1 = _intrinsics(K0, K1, c, unknown)
-            inverses[c] = np.linalg.inv(k1).T, np.linalg.inv(k0)
-        k1_inv_t, k0_inv = inverses[c]
-        return k1_inv_t @ skew(b) @ a @ k0_inv  # :func:`fundamental_from_pose`'s products, in its order
+            inverses[c] = np.linalg.inv(k0), np.linalg.inv(k1).T
+        return fundamental_from_inverses(a, b, *inverses[c])
 
     Fs = [fundamental(*apply_step(d, R, t, log_focal, basis)) for d in steps]
     r_ = sampson_distance(np.stack(Fs), xy0, xy1)  # [2·n_par, M], central differences

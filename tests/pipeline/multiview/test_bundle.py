@@ -69,6 +69,17 @@ def _perturbed(rng: np.random.Generator, s: dict, rot_deg: float = 1.5, trans: f
     return R, t, s["X"] + point * rng.normal(size=s["X"].shape)
 
 
+def _focal_off_start(seed: int, n_cams: int, n_points: int, focal: float):  # noqa: ANN202
+    """A scene, a perturbed start ``(R, t, X)``, the intrinsics with every focal ``focal`` × the truth, and the
+    observations with 0.5 px noise, and the generator for what follows: ``(s, R, t, X, K, xy, rng)``."""
+    rng = np.random.default_rng(seed)
+    s = _scene(rng, n_cams=n_cams, n_points=n_points)
+    R, t, X = _perturbed(rng, s)
+    K = s["K"].copy()
+    K[:, :2, :2] *= focal
+    return s, R, t, X, K, s["xy"] + 0.5 * rng.normal(size=s["xy"].shape), rng
+
+
 def _centres(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return -np.einsum("cji,cj->ci", R, t)
 
@@ -142,12 +153,7 @@ def test_outliers_do_not_pull_the_poses() -> None:
 
 
 def test_a_shared_focal_converges_to_the_truth() -> None:
-    rng = np.random.default_rng(3)
-    s = _scene(rng, n_cams=5, n_points=150)
-    R, t, X = _perturbed(rng, s)
-    K = s["K"].copy()
-    K[:, :2, :2] *= 1.1
-    xy = s["xy"] + 0.5 * rng.normal(size=s["xy"].shape)
+    s, R, t, X, K, xy, _ = _focal_off_start(3, n_cams=5, n_points=150, focal=1.1)
     res = bundle_adjust(R, t, K, X, s["cam_idx"], s["point_idx"], xy, focal_group=np.zeros(5, int))
     f = res.K[:, 0, 0]
     assert np.all(f == f[0]) and abs(f[0] / FOCAL - 1) < 0.005, f[0]
@@ -318,12 +324,7 @@ def test_the_schur_step_is_the_damped_gauss_newton_step() -> None:
 def test_the_schur_solver_reaches_the_lsmr_solution() -> None:
     """The two solvers minimise the same robust cost: from the same start (noise, outliers, a shared focal 5 % off)
     they stop at the same poses, focal and errors, up to their tolerance (1e-6 of the cost)."""
-    rng = np.random.default_rng(8)
-    s = _scene(rng, n_cams=6, n_points=200)
-    R, t, X = _perturbed(rng, s)
-    K = s["K"].copy()
-    K[:, :2, :2] *= 1.05
-    xy = s["xy"] + 0.5 * rng.normal(size=s["xy"].shape)
+    s, R, t, X, K, xy, rng = _focal_off_start(8, n_cams=6, n_points=200, focal=1.05)
     bad = rng.random(len(xy)) < 0.05
     xy[bad] += 20.0
     ours, scipy_ = (bundle_adjust(R, t, K, X, s["cam_idx"], s["point_idx"], xy, focal_group=np.zeros(6, int),
