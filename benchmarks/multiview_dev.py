@@ -61,7 +61,7 @@ from macsplat_cli.gaussians import Gaussians
 from macsplat_cli.metrics import psnr, rotation_error_deg
 from macsplat_cli.pipeline.run import ReconstructConfig, Reconstruction
 from macsplat_cli.pipeline.views import working_size
-from macsplat_cli.presets import Overrides
+from macsplat_cli.presets import DEFAULT_MATCHER, MATCHERS, Overrides
 from macsplat_cli.render import render_camera
 
 SCENE_NAMES = {"co3d": "co3d", "icl": "icl_livingroom", "nyu": "nyu_dining"}
@@ -167,8 +167,9 @@ def nearest_context(frames: Sequence[Frame], ctx: Sequence[int], ti: int) -> int
 
 
 # ------------------------------------------------------------------------------------------ our runs
-SETTINGS: dict[str, Any] = {"quality": "balanced", "far_layer": True, "pairs": True}
-"""``--quality``, ``--no-far-layer`` (for every run of ours, the N-view and the two-view ones alike), ``--no-pairs``."""
+SETTINGS: dict[str, Any] = {"quality": "balanced", "far_layer": True, "pairs": True, "matcher": DEFAULT_MATCHER}
+"""``--quality``, ``--no-far-layer``, ``--matcher`` (for every run of ours, the N-view and the two-view ones alike),
+``--no-pairs``."""
 
 
 def run_ours(frames: Sequence[Frame], ctx: Sequence[int], tgts: Sequence[int], known: bool, size: int) -> Outcome:
@@ -181,7 +182,9 @@ def run_ours(frames: Sequence[Frame], ctx: Sequence[int], tgts: Sequence[int], k
             cfg.views.intrinsics = save_intrinsics(Path(tmp) / "cameras.json", cf)
         t0 = time.perf_counter()
         try:
-            config = EngineConfig(quality=SETTINGS["quality"], overrides=Overrides(size=size), pipeline=cfg)
+            config = EngineConfig(
+                quality=SETTINGS["quality"], matcher=SETTINGS["matcher"], overrides=Overrides(size=size), pipeline=cfg
+            )
             rec = reconstruct([f.image for f in cf], config)
         except ReconstructionError as e:
             return Outcome(time.perf_counter() - t0, error=str(e))
@@ -373,13 +376,16 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--size", type=int, default=512, help="the working size (long side)")
     ap.add_argument("--no-colmap", action="store_true", help="skip the pycolmap peer")
     ap.add_argument("--quality", default="balanced", help="our runs' --quality (fast, balanced, best)")
+    ap.add_argument("--matcher", default=DEFAULT_MATCHER, choices=MATCHERS, help="our runs' --matcher")
     ap.add_argument("--no-far-layer", action="store_true", help="our runs without the far background layer")
     ap.add_argument("--known-only", action="store_true", help="only the known-K rows (CO3D: no unknown-K row)")
     ap.add_argument("--no-pairs", action="store_true", help="skip the best 2-view column (its runs are unchanged)")
     ap.add_argument("--table", action="store_true", help="print only the table (no progress, no notes)")
     ap.add_argument("--json", type=Path, help="also write every case as JSON")
     args = ap.parse_args(argv)
-    SETTINGS.update(quality=args.quality, far_layer=not args.no_far_layer, pairs=not args.no_pairs)
+    SETTINGS.update(
+        quality=args.quality, far_layer=not args.no_far_layer, pairs=not args.no_pairs, matcher=args.matcher
+    )
     views = [int(v) for v in args.views.split(",")]
     with_colmap = not args.no_colmap and colmap_available()
     say = (lambda m: None) if args.table else progress
