@@ -10,7 +10,7 @@ import dataclasses
 import logging
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -99,9 +99,51 @@ def _components(n: int, outcomes: Sequence[PairOutcome]) -> np.ndarray:
 
 
 LEARNED_TRIES_PER_JOIN = 2
-"""How many failed pairs between the same two groups of photos the learned tier runs on (in the shortlist's order):
+"""How many failed pairs between the same two groups of photos the learned tier runs on (the most similar first):
 it costs 3–7 s a pair on a 2-core CPU, and with no cap CO3D's 8 photos ran it on every pair joining the isolated
-photos (584 s against 32 s; benchmarks/history/learned.md). The SIFT tiers still run on every such pair."""
+photos (584 s against 32 s; benchmarks/history/learned.md)."""
+SLOW_TRIES_PER_JOIN = 3
+"""How many failed pairs between the same two groups of photos the SIFT fallback and wide tiers run on (the most
+similar first, the learned tier's among them): on real photos a failing pair costs 4–13 s in those tiers (their
+descriptor products are 4–16× the primary's), and CO3D's two photos that no pair reaches ran them on all 13 of
+their pairs, 91 of the pair stage's ~110 s (benchmarks/history/multiview_scaling.md)."""
+
+
+def match_all(
+    views: Sequence[View], pairs: Sequence[tuple[int, int]], search: PoseSearch,
+    similarity: Callable[[], np.ndarray] | None = None,
+) -> list[PairOutcome]:  # fmt: skip
+    """Every pair with the primary tier; then, with every tier, the pairs that failed and would join two groups
+    of photos the accepted pairs leave apart (an isolated photo is a group): the slow tiers run where they can
+    change what registers, on at most :data:`SLOW_TRIES_PER_JOIN` pairs per two groups (the learned one on
+    :data:`LEARNED_TRIES_PER_JOIN`), the most similar pairs first.
+
+    Args:
+        similarity: the photos' similarity, [N, N] (:func:`.shortlist.similarity`), called only when a failed pair
+            could join two groups; None: the pairs' own order.
+    """
+    outs = match_pairs(views, pairs, primary_only(search))
+    if search.fallback is None and search.wide is None and search.learned is None:
+        return outs
+    label = _components(len(views), outs)
+    failed = [n for n, o in enumerate(outs) if o.result is None and label[o.i] != label[o.j]]
+    if failed and similarity is not None:
+        sim = similarity()
+        failed.sort(key=lambda n: -sim[outs[n].i, outs[n].j])  # stable: equal similarities keep the pairs' order
+    sift_only = without_learned(search)
+    tries: dict[tuple[int, int], int] = {}
+    for n in failed:
+        o = outs[n]
+        join = (min(label[o.i], label[o.j]), max(label[o.i], label[o.j]))
+        if join[0] == join[1] or tries.get(join, 0) >= SLOW_TRIES_PER_JOIN:
+            continue  # joined by an earlier pair, or tried enough
+        learned = search.learned is not None and tries.get(join, 0) < LEARNED_TRIES_PER_JOIN
+        tries[join] = tries.get(join, 0) + 1
+        again = match_pairs(views, [(o.i, o.j)], search if learned else sift_only)[0]
+        outs[n] = dataclasses.replace(again, seconds=o.seconds + again.seconds)
+        if again.result is not None:
+            label = _components(len(views), outs)
+    return outs
 
 
 def without_learned(search: PoseSearch) -> PoseSearch:
@@ -109,28 +151,6 @@ def without_learned(search: PoseSearch) -> PoseSearch:
     return PoseSearch(search.config, search.pose_config, describe=search.describe, match=search.match,
                       pose=search.pose, fallback=search.fallback, wide=search.wide,
                       warn_doubts=search.warn_doubts)  # fmt: skip
-
-
-def match_all(views: Sequence[View], pairs: Sequence[tuple[int, int]], search: PoseSearch) -> list[PairOutcome]:
-    """Every pair with the primary tier; then, with every tier, the pairs that failed and would join two groups
-    of photos the accepted pairs leave apart (an isolated photo is a group): the slow tiers run where they can
-    change what registers, the learned one on at most :data:`LEARNED_TRIES_PER_JOIN` pairs per two groups."""
-    outs = match_pairs(views, pairs, primary_only(search))
-    if search.fallback is None and search.wide is None and search.learned is None:
-        return outs
-    label = _components(len(views), outs)
-    sift_only = without_learned(search)
-    tries: dict[tuple[int, int], int] = {}
-    for n, o in enumerate(outs):
-        if o.result is None and label[o.i] != label[o.j]:
-            join = (min(label[o.i], label[o.j]), max(label[o.i], label[o.j]))
-            learned = search.learned is not None and tries.get(join, 0) < LEARNED_TRIES_PER_JOIN
-            tries[join] = tries.get(join, 0) + learned
-            again = match_pairs(views, [(o.i, o.j)], search if learned else sift_only)[0]
-            outs[n] = dataclasses.replace(again, seconds=o.seconds + again.seconds)
-            if again.result is not None:
-                label = _components(len(views), outs)
-    return outs
 
 
 @dataclass

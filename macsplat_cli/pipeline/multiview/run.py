@@ -28,7 +28,7 @@ from .depth import MIN_SHARED, DepthFn, multiview_depths, pair_geometry, photo_m
 from .known import KNOWN_POSE_MAX_PX, known_pose_pairs, load_known_poses
 from .pairwise import PairOutcome, cached_search, match_all
 from .register import Registration, register_known, register_views
-from .shortlist import select_pairs
+from .shortlist import select_pairs, similarity
 from .tracks import build_tracks
 
 __all__ = ["MultiViewResult", "reconstruct_views"]
@@ -158,7 +158,7 @@ def reconstruct_views(
         if known is not None:
             full = [(live[i], live[j]) for i, j in chosen]
             return known_pose_pairs(views, full, cached.describe, cached.match, known, KNOWN_POSE_MAX_PX)
-        outs = match_all(sub, chosen, cached)
+        outs = match_all(sub, chosen, cached, lambda: similarity(feats, config.shortlist))
         return [dataclasses.replace(o, i=live[o.i], j=live[o.j]) for o in outs]
 
     outcomes: list[PairOutcome] = timed("pairs", pairs_stage)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import numpy as np
 import pytest
 
 from macsplat_cli.pipeline.multiview import pairwise
@@ -46,3 +47,31 @@ def test_the_learned_tier_runs_on_a_few_pairs_per_join_and_the_sift_tiers_on_eve
     slow_accept.add((0, 3))  # the first slow try joins photo 3: the other pairs are not tried again
     match_all([object()] * 4, pairs, search)  # type: ignore[list-item]
     assert [c for c in calls if c[1] != "primary"] == [((0, 3), "learned")]
+
+
+def test_the_slow_tiers_try_a_few_pairs_per_join_the_most_similar_first(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Photos 0–3 register together; photo 4 fails with all four: the slow tiers run on SLOW_TRIES_PER_JOIN of those
+    pairs only, in the order of the photos' similarity (not the pairs' order), the learned tier on the first ones."""
+    calls: list[tuple[tuple[int, int], str]] = []
+    accept = {(0, 1), (1, 2), (2, 3)}
+
+    def fake(views: Sequence[object], pairs: Sequence[tuple[int, int]], search: PoseSearch) -> list[PairOutcome]:
+        tiers = "primary" if search.fallback is None else ("learned" if search.learned is not None else "sift")
+        out = []
+        for p in pairs:
+            calls.append((p, tiers))
+            ok = p in accept
+            out.append(PairOutcome(p[0], p[1], object() if ok else None, None if ok else "no", 0.0))  # type: ignore[arg-type]
+        return out
+
+    monkeypatch.setattr(pairwise, "match_pairs", fake)
+    search = PoseSearch(PoseSearchConfig(), PoseConfig(), describe=_stage, match=_stage, pose=_stage,
+                        fallback=_stage, learned=object())  # type: ignore[arg-type]  # fmt: skip
+    sim = np.zeros((5, 5))
+    sim[4, :4] = sim[:4, 4] = [0.1, 0.4, 0.2, 0.3]  # photo 4 looks most like photo 1, then 3, then 2
+    pairs = [(0, 1), (1, 2), (2, 3), (0, 4), (1, 4), (2, 4), (3, 4)]
+    outs = match_all([object()] * 5, pairs, search, lambda: sim)  # type: ignore[list-item]
+    slow = [c for c in calls if c[1] != "primary"]
+    assert pairwise.SLOW_TRIES_PER_JOIN == 3  # the expected list below is written for three
+    assert slow == [((1, 4), "learned"), ((3, 4), "learned"), ((2, 4), "sift")]
+    assert [o.reason for o in outs[3:]] == ["no"] * 4  # the pair not tried keeps its primary tier's refusal
