@@ -59,24 +59,37 @@ def uniform(seed, it, pixel, draw):  # noqa: ANN001, ANN201
     return float(h >> np.uint64(8)) * (1.0 / 16777216.0)
 
 
-@nb.njit(**_JIT)
-def plane_cost(ref, src, A, b, y, x, rho, gu, gv, radius, step):  # noqa: ANN001, ANN201
-    """``(1 − ZNCC)/2`` of the window of pixel (y, x) warped through its plane; :data:`INVALID` if any window
-    sample leaves the source image (bilinear support included) or lies behind either camera.
-
-    The window has ``(2·radius + 1)²`` samples spaced ``step`` pixels; reference samples outside the reference
-    image are clamped to its border.
-    """
+@nb.njit(inline="always", **_JIT)
+def _ref_window(ref, y, x, radius, step, rwin):  # noqa: ANN001, ANN202
+    """Pixel (y, x)'s reference window samples (row by row; outside the image clamped to its border) into ``rwin``
+    [(2·radius + 1)²], and returns their mean and variance ``(mr, var_r)``."""
     h, w = ref.shape
-    hs, ws = src.shape
     n = 0
     sr = 0.0
     srr = 0.0
+    for jy in range(-radius, radius + 1):
+        yy = min(max(y + jy * step, 0), h - 1)
+        for jx in range(-radius, radius + 1):
+            xx = min(max(x + jx * step, 0), w - 1)
+            r = float(ref[yy, xx])
+            rwin[n] = r
+            n += 1
+            sr += r
+            srr += r * r
+    inv_n = 1.0 / n
+    mr = sr * inv_n
+    return mr, max(srr * inv_n - mr * mr, 0.0)
+
+
+@nb.njit(inline="always", **_JIT)
+def _window_cost(src, A, b, y, x, rho, gu, gv, radius, step, rwin, mr, var_r):  # noqa: ANN001, ANN202
+    """:func:`plane_cost` with the reference window's samples, mean and variance given (:func:`_ref_window`): a
+    pixel's planes share them (computed once per pixel, not once per plane)."""
+    hs, ws = src.shape
+    n = 0
     ss = 0.0
     sss = 0.0
     srs = 0.0
-    # the source position is linear in the window offset (du, dv) before the division:
-    # A·(u, v, 1) + b·ρ_q = P + Cu·du + Cv·dv with Cu = A[:, 0] + b·g_u, Cv = A[:, 1] + b·g_v
     u0 = x + 0.5
     v0 = y + 0.5
     p0 = A[0, 0] * u0 + A[0, 1] * v0 + A[0, 2] + b[0] * rho
@@ -90,10 +103,8 @@ def plane_cost(ref, src, A, b, y, x, rho, gu, gv, radius, step):  # noqa: ANN001
     cv2 = A[2, 1] + b[2] * gv
     for jy in range(-radius, radius + 1):
         dv = jy * step
-        yy = min(max(y + dv, 0), h - 1)
         for jx in range(-radius, radius + 1):
             du = jx * step
-            xx = min(max(x + du, 0), w - 1)
             rq = rho + gu * du + gv * dv
             if rq <= 0.0:
                 return INVALID
@@ -114,17 +125,13 @@ def plane_cost(ref, src, A, b, y, x, rho, gu, gv, radius, step):  # noqa: ANN001
             top = src[y0, x0] * (1.0 - fx) + src[y0, x1] * fx
             bot = src[y1, x0] * (1.0 - fx) + src[y1, x1] * fx
             s = top * (1.0 - fy) + bot * fy
-            r = float(ref[yy, xx])
+            r = rwin[n]
             n += 1
-            sr += r
-            srr += r * r
             ss += s
             sss += s * s
             srs += r * s
     inv_n = 1.0 / n
-    mr = sr * inv_n
     ms = ss * inv_n
-    var_r = max(srr * inv_n - mr * mr, 0.0)
     var_s = max(sss * inv_n - ms * ms, 0.0)
     cov = srs * inv_n - mr * ms
     ncc = cov / np.sqrt(var_r * var_s + ZNCC_EPS * ZNCC_EPS)
@@ -133,10 +140,25 @@ def plane_cost(ref, src, A, b, y, x, rho, gu, gv, radius, step):  # noqa: ANN001
 
 
 @nb.njit(**_JIT)
+def plane_cost(ref, src, A, b, y, x, rho, gu, gv, radius, step):  # noqa: ANN001, ANN201
+    """``(1 − ZNCC)/2`` of the window of pixel (y, x) warped through its plane; :data:`INVALID` if any window
+    sample leaves the source image (bilinear support included) or lies behind either camera.
+
+    The window has ``(2·radius + 1)²`` samples spaced ``step`` pixels; reference samples outside the reference
+    image are clamped to its border.
+    """
+    rwin = np.empty((2 * radius + 1) ** 2, np.float64)
+    mr, var_r = _ref_window(ref, y, x, radius, step, rwin)
+    return _window_cost(src, A, b, y, x, rho, gu, gv, radius, step, rwin, mr, var_r)
+
+
+@nb.njit(**_JIT)
 def _initial_rows(start, stop, ref, src, A, b, rho, gu, gv, radius, step, out):  # noqa: ANN001, ANN202
+    rwin = np.empty((2 * radius + 1) ** 2, np.float64)
     for y in range(start, stop):
         for x in range(ref.shape[1]):
-            out[y, x] = plane_cost(ref, src, A, b, y, x, rho[y, x], gu[y, x], gv[y, x], radius, step)
+            mr, var_r = _ref_window(ref, y, x, radius, step, rwin)
+            out[y, x] = _window_cost(src, A, b, y, x, rho[y, x], gu[y, x], gv[y, x], radius, step, rwin, mr, var_r)
 
 
 def initial_costs(ref, src, A, b, rho, gu, gv, radius, step):  # noqa: ANN001, ANN201
@@ -147,7 +169,8 @@ def initial_costs(ref, src, A, b, rho, gu, gv, radius, step):  # noqa: ANN001, A
 
 
 def refine(ref, src, A, b, rho, gu, gv, cost, active, rho_lo, rho_hi, f, slope_max, radius, step, iters, seed):  # noqa: ANN001, ANN201
-    """Red-black PatchMatch, in place on ``rho``, ``gu``, ``gv``, ``cost`` (all [h, w] float64).
+    """Red-black PatchMatch, in place on ``rho``, ``gu``, ``gv``, ``cost`` (all [h, w] float64); returns the number of
+    window costs it evaluated.
 
     Only ``active`` pixels ([h, w] bool) change; the others are fixed seeds whose planes propagate. Per
     iteration ``i`` and pixel: the planes of the :data:`NEIGHBOURS` (carried to this pixel), then three random
@@ -155,31 +178,49 @@ def refine(ref, src, A, b, rho, gu, gv, cost, active, rho_lo, rho_hi, f, slope_m
     ``±0.5·slope_max·2⁻ⁱ``, both by a quarter of those. Slopes are normalised, ``s = g·f/ρ`` (``f``: the focal
     length in pixels; ``|s| = tan`` of the plane's tilt from fronto-parallel about that axis, roughly), and
     kept within ``±slope_max``; inverse depths within ``[rho_lo, rho_hi]``.
+
+    A neighbour's plane that the pixel already evaluated in its previous phase, unchanged since (a seed, or a pixel
+    its own last phase left as it was), is not evaluated again: the same plane has the same cost, and the pixel's
+    cost is already at most that (it only falls), so the strict ``<`` could not take it. The planes are those of
+    the plain schedule (the NumPy twin's), bit for bit, at fewer evaluations.
     """
+    h = ref.shape[0]
+    changed = np.zeros(ref.shape, np.uint8)  # 1: the pixel's last phase took a new plane
+    known = np.zeros(ref.shape, np.uint8)  # bit k: neighbour k's plane was evaluated at the pixel's last phase
+    evals = np.zeros(h, np.int64)
     for it in range(iters):
         for colour in range(2):  # a phase reads only the other colour: its rows can go to any thread
-            parallel_for(_refine_rows, ref.shape[0], ref, src, A, b, rho, gu, gv, cost, active, rho_lo, rho_hi, f,
-                         slope_max, radius, step, it, colour, seed)  # fmt: skip
+            parallel_for(_refine_rows, h, ref, src, A, b, rho, gu, gv, cost, active, rho_lo, rho_hi, f,
+                         slope_max, radius, step, it, colour, seed, changed, known, evals)  # fmt: skip
+    return int(evals.sum())
 
 
 @nb.njit(**_JIT)
 def _refine_rows(
-    start, stop, ref, src, A, b, rho, gu, gv, cost, active, rho_lo, rho_hi, f, slope_max, radius, step, it, colour, seed
-):  # noqa: ANN001, ANN202
-    """One phase (iteration ``it``, pixels of ``colour``) of :func:`refine` on rows ``start … stop − 1``."""
+    start, stop, ref, src, A, b, rho, gu, gv, cost, active, rho_lo, rho_hi, f, slope_max, radius, step, it, colour,
+    seed, changed, known, evals,
+):  # noqa: ANN001, ANN202  # fmt: skip
+    """One phase (iteration ``it``, pixels of ``colour``) of :func:`refine` on rows ``start … stop − 1``; ``changed``,
+    ``known`` [h, w] uint8 and ``evals`` [h] int64 as :func:`refine` keeps them."""
     h, w = ref.shape
     n_nb = NEIGHBOURS.shape[0]
     scale = 0.5**it
     for y in range(start, stop):
         tried = np.empty((n_nb, 3), np.float64)
+        rwin = np.empty((2 * radius + 1) ** 2, np.float64)
+        n_evals = 0
         for x in range(w):
             if (x + y) % 2 != colour or not active[y, x]:
                 continue
+            mr, var_r = _ref_window(ref, y, x, radius, step, rwin)
             best = cost[y, x]
             br = rho[y, x]
             bu = gu[y, x]
             bv = gv[y, x]
             n_tried = 0
+            was_known = known[y, x]
+            now_known = 0
+            took = False
             for k in range(n_nb):
                 ny = y + NEIGHBOURS[k, 0]
                 nx = x + NEIGHBOURS[k, 1]
@@ -203,9 +244,15 @@ def _refine_rows(
                 tried[n_tried, 1] = cu
                 tried[n_tried, 2] = cv
                 n_tried += 1
-                c = plane_cost(ref, src, A, b, y, x, cr, cu, cv, radius, step)
+                bit = 1 << k
+                now_known |= bit
+                if (was_known & bit) != 0 and changed[ny, nx] == 0:
+                    continue  # evaluated at this pixel's last phase, the same plane since: cost ≥ best
+                n_evals += 1
+                c = _window_cost(src, A, b, y, x, cr, cu, cv, radius, step, rwin, mr, var_r)
                 if c < best:
                     best, br, bu, bv = c, cr, cu, cv
+                    took = True
             pix = y * w + x
             for k in range(3):
                 a = 1.0 if k == 0 else (0.0 if k == 1 else 0.25)
@@ -221,18 +268,24 @@ def _refine_rows(
                 sv = min(max(sv, -slope_max), slope_max)
                 cu = su * cr / f
                 cv = sv * cr / f
-                c = plane_cost(ref, src, A, b, y, x, cr, cu, cv, radius, step)
+                n_evals += 1
+                c = _window_cost(src, A, b, y, x, cr, cu, cv, radius, step, rwin, mr, var_r)
                 if c < best:
                     best, br, bu, bv = c, cr, cu, cv
+                    took = True
             rho[y, x] = br
             gu[y, x] = bu
             gv[y, x] = bv
             cost[y, x] = best
+            changed[y, x] = 1 if took else 0
+            known[y, x] = now_known
+        evals[y] += n_evals
 
 
 def compile_kernels() -> None:
     """Compile (or load from the cache) the kernels for the types :mod:`.slanted` passes (float64 C arrays), on
     empty ranges: no work, only the compilation, for a background thread."""
     a, v, m = np.zeros((1, 1)), np.zeros(3), np.zeros((1, 1), np.bool_)
+    u8, n = np.zeros((1, 1), np.uint8), np.zeros(1, np.int64)
     _initial_rows(0, 0, a, a, a, v, a, a, a, 0, 0, a)
-    _refine_rows(0, 0, a, a, a, v, a, a, a, a, m, 0.0, 0.0, 0.0, 0.0, 0, 0, 0, 0, 0)
+    _refine_rows(0, 0, a, a, a, v, a, a, a, a, m, 0.0, 0.0, 0.0, 0.0, 0, 0, 0, 0, 0, u8, u8, n)

@@ -31,8 +31,11 @@ def _p2(p2, gamma, g_now, g_prev, p1):  # noqa: ANN001, ANN202
 @nb.njit(**_JIT)
 def _scan(cost, gray, out, y, x, dy, dx, n, p1, p2, gamma, prev, cur):  # noqa: ANN001, ANN202
     """Aggregate one scan line starting at (y, x), stepping (dy, dx), for n pixels. Every integer argument is an
-    int64 (the callers cast them: ``_I``), so that this compiles once, not once per mix of integer types."""
+    int64 (the callers cast them: ``_I``), so that this compiles once, not once per mix of integer types. ``prev``:
+    [D] float32, ``cur``: [D] float64 (a step's path costs before their float32 store, whose minimum is taken
+    unrounded)."""
     d_count = cost.shape[2]
+    last = d_count - 1
     for d in range(d_count):
         prev[d] = cost[y, x, d]
         out[y, x, d] += prev[d]
@@ -46,22 +49,38 @@ def _scan(cost, gray, out, y, x, dy, dx, n, p1, p2, gamma, prev, cur):  # noqa: 
         x += dx
         pen2 = _p2(p2, gamma, gray[y, x], g_prev, p1)
         jump = prev_min + pen2
-        cur_min = np.inf
-        for d in range(d_count):
-            best = prev[d]
-            if d > 0 and prev[d - 1] + p1 < best:
-                best = prev[d - 1] + p1
-            if d < d_count - 1 and prev[d + 1] + p1 < best:
-                best = prev[d + 1] + p1
+        c = cost[y, x]
+        # the first and last hypotheses have one neighbour; the others' loop has no branch on d (4-5x faster),
+        # each candidate compared in the same order with the same strict < as the plain loop (the same bits)
+        best = np.float64(prev[0])
+        if last > 0 and prev[1] + p1 < best:
+            best = prev[1] + p1
+        if jump < best:
+            best = jump
+        cur[0] = c[0] + best - prev_min
+        for d in range(1, last):
+            best = np.float64(prev[d])
+            lo = prev[d - 1] + p1
+            best = lo if lo < best else best
+            hi = prev[d + 1] + p1
+            best = hi if hi < best else best
+            best = jump if jump < best else best
+            cur[d] = c[d] + best - prev_min
+        if last > 0:
+            best = np.float64(prev[last])
+            if prev[last - 1] + p1 < best:
+                best = prev[last - 1] + p1
             if jump < best:
                 best = jump
-            v = cost[y, x, d] + best - prev_min
-            cur[d] = v
+            cur[last] = c[last] + best - prev_min
+        cur_min = np.inf
+        o = out[y, x]
+        for d in range(d_count):
+            v = cur[d]
             if v < cur_min:
                 cur_min = v
-        for d in range(d_count):
-            prev[d] = cur[d]
-            out[y, x, d] += cur[d]
+            prev[d] = v
+            o[d] += prev[d]
         prev_min = cur_min
 
 
@@ -72,7 +91,7 @@ def _straight(start, stop, cost, gray, out, p1, p2, gamma, vertical):  # noqa: A
     h, w, d_count = cost.shape
     h, w, one, zero = _I(h), _I(w), _I(1), _I(0)
     prev = np.empty(d_count, cost.dtype)
-    cur = np.empty(d_count, cost.dtype)
+    cur = np.empty(d_count, np.float64)
     for k in range(start, stop):
         if vertical:
             _scan(cost, gray, out, zero, _I(k), one, zero, h, p1, p2, gamma, prev, cur)
@@ -90,7 +109,7 @@ def _diagonals(start, stop, cost, gray, out, p1, p2, gamma, right):  # noqa: ANN
     h, w, d_count = cost.shape
     h, w, one, zero = _I(h), _I(w), _I(1), _I(0)
     prev = np.empty(d_count, cost.dtype)
-    cur = np.empty(d_count, cost.dtype)
+    cur = np.empty(d_count, np.float64)
     for k in range(start, stop):
         kk = _I(k)
         if right:

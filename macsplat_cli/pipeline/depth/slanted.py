@@ -79,7 +79,7 @@ def refine_slanted(raw: list[VolumeDepth], geometry: TwoViewGeometry, cfg: Depth
         cost = _patchmatch_kernels.initial_costs(ref_g, src_g, A, b, rho, gu, gv, rad, step)
         f = 0.5 * (r.K[0, 0] + r.K[1, 1])
         rho0 = rho.copy()
-        _patchmatch_kernels.refine(
+        evaluated = _patchmatch_kernels.refine(
             ref_g, src_g, A, b, rho, gu, gv, cost, active, r.rho[0], r.rho[1], f, SLANTED_SLOPE_MAX,
             rad, step, cfg.slanted_iters, SLANTED_SEED,
         )  # fmt: skip
@@ -87,4 +87,5 @@ def refine_slanted(raw: list[VolumeDepth], geometry: TwoViewGeometry, cfg: Depth
         r.inv_depth = np.where(changed, rho, r.inv_depth)
         r.win_cost = np.where(changed, np.minimum(cost, 0.5), r.win_cost).astype(np.float32)
         r.refined = changed
-        logger.debug("slanted refinement view %d: %d active, %d changed", ref, int(active.sum()), int(changed.sum()))
+        logger.debug("slanted refinement view %d: %d active, %d changed, %d window costs", ref, int(active.sum()),
+                     int(changed.sum()), evaluated)  # fmt: skip

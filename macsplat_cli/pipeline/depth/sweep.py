@@ -199,8 +199,10 @@ def upsample_depth(depth: np.ndarray, conf: np.ndarray, guide: np.ndarray) -> tu
     wgt = valid.astype(np.float32)
     g = guide.astype(np.float32)
     sigma_space = max(1.0, 1.0 / max(depth.shape[1] / W, 1e-6))
-    num = cv2.ximgproc.jointBilateralFilter(g, inv * wgt, -1, 0.08, sigma_space)
-    den = cv2.ximgproc.jointBilateralFilter(g, wgt, -1, 0.08, sigma_space)
+    # numerator and denominator as two channels of one filter: the same weights, computed once (each channel's sums
+    # are those of a one-channel call, bit for bit; the third channel is padding: OpenCV takes 1 or 3)
+    both = cv2.ximgproc.jointBilateralFilter(g, np.dstack([inv * wgt, wgt, np.zeros_like(wgt)]), -1, 0.08, sigma_space)
+    num, den = both[..., 0], both[..., 1]
     with np.errstate(divide="ignore", invalid="ignore"):
         inv_s = np.where(valid & (den > 1e-3), num / np.maximum(den, 1e-6), 0.0)
     out = np.where(inv_s > 0, 1.0 / np.maximum(inv_s, 1e-12), 0.0).astype(np.float32)

@@ -15,6 +15,7 @@ from macsplat_cli.datasets import synthetic as S
 from macsplat_cli.images import save_image
 from macsplat_cli.pipeline.depth import _sgm_kernels, _sgm_reference, estimate_depths, plane_sweep_cost, push_pull
 from macsplat_cli.pipeline.depth.pair import carry_depth, relative_pose
+from macsplat_cli.pipeline.depth.sweep import upsample_depth
 from macsplat_cli.pipeline.types import DepthMap, Matches, TwoViewGeometry, View
 from macsplat_cli.pipeline.views import ViewConfig, load_views
 
@@ -25,10 +26,11 @@ U32 = unit_roundoff(np.float32)
 
 # ------------------------------------------------------------------------------------ SGM kernels
 SGM_SHAPES = [(1, 5, 3), (5, 1, 4), (1, 1, 3), (2, 7, 16), (7, 2, 5), (6, 9, 8), (13, 4, 3), (9, 11, 16)]
+SGM_FEW_PLANES = [(4, 6, 1), (5, 3, 2)]  # the aggregation's first and last hypotheses are the same one, or neighbours
 SGM_PENALTIES = [(0.04, 0.5, 8.0), (0.1, 0.3, 0.0), (0.3, 0.2, 2.0)]  # the last: P2 < P1, clamped up to P1
 
 
-@pytest.mark.parametrize("shape", SGM_SHAPES, ids=lambda s: "x".join(map(str, s)))
+@pytest.mark.parametrize("shape", SGM_SHAPES + SGM_FEW_PLANES, ids=lambda s: "x".join(map(str, s)))
 @pytest.mark.parametrize("eight_paths", [False, True], ids=["4paths", "8paths"])
 @pytest.mark.parametrize(("p1", "p2", "edge_gamma"), SGM_PENALTIES)
 def test_aggregate_matches_reference(
@@ -340,3 +342,27 @@ def test_plane_sweep_window_validity_uses_source_size() -> None:
     # 1.3e-5 and max 2.2e-3 (the flattest windows), bounds 1e-3 and 0.01
     same = cost[3:-3, 3 : w // 2 - 3, 0]
     assert np.median(same) < 1e-3 and same.max() < 0.01
+
+
+def test_upsample_depth_is_two_joint_bilateral_filters() -> None:
+    """The upsampling filters the weighted inverse depth and the weights as two channels of one joint bilateral
+    filter: each channel equals its own one-channel filter bit for bit (the same guide, the same weights)."""
+    import cv2
+
+    rng = np.random.default_rng(4)
+    H, W = 60, 80
+    guide = smooth_texture(rng)(pixel_centres(W, H)).reshape(H, W).astype(np.float32)
+    depth = (1.0 + rng.random((H // 2, W // 2))).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.3] = 0.0
+    conf = rng.random(depth.shape).astype(np.float32)
+    got, got_c = upsample_depth(depth, conf, guide)
+    d_up = cv2.resize(depth, (W, H), interpolation=cv2.INTER_NEAREST)
+    valid = d_up > 0
+    inv = np.where(valid, 1.0 / np.maximum(d_up, 1e-12), 0.0).astype(np.float32)
+    wgt = valid.astype(np.float32)
+    num = cv2.ximgproc.jointBilateralFilter(guide, inv * wgt, -1, 0.08, 2.0)
+    den = cv2.ximgproc.jointBilateralFilter(guide, wgt, -1, 0.08, 2.0)
+    inv_s = np.where(valid & (den > 1e-3), num / np.maximum(den, 1e-6), 0.0)
+    want = np.where(inv_s > 0, 1.0 / np.maximum(inv_s, 1e-12), 0.0).astype(np.float32)
+    np.testing.assert_array_equal(got, want)
+    assert (got > 0).mean() > 0.5 and ((got_c > 0) == (got > 0)).all()

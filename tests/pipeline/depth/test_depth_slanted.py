@@ -120,6 +120,35 @@ def test_refine_matches_reference(iters: int, shape: tuple[int, int]) -> None:
     assert (state_nb[3][active] < cost[active]).mean() > 0.5
 
 
+def test_refine_skips_planes_it_already_evaluated() -> None:
+    """A pixel does not evaluate again a neighbour's plane it evaluated in its previous phase when that neighbour has
+    not changed since (a fixed seed): one active pixel among seeds evaluates its distinct neighbour planes in the
+    first iteration, then only its three random perturbations per iteration; the planes equal the NumPy twin's."""
+    pair = _slanted_pair(2)
+    h, w = 24, 24
+    ref = np.ascontiguousarray(pair["ref"][30 : 30 + h, 40 : 40 + w])
+    Kc = K.copy()
+    Kc[0, 2] -= 40
+    Kc[1, 2] -= 30
+    A, b = K @ pair["R"] @ np.linalg.inv(Kc), K @ pair["t"]
+    rng = np.random.default_rng(3)
+    rho = rng.uniform(0.3, 0.6, (h, w))
+    gu, gv = rng.normal(0, 0.002, (h, w)), rng.normal(0, 0.002, (h, w))
+    active = np.zeros((h, w), bool)
+    active[12, 12] = True  # its 8 neighbours are seeds: their planes never change
+    cost = PK.initial_costs(ref, pair["src"], A, b, rho, gu, gv, 2, 1)
+    runs = {}
+    for iters in (1, 3):
+        state = [a.copy() for a in (rho, gu, gv, cost)]
+        runs[iters] = PK.refine(ref, pair["src"], A, b, *state, active, 0.1, 1.2, 100.0, 3.0, 2, 1, iters, 5)
+        want = [a.copy() for a in (rho, gu, gv, cost)]
+        PR.refine_reference(ref, pair["src"], A, b, *want, active, 0.1, 1.2, 100.0, 3.0, 2, 1, iters, 5)
+        for got, ref_state in zip(state, want):
+            np.testing.assert_array_equal(got, ref_state)
+    assert runs[1] == 8 + 3  # the seeds' 8 planes (random: all distinct, in range) and 3 perturbations
+    assert runs[3] == runs[1] + 2 * 3
+
+
 # ------------------------------------------------------------------------------------ behaviour
 def test_plane_cost_fronto_matches_plane_sweep() -> None:
     """A zero slope is a fronto-parallel plane: the cost equals the plane sweep's (OpenCV warp, box filters) up
