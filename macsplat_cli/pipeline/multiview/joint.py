@@ -291,7 +291,8 @@ def _loss(
     the leaves :func:`.packed.in_view` kept (:func:`.packed.indices`), True for all, None for none); a map it does
     not see gets no gradient from it. ``params`` are the packed leaves (``packs``: the MAC term samples their pixel
     maps), ``frames`` their registered poses (:func:`.packed.frames_of`)."""
-    q, c = poses.current()
+    with torch.set_grad_enabled(bool(poses.free.any())):  # every pose held: no pose gradients to compute
+        q, c = poses.current()
     photo = torch.zeros(())
     held: dict[int, float] = {}
     for k in which:
