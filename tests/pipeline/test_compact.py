@@ -320,7 +320,7 @@ def test_the_spatial_index_changes_no_output(pair: Pair, monkeypatch: pytest.Mon
     maps = [*pair.maps, _turned(pair, 1)[0], _turned(pair, 0)[0]]
     cams = [*pair.cameras, _turned(pair, 1)[1], _turned(pair, 0)[1]]
     g, report = compact(maps, cams, images=[*pair.images, *pair.images])
-    monkeypatch.setattr(cull, "_box_in_frustum", lambda corners, cam: torch.ones(len(corners), dtype=torch.bool))
+    monkeypatch.setattr(cull, "_box_in_frustum", lambda lo, *camera: torch.ones(len(lo), dtype=torch.bool))
     g_all, report_all = compact(maps, cams, images=[*pair.images, *pair.images])  # every Gaussian into every view
     assert [(s.name, s.after) for s in report.steps] == [(s.name, s.after) for s in report_all.steps]
     for name in ("means", "log_scales", "quats", "opacity_logits", "sh"):
@@ -353,6 +353,40 @@ def test_tiles_keep_every_gaussian_a_camera_sees(pair: Pair) -> None:
         assert not (inside & ~chosen).any()
         culled += int((~chosen).sum())
     assert culled > 0
+
+
+def test_the_box_test_is_the_eight_corner_test() -> None:
+    """The frustum test of a tile's world box from its centre and half-extent (one product) says what evaluating
+    the five half-spaces at the box's 8 corners says (an affine function is largest at a corner)."""
+    from macsplat_cli.camera_math import NEAR_Z
+    from macsplat_cli.pipeline.compact import cull
+
+    g = torch.Generator().manual_seed(0)
+    h, w, m = 48, 64, cull._MARGIN_PX
+    K = torch.tensor([[60.0, 0.0, 32.0], [0.0, 60.0, 24.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    bits = torch.tensor([[(c >> a) & 1 for a in range(3)] for c in range(8)], dtype=torch.bool)
+    for trial in range(20):
+        angle = 0.5 * trial
+        c, s = math.cos(angle), math.sin(angle)
+        w2c = torch.eye(4, dtype=torch.float64)
+        w2c[:3, :3] = torch.tensor([[c, 0, s], [0, 1, 0], [-s, 0, c]], dtype=torch.float64)
+        w2c[:3, 3] = torch.randn(3, generator=g, dtype=torch.float64)
+        lo = 3 * torch.randn(500, 3, generator=g, dtype=torch.float64)
+        hi = lo + torch.rand(500, 3, generator=g, dtype=torch.float64)
+        corners = torch.where(bits, hi[:, None], lo[:, None])  # [T, 8, 3]
+        X = corners @ w2c[:3, :3].T + w2c[:3, 3]
+        KX, z = X @ K.T, X[..., 2]
+        halves = (
+            z - NEAR_Z,
+            KX[..., 0] + m * z,
+            (w + m) * z - KX[..., 0],
+            KX[..., 1] + m * z,
+            (h + m) * z - KX[..., 1],
+        )
+        ref = torch.stack([f.amax(1) > 0 for f in halves]).all(0)
+        got = cull._box_in_frustum(lo, hi, w2c, K, (h, w))
+        assert torch.equal(got, ref)
+        assert 0 < int(got.sum()) < len(got)
 
 
 def test_dedup_tries_the_view_that_takes_most_first(pair: Pair, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -21,14 +21,12 @@ __all__ = ["TILE", "Tiles", "view_tiles"]
 
 TILE = 16
 """Side (px) of a tile: 768 tiles in a 512 × 384 map, small enough to follow a frustum's edge, large enough that the
-box test (8 corners each) costs little beside projecting the tile's 256 Gaussians."""
+box test (five half-spaces) costs little beside projecting the tile's 256 Gaussians."""
 _MARGIN_PX = 1.0
 """The frustum is widened by this many pixels on each side: the box test and the projection round differently."""
 _ALL_SHARE = 0.6
 """When the tiles a camera sees hold this share of the Gaussians, all are projected (the others land outside): picking
 them out would cost more than projecting the rest."""
-_CORNER_BITS = torch.tensor([[(c >> a) & 1 for a in range(3)] for c in range(8)], dtype=torch.bool)
-"""Which of a box's 8 corners takes the largest coordinate on each axis. [8, 3]"""
 
 
 @dataclass
@@ -38,18 +36,19 @@ class Tiles:
     Attributes:
         order: positions in the view's alive list (the ``index`` given), grouped by tile. [M] int64
         start: each tile's first entry in ``order``; the last entry is M. [T + 1] int64
-        corners: the 8 corners of each tile's world bounding box. [T, 8, 3] float64
+        lo, hi: each tile's world bounding box, its least and largest corner. [T, 3] float64 each
     """
 
     order: torch.Tensor
     start: torch.Tensor
-    corners: torch.Tensor
+    lo: torch.Tensor
+    hi: torch.Tensor
 
     def seen_by(self, cam: ViewState) -> torch.Tensor | slice:
         """Positions in the alive list of the Gaussians in tiles whose box meets ``cam``'s frustum (grouped by
         tile, ascending within a tile) [M'] int64, or ``slice(None)`` (all of them) when that is most of them
         (:data:`_ALL_SHARE`)."""
-        sel = _box_in_frustum(self.corners, cam).nonzero().squeeze(1)
+        sel = _box_in_frustum(self.lo, self.hi, cam.w2c, cam.K, cam.size).nonzero().squeeze(1)
         if sel.numel() == 0:
             return self.order[:0]
         first, count = self.start[sel], self.start[sel + 1] - self.start[sel]
@@ -76,21 +75,24 @@ def view_tiles(index: torch.Tensor, world: torch.Tensor, width: int) -> Tiles:
     d3 = dense[:, None].expand(-1, 3)
     lo.scatter_reduce_(0, d3, world, "amin")
     hi.scatter_reduce_(0, d3, world, "amax")
-    return Tiles(order, start, torch.where(_CORNER_BITS, hi[:, None], lo[:, None]))
+    return Tiles(order, start, lo, hi)
 
 
-def _box_in_frustum(corners: torch.Tensor, cam: ViewState) -> torch.Tensor:
-    """Whether each world box (its corners [T, 8, 3]) may hold a point that projects inside ``cam``'s image
-    (conservative: False only when all 8 corners lie outside one of the frustum's half-spaces, so every point of the
-    box does). [T] bool"""
-    w2c = torch.linalg.inv(cam.c2w)
-    X = corners @ w2c[:3, :3].T + w2c[:3, 3]  # [T, 8, 3] camera frame
-    KX = X @ cam.K.T  # u·z, v·z, z
-    z = X[..., 2]
-    h, w = cam.size
+def _box_in_frustum(
+    lo: torch.Tensor, hi: torch.Tensor, w2c: torch.Tensor, K: torch.Tensor, size: tuple[int, int]
+) -> torch.Tensor:
+    """Whether each world box (least and largest corner ``lo``, ``hi`` [T, 3]) may hold a point that projects inside
+    the image ``size`` (height, width) of the camera ``w2c`` [4, 4], ``K`` [3, 3] (conservative: False only when the
+    whole box lies outside one of the frustum's five half-spaces). [T] bool
+
+    Each half-space is ``a · X + b > 0`` in world coordinates (``z > NEAR_Z``, ``u ≥ −margin``, ``u < w + margin``,
+    the same for ``v``; ``u · z`` and ``z`` are affine in ``X``); an affine function's largest value over a box is
+    ``a · centre + |a| · half-extent + b`` (what its largest corner gives, in one product instead of eight)."""
+    P = K @ w2c[:3]  # [3, 4]: (u·z, v·z, z) = P · (X, 1)
+    h, w = size
     m = _MARGIN_PX
-    halves = (z - NEAR_Z, KX[..., 0] + m * z, (w + m) * z - KX[..., 0], KX[..., 1] + m * z, (h + m) * z - KX[..., 1])
-    ok = torch.ones(len(corners), dtype=torch.bool)
-    for f in halves:  # an affine function is largest at a corner: the box is outside when it is ≤ 0 at all 8
-        ok &= f.amax(1) > 0
-    return ok
+    z = P[2] - torch.tensor([0.0, 0.0, 0.0, NEAR_Z], dtype=P.dtype)
+    planes = torch.stack([z, P[0] + m * P[2], (w + m) * P[2] - P[0], P[1] + m * P[2], (h + m) * P[2] - P[1]])
+    centre, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    top = centre @ planes[:, :3].T + half @ planes[:, :3].abs().T + planes[:, 3]  # [T, 5] each half-space's largest
+    return (top > 0).all(1)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import torch
@@ -48,9 +49,15 @@ class ViewState:
         """Centres in the world frame. [H, W, 3] float64"""
         return self.means.double() @ self.c2w[:3, :3].T + self.c2w[:3, 3]
 
+    @cached_property
+    def w2c(self) -> torch.Tensor:
+        """The world-to-camera transform, the inverse of ``c2w`` (computed once: the steps project into a view once
+        per other view). [4, 4] float64"""
+        return torch.linalg.inv(self.c2w)
+
     def project(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """World points [N, 3] (float64) into this view: (pixel column, pixel row, camera z, inside) [N] each."""
-        return project_points(points, torch.linalg.inv(self.c2w), self.K, self.size)
+        return project_points(points, self.w2c, self.K, self.size)
 
 
 def covariances(log_scales: torch.Tensor, quats: torch.Tensor) -> torch.Tensor:

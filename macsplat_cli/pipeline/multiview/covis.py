@@ -75,6 +75,12 @@ def _seen(m: GaussianMaps, K: np.ndarray) -> _Seen:
                  torch.as_tensor(K, dtype=torch.float64), m.size)  # fmt: skip
 
 
+def _pixel(u: torch.Tensor, w: int) -> torch.Tensor:
+    """The pixel index ``floor(u)`` along an axis of ``w`` pixels where ``0 ≤ u < w``, some index within
+    ``[0, w)`` elsewhere (NaN included): a lookup the caller masks. [n] int64"""
+    return u.nan_to_num(0.0).clamp(0, w - 1).long()  # non-negative: truncation is the floor
+
+
 def _beaten(k: int, j: int, seen: list[_Seen], idx: torch.Tensor) -> torch.Tensor:
     """Which of photo ``k``'s pixels ``idx`` [n] photo ``j`` sees on the same surface point (a valid Gaussian within
     :data:`DEPTH_TOL` in depth at the pixel it projects to) with a better score. [n] bool"""
@@ -84,10 +90,8 @@ def _beaten(k: int, j: int, seen: list[_Seen], idx: torch.Tensor) -> torch.Tenso
     u = b.K[0, 0] * Xc[:, 0] / z + b.K[0, 2]
     v = b.K[1, 1] * Xc[:, 1] / z + b.K[1, 2]
     hj, wj = b.size
-    inside = (z > 0) & torch.isfinite(u) & torch.isfinite(v) & (u >= 0) & (u < wj) & (v >= 0) & (v < hj)
-    col = torch.where(inside, u, torch.zeros_like(u)).floor().long().clamp(0, wj - 1)
-    row = torch.where(inside, v, torch.zeros_like(v)).floor().long().clamp(0, hj - 1)
-    pix = row * wj + col
+    inside = (z > 0) & (u >= 0) & (u < wj) & (v >= 0) & (v < hj)  # NaN and ±inf fail a comparison
+    pix = _pixel(v, hj) * wj + _pixel(u, wj)
     same = inside & b.valid[pix] & ((b.z[pix] - z).abs() <= DEPTH_TOL * z.abs())
     sk, sj = a.score[idx], b.score[pix]
     better = sj > sk * (1 + TIE)

@@ -304,6 +304,56 @@ def test_covisibility_tests_a_gaussian_only_while_it_is_kept(orbit: tuple, monke
     assert sum(tested) < 0.8 * 3 * sum(rep.before)
 
 
+def test_covisibility_pixel_lookup_is_the_definition_and_skips_what_lands_outside(orbit: tuple) -> None:
+    """``_beaten`` finds the pixel a point lands on as the definition does (``floor`` of ``u`` and ``v``, inside the
+    image, in front) with fewer passes (issue 40): the same answer on every valid pixel of every pair, and points
+    behind the camera, outside its image or not finite are never beaten nor looked up out of range."""
+    import dataclasses
+    import math
+
+    from macsplat_cli.pipeline.multiview import covis
+
+    views, depths, truth = orbit
+    maps = _maps(views, depths, truth)
+    seen = [covis._seen(m, v.K) for m, v in zip(maps, views)]
+
+    def definition(k: int, j: int, idx: torch.Tensor) -> torch.Tensor:
+        a, b = seen[k], seen[j]
+        Xc = (a.world[idx] - b.c) @ b.R
+        z = Xc[:, 2]
+        u = b.K[0, 0] * Xc[:, 0] / z + b.K[0, 2]
+        v = b.K[1, 1] * Xc[:, 1] / z + b.K[1, 2]
+        hj, wj = b.size
+        inside = (z > 0) & torch.isfinite(u) & torch.isfinite(v) & (u >= 0) & (u < wj) & (v >= 0) & (v < hj)
+        col = torch.where(inside, u, torch.zeros_like(u)).floor().long().clamp(0, wj - 1)
+        row = torch.where(inside, v, torch.zeros_like(v)).floor().long().clamp(0, hj - 1)
+        pix = row * wj + col
+        same = inside & b.valid[pix] & ((b.z[pix] - z).abs() <= covis.DEPTH_TOL * z.abs())
+        sk, sj = a.score[idx], b.score[pix]
+        better = sj > sk * (1 + covis.TIE)
+        if j < k:
+            better |= sj >= sk * (1 - covis.TIE)
+        return same & better
+
+    total = 0
+    for k in range(3):
+        idx = seen[k].valid.nonzero().squeeze(1)
+        for j in range(3):
+            if j != k:
+                got = covis._beaten(k, j, seen, idx)
+                assert torch.equal(got, definition(k, j, idx))
+                total += int(got.sum())
+    assert total > 0
+    odd = seen[0].world.clone()  # photo 0's points moved: behind camera 1, far off its image, NaN, ±inf, at its centre
+    c, R = seen[1].c, seen[1].R
+    odd[:6] = torch.stack([c - R[:, 2], c + R[:, 2] + 1e6 * R[:, 0], torch.full((3,), math.nan),
+                           torch.full((3,), math.inf), torch.full((3,), -math.inf), c])  # fmt: skip
+    seen[0] = dataclasses.replace(seen[0], world=odd, score=torch.zeros_like(seen[0].score))  # any match beats
+    idx = torch.arange(6)
+    assert not covis._beaten(0, 1, seen, idx).any() and not definition(0, 1, idx).any()
+    assert covis._beaten(0, 1, seen, seen[0].valid.nonzero().squeeze(1)).any()
+
+
 def _all_pairs_view_dependent(maps: list, Ks: list) -> list:
     """The definition, every photo pair for every pixel (sh_views before issue 40)."""
     import math
