@@ -11,8 +11,10 @@ from __future__ import annotations
 import base64
 import itertools
 import json
+import os
 import re
 import shutil
+import signal
 import subprocess
 import tempfile
 import time
@@ -21,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+PROFILE_REMOVE_TRIES = 10  # × 0.2 s: long enough for exiting helpers to finish writing
 CANDIDATES = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable", "chrome")
 
 
@@ -48,7 +51,11 @@ class Browser:
             f"--window-size={width},{height}", "--remote-debugging-address=127.0.0.1", "--remote-debugging-port=0",
             "about:blank",
         ]  # fmt: skip
-        self._proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        # Its own process group: Chromium's helper processes (renderer, GPU, crash handler) outlive a terminated
+        # main process and keep writing the profile, so close() ends the whole group before removing it.
+        self._proc = subprocess.Popen(
+            args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True
+        )
         port = self._devtools_port(timeout)
         with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=timeout) as r:
             pages = [t for t in json.load(r) if t.get("type") == "page"]
@@ -125,12 +132,32 @@ class Browser:
         try:
             self._ws.close()
         finally:
-            self._proc.terminate()
+            self._signal_group(signal.SIGTERM)
             try:
                 self._proc.wait(timeout=10)
             except subprocess.TimeoutExpired:
-                self._proc.kill()
-            self._profile.cleanup()
+                pass
+            self._signal_group(signal.SIGKILL)
+            self._proc.wait()
+            self._remove_profile()
+
+    def _signal_group(self, sig: signal.Signals) -> None:
+        try:
+            os.killpg(self._proc.pid, sig)
+        except ProcessLookupError:  # the group is gone already
+            pass
+
+    def _remove_profile(self, tries: int = PROFILE_REMOVE_TRIES) -> None:
+        """Removes the profile folder; a helper that was still exiting may add a file between listing and removal."""
+        for _ in range(tries - 1):
+            try:
+                shutil.rmtree(self._profile.name)
+                break
+            except FileNotFoundError:
+                break
+            except OSError:
+                time.sleep(0.2)
+        self._profile.cleanup()
 
     def __enter__(self) -> Browser:
         return self
