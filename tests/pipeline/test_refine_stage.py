@@ -10,7 +10,7 @@ import pytest
 
 from macsplat_cli.pipeline.gaussian_init import GaussianInitConfig, view_gaussians
 from macsplat_cli.pipeline.refine_config import AUTO_STEPS, RefineConfig
-from macsplat_cli.pipeline.refine_stage import sharp_gain_db
+from macsplat_cli.pipeline.refine_stage import PROBE_NEIGHBOURS, PROBE_PHOTOS, _probes, sharp_gain_db
 from macsplat_cli.pipeline.types import View
 from macsplat_cli.presets import (
     MULTIVIEW_BEST_STEPS,
@@ -55,6 +55,21 @@ def test_sharp_gaussians_win_where_the_cameras_agree_and_lose_where_one_is_off(p
     off = [poses[0], _turned(poses[1], 1.5), poses[2]]
     wrong = sharp_gain_db(_maps(views, depths, off), views, off, 2)
     assert exact > MULTIVIEW_SHARP_MIN_GAIN_DB >= wrong, (exact, wrong)
+
+
+def test_the_measure_probes_a_few_photos_each_from_its_nearest_cameras() -> None:
+    """On many photos the measure renders :data:`PROBE_PHOTOS` of them, spread from first to last, each from its
+    :data:`PROBE_NEIGHBOURS` nearest cameras (its cost no longer grows as photos²); on three, every photo from both
+    others."""
+    line = [np.eye(4) for _ in range(12)]
+    for k, T in enumerate(line):
+        T[0, 3] = [0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 20][k]  # the last camera far from the rest
+    probes = _probes(line)
+    assert len(probes) == PROBE_PHOTOS and min(probes) == 0 and max(probes) == 11
+    assert probes[0] == list(range(1, 1 + PROBE_NEIGHBOURS))
+    assert probes[11] == list(range(11 - PROBE_NEIGHBOURS, 11))
+    assert all(k not in near and len(near) == PROBE_NEIGHBOURS for k, near in probes.items())
+    assert _probes(line[:3]) == {0: [1, 2], 1: [0, 2], 2: [0, 1]}
 
 
 def test_best_on_three_photos_falls_back_to_the_pooled_refinement_where_the_photos_disagree() -> None:
