@@ -71,5 +71,9 @@ def test_the_summary_is_built_from_the_typed_report() -> None:
     text = got.get()
     assert "left.jpg: 640x480 → 512x384, focal 400 px (file)" in text
     assert "300 reciprocal → 250 verified" in text and "rotation 12.5°" in text
-    assert "1,200 of 2,000 (fast: dedup −766)" in text
+    assert "1,200: 1,234 of 2,000 kept (fast: dedup −766)" in text and "far layer" not in text
+    report.add_outputs({"-o": "/o/s.ply"}, gaussians_written=1500)  # the far layer is written beside, not compacted
+    with err_console.capture() as got:
+        summary(report, {"-o": "/o/s.ply"})
+    assert "1,500: 1,234 of 2,000 kept (fast: dedup −766) + far layer 266" in got.get()
     assert "neural (cpu): forward pass 1.50 s" in text and "DINOv3 fused" in text

@@ -77,16 +77,22 @@ def summary(report: RunReport, written: dict[str, Any]) -> None:
         t.add_row("backend", escape(f"neural ({n.device}): forward pass {n.forward_s:.2f} s"))
         t.add_row("fusion", escape(n.fusion.detail))
     t.add_row("depth", " / ".join(f"{100 * c:.0f} %" for c in report.depth_coverage) + " of pixels")
-    written_n = report.gaussians_written if report.gaussians_written is not None else report.gaussians
-    line = f"{written_n:,}"
-    if report.compact is not None:
-        c = report.compact
-        changed = [f"{s.name} −{s.before - s.after:,}" for s in c.steps if s.before != s.after]
-        line += f" of {c.before:,} ({c.preset}: {', '.join(changed) or 'nothing to remove'})"
-    t.add_row("Gaussians", escape(line))
+    t.add_row("Gaussians", escape(_gaussians_line(report)))
     t.add_row("time", escape(", ".join(f"{k} {v:.2f} s" for k, v in report.times_s.items())))
     t.add_row("wrote", "\n".join(escape(str(v)) for v in written.values()))
     err_console.print(t)
+
+
+def _gaussians_line(report: RunReport) -> str:
+    """The Gaussians written; with a compaction, what it kept of what it was given and each step's share, and the
+    far layer's Gaussians (written beside the compacted ones, never compacted)."""
+    written = report.gaussians_written if report.gaussians_written is not None else report.gaussians
+    if report.compact is None:
+        return f"{written:,}"
+    c = report.compact
+    changed = ", ".join(f"{s.name} −{s.before - s.after:,}" for s in c.steps if s.before != s.after)
+    far = f" + far layer {written - c.after:,}" if written > c.after else ""
+    return f"{written:,}: {c.after:,} of {c.before:,} kept ({c.preset}: {changed or 'nothing to remove'}){far}"
 
 
 def _num(section: dict[str, Any], key: str, fmt: str) -> str:
