@@ -50,7 +50,7 @@ __all__ = [
     "DEFAULT_MATCHER",
     "MATCHERS",
     "MULTIVIEW_BALANCED_STEPS",
-    "MULTIVIEW_BEST_SCALE",
+    "MULTIVIEW_SHARP_SCALE",
     "MULTIVIEW_BEST_STEPS",
     "MULTIVIEW_SHARP_MIN_GAIN_DB",
     "NEURAL_TAU",
@@ -106,25 +106,29 @@ FAST_SIFT = (640, 8000)
 keypoints cost pose accuracy at wide baselines)."""
 MULTIVIEW_BALANCED_STEPS = 5
 """``--quality balanced`` on three photos or more: the joint refinement's steps (``--refine`` units: 8 one-photo
-steps on 4 photos, 16 on 8, :data:`~.pipeline.multiview.joint.RENDERS_PER_STEP`), after the co-visibility init and
-before a compaction without the adaptive merge and the dedup (:func:`configure`). Mid / side gain over the middle pair:
+steps on 4 photos, 16 on 8, :data:`~.pipeline.multiview.joint.RENDERS_PER_STEP`; at :data:`MULTIVIEW_SHARP_SCALE`
+where the photos agree at it, else at 1/2), after the co-visibility init and before a compaction without the adaptive
+merge and the dedup (:func:`configure`). At 1/2, mid / side gain over the middle pair:
 object 4 +0.90 / +1.12 → +2.09 / +2.12 dB, room 4 +1.89 / +1.91 → +2.47 / +2.43, object 8 −0.43 → +0.28 at mid, room
 8 −1.08 → −0.02; the 4-photo run 1.14–1.18× its time. 10 steps were no better (merge on: object 4 mid 21.85 → 21.79
 dB, room 4 20.38 → 20.37) for twice the refinement's ~3 CPU-s (benchmarks/history/multiview_joint.md)."""
-MULTIVIEW_BEST_SCALE = 1
-"""``--quality best`` on three photos or more: the joint refinement renders the photos at full resolution (its
-``--refine-scale``; pairs and ``balanced`` at 1/2) where the photos agree at it (:data:`MULTIVIEW_SHARP_MIN_GAIN_DB`;
-else 1/2, :func:`coarse_refinement`). The refined Gaussians are what is written: refined pooled 2 × 2,
-object 4 rendered its held-out views blurred (mid / side 23.49 / 22.38 dB; at full resolution, 10 steps for the time of
-40: 25.28 / 23.20; room 4 21.91 / 20.79 → 22.05 / 20.54) (benchmarks/history/multiview_joint.md)."""
+MULTIVIEW_SHARP_SCALE = 1
+"""``--quality best`` and ``balanced`` on three photos or more: the joint refinement renders the photos at full
+resolution (its ``--refine-scale``; pairs at 1/2) where the photos agree at it (:data:`MULTIVIEW_SHARP_MIN_GAIN_DB`;
+else 1/2, :func:`coarse_refinement`). The refined Gaussians are what is written: refined pooled 2 × 2, object 4
+rendered its held-out views blurred (``best``, mid / side 23.49 / 22.38 dB; at full resolution, 10 steps for the time
+of 40: 25.28 / 23.20; room 4 21.91 / 20.79 → 22.05 / 20.54). ``balanced`` at 1/2 left 8 and 16 photos at or below
+their middle pair at its views; sharp, mid gain object 8 +0.26 → +3.70 dB, room 8 −0.05 → +1.68, object 16 −0.81 →
++2.16, room 16 −0.96 → +0.75, object 4 +2.09 → +4.82, for 1.35–1.45× the run's time (benchmarks/history/
+multiview_joint.md, multiview_scaling.md)."""
 MULTIVIEW_BEST_STEPS = 6
 """``--quality best`` on three photos or more: the joint refinement's steps (``--refine`` units: 10 one-photo steps
-on 4 photos, 20 on 8, at :data:`MULTIVIEW_BEST_SCALE`; a full-resolution step costs ~4 pooled ones, so the
+on 4 photos, 20 on 8, at :data:`MULTIVIEW_SHARP_SCALE`; a full-resolution step costs ~4 pooled ones, so the
 refinement's time is that of ``best``'s 25 at 1/2: object 4 8.9 → 10.0 CPU-s, object 8 28.9 → 23.7)."""
 MULTIVIEW_SHARP_MIN_GAIN_DB = 0.0
-"""``best`` on three photos or more refines at :data:`MULTIVIEW_BEST_SCALE` only where the other photos' Gaussians
-predict each registered photo better sharp than pooled 2 × 2, by more than this (mean over the photos, dB:
-:func:`~.pipeline.refine_stage.sharp_gain_db`); else it refines as it did at 1/2 (:func:`coarse_refinement`).
+"""``best`` and ``balanced`` on three photos or more refine at :data:`MULTIVIEW_SHARP_SCALE` only where the other
+photos' Gaussians predict the registered photos better sharp than pooled 2 × 2, by more than this (mean over the
+photos, dB: :func:`~.pipeline.refine_stage.sharp_gain_db`); else as they did at 1/2 (:func:`coarse_refinement`).
 Measured: object 4 +0.59, object 8 +1.06, room 8 +0.38 dB (full resolution gains up to 2.1 dB over 1/2 at held-out
 views), room 4 −0.28 (mid +0.14, side −0.25), the development sets −0.15 (NYU 3) to −0.31 (CO3D 3), where full
 resolution lost 0.07–0.56 dB (benchmarks/history/multiview_joint.md)."""
@@ -275,23 +279,27 @@ def resolved_refine_steps(quality: Quality, overrides: Overrides, photos: int = 
 
 
 def refine_scale(quality: Quality, photos: int = 2) -> int:
-    """The refinement's resolution 1/N when ``--refine-scale`` is not given: :data:`MULTIVIEW_BEST_SCALE` for
-    ``best`` on three photos or more, else :class:`~.pipeline.refine_config.RefineConfig`'s (1/2)."""
+    """The refinement's resolution 1/N when ``--refine-scale`` is not given: :data:`MULTIVIEW_SHARP_SCALE` for
+    ``best`` and ``balanced`` on three photos or more (the photos may decline it: :func:`coarse_refinement`), else
+    :class:`~.pipeline.refine_config.RefineConfig`'s (1/2)."""
     from .pipeline.refine_config import RefineConfig
 
-    return MULTIVIEW_BEST_SCALE if quality == "best" and photos >= 3 else RefineConfig.scale
+    return MULTIVIEW_SHARP_SCALE if quality in ("best", "balanced") and photos >= 3 else RefineConfig.scale
 
 
 def coarse_refinement(quality: Quality, overrides: Overrides, photos: int = 2) -> tuple[int, int] | None:
     """The refinement's ``(scale, steps)`` where the photos do not agree at the preset's full resolution
-    (:attr:`~.pipeline.refine_config.RefineConfig.coarse`): ``best`` on three photos or more without
-    ``--refine-scale`` falls back to 1/2 and ``--refine`` or :data:`~.pipeline.refine_config.AUTO_STEPS` (``best``
-    before it refined at full resolution); None where the scale is not the photos' to choose."""
+    (:attr:`~.pipeline.refine_config.RefineConfig.coarse`): on three photos or more without ``--refine-scale``,
+    1/2 and ``--refine`` or the preset's steps there (``best``: :data:`~.pipeline.refine_config.AUTO_STEPS`, its
+    refinement before it refined at full resolution; ``balanced``: :data:`MULTIVIEW_BALANCED_STEPS`, as before);
+    None where the scale is not the photos' to choose."""
     from .pipeline.refine_config import AUTO_STEPS, RefineConfig
 
     if overrides.refine_scale is not None or refine_scale(quality, photos) == RefineConfig.scale:
         return None
-    return RefineConfig.scale, overrides.refine if overrides.refine is not None else AUTO_STEPS
+    if overrides.refine is not None:
+        return RefineConfig.scale, overrides.refine
+    return RefineConfig.scale, AUTO_STEPS if quality == "best" else MULTIVIEW_BALANCED_STEPS
 
 
 def refine_for_agreement(config: RefineConfig, sharp_gain_db: float) -> RefineConfig:
@@ -316,9 +324,9 @@ def refine_steps(quality: Quality, photos: int = 2) -> int:
     :data:`~.pipeline.refine.AUTO_STEPS` steps (about 6–8 s a 512-px pair on two cores for +0.1 to +1.1 dB on
     held-out views of the development pairs, ``benchmarks/history/refine.md``), on three photos or more for
     :data:`MULTIVIEW_BEST_STEPS` at full resolution (the refine stage takes :func:`coarse_refinement`'s where the
-    photos do not agree at it); ``balanced`` on three photos or more for
-    :data:`MULTIVIEW_BALANCED_STEPS` (the joint refinement); ``fast``, and ``balanced`` on two photos, do not (it
-    would more than double their time)."""
+    photos do not agree at it); ``balanced`` on three photos or more for :data:`MULTIVIEW_BALANCED_STEPS` (the
+    joint refinement, at full resolution where the photos agree); ``fast``, and ``balanced`` on two photos, do not
+    (it would more than double their time)."""
     from .pipeline.refine_config import AUTO_STEPS
 
     check_quality(quality)

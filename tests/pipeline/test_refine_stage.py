@@ -13,6 +13,7 @@ from macsplat_cli.pipeline.refine_config import AUTO_STEPS, RefineConfig
 from macsplat_cli.pipeline.refine_stage import PROBE_NEIGHBOURS, PROBE_PHOTOS, _probes, sharp_gain_db
 from macsplat_cli.pipeline.types import View
 from macsplat_cli.presets import (
+    MULTIVIEW_BALANCED_STEPS,
     MULTIVIEW_BEST_STEPS,
     MULTIVIEW_SHARP_MIN_GAIN_DB,
     Overrides,
@@ -74,8 +75,8 @@ def test_the_measure_probes_a_few_photos_each_from_its_nearest_cameras() -> None
 
 def test_best_on_three_photos_falls_back_to_the_pooled_refinement_where_the_photos_disagree() -> None:
     """The preset's full resolution is the photos' to decline (``coarse``: 1/2 at :data:`AUTO_STEPS`, ``best``'s
-    refinement before full resolution); a scale or steps the user gave are kept; two photos and ``balanced`` have
-    nothing to choose."""
+    refinement before full resolution; ``balanced``'s own steps); a scale or steps the user gave are kept; two
+    photos have nothing to choose."""
     four = configure("best", "classical", photos=4).refine
     assert (four.scale, four.steps, four.coarse) == (1, MULTIVIEW_BEST_STEPS, (2, AUTO_STEPS))
     pooled = refine_for_agreement(four, -0.3)
@@ -86,7 +87,13 @@ def test_best_on_three_photos_falls_back_to_the_pooled_refinement_where_the_phot
     for given in (Overrides(refine_scale=1), Overrides(refine_scale=2), Overrides(refine=0)):
         assert configure("best", "classical", given, photos=4).refine.coarse is None
     assert configure("best", "classical").refine.coarse is None
-    assert configure("balanced", "classical", photos=4).refine.coarse is None
+    balanced = configure("balanced", "classical", photos=4).refine
+    assert (balanced.scale, balanced.steps, balanced.coarse) == (
+        1,
+        MULTIVIEW_BALANCED_STEPS,
+        (2, MULTIVIEW_BALANCED_STEPS),
+    )
+    assert configure("balanced", "classical").refine.coarse is None
     assert refine_for_agreement(RefineConfig(steps=5, scale=1), -1.0).scale == 1  # not the photos' to choose
 
 

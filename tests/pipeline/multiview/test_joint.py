@@ -263,7 +263,8 @@ def test_best_refines_three_photos_or_more_at_full_resolution_and_two_photos_as_
     assert (four.refine.steps, four.refine.scale) == (MULTIVIEW_BEST_STEPS, 1)
     assert configure("best", "classical", Overrides(refine_scale=2), photos=4).refine.scale == 2
     assert configure("best", "classical", Overrides(refine_scale=4)).refine.scale == 4
-    assert configure("balanced", "classical", photos=4).refine.scale == 2
+    assert configure("balanced", "classical", photos=4).refine.scale == 1  # where the photos agree at it
+    assert configure("balanced", "classical").refine.scale == 2
     assert EngineConfig(quality="best").settings(photos=3).refine.scale == 1
 
 
