@@ -14,6 +14,7 @@ from macsplat_cli.report import (
     FusionReport,
     ImageReport,
     NeuralReport,
+    RefineReport,
     RunReport,
 )  # fmt: skip
 
@@ -72,8 +73,26 @@ def test_the_summary_is_built_from_the_typed_report() -> None:
     assert "left.jpg: 640x480 → 512x384, focal 400 px (file)" in text
     assert "300 reciprocal → 250 verified" in text and "rotation 12.5°" in text
     assert "1,200: 1,234 of 2,000 kept (fast: dedup −766)" in text and "far layer" not in text
+    assert "neural (cpu): forward pass 1.50 s" in text and "DINOv3 fused" in text
     report.add_outputs({"-o": "/o/s.ply"}, gaussians_written=1500)  # the far layer is written beside, not compacted
     with err_console.capture() as got:
         summary(report, {"-o": "/o/s.ply"})
     assert "1,500: 1,234 of 2,000 kept (fast: dedup −766) + far layer 266" in got.get()
-    assert "neural (cpu): forward pass 1.50 s" in text and "DINOv3 fused" in text
+    assert "refine" not in got.get()
+
+
+def test_the_summary_says_how_the_refinement_ran_and_why_at_that_resolution() -> None:
+    """Three photos or more: the steps, the resolution the photos chose and their measure; a pair: no measure."""
+    report = _report()
+    report.add_outputs({"-o": "/o/s.ply"}, gaussians_written=1234)
+    for refine, said, unsaid in (
+        (RefineReport(8, 8, False, 3.25, 1, True, False, {}, {}, joint={"sharp_gain_db": 0.584}),
+         "8 of 8 steps at full resolution, 3.2 s; the photos' sharp Gaussians predict each other +0.58 dB", "stopped"),
+        (RefineReport(9, 12, True, 1.5, 2, True, False, {}, {}, joint={"steps": 9}),
+         "9 of 12 steps at 1/2 resolution, 1.5 s (stopped: held-out error no longer falling)", "sharp"),
+    ):  # fmt: skip
+        report.refine = refine
+        with err_console.capture() as got:
+            summary(report, {"-o": "/o/s.ply"})
+        text = " ".join(got.get().replace("│", " ").split())
+        assert said in text and unsaid not in text, text

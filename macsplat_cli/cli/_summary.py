@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 from ._common import err_console, escape
 
 if TYPE_CHECKING:
-    from ..report import RunReport
+    from ..report import RefineReport, RunReport
 
 __all__ = ["summary"]
 
@@ -77,10 +77,24 @@ def summary(report: RunReport, written: dict[str, Any]) -> None:
         t.add_row("backend", escape(f"neural ({n.device}): forward pass {n.forward_s:.2f} s"))
         t.add_row("fusion", escape(n.fusion.detail))
     t.add_row("depth", " / ".join(f"{100 * c:.0f} %" for c in report.depth_coverage) + " of pixels")
+    if report.refine is not None:
+        t.add_row("refine", escape(_refine_line(report.refine)))
     t.add_row("Gaussians", escape(_gaussians_line(report)))
     t.add_row("time", escape(", ".join(f"{k} {v:.2f} s" for k, v in report.times_s.items())))
     t.add_row("wrote", "\n".join(escape(str(v)) for v in written.values()))
     err_console.print(t)
+
+
+def _refine_line(r: RefineReport) -> str:
+    """The refinement's steps, resolution and time; where the photos chose the resolution, by how much."""
+    scale = "full resolution" if r.scale == 1 else f"1/{r.scale} resolution"
+    line = f"{r.steps} of {r.max_steps} steps at {scale}, {r.seconds:.1f} s"
+    if r.stopped_early:
+        line += " (stopped: held-out error no longer falling)"
+    gain = (r.joint or {}).get("sharp_gain_db")
+    if gain is not None:  # the photos chose the resolution (presets.refine_for_agreement)
+        line += f"; the photos' sharp Gaussians predict each other {gain:+.2f} dB against pooled"
+    return line
 
 
 def _gaussians_line(report: RunReport) -> str:
