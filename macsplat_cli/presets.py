@@ -119,8 +119,8 @@ else 1/2, :func:`coarse_refinement`). The refined Gaussians are what is written:
 rendered its held-out views blurred (``best``, mid / side 23.49 / 22.38 dB; at full resolution, 10 steps for the time
 of 40: 25.28 / 23.20; room 4 21.91 / 20.79 → 22.05 / 20.54). ``balanced`` at 1/2 left 8 and 16 photos at or below
 their middle pair at its views; sharp, mid gain object 8 +0.26 → +3.70 dB, room 8 −0.05 → +1.68, object 16 −0.81 →
-+2.16, room 16 −0.96 → +0.75, object 4 +2.09 → +4.82, for 1.35–1.45× the run's time (benchmarks/history/
-multiview_joint.md, multiview_scaling.md)."""
++2.16, room 16 −0.96 → +0.75, object 4 +2.09 → +4.82, for 1.2–1.7× the run's time from 4 to 16 photos
+(benchmarks/history/multiview_scaling.md)."""
 MULTIVIEW_BEST_STEPS = 6
 """``--quality best`` on three photos or more: the joint refinement's steps (``--refine`` units: 10 one-photo steps
 on 4 photos, 20 on 8, at :data:`MULTIVIEW_SHARP_SCALE`; a full-resolution step costs ~4 pooled ones, so the
@@ -131,7 +131,9 @@ photos' Gaussians predict the registered photos better sharp than pooled 2 × 2,
 photos, dB: :func:`~.pipeline.refine_stage.sharp_gain_db`); else as they did at 1/2 (:func:`coarse_refinement`).
 Measured: object 4 +0.59, object 8 +1.06, room 8 +0.38 dB (full resolution gains up to 2.1 dB over 1/2 at held-out
 views), room 4 −0.28 (mid +0.14, side −0.25), the development sets −0.15 (NYU 3) to −0.31 (CO3D 3), where full
-resolution lost 0.07–0.56 dB (benchmarks/history/multiview_joint.md)."""
+resolution lost 0.07–0.56 dB (benchmarks/history/multiview_joint.md); with the measure's probes
+(:data:`~.pipeline.refine_stage.PROBE_PHOTOS`) object 8 +0.92, room 8 +0.32, 16 photos +1.31 / +0.59, CO3D's 20
+frames at 8 / 16 / 20 −0.17 / −0.09 / −0.03 (multiview_scaling.md)."""
 NEURAL_TAU = 1.0
 """τ of the neural backend's matching on ``c0·c1`` of the descriptor confidences ``exp(x)`` (MASt3R's visloc keeps
 pixels whose confidence exceeds 1.001)."""
