@@ -383,10 +383,10 @@ def _compile_kernels_in_background() -> None:
     def work() -> None:
         from .pipeline.depth import compile_kernels as depth_kernels
         from .pipeline.matching import compile_kernels as matching_kernels
-        from .pipeline.multiview.bundle import compile_kernels as bundle_kernels
+        from .pipeline.multiview import compile_kernels as multiview_kernels
         from .render import compile_kernels as render_kernels
 
-        for compile_kernels in (matching_kernels, bundle_kernels, depth_kernels, render_kernels):
+        for compile_kernels in (matching_kernels, multiview_kernels, depth_kernels, render_kernels):
             try:
                 compile_kernels()
             except Exception as e:  # noqa: BLE001 - the stage compiles its kernel on first use anyway

@@ -5,4 +5,14 @@
 from .config import MAX_PHOTOS, MultiViewConfig
 from .run import MultiViewResult, reconstruct_views
 
-__all__ = ["MAX_PHOTOS", "MultiViewConfig", "MultiViewResult", "reconstruct_views"]
+__all__ = ["MAX_PHOTOS", "MultiViewConfig", "MultiViewResult", "compile_kernels", "reconstruct_views"]
+
+
+def compile_kernels() -> None:
+    """Compile (or load from Numba's cache) the N-photo stages' kernels now, for a background thread: the bundle
+    adjustment's Schur complement, then where view-dependent colour is allowed (the joint refinement's set-up)."""
+    from .bundle import compile_kernels as bundle_kernels
+    from .sh_views import compile_kernels as sh_kernels
+
+    bundle_kernels()
+    sh_kernels()

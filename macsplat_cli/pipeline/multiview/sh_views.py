@@ -15,7 +15,7 @@ import torch
 
 from ...gaussians import GaussianMaps
 
-__all__ = ["MIN_SPREAD_DEG", "MIN_VIEWS", "view_dependent"]
+__all__ = ["MIN_SPREAD_DEG", "MIN_VIEWS", "compile_kernels", "view_dependent", "view_dependent_reference"]
 
 MIN_VIEWS = 3
 """Photos that must see a Gaussian before its colour may depend on the direction (two fix only a difference)."""
@@ -72,9 +72,9 @@ def _widest_within(dirs: torch.Tensor, seen: torch.Tensor, cos_spread: float) ->
 
 
 def view_dependent(maps: list[GaussianMaps], Ks: list[np.ndarray]) -> list[torch.Tensor]:
-    """Per map, the Gaussians whose colour may depend on the direction (module docstring). Only a map's valid
-    Gaussians are tested (the rest are never rendered), and only those :data:`MIN_VIEWS` photos see are tested for
-    the spread (:func:`_widest_within`): per map, photos × Gaussians, not photos² × pixels.
+    """Per map, the Gaussians whose colour may depend on the direction (module docstring): only a map's valid
+    Gaussians are tested (the rest are never rendered), each against every photo in one pass
+    (:mod:`._sh_views_kernels`, on the kernel threads; the twin: :func:`view_dependent_reference`).
 
     Args:
         maps: each photo's Gaussians (``B = 1``, its camera frame, ``cam_to_world`` its pose).
@@ -83,6 +83,34 @@ def view_dependent(maps: list[GaussianMaps], Ks: list[np.ndarray]) -> list[torch
     Returns:
         Per map, [1, H, W] bool (False at invalid pixels).
     """
+    from ..._threads import parallel_for
+    from ._sh_views_kernels import view_spread
+
+    poses = np.stack([m.cam_to_world_or_identity(torch.float64)[0].numpy() for m in maps])
+    R, t = np.ascontiguousarray(poses[:, :3, :3]), np.ascontiguousarray(poses[:, :3, 3])
+    intr = np.array([[K[0, 0], K[1, 1], K[0, 2], K[1, 2]] for K in Ks], dtype=np.float64)
+    sizes = np.array([m.size for m in maps], dtype=np.int64)
+    offsets = np.concatenate([[0], np.cumsum(sizes[:, 0] * sizes[:, 1])[:-1]]).astype(np.int64)
+    depths = np.concatenate([m.means[0, ..., 2].detach().double().reshape(-1).numpy() for m in maps])
+    cos_spread = math.cos(math.radians(MIN_SPREAD_DEG))
+    half = math.cos(0.5 * math.acos(cos_spread))
+    out = []
+    for k, m in enumerate(maps):
+        idx = m.valid_mask()[0].reshape(-1).nonzero().squeeze(1)
+        T = m.cam_to_world_or_identity(torch.float64)[0]
+        X = np.ascontiguousarray((m.means[0].detach().double().reshape(-1, 3)[idx] @ T[:3, :3].T + T[:3, 3]).numpy())
+        wide = np.zeros(len(X), dtype=np.bool_)
+        parallel_for(view_spread, len(X), X, k, R, t, intr, sizes, offsets, depths, t, MIN_VIEWS, DEPTH_TOL,
+                     cos_spread, half, wide, chunks_per_thread=4)  # fmt: skip
+        allowed = torch.zeros(m.size[0] * m.size[1], dtype=torch.bool)
+        allowed[idx] = torch.from_numpy(wide)
+        out.append(allowed.reshape(1, *m.size))
+    return out
+
+
+def view_dependent_reference(maps: list[GaussianMaps], Ks: list[np.ndarray]) -> list[torch.Tensor]:
+    """:func:`view_dependent` in PyTorch (its twin): photos × Gaussians masks, and only the Gaussians
+    :data:`MIN_VIEWS` photos see tested for the spread (:func:`_widest_within`). Same arguments and result."""
     centres = [m.cam_to_world_or_identity(torch.float64)[0, :3, 3] for m in maps]
     cos_spread = math.cos(math.radians(MIN_SPREAD_DEG))
     out = []
@@ -98,3 +126,10 @@ def view_dependent(maps: list[GaussianMaps], Ks: list[np.ndarray]) -> list[torch
         allowed[idx[many]] = _widest_within(dirs, seen[:, many], cos_spread)
         out.append(allowed.reshape(1, *m.size))
     return out
+
+
+def compile_kernels() -> None:
+    """Compile (or load from the cache) :func:`view_dependent`'s Numba kernel now: for a background thread."""
+    from . import _sh_views_kernels
+
+    _sh_views_kernels.compile_kernels()
