@@ -7,6 +7,7 @@ Returns a typed :class:`MultiViewResult`; :mod:`..run` turns it into the :class:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import logging
 from collections.abc import Sequence
@@ -28,7 +29,7 @@ from .depth import MIN_SHARED, DepthFn, multiview_depths, pair_geometry, photo_m
 from .known import KNOWN_POSE_MAX_PX, known_pose_pairs, load_known_poses
 from .pairwise import PairOutcome, cached_search, match_all
 from .register import Registration, register_known, register_views
-from .shortlist import select_pairs, similarity
+from .shortlist import global_descriptors, select_pairs, similarity
 from .tracks import build_tracks
 
 __all__ = ["MultiViewResult", "reconstruct_views"]
@@ -154,11 +155,13 @@ def reconstruct_views(
     def pairs_stage() -> list[PairOutcome]:
         # every photo's descriptors at once, side by side (per pair, most pairs would describe one new photo alone)
         feats = cached.describe(sub, None)
-        chosen = select_pairs(len(sub), feats, config.shortlist)
+        # the VLADs once, if retrieval or the slow tiers' order needs them
+        vlads = functools.cache(lambda: global_descriptors(feats, config.shortlist))
+        chosen = select_pairs(len(sub), feats, config.shortlist, vlads)
         if known is not None:
             full = [(live[i], live[j]) for i, j in chosen]
             return known_pose_pairs(views, full, cached.describe, cached.match, known, KNOWN_POSE_MAX_PX)
-        outs = match_all(sub, chosen, cached, lambda: similarity(feats, config.shortlist))
+        outs = match_all(sub, chosen, cached, lambda: similarity(feats, config.shortlist, vlads))
         return [dataclasses.replace(o, i=live[o.i], j=live[o.j]) for o in outs]
 
     outcomes: list[PairOutcome] = timed("pairs", pairs_stage)

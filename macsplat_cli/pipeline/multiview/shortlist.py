@@ -35,7 +35,7 @@ so its pairs come from its sequence neighbours only.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -208,13 +208,16 @@ def _cosine(vlads: np.ndarray) -> np.ndarray:
     return sim
 
 
-def similarity(features: Sequence[Features], config: ShortlistConfig) -> np.ndarray:
-    """Cosine similarity of the photos' VLADs (:func:`global_descriptors`). [N, N] float64
+def similarity(
+    features: Sequence[Features], config: ShortlistConfig, vlads: Callable[[], np.ndarray] | None = None
+) -> np.ndarray:
+    """Cosine similarity of the photos' VLADs (:func:`global_descriptors`, or ``vlads()`` where the caller keeps
+    them). [N, N] float64
 
     Symmetric, in [−1, 1] off the diagonal; the diagonal is −inf (a photo is never its own match, and an argsort
     puts it last); a photo with no descriptors has −1 to every other photo.
     """
-    return _cosine(global_descriptors(features, config))
+    return _cosine(vlads() if vlads is not None else global_descriptors(features, config))
 
 
 def _retrieved(sim: np.ndarray, empty: np.ndarray, k: int) -> list[tuple[int, int]]:
@@ -230,13 +233,17 @@ def _retrieved(sim: np.ndarray, empty: np.ndarray, k: int) -> list[tuple[int, in
     return pairs
 
 
-def select_pairs(n: int, features: Sequence[Features] | None, config: ShortlistConfig) -> list[tuple[int, int]]:
+def select_pairs(
+    n: int, features: Sequence[Features] | None, config: ShortlistConfig,
+    vlads: Callable[[], np.ndarray] | None = None,
+) -> list[tuple[int, int]]:  # fmt: skip
     """The photo pairs to match, as ``(i, j)`` with ``i < j``, unique, sorted.
 
     ``n ≤ config.all_pairs_max``: every pair (``features`` may be None). Otherwise the union of each photo's
     ``config.similar`` most similar photos (:func:`similarity`; photos with no descriptors take part in no
     retrieved pair) and its ``config.sequence_neighbours`` neighbours on each side in file order: at most
-    ``n · (similar + sequence_neighbours)`` pairs. Deterministic.
+    ``n · (similar + sequence_neighbours)`` pairs. Deterministic. ``vlads``: the features' VLADs where the caller
+    keeps them (called only beyond ``all_pairs_max``).
     """
     if n < 0:
         raise ValueError(f"n must be ≥ 0, got {n}")
@@ -247,7 +254,7 @@ def select_pairs(n: int, features: Sequence[Features] | None, config: ShortlistC
         raise ValueError(f"select_pairs needs the {n} photos' features beyond all_pairs_max, got {got}")
     pairs = {(i, i + d) for i in range(n) for d in range(1, config.sequence_neighbours + 1) if i + d < n}
     if config.similar > 0:
-        vlads = global_descriptors(features, config)
-        empty = ~(np.abs(vlads).sum(axis=1) > 0)
-        pairs.update(_retrieved(_cosine(vlads), empty, config.similar))
+        v = vlads() if vlads is not None else global_descriptors(features, config)
+        empty = ~(np.abs(v).sum(axis=1) > 0)
+        pairs.update(_retrieved(_cosine(v), empty, config.similar))
     return sorted(pairs)

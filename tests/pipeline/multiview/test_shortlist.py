@@ -90,6 +90,26 @@ def test_the_default_pairs_stay_within_five_per_photo() -> None:
         assert len(pairs) <= 5 * n, n
 
 
+def test_the_vlads_a_caller_keeps_are_asked_for_only_when_needed_and_give_the_same_choice() -> None:
+    """The pairs stage keeps the VLADs for retrieval and for ordering the failed pairs: retrieval asks for them only
+    beyond ``all_pairs_max``, and the kept ones choose what freshly computed ones choose."""
+    feats, cfg = _scene(), ShortlistConfig()
+    n = len(feats)
+    asked: list[int] = []
+
+    def kept() -> np.ndarray:
+        asked.append(1)
+        return global_descriptors(feats, cfg)
+
+    assert select_pairs(cfg.all_pairs_max, feats[: cfg.all_pairs_max], cfg, kept) == list(
+        combinations(range(cfg.all_pairs_max), 2)
+    )
+    assert asked == []
+    small = ShortlistConfig(all_pairs_max=n - 1)
+    assert select_pairs(n, feats, small, kept) == select_pairs(n, feats, small) and asked == [1]
+    np.testing.assert_array_equal(similarity(feats, cfg, kept), similarity(feats, cfg))
+
+
 def test_beyond_all_pairs_max_features_are_required() -> None:
     with pytest.raises(ValueError, match="features"):
         select_pairs(13, None, ShortlistConfig())
