@@ -97,7 +97,7 @@ def view_dependent(maps: list[GaussianMaps], Ks: list[np.ndarray]) -> list[torch
     out = []
     for k, m in enumerate(maps):
         idx = m.valid_mask()[0].reshape(-1).nonzero().squeeze(1)
-        T = m.cam_to_world_or_identity(torch.float64)[0]
+        T = torch.from_numpy(poses[k])
         X = np.ascontiguousarray((m.means[0].detach().double().reshape(-1, 3)[idx] @ T[:3, :3].T + T[:3, 3]).numpy())
         wide = np.zeros(len(X), dtype=np.bool_)
         parallel_for(view_spread, len(X), X, k, R, t, intr, sizes, offsets, depths, t, MIN_VIEWS, DEPTH_TOL,
