@@ -381,16 +381,14 @@ def _compile_kernels_in_background() -> None:
         return
 
     def work() -> None:
-        from .pipeline.depth import compile_kernels as depth_kernels
-        from .pipeline.matching import compile_kernels as matching_kernels
-        from .pipeline.multiview import compile_kernels as multiview_kernels
-        from .render import compile_kernels as render_kernels
+        from . import render
+        from .pipeline import compact, depth, matching, multiview
 
-        for compile_kernels in (matching_kernels, multiview_kernels, depth_kernels, render_kernels):
+        for stage in (matching, multiview, depth, compact, render):
             try:
-                compile_kernels()
+                stage.compile_kernels()
             except Exception as e:  # noqa: BLE001 - the stage compiles its kernel on first use anyway
-                logger.debug("background compilation of %s failed: %s", compile_kernels.__module__, e)
+                logger.debug("background compilation of %s failed: %s", stage.__name__, e)
 
     thread = threading.Thread(target=work, name="macsplat-compile", daemon=True)
     _COMPILING.append(thread)

@@ -292,6 +292,8 @@ def _turned(pair: Pair, k: int) -> tuple[GaussianMaps, Camera]:
 
 
 def test_view_steps_project_only_what_each_camera_can_see(pair: Pair, monkeypatch: pytest.MonkeyPatch) -> None:
+    from macsplat_cli.pipeline.compact import run as compact_run
+    from macsplat_cli.pipeline.compact.cleanup import prune_occluded_reference
     from macsplat_cli.pipeline.compact.state import ViewState
 
     away_map, away_cam = _turned(pair, 1)
@@ -303,6 +305,7 @@ def test_view_steps_project_only_what_each_camera_can_see(pair: Pair, monkeypatc
         return real(self, points)
 
     monkeypatch.setattr(ViewState, "project", counting)
+    monkeypatch.setattr(compact_run, "prune_occluded", prune_occluded_reference)  # the kernel projects all
     only_occlusion = CompactConfig(prune_floaters=False, dedup=False, subpixel_px=0.0, adaptive=False, sh="keep")
     _, report = compact([*pair.maps, away_map], [*pair.cameras, away_cam], only_occlusion)
     assert report.steps[-1].name == "prune_occluded" and report.before > 2.5 * W * H
@@ -312,6 +315,37 @@ def test_view_steps_project_only_what_each_camera_can_see(pair: Pair, monkeypatc
     only_subpixel = dataclasses.replace(only_occlusion, prune_occluded=False, subpixel_px=0.1)
     compact([*pair.maps, away_map], [*pair.cameras, away_cam], only_subpixel)
     assert projected[True] <= W * H  # the sub-pixel step: a Gaussian's own view settles it, no other is tried
+
+
+def test_the_occlusion_kernel_prunes_what_its_pytorch_twin_prunes(pair: Pair, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 40: the occlusion step's Numba kernels (the cameras' z-buffers, then each Gaussian until a camera sees
+    it) leave the twin's Gaussians alive (they sum the projection in their own order: a centre on a pixel edge or
+    the depth tolerance may round the other way, at most one in ten thousand), on views that hide Gaussians (the
+    box's shadow on the wall, a camera turned away, a copy of a view behind it); one kernel thread or two, the same
+    bits."""
+    from macsplat_cli import _threads
+    from macsplat_cli.pipeline.compact import cleanup
+    from macsplat_cli.pipeline.compact.state import view_states
+
+    away_map, away_cam = _turned(pair, 1)
+    back = pair.maps[0].detach()
+    back.means[0, :, :, 2] *= 1.2  # view 0's surface again, behind the wall: hidden from every camera
+    maps, cams = [*pair.maps, away_map, back], [*pair.cameras, away_cam, pair.cameras[0]]
+    cfg = CompactConfig()
+
+    def alive(prune) -> list[torch.Tensor]:  # noqa: ANN001
+        views = view_states(maps, cams, None)
+        prune(views, cfg)
+        return [v.alive.clone() for v in views]
+
+    got, ref = alive(cleanup.prune_occluded), alive(cleanup.prune_occluded_reference)
+    total = sum(int(m.valid_mask().sum()) for m in maps)
+    differ = sum(int((g != r).sum()) for g, r in zip(got, ref))
+    assert differ <= max(1, total // 10_000), (differ, total)
+    pruned = [int(m.valid_mask().sum()) - int(g.sum()) for m, g in zip(maps, got)]
+    assert pruned[3] > 0.9 * int(back.valid_mask().sum()) and 0 < pruned[0] < 0.2 * W * H, pruned
+    monkeypatch.setattr(_threads, "kernel_threads", lambda: 1)
+    assert all(torch.equal(a, b) for a, b in zip(alive(cleanup.prune_occluded), got))
 
 
 def test_the_spatial_index_changes_no_output(pair: Pair, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -42,7 +42,8 @@ benchmarks/history/compact.md.
 
 from __future__ import annotations
 
+from .cleanup import compile_kernels
 from .config import CompactConfig, CompactReport, CompactStep
 from .run import compact, compact_reconstruction
 
-__all__ = ["CompactConfig", "CompactReport", "CompactStep", "compact", "compact_reconstruction"]
+__all__ = ["CompactConfig", "CompactReport", "CompactStep", "compact", "compact_reconstruction", "compile_kernels"]

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -14,7 +15,10 @@ from .config import CompactConfig
 from .cull import view_tiles
 from .state import NEIGHBOURS, ViewState
 
-__all__ = ["prune_floaters", "prune_occluded", "prune_opacity", "prune_subpixel"]
+__all__ = [
+    "compile_kernels", "prune_floaters", "prune_occluded", "prune_occluded_reference", "prune_opacity",
+    "prune_subpixel",
+]  # fmt: skip
 
 
 def prune_opacity(views: list[ViewState]) -> str:
@@ -44,8 +48,38 @@ def prune_floaters(views: list[ViewState], cfg: CompactConfig) -> str:
 
 
 def prune_occluded(views: list[ViewState], cfg: CompactConfig) -> str:
-    """Step 4: Gaussians behind an opaque one (z-buffer of the centres) or off-image, in every view. Each camera
-    projects only the tiles it can see (:mod:`.cull`)."""
+    """Step 4: Gaussians behind an opaque one (z-buffer of the centres) or off-image, in every view. Each camera's
+    z-buffer takes every opaque centre, then a Gaussian is tested camera by camera, its own first, until one sees
+    it (:mod:`._occlusion_kernels`, on the kernel threads; the twin: :func:`prune_occluded_reference`)."""
+    from ..._threads import parallel_for
+    from ...camera_math import NEAR_Z
+    from ._occlusion_kernels import seen_rows, zbuffers
+
+    alive = [v.alive.reshape(-1).nonzero().squeeze(1) for v in views]  # only these can occlude or be kept
+    X = np.ascontiguousarray(torch.cat([v.world_means().reshape(-1, 3)[a] for v, a in zip(views, alive)]).numpy())
+    opaque = torch.cat([torch.sigmoid(v.logits.reshape(-1)[a]) >= cfg.occluder_min_opacity
+                        for v, a in zip(views, alive)]).numpy()  # fmt: skip
+    own = np.repeat(np.arange(len(views), dtype=np.int64), [len(a) for a in alive])
+    w2c = np.ascontiguousarray(torch.stack([v.w2c for v in views]).numpy())
+    K = np.ascontiguousarray(torch.stack([v.K.double() for v in views]).numpy())
+    sizes = np.array([v.size for v in views], dtype=np.int64)
+    offsets = np.concatenate([[0], np.cumsum(sizes[:, 0] * sizes[:, 1])[:-1]]).astype(np.int64)
+    zbuf, pooled = np.empty(int((sizes[:, 0] * sizes[:, 1]).sum())), np.empty(int((sizes[:, 0] * sizes[:, 1]).sum()))
+    parallel_for(zbuffers, len(views), X, opaque, w2c, K, sizes, offsets, NEAR_Z, zbuf, pooled, chunks_per_thread=4)
+    seen = np.zeros(len(X), dtype=np.bool_)
+    parallel_for(seen_rows, len(X), X, own, w2c, K, sizes, offsets, NEAR_Z, cfg.occlusion_depth_tol, pooled, seen,
+                 chunks_per_thread=4)  # fmt: skip
+    for v, a, s in zip(views, alive, torch.from_numpy(seen).split([len(a) for a in alive])):
+        v.alive.view(-1)[a[~s]] = False
+    return _OCCLUDED.format(cfg.occluder_min_opacity)
+
+
+_OCCLUDED = "hidden in every view (behind a Gaussian of opacity ≥ {:g}, or off-image)"
+
+
+def prune_occluded_reference(views: list[ViewState], cfg: CompactConfig) -> str:
+    """:func:`prune_occluded` in PyTorch (its twin): every view's Gaussians into every camera, twice (the z-buffer,
+    then the test); each camera projects only the tiles it can see (:mod:`.cull`). Same arguments and effect."""
     alive = [v.alive.reshape(-1).nonzero().squeeze(1) for v in views]  # only these can occlude or be kept
     worlds = [v.world_means().reshape(-1, 3)[a] for v, a in zip(views, alive)]
     tiles = [view_tiles(a, X, v.size[1]) for v, a, X in zip(views, alive, worlds)]
@@ -68,7 +102,7 @@ def prune_occluded(views: list[ViewState], cfg: CompactConfig) -> str:
             s[sel] |= inside & (z <= zbuf[pix] * (1.0 + cfg.occlusion_depth_tol))
     for v, a, s in zip(views, alive, seen):
         v.alive.view(-1)[a[~s]] = False
-    return f"hidden in every view (behind a Gaussian of opacity ≥ {cfg.occluder_min_opacity:g}, or off-image)"
+    return _OCCLUDED.format(cfg.occluder_min_opacity)
 
 
 def prune_subpixel(views: list[ViewState], cfg: CompactConfig) -> str:
@@ -98,3 +132,10 @@ def _largest_px(X: torch.Tensor, sigma: torch.Tensor, c: ViewState, best: torch.
     where ``c`` sees them."""
     _, _, z, inside = c.project(X)
     return torch.maximum(best, torch.where(inside, sigma * c.focal / z.clamp_min(1e-12), torch.zeros_like(z)))
+
+
+def compile_kernels() -> None:
+    """Compile (or load from Numba's cache) :func:`prune_occluded`'s kernels now: for a background thread."""
+    from ._occlusion_kernels import compile_kernels as occlusion_kernels
+
+    occlusion_kernels()

@@ -10,9 +10,12 @@ __all__ = ["MAX_PHOTOS", "MultiViewConfig", "MultiViewResult", "compile_kernels"
 
 def compile_kernels() -> None:
     """Compile (or load from Numba's cache) the N-photo stages' kernels now, for a background thread: the bundle
-    adjustment's Schur complement, then where view-dependent colour is allowed (the joint refinement's set-up)."""
+    adjustment's Schur complement, the co-visibility init's test, then where view-dependent colour is allowed (the
+    joint refinement's set-up)."""
     from .bundle import compile_kernels as bundle_kernels
+    from .covis import compile_kernels as covis_kernels
     from .sh_views import compile_kernels as sh_kernels
 
     bundle_kernels()
+    covis_kernels()
     sh_kernels()

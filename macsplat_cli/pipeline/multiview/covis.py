@@ -18,7 +18,7 @@ import torch
 
 from ...gaussians import GaussianMaps
 
-__all__ = ["CovisReport", "covisibility_init"]
+__all__ = ["CovisReport", "compile_kernels", "covisibility_init", "covisibility_init_reference"]
 
 DEPTH_TOL = 0.02
 """Relative depth difference within which two photos' Gaussians are one surface point (the compaction's dedup
@@ -109,10 +109,10 @@ def _nearest_first(k: int, seen: list[_Seen]) -> list[int]:
 def covisibility_init(maps: list[GaussianMaps], Ks: list[np.ndarray]) -> tuple[list[GaussianMaps], CovisReport]:
     """Drop every Gaussian another photo observes better (module docstring).
 
-    A photo's Gaussians are tested against the other photos nearest camera first, and a Gaussian already dropped is
-    not tested again: a test is made against the maps as given, so the result is the same whatever the order, and
-    what a photo costs follows the Gaussians it keeps, not the photos (on the orbit most of a photo's surface goes
-    to its nearest neighbours' tests).
+    A photo's Gaussians are tested against the other photos nearest camera first, and a Gaussian beaten once is not
+    tested again: every test is made against the maps as given, so the result does not depend on the photos' order
+    except through ties. One pass per Gaussian over the photos (:mod:`._covis_kernels`, on the kernel threads); the
+    twin: :func:`covisibility_init_reference`.
 
     Args:
         maps: each registered photo's pixel Gaussians (``B = 1``, its camera frame, ``cam_to_world`` set).
@@ -120,20 +120,62 @@ def covisibility_init(maps: list[GaussianMaps], Ks: list[np.ndarray]) -> tuple[l
 
     Returns:
         The maps with ``valid`` cleared where a Gaussian was dropped (the other tensors shared), and the counts.
-        Every test is made against the maps as given, so the result does not depend on the photos' order
-        except through ties.
     """
+    from ..._threads import parallel_for
+    from ._covis_kernels import kept
+
     seen = [_seen(m, K) for m, K in zip(maps, Ks)]
-    out = []
-    for k, m in enumerate(maps):
+    flat = [np.ascontiguousarray(torch.cat([getattr(s, name) for s in seen]).numpy())
+            for name in ("world", "valid", "score", "z")]  # fmt: skip
+    sizes = np.array([s.size for s in seen], dtype=np.int64)
+    offsets = np.concatenate([[0], np.cumsum(sizes[:, 0] * sizes[:, 1])[:-1]]).astype(np.int64)
+    R = np.ascontiguousarray(torch.stack([s.R for s in seen]).numpy())
+    c = np.ascontiguousarray(torch.stack([s.c for s in seen]).numpy())
+    intr = np.array([[K[0, 0], K[1, 1], K[0, 2], K[1, 2]] for K in (s.K.numpy() for s in seen)], dtype=np.float64)
+    keeps = []
+    for k in range(len(maps)):
+        idx = seen[k].valid.nonzero().squeeze(1)
+        out = np.zeros(len(idx), dtype=np.bool_)
+        order = np.array(_nearest_first(k, seen), dtype=np.int64)
+        parallel_for(kept, len(idx), idx.numpy(), k, order, *flat, offsets, R, c, intr, sizes, DEPTH_TOL, TIE, out,
+                     chunks_per_thread=4)  # fmt: skip
+        keeps.append(idx[torch.from_numpy(out)])
+    return _with_kept(maps, seen, keeps)
+
+
+def covisibility_init_reference(
+    maps: list[GaussianMaps], Ks: list[np.ndarray]
+) -> tuple[list[GaussianMaps], CovisReport]:
+    """:func:`covisibility_init` in PyTorch (its twin): photo ``k``'s Gaussians still kept against one photo at a
+    time (:func:`_beaten`). Same arguments and result."""
+    seen = [_seen(m, K) for m, K in zip(maps, Ks)]
+    keeps = []
+    for k in range(len(maps)):
         idx = seen[k].valid.nonzero().squeeze(1)  # the pixels still kept
         for j in _nearest_first(k, seen):
             if not len(idx):
                 break
             idx = idx[~_beaten(k, j, seen, idx)]
-        keep = torch.zeros_like(seen[k].valid)
+        keeps.append(idx)
+    return _with_kept(maps, seen, keeps)
+
+
+def _with_kept(
+    maps: list[GaussianMaps], seen: list[_Seen], keeps: list[torch.Tensor]
+) -> tuple[list[GaussianMaps], CovisReport]:
+    """The maps valid only at their kept pixels (``keeps``: per map, flat pixel indices [n] int64), and the counts."""
+    out = []
+    for m, s, idx in zip(maps, seen, keeps):
+        keep = torch.zeros_like(s.valid)
         keep[idx] = True
         out.append(GaussianMaps(m.means, m.log_scales, m.quats, m.opacity_logits, m.sh, keep.reshape(1, *m.size),
                                 m.cam_to_world))  # fmt: skip
     report = CovisReport([int(s.valid.sum()) for s in seen], [int(o.valid_mask().sum()) for o in out])
     return out, report
+
+
+def compile_kernels() -> None:
+    """Compile (or load from Numba's cache) :func:`covisibility_init`'s kernel now: for a background thread."""
+    from ._covis_kernels import compile_kernels as covis_kernels
+
+    covis_kernels()
