@@ -289,7 +289,7 @@ import json
 import sys
 from macsplat_cli import engine
 from macsplat_cli.pipeline import _match_kernels as m
-from macsplat_cli.pipeline.compact import _occlusion_kernels as o
+from macsplat_cli.pipeline.compact import _kernels as o
 from macsplat_cli.pipeline.depth import _patchmatch_kernels as p, _sgm_kernels as s
 from macsplat_cli.pipeline.multiview import _covis_kernels as c, _sh_views_kernels as v
 from macsplat_cli.render import _kernels as r, _project_kernels as pr
@@ -299,7 +299,7 @@ engine._COMPILING[0].join()
 engine.render_path(rec, 2)
 kernels = [m._chunks, s._straight, s._winner_rows, p._initial_rows, p._refine_rows, r._count_runs,
            r._fill_runs, r._forward_tiles, pr.project_range, pr.depth_order, pr._gather_range, v.view_spread,
-           c.kept, o.zbuffers, o.seen_rows]
+           c.kept, o.zbuffers, o.seen_rows, o.mergeable]
 print(json.dumps({k.__name__: len(k.signatures) for k in kernels}))
 """
 

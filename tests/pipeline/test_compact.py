@@ -439,12 +439,45 @@ def test_dedup_tries_the_view_that_takes_most_first(pair: Pair, monkeypatch: pyt
         return real(self, points)
 
     monkeypatch.setattr(ViewState, "project", counting)
+    monkeypatch.setattr(dedup_module, "_mergeable", dedup_module._mergeable_reference)  # it projects with `project`
     n2 = int(views[2].alive.sum())
     dedup_module.dedup(views, _only(dedup=True))
     assert int(views[2].alive.sum()) < 0.05 * n2  # merged, into view 1 where it is alive
     # view 1 into view 0 (all of it), then view 2 into view 1 (all of it) and the few left into view 0; in photo order
     # view 2 went through view 0 first, where almost nothing merges: ~3 views' worth
     assert projected[0] < 2.3 * W * H
+
+
+def test_the_dedup_kernel_merges_what_its_pytorch_twin_merges(pair: Pair, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 40: the dedup step's Numba test gives its twin's answers (the projection summed in its own order: a
+    centre on a pixel edge or a tolerance may round the other way, at most one in ten thousand), and the step leaves
+    the same Gaussians, merged the same way, on views that merge both ways (a repeat of a view, a view seen from the
+    other side of the pair); one kernel thread or two, the same bits."""
+    from macsplat_cli import _threads
+    from macsplat_cli.pipeline.compact import dedup as dedup_module
+    from macsplat_cli.pipeline.compact.state import view_states
+
+    maps, cams = [pair.maps[0], pair.maps[1], pair.maps[0]], [pair.cameras[0], pair.cameras[1], pair.cameras[0]]
+    views = view_states(maps, cams, None)
+    idx = torch.arange(W * H)
+    world = views[1].world_means().reshape(-1, 3)
+    got = dedup_module._mergeable(views[1], views[0], idx, world, _only(dedup=True))
+    ref = dedup_module._mergeable_reference(views[1], views[0], idx, world, _only(dedup=True))
+    assert int((got[0] != ref[0]).sum()) <= 1 and torch.equal(got[3], ref[3])
+    assert 0.3 * W * H < int(got[0].sum()) < int(got[3].sum()) <= W * H  # merges, and not everything inside does
+    assert torch.equal(got[1][ref[0]], ref[1][ref[0]]) and torch.equal(got[2][ref[0]], ref[2][ref[0]])
+
+    def run() -> list[torch.Tensor]:
+        vs = view_states(maps, cams, None)
+        dedup_module.dedup(vs, _only(dedup=True))
+        return [t for v in vs for t in (v.alive, v.means, v.sh, v.logits)]
+
+    kernel = run()
+    monkeypatch.setattr(dedup_module, "_mergeable", dedup_module._mergeable_reference)
+    assert all(torch.equal(a, b) for a, b in zip(kernel, run()))
+    monkeypatch.undo()  # the kernel again
+    monkeypatch.setattr(_threads, "kernel_threads", lambda: 1)
+    assert all(torch.equal(a, b) for a, b in zip(kernel, run()))
 
 
 def test_the_sh_step_compares_colours_from_the_eyes_of_many_photos() -> None:

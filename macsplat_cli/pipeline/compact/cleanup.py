@@ -50,10 +50,10 @@ def prune_floaters(views: list[ViewState], cfg: CompactConfig) -> str:
 def prune_occluded(views: list[ViewState], cfg: CompactConfig) -> str:
     """Step 4: Gaussians behind an opaque one (z-buffer of the centres) or off-image, in every view. Each camera's
     z-buffer takes every opaque centre, then a Gaussian is tested camera by camera, its own first, until one sees
-    it (:mod:`._occlusion_kernels`, on the kernel threads; the twin: :func:`prune_occluded_reference`)."""
+    it (:mod:`._kernels`, on the kernel threads; the twin: :func:`prune_occluded_reference`)."""
     from ..._threads import parallel_for
     from ...camera_math import NEAR_Z
-    from ._occlusion_kernels import seen_rows, zbuffers
+    from ._kernels import seen_rows, zbuffers
 
     alive = [v.alive.reshape(-1).nonzero().squeeze(1) for v in views]  # only these can occlude or be kept
     X = np.ascontiguousarray(torch.cat([v.world_means().reshape(-1, 3)[a] for v, a in zip(views, alive)]).numpy())
@@ -136,6 +136,6 @@ def _largest_px(X: torch.Tensor, sigma: torch.Tensor, c: ViewState, best: torch.
 
 def compile_kernels() -> None:
     """Compile (or load from Numba's cache) :func:`prune_occluded`'s kernels now: for a background thread."""
-    from ._occlusion_kernels import compile_kernels as occlusion_kernels
+    from ._kernels import compile_kernels as occlusion_kernels
 
     occlusion_kernels()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -67,7 +68,28 @@ def _mergeable(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Which of view k's pixels ``idx`` [M] (world centres ``Xw`` [M, 3]) land on an alive pixel of view j within
     the depth tolerance, where j samples the surface no coarser [M] bool; the pixel of j each lands on (column, row)
-    [M] each; and which land inside j's image [M] bool."""
+    [M] each; and which land inside j's image [M] bool. One pass per centre (:mod:`._kernels`, on the kernel
+    threads); the twin: :func:`_mergeable_reference`."""
+    from ..._threads import parallel_for
+    from ...camera_math import NEAR_Z
+    from ._kernels import mergeable
+
+    m = len(idx)
+    ok, pix, inside = np.empty(m, np.bool_), np.empty(m, np.int64), np.empty(m, np.bool_)
+    h, w = vj.size
+    cam = np.ascontiguousarray(vj.w2c[None].numpy()), vj.K[None].numpy()  # inv() gives a column-major w2c
+    zk, zj = vk.means[..., 2].reshape(-1)[idx].numpy(), vj.means[..., 2].reshape(-1).contiguous().numpy()
+    parallel_for(mergeable, m, np.ascontiguousarray(Xw.numpy()), zk, *cam, h, w, zj, vj.alive.reshape(-1).numpy(),
+                 NEAR_Z, cfg.dedup_depth_tol, vk.focal, vj.focal, cfg.dedup_finer_ratio, ok, pix, inside,
+                 chunks_per_thread=2)  # fmt: skip
+    p = torch.from_numpy(pix)
+    return torch.from_numpy(ok), p % w, p // w, torch.from_numpy(inside)
+
+
+def _mergeable_reference(
+    vk: ViewState, vj: ViewState, idx: torch.Tensor, Xw: torch.Tensor, cfg: CompactConfig
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`_mergeable` in PyTorch (its twin). Same arguments and results."""
     col, row, z, inside = vj.project(Xw)
     zj = vj.means[..., 2].double()[row, col]
     ok = inside & vj.alive[row, col] & ((zj - z).abs() <= cfg.dedup_depth_tol * z.abs())

@@ -1,12 +1,17 @@
-"""Numba kernels of the compaction's occlusion step (:func:`.cleanup.prune_occluded`): each camera's z-buffer of the
-opaque centres, then, per Gaussian, whether any camera sees it, its own camera tried first.
+"""Numba kernels of the compaction's view-against-view steps.
 
-The PyTorch twin (:func:`.cleanup.prune_occluded_reference`) projects every view's Gaussians into every camera twice
-(the z-buffer, then the test) in float64 tensor passes: 7.5 s of the 32-photo orbit's compaction, growing as photos ×
-Gaussians. Here the z-buffers still take every opaque centre into every camera, but the test stops at the first
-camera that sees a Gaussian: its own, nearly always. Same arithmetic, point by point; the matrix products are summed
-in a fixed order (PyTorch's may round differently in the last bit, so a centre exactly on a pixel edge or on the
-depth tolerance may fall the other way: the tests bound how many).
+The occlusion step (:func:`.cleanup.prune_occluded`): each camera's z-buffer of the opaque centres, then, per Gaussian,
+whether any camera sees it, its own camera tried first. The PyTorch twin (:func:`.cleanup.prune_occluded_reference`)
+projects every view's Gaussians into every camera twice (the z-buffer, then the test) in float64 tensor passes: 6.8 s
+of the 32-photo orbit's compaction, growing as photos × Gaussians. Here the z-buffers still take every opaque centre
+into every camera, but the test stops at the first camera that sees a Gaussian: its own, nearly always. Same
+arithmetic, point by point; the matrix products are summed in a fixed order (PyTorch's may round differently in the
+last bit, so a centre exactly on a pixel edge or on the depth tolerance may fall the other way: the tests bound how
+many).
+
+The dedup step's test (:func:`.dedup._mergeable`): where a view's centres land in an earlier view and whether that
+view's Gaussian there is the same surface, one pass instead of the twin's (:func:`.dedup._mergeable_reference`) ~20
+tensor passes, with the same caveat.
 """
 
 from __future__ import annotations
@@ -21,7 +26,7 @@ from ..._threads import JitOptions
 
 _cache_with_imports()  # before the first @njit: the cache follows the sources this module imports
 
-__all__ = ["compile_kernels", "seen_rows", "zbuffers"]
+__all__ = ["compile_kernels", "mergeable", "seen_rows", "zbuffers"]
 
 _JIT: JitOptions = {"cache": True, "nogil": True, "error_model": "numpy"}
 
@@ -92,9 +97,31 @@ def seen_rows(start, stop, X, own, w2c, K, sizes, offsets, near_z, tol, pooled, 
                 break
 
 
+@nb.njit(**_JIT)
+def mergeable(start, stop, X, zk, w2c, K, h, w, zj, alive, near_z, depth_tol, fk, fj, finer, ok, pix, inside):  # noqa: ANN001, ANN201
+    """For centres ``start:stop`` of view k's ``X`` [M, 3] float64 (world; their camera depths ``zk`` [M] float32):
+    ``inside`` [M] bool whether each lands inside view j's image (camera ``w2c`` [1, 4, 4], ``K`` [1, 3, 3], ``h`` ×
+    ``w`` pixels), ``pix`` [M] int64 the pixel (``row * w + col``; 0 outside), and ``ok`` [M] bool whether view j's
+    Gaussian there is alive (``alive`` [h·w] bool), the same surface (its depth ``zj`` [h·w] float32 within
+    ``depth_tol`` of the centre's) and sampled no more coarsely (``zk / fk · finer ≥ zj / fj``, ``fk``, ``fj`` the
+    views' focal lengths)."""
+    for i in range(start, stop):
+        u, v, z = _project(X, i, w2c, K, 0, near_z)
+        inside[i] = _inside(u, v, z, h, w, near_z)
+        p = min(int(math.floor(v)), h - 1) * w + min(int(math.floor(u)), w - 1) if inside[i] else 0
+        pix[i] = p
+        d = np.float64(zj[p])
+        ok[i] = (inside[i] and alive[p] and abs(d - z) <= depth_tol * abs(z)
+                 and np.float64(zk[i]) / fk * finer >= d / fj)  # fmt: skip
+
+
 def compile_kernels() -> None:
-    """Compile (or load from the cache) both kernels for the types :mod:`.cleanup` passes, on no points (no work)."""
+    """Compile (or load from the cache) the kernels for the types :mod:`.cleanup` and :mod:`.dedup` pass, on no points
+    (no work)."""
     X, m4, m3 = np.zeros((0, 3)), np.zeros((1, 4, 4)), np.zeros((1, 3, 3))
-    sizes, offsets, f = np.ones((1, 2), np.int64), np.zeros(1, np.int64), np.zeros(1)
+    sizes, offsets, f, b = np.ones((1, 2), np.int64), np.zeros(1, np.int64), np.zeros(1), np.zeros(0, np.bool_)
     zbuffers(0, 0, X, np.zeros(0, np.bool_), m4, m3, sizes, offsets, 1e-6, f, f)
-    seen_rows(0, 0, X, np.zeros(0, np.int64), m4, m3, sizes, offsets, 1e-6, 0.01, f, np.zeros(0, np.bool_))
+    seen_rows(0, 0, X, np.zeros(0, np.int64), m4, m3, sizes, offsets, 1e-6, 0.01, f, b)
+    f32 = np.zeros(1, np.float32)
+    mergeable(0, 0, X, f32[:0], m4, m3, 1, 1, f32, np.zeros(1, np.bool_), 1e-6, 0.02, 1.0, 1.0, 1.5, b,
+              np.zeros(0, np.int64), b)  # fmt: skip
