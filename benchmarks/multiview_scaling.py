@@ -4,6 +4,7 @@
     python -m benchmarks.multiview_scaling --sizes 2,4,8         # fewer sizes
     python -m benchmarks.multiview_scaling --table               # reprint the last run's table, run nothing
     python -m benchmarks.multiview_scaling --real co3d --data ../shared/data   # real photos: N = 2, 4, 8, 16, 20
+    python -m benchmarks.multiview_scaling --quality fast        # another preset (default: balanced)
 
 The photos: one synthetic room (``make_scene("room", 0)``) seen from an orbit of ``--step`` degree steps (4°: every
 photo overlaps its neighbours), 512 x 384, 60° horizontal field of view, rendered once into ``--cache`` (kept
@@ -12,13 +13,13 @@ larger N adds photos at the end of the same arc.
 
 Per N, the CLI runs in a fresh process under ``/usr/bin/time -v`` (its peak RSS; without it, a helper process that
 runs the CLI and reports ``RUSAGE_CHILDREN``): ``macsplat reconstruct <N photos> -o out.ply --intrinsics intr.json
---report r.json -q`` at the default quality. The table: wall time (Python start and imports included: a constant
-that cancels in the per-photo figure), seconds per photo added beyond the first pair ``(t_N - t_2) / (N - 2)``
-(the issue's target: <= 1.5 s), the same two for the CLI's CPU seconds (user + system: on a shared machine a
-steadier figure than the wall time; with two cores busy it is up to twice the wall time), the report's stage
-times, peak RSS in GB of 10^9 bytes (target at N = 32: <= 4 GB) and, when pycolmap is installed, its incremental
-SfM on the same photos with the true K held fixed (``benchmarks._colmap_peer``: SIFT at 512 px, exhaustive
-matching, mapping; no dense stage) — seconds and photos registered.
+--report r.json --quality Q -q`` (``--quality``, default ``balanced``: the CLI's default). The table: wall time
+(Python start and imports included: a constant that cancels in the per-photo figure), seconds per photo added beyond
+the first pair ``(t_N - t_2) / (N - 2)`` (the issue's target: <= 1.5 s), the same two for the CLI's CPU seconds
+(user + system: on a shared machine a steadier figure than the wall time; with two cores busy it is up to twice the
+wall time), the report's stage times, peak RSS in GB of 10^9 bytes (target at N = 32: <= 4 GB) and, when pycolmap is
+installed, its incremental SfM on the same photos with the true K held fixed (``benchmarks._colmap_peer``: SIFT at
+512 px, exhaustive matching, mapping; no dense stage) — seconds and photos registered.
 
 ``--real co3d`` runs the same table on real photos instead (issue 40: the per-photo figure on real photos too):
 CO3D apple's 20 frames from the shared data folder (``--data``; read as :mod:`benchmarks._dev` reads them), N of
@@ -27,7 +28,8 @@ them evenly spaced over the 20 (frame order: the cameras file's; N = 2 takes the
 photo's true intrinsics given (a cameras file written into ``--cache``); the pycolmap peer gets the same K.
 
 A warm-up run (N = 3, untimed) compiles the Numba kernels into the default cache first, so that N = 2 does not pay
-for them. The results go to ``<cache>/results.json``; ``--table`` reprints them. The load average before each run
+for them. The results go to ``<cache>/results.json`` (``results_co3d.json``, ``results_fast.json``,
+``results_co3d_fast.json``: ``--real``, ``--quality``); ``--table`` reprints them. The load average before each run
 is printed and kept (the machine may be shared).
 """
 
@@ -150,7 +152,7 @@ def real_photos(cache: Path, data: Path, scene: str) -> Photos:
     return Photos([Path(f.image) for f in frames], intr, Ks, spread=True)
 
 
-def _cli_command(photos: list[Path], intr: Path, work: Path) -> list[str]:
+def _cli_command(photos: list[Path], intr: Path, work: Path, quality: str) -> list[str]:
     return [
         sys.executable,
         "-m",
@@ -163,6 +165,8 @@ def _cli_command(photos: list[Path], intr: Path, work: Path) -> list[str]:
         str(intr),
         "--report",
         str(work / "r.json"),
+        "--quality",
+        quality,
         "-q",
     ]
 
@@ -176,9 +180,11 @@ _RUSAGE_HELPER = (
 )
 
 
-def run_cli(photos: list[Path], intr: Path, work: Path) -> tuple[int, float, int, float | None, str]:
+def run_cli(
+    photos: list[Path], intr: Path, work: Path, quality: str = "balanced"
+) -> tuple[int, float, int, float | None, str]:
     """(return code, wall s, peak RSS bytes, CPU s, stderr) of the CLI on ``photos`` in a fresh process."""
-    cmd = _cli_command(photos, intr, work)
+    cmd = _cli_command(photos, intr, work, quality)
     if TIME.exists():
         wrapped = [str(TIME), "-v", *cmd]
         rss_pattern = r"Maximum resident set size \(kbytes\):\s*(\d+)"
@@ -201,7 +207,7 @@ def _cli_error(stderr: str) -> str:
     return " ".join(lines)[-300:]
 
 
-def measure(photos: Photos, n: int, work: Path, colmap: bool) -> SizeResult:
+def measure(photos: Photos, n: int, work: Path, colmap: bool, quality: str = "balanced") -> SizeResult:
     """The CLI (and the peer) on the first ``n`` photos."""
     chosen = photos.chosen(n)
     paths = [photos.paths[i] for i in chosen]
@@ -209,7 +215,7 @@ def measure(photos: Photos, n: int, work: Path, colmap: bool) -> SizeResult:
         shutil.rmtree(work)
     work.mkdir(parents=True)
     load = os.getloadavg()[0]
-    rc, wall, rss, cpu_s, stderr = run_cli(paths, photos.intrinsics, work)
+    rc, wall, rss, cpu_s, stderr = run_cli(paths, photos.intrinsics, work, quality)
     report_path = work / "r.json"
     report = json.loads(report_path.read_text()) if rc == 0 and report_path.exists() else {}
     if report:
@@ -333,9 +339,11 @@ def main() -> None:
     ap.add_argument("--table", action="store_true", help="reprint the last run's table (<cache>/results.json)")
     ap.add_argument("--real", choices=REAL_SCENES, help="real photos instead of the orbit (N evenly spaced)")
     ap.add_argument("--data", type=Path, default=Path("../shared/data"), help="the shared data folder (--real)")
+    ap.add_argument("--quality", choices=("fast", "balanced", "best"), default="balanced", help="the CLI's --quality")
     args = ap.parse_args()
     sizes = args.sizes or (REAL_SIZES if args.real else [2, 4, 8, 16, 32])
-    results_path = args.cache / ("results.json" if args.real is None else f"results_{args.real}.json")
+    tag = "".join(f"_{t}" for t in (args.real, None if args.quality == "balanced" else args.quality) if t)
+    results_path = args.cache / f"results{tag}.json"
     if args.table:
         saved = json.loads(results_path.read_text())
         print_table([SizeResult(**r) for r in saved["results"]], saved["peer"])
@@ -349,7 +357,7 @@ def main() -> None:
         photos = real_photos(args.cache, args.data, args.real)
         if max(sizes) > len(photos.paths):
             raise SystemExit(f"--sizes: {args.real} has {len(photos.paths)} photos")
-    work = args.cache / "work"
+    work = args.cache / f"work{tag}"
     if not args.no_warmup:
         (args.cache / "warmup").mkdir(parents=True, exist_ok=True)
         warm = [photos.paths[i] for i in photos.chosen(3)]
@@ -359,7 +367,7 @@ def main() -> None:
         )
     results = []
     for n in sizes:
-        r = measure(photos, n, work / f"n{n}", peer)
+        r = measure(photos, n, work / f"n{n}", peer, args.quality)
         results.append(r)
         peer_line = f", COLMAP {r.colmap_s:.1f} s {r.colmap_registered}/{n}" if peer and r.colmap_s is not None else ""
         print(
