@@ -42,8 +42,15 @@ benchmarks/history/compact.md.
 
 from __future__ import annotations
 
-from .cleanup import compile_kernels
 from .config import CompactConfig, CompactReport, CompactStep
 from .run import compact, compact_reconstruction
 
 __all__ = ["CompactConfig", "CompactReport", "CompactStep", "compact", "compact_reconstruction", "compile_kernels"]
+
+
+def compile_kernels() -> None:
+    """Compile (or load from Numba's cache) the view-against-view kernels of the occlusion and dedup steps now, for
+    a background thread (:mod:`._kernels`; importing this package does not load Numba)."""
+    from ._kernels import compile_kernels as compact_kernels
+
+    compact_kernels()

@@ -15,10 +15,7 @@ from .config import CompactConfig
 from .cull import view_tiles
 from .state import NEIGHBOURS, ViewState
 
-__all__ = [
-    "compile_kernels", "prune_floaters", "prune_occluded", "prune_occluded_reference", "prune_opacity",
-    "prune_subpixel",
-]  # fmt: skip
+__all__ = ["prune_floaters", "prune_occluded", "prune_occluded_reference", "prune_opacity", "prune_subpixel"]
 
 
 def prune_opacity(views: list[ViewState]) -> str:
@@ -132,10 +129,3 @@ def _largest_px(X: torch.Tensor, sigma: torch.Tensor, c: ViewState, best: torch.
     where ``c`` sees them."""
     _, _, z, inside = c.project(X)
     return torch.maximum(best, torch.where(inside, sigma * c.focal / z.clamp_min(1e-12), torch.zeros_like(z)))
-
-
-def compile_kernels() -> None:
-    """Compile (or load from Numba's cache) :func:`prune_occluded`'s kernels now: for a background thread."""
-    from ._kernels import compile_kernels as occlusion_kernels
-
-    occlusion_kernels()
