@@ -7,11 +7,15 @@ Conventions (``cameras.py``): continuous pixel coordinates with pixel centres at
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 
 import numpy as np
 import torch
 
-__all__ = ["NEAR_Z", "principal_point_window", "project_points", "rescale_intrinsics", "scale_focal"]
+__all__ = [
+    "NEAR_Z", "intrinsic_rows", "pixel_offsets", "principal_point_window", "project_points", "rescale_intrinsics",
+    "scale_focal",
+]  # fmt: skip
 
 NEAR_Z = 1e-9
 """A point is in front of a camera when its camera depth exceeds this (:func:`project_points`)."""
@@ -80,3 +84,15 @@ def project_points(
     col = torch.where(inside, uv[:, 0], torch.zeros_like(z)).floor().long().clamp(0, w - 1)
     row = torch.where(inside, uv[:, 1], torch.zeros_like(z)).floor().long().clamp(0, h - 1)
     return col, row, z, inside
+
+
+def intrinsic_rows(Ks: Iterable[np.ndarray]) -> np.ndarray:
+    """Each camera's ``(fx, fy, cx, cy)`` from its ``K`` [3, 3] (no skew), as the CPU kernels take them. [N, 4]
+    float64"""
+    return np.array([[K[0, 0], K[1, 1], K[0, 2], K[1, 2]] for K in Ks], dtype=np.float64)
+
+
+def pixel_offsets(sizes: np.ndarray) -> np.ndarray:
+    """Where each image's pixels start when the images of ``sizes`` [N, 2] (h, w) lie one after another in one flat
+    array (row-major each), as the CPU kernels take per-pixel maps. [N] int64"""
+    return np.concatenate([[0], np.cumsum(sizes[:, 0] * sizes[:, 1])[:-1]]).astype(np.int64)

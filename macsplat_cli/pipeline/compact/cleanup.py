@@ -49,7 +49,7 @@ def prune_occluded(views: list[ViewState], cfg: CompactConfig) -> str:
     z-buffer takes every opaque centre, then a Gaussian is tested camera by camera, its own first, until one sees
     it (:mod:`._kernels`, on the kernel threads; the twin: :func:`prune_occluded_reference`)."""
     from ..._threads import parallel_for
-    from ...camera_math import NEAR_Z
+    from ...camera_math import NEAR_Z, pixel_offsets
     from ._kernels import seen_rows, zbuffers
 
     alive = [v.alive.reshape(-1).nonzero().squeeze(1) for v in views]  # only these can occlude or be kept
@@ -60,8 +60,8 @@ def prune_occluded(views: list[ViewState], cfg: CompactConfig) -> str:
     w2c = np.ascontiguousarray(torch.stack([v.w2c for v in views]).numpy())
     K = np.ascontiguousarray(torch.stack([v.K.double() for v in views]).numpy())
     sizes = np.array([v.size for v in views], dtype=np.int64)
-    offsets = np.concatenate([[0], np.cumsum(sizes[:, 0] * sizes[:, 1])[:-1]]).astype(np.int64)
-    zbuf, pooled = np.empty(int((sizes[:, 0] * sizes[:, 1]).sum())), np.empty(int((sizes[:, 0] * sizes[:, 1]).sum()))
+    offsets, pixels = pixel_offsets(sizes), int((sizes[:, 0] * sizes[:, 1]).sum())
+    zbuf, pooled = np.empty(pixels), np.empty(pixels)
     parallel_for(zbuffers, len(views), X, opaque, w2c, K, sizes, offsets, NEAR_Z, zbuf, pooled, chunks_per_thread=4)
     seen = np.zeros(len(X), dtype=np.bool_)
     parallel_for(seen_rows, len(X), X, own, w2c, K, sizes, offsets, NEAR_Z, cfg.occlusion_depth_tol, pooled, seen,

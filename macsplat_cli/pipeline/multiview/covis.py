@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ...camera_math import intrinsic_rows, pixel_offsets
 from ...gaussians import GaussianMaps
 
 __all__ = ["CovisReport", "compile_kernels", "covisibility_init", "covisibility_init_reference"]
@@ -128,10 +129,10 @@ def covisibility_init(maps: list[GaussianMaps], Ks: list[np.ndarray]) -> tuple[l
     flat = [np.ascontiguousarray(torch.cat([getattr(s, name) for s in seen]).numpy())
             for name in ("world", "valid", "score", "z")]  # fmt: skip
     sizes = np.array([s.size for s in seen], dtype=np.int64)
-    offsets = np.concatenate([[0], np.cumsum(sizes[:, 0] * sizes[:, 1])[:-1]]).astype(np.int64)
+    offsets = pixel_offsets(sizes)
     R = np.ascontiguousarray(torch.stack([s.R for s in seen]).numpy())
     c = np.ascontiguousarray(torch.stack([s.c for s in seen]).numpy())
-    intr = np.array([[K[0, 0], K[1, 1], K[0, 2], K[1, 2]] for K in (s.K.numpy() for s in seen)], dtype=np.float64)
+    intr = intrinsic_rows(s.K.numpy() for s in seen)
     keeps = []
     for k in range(len(maps)):
         idx = seen[k].valid.nonzero().squeeze(1)

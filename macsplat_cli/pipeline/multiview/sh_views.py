@@ -13,6 +13,7 @@ import math
 import numpy as np
 import torch
 
+from ...camera_math import intrinsic_rows, pixel_offsets
 from ...gaussians import GaussianMaps
 
 __all__ = ["MIN_SPREAD_DEG", "MIN_VIEWS", "compile_kernels", "view_dependent", "view_dependent_reference"]
@@ -88,9 +89,9 @@ def view_dependent(maps: list[GaussianMaps], Ks: list[np.ndarray]) -> list[torch
 
     poses = np.stack([m.cam_to_world_or_identity(torch.float64)[0].numpy() for m in maps])
     R, t = np.ascontiguousarray(poses[:, :3, :3]), np.ascontiguousarray(poses[:, :3, 3])
-    intr = np.array([[K[0, 0], K[1, 1], K[0, 2], K[1, 2]] for K in Ks], dtype=np.float64)
+    intr = intrinsic_rows(Ks)
     sizes = np.array([m.size for m in maps], dtype=np.int64)
-    offsets = np.concatenate([[0], np.cumsum(sizes[:, 0] * sizes[:, 1])[:-1]]).astype(np.int64)
+    offsets = pixel_offsets(sizes)
     depths = np.concatenate([m.means[0, ..., 2].detach().double().reshape(-1).numpy() for m in maps])
     cos_spread = math.cos(math.radians(MIN_SPREAD_DEG))
     half = math.cos(0.5 * math.acos(cos_spread))

@@ -322,7 +322,7 @@ def test_the_covisibility_kernel_keeps_what_its_pytorch_twin_keeps(
     maps = _maps([views[k] for k in order], [depths[k] for k in order], poses)
     Ks = [views[k].K for k in order]
     got, rep = covis.covisibility_init(maps, Ks)
-    ref, rep_ref = covis.covisibility_init_reference(maps, Ks)
+    ref, _ = covis.covisibility_init_reference(maps, Ks)
     valid = sum(rep.before)
     differ = sum(int((g.valid_mask() != r.valid_mask()).sum()) for g, r in zip(got, ref))
     assert differ <= max(1, valid // 10_000), (differ, valid)
