@@ -355,7 +355,7 @@ def reconstruct(
     config = config or EngineConfig()
     clock = StageClock(on_stage)  # the stages around the pipeline's (its own clock times stages 1-6)
     _check_photos(images, config)
-    _compile_kernels_in_background()
+    _compile_kernels_in_background(len(images))
     models = _models_for(config, models, clock, len(images))
     settings = config.settings(photos=len(images))
     pipeline = _build_pipeline(config, settings, models)
@@ -368,31 +368,33 @@ def reconstruct(
 
 
 _COMPILING: list[threading.Thread] = []
+_QUEUED: set[str] = set()  # the stages whose kernels a background thread was started for
 
 
-def _compile_kernels_in_background() -> None:
-    """Once per process: compile the CPU kernels (or load them from Numba's cache) in a daemon thread, in the order
-    the stages need them, so that a first run's compilation overlaps the stages before them instead of adding to
-    them (``benchmarks/first_run.py``). Numba itself is first imported here: the modules the engine and the settings
-    import do not load it (``tests/test_engine.py``), so its import and registries (~1 s of a warm ``--quality fast``
-    run) overlap the images and SIFT stages. A stage that gets to a kernel first compiles it itself (Numba's lock makes
-    the other wait); a failure here only costs that."""
-    if _COMPILING:
-        return
+def _compile_kernels_in_background(photos: int) -> None:
+    """Compile the kernels a run of ``photos`` photos uses (or load them from Numba's cache) in a daemon thread, in
+    the order the stages need them, each stage's once per process: a first run's compilation overlaps the stages
+    before them (``benchmarks/first_run.py``). Two photos skip the N-photo stages' kernels (first, they held Numba's
+    lock while the depth stage waited). Numba is first imported here (``tests/test_engine.py``): its import overlaps
+    the images and SIFT stages. A stage that gets to a kernel first compiles it itself; a failure here costs that."""
+    names = [n for n in ("matching", "multiview", "depth", "compact", "render") if photos > 2 or n != "multiview"]
+    names = [n for n in names if n not in _QUEUED]
 
     def work() -> None:
         from . import render
         from .pipeline import compact, depth, matching, multiview
 
-        for stage in (matching, multiview, depth, compact, render):
+        stages = {"matching": matching, "multiview": multiview, "depth": depth, "compact": compact, "render": render}
+        for name in names:
             try:
-                stage.compile_kernels()
+                stages[name].compile_kernels()
             except Exception as e:  # noqa: BLE001 - the stage compiles its kernel on first use anyway
-                logger.debug("background compilation of %s failed: %s", stage.__name__, e)
+                logger.debug("background compilation of %s failed: %s", name, e)
 
-    thread = threading.Thread(target=work, name="macsplat-compile", daemon=True)
-    _COMPILING.append(thread)
-    thread.start()
+    if names:
+        _QUEUED.update(names)
+        _COMPILING.append(threading.Thread(target=work, name="macsplat-compile", daemon=True))
+        _COMPILING[-1].start()
 
 
 def _check_photos(images: Sequence[str | Path], config: EngineConfig) -> None:

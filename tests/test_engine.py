@@ -291,22 +291,28 @@ from macsplat_cli import engine
 from macsplat_cli.pipeline import _match_kernels as m
 from macsplat_cli.pipeline.compact import _kernels as o
 from macsplat_cli.pipeline.depth import _patchmatch_kernels as p, _sgm_kernels as s
-from macsplat_cli.pipeline.multiview import _covis_kernels as c, _sh_views_kernels as v
+from macsplat_cli.pipeline.multiview import _covis_kernels as c, _schur_kernels as b, _sh_views_kernels as v
 from macsplat_cli.render import _kernels as r, _project_kernels as pr
 
 rec = engine.reconstruct(sys.argv[1:3])
 engine._COMPILING[0].join()
 engine.render_path(rec, 2)
 kernels = [m._chunks, s._straight, s._winner_rows, p._initial_rows, p._refine_rows, r._count_runs,
-           r._fill_runs, r._forward_tiles, pr.project_range, pr.depth_order, pr._gather_range, v.view_spread,
-           c.kept, o.zbuffers, o.seen_rows, o.mergeable]
-print(json.dumps({k.__name__: len(k.signatures) for k in kernels}))
+           r._fill_runs, r._forward_tiles, pr.project_range, pr.depth_order, pr._gather_range, o.zbuffers,
+           o.seen_rows, o.mergeable]
+multiview = [b.schur_term, c.kept, v.view_spread]
+pair = {k.__name__: len(k.signatures) for k in kernels + multiview}
+engine._compile_kernels_in_background(3)  # what more photos add: the N-photo stages' kernels alone
+engine._COMPILING[-1].join()
+print(json.dumps([pair, {k.__name__: len(k.signatures) for k in multiview}, len(engine._COMPILING)]))
 """
 
 
 def test_background_compilation_compiles_the_signatures_the_stages_use(pair: tuple[Path, Path, Path]) -> None:
     """The engine's background thread compiles each kernel for exactly the argument types the stages pass: after a
-    reconstruction and a rendered path in a fresh process, every kernel has one signature, not two."""
+    reconstruction and a rendered path in a fresh process, every kernel has one signature, not two. Two photos
+    leave the N-photo stages' kernels alone; a later run of more photos adds them (one signature each), in a
+    second thread."""
     import os
     import subprocess
     import sys
@@ -315,8 +321,10 @@ def test_background_compilation_compiles_the_signatures_the_stages_use(pair: tup
     res = subprocess.run([sys.executable, "-c", _COMPILE_CHECK, str(pair[0]), str(pair[1])], capture_output=True,
                          text=True, env={**os.environ, "PYTHONPATH": str(root)}, timeout=300)  # fmt: skip
     assert res.returncode == 0, res.stderr[-2000:]
-    counts = json.loads(res.stdout.strip().splitlines()[-1])
-    assert counts and all(n == 1 for n in counts.values()), counts
+    counts, multiview, threads = json.loads(res.stdout.strip().splitlines()[-1])
+    assert {k: n for k, n in counts.items() if k in multiview} == dict.fromkeys(multiview, 0), counts
+    assert all(n == 1 for k, n in counts.items() if k not in multiview), counts
+    assert multiview == dict.fromkeys(multiview, 1) and threads == 2, (multiview, threads)
 
 
 def test_stage_clock_times_each_stage_and_tells_its_events() -> None:
