@@ -230,7 +230,9 @@ def depth_order(keep, bits, idx, keys, idx2, keys2):  # noqa: ANN001, ANN201
     """The indices of the kept Gaussians (``keep`` [N] bool) sorted by depth, stable (ties in index order), as
     ``np.argsort(depth[kept], kind="stable")`` would give, into ``idx[:M]``; returns ``M``. An LSD radix sort, one
     byte a pass, of the depths' IEEE bits ``bits`` [N] (uint32 or uint64) mapped to unsigned integers of the same
-    order; ``idx``, ``idx2`` [≥ N] int64 and ``keys``, ``keys2`` [≥ N] uint64 are its scratch (any values)."""
+    order; ``idx``, ``idx2`` [≥ N] int64 and ``keys``, ``keys2`` [≥ N] uint64 are its scratch (any values). Plain
+    loops, no array methods: ``start.max()`` and the slice copy ``out[:m] = idx`` (its shape-error message) made
+    Numba compile ~5 s of library code on a first run (``benchmarks/first_run.py``)."""
     n, nbits = keep.shape[0], 8 * bits.itemsize
     m = 0
     for g in range(n):
@@ -250,10 +252,14 @@ def depth_order(keep, bits, idx, keys, idx2, keys2):  # noqa: ANN001, ANN201
     swapped = False
     for shift in range(0, nbits, 8):
         sh_ = np.uint64(shift)
-        start[:] = 0
+        for d in range(257):
+            start[d] = 0
         for j in range(m):
             start[np.int64((keys[j] >> sh_) & byte) + 1] += 1
-        if start.max() == m:  # one value of this byte: the pass would not move anything
+        top = 0
+        for d in range(257):
+            top = max(top, start[d])
+        if top == m:  # one value of this byte: the pass would not move anything
             continue
         for d in range(256):
             start[d + 1] += start[d]
@@ -264,7 +270,8 @@ def depth_order(keep, bits, idx, keys, idx2, keys2):  # noqa: ANN001, ANN201
         keys, keys2, idx, idx2 = keys2, keys, idx2, idx
         swapped = not swapped
     if swapped:  # the last pass wrote the second buffer
-        out[:m] = idx
+        for j in range(m):
+            out[j] = idx[j]
     return m
 
 
