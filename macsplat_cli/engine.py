@@ -21,7 +21,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import logging
-import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -31,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from .errors import InputError
+from .pipeline import warmup
 from .pipeline.refine_config import RefineConfig
 from .pipeline.run import (
     Pipeline,
@@ -355,7 +355,7 @@ def reconstruct(
     config = config or EngineConfig()
     clock = StageClock(on_stage)  # the stages around the pipeline's (its own clock times stages 1-6)
     _check_photos(images, config)
-    _compile_kernels_in_background(len(images))
+    warmup.compile_in_background(len(images))
     models = _models_for(config, models, clock, len(images))
     settings = config.settings(photos=len(images))
     pipeline = _build_pipeline(config, settings, models)
@@ -365,36 +365,6 @@ def reconstruct(
     if settings.refine.steps > 0:
         rec = _refine(rec, settings.refine, models, clock, on_refine_step)
     return _compact(rec, settings, clock)
-
-
-_COMPILING: list[threading.Thread] = []
-_QUEUED: set[str] = set()  # the stages whose kernels a background thread was started for
-
-
-def _compile_kernels_in_background(photos: int) -> None:
-    """Compile the kernels a run of ``photos`` photos uses (or load them from Numba's cache) in a daemon thread, in
-    the order the stages need them, each stage's once per process: a first run's compilation overlaps the stages
-    before them (``benchmarks/first_run.py``). Two photos skip the N-photo stages' kernels (first, they held Numba's
-    lock while the depth stage waited). Numba is first imported here (``tests/test_engine.py``): its import overlaps
-    the images and SIFT stages. A stage that gets to a kernel first compiles it itself; a failure here costs that."""
-    names = [n for n in ("matching", "multiview", "depth", "compact", "render") if photos > 2 or n != "multiview"]
-    names = [n for n in names if n not in _QUEUED]
-
-    def work() -> None:
-        from . import render
-        from .pipeline import compact, depth, matching, multiview
-
-        stages = {"matching": matching, "multiview": multiview, "depth": depth, "compact": compact, "render": render}
-        for name in names:
-            try:
-                stages[name].compile_kernels()
-            except Exception as e:  # noqa: BLE001 - the stage compiles its kernel on first use anyway
-                logger.debug("background compilation of %s failed: %s", name, e)
-
-    if names:
-        _QUEUED.update(names)
-        _COMPILING.append(threading.Thread(target=work, name="macsplat-compile", daemon=True))
-        _COMPILING[-1].start()
 
 
 def _check_photos(images: Sequence[str | Path], config: EngineConfig) -> None:
@@ -443,6 +413,7 @@ def _refine(
     from .pipeline.refine_stage import check_scale, refine_stage
 
     check_scale(rec.maps, config.scale)  # a usage error, before the stage starts
+    warmup.wait_for_renderer()  # a first run: the renderer's kernels come from their own process
     out, section = clock("refine", lambda: refine_stage(rec, config, lpips=models.lpips, on_step=on_step))
     rec.report.add_refine(section, count_gaussians(out.maps) + _layer_size(rec))
     return dataclasses.replace(rec, maps=out.maps, poses=rec.poses if out.poses is None else out.poses)
@@ -485,6 +456,7 @@ def path_views(rec: Reconstruction, n: int) -> Iterator[np.ndarray]:
     from .trajectory import interpolate_cameras
 
     path = interpolate_cameras(list(rec.cameras(original_size=False)), n)
+    warmup.wait_for_renderer()
     for cam in path:
         with torch.no_grad():
             frame = to_uint8(render_camera(rec.gaussians, cam).rgb)

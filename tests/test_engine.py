@@ -288,23 +288,23 @@ _COMPILE_CHECK = r"""
 import json
 import sys
 from macsplat_cli import engine
-from macsplat_cli.pipeline import _match_kernels as m
+from macsplat_cli.pipeline import _match_kernels as m, warmup
 from macsplat_cli.pipeline.compact import _kernels as o
 from macsplat_cli.pipeline.depth import _patchmatch_kernels as p, _sgm_kernels as s
 from macsplat_cli.pipeline.multiview import _covis_kernels as c, _schur_kernels as b, _sh_views_kernels as v
 from macsplat_cli.render import _kernels as r, _project_kernels as pr
 
 rec = engine.reconstruct(sys.argv[1:3])
-engine._COMPILING[0].join()
+warmup.threads[0].join()
 engine.render_path(rec, 2)
 kernels = [m._chunks, s._straight, s._winner_rows, p._initial_rows, p._refine_rows, r._count_runs,
            r._fill_runs, r._forward_tiles, pr.project_range, pr.depth_order, pr._gather_range, o.zbuffers,
            o.seen_rows, o.mergeable]
 multiview = [b.schur_term, c.kept, v.view_spread]
 pair = {k.__name__: len(k.signatures) for k in kernels + multiview}
-engine._compile_kernels_in_background(3)  # what more photos add: the N-photo stages' kernels alone
-engine._COMPILING[-1].join()
-print(json.dumps([pair, {k.__name__: len(k.signatures) for k in multiview}, len(engine._COMPILING)]))
+warmup.compile_in_background(3)  # what more photos add: the N-photo stages' kernels alone
+warmup.threads[-1].join()
+print(json.dumps([pair, {k.__name__: len(k.signatures) for k in multiview}, len(warmup.threads)]))
 """
 
 
