@@ -81,7 +81,7 @@ def _ref_window(ref, y, x, radius, step, rwin):  # noqa: ANN001, ANN202
     return mr, max(srr * inv_n - mr * mr, 0.0)
 
 
-@nb.njit(inline="always", **_JIT)
+@nb.njit(**_JIT)
 def _window_cost(src, A, b, y, x, rho, gu, gv, radius, step, rwin, mr, var_r):  # noqa: ANN001, ANN202
     """:func:`plane_cost` with the reference window's samples, mean and variance given (:func:`_ref_window`): a
     pixel's planes share them (computed once per pixel, not once per plane)."""
