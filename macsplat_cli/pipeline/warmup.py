@@ -66,11 +66,13 @@ def _load(names: list[str]) -> None:
 
 
 def _render_in_child() -> subprocess.Popen[bytes] | None:
-    """A process compiling the renderer's kernels into Numba's cache, started when they are not there yet (None when
-    they are, or when no process could be started)."""
+    """A process compiling the renderer's kernels into Numba's cache, started when they are not there yet and a
+    second CPU can run it (None when they are, on one kernel thread — one CPU, or ``eval --jobs`` filling the cores:
+    a second process would only add its imports —, or when no process could be started)."""
+    from .._threads import kernel_threads
     from ..render import kernels_uncached
 
-    if not sys.executable or not kernels_uncached():
+    if not sys.executable or kernel_threads() < 2 or not kernels_uncached():
         return None
     try:
         quiet = subprocess.DEVNULL
