@@ -50,6 +50,8 @@ def compile_in_background(photos: int) -> None:
 
 
 def _load(names: list[str]) -> None:
+    """The thread's work: each stage of ``names`` (:data:`STAGES`) loads its kernels in turn, the renderer's once its
+    process (:func:`_render_in_child`), if one was started, is done."""
     from .. import render
     from . import compact, depth, matching, multiview
 
