@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import logging
 import subprocess
-import sys
 import threading
 
 __all__ = ["compile_in_background", "threads", "wait_for_renderer"]
@@ -71,14 +70,17 @@ def _render_in_child() -> subprocess.Popen[bytes] | None:
     """A process compiling the renderer's kernels into Numba's cache, started when they are not there yet and a
     second CPU can run it (None when they are, on one kernel thread — one CPU, or ``eval --jobs`` filling the cores:
     a second process would only add its imports —, or when no process could be started)."""
+    from multiprocessing import spawn
+
     from .._threads import kernel_threads
     from ..render import kernels_uncached
 
-    if not sys.executable or kernel_threads() < 2 or not kernels_uncached():
+    python = spawn.get_executable()  # multiprocessing's interpreter: an app embedding Python sets it to a Python
+    if not python or kernel_threads() < 2 or not kernels_uncached():
         return None
     try:
         quiet = subprocess.DEVNULL
-        child = subprocess.Popen([sys.executable, "-c", _RENDER_CHILD], stdin=quiet, stdout=quiet, stderr=quiet)
+        child = subprocess.Popen([python, "-c", _RENDER_CHILD], stdin=quiet, stdout=quiet, stderr=quiet)
     except OSError as e:  # no process: the thread compiles them
         logger.debug("no process to compile the renderer's kernels: %s", e)
         return None

@@ -15,13 +15,13 @@ from macsplat_cli.pipeline import warmup
 ROOT = Path(__file__).resolve().parents[2]
 
 _FIRST_RUN = r"""
-import sys
+from multiprocessing import spawn
 from macsplat_cli.pipeline import warmup
 from macsplat_cli.render import kernels_uncached
 
 uncached = kernels_uncached()
 child = warmup._render_in_child()
-started = child is not None and child.args == [sys.executable, "-c", warmup._RENDER_CHILD]
+started = child is not None and child.args == [spawn.get_executable(), "-c", warmup._RENDER_CHILD]
 if child is not None:
     child.kill()
     child.wait()
